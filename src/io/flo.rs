@@ -1,0 +1,1 @@
+//! Middlebury `.flo` flow files and the flow colour wheel (placeholder, being written).

@@ -1,0 +1,1 @@
+//! PNG/JPEG decoding and encoding with size limits (placeholder, being written).

@@ -1,0 +1,5 @@
+//! File formats: NumPy arrays, Middlebury `.flo`, the flow colour wheel, PNG/JPEG images.
+
+pub mod flo;
+pub mod image;
+pub mod npy;

@@ -1,0 +1,114 @@
+//! NumPy `.npy` arrays: reading any real or integer dtype as f64 (with its shape), from files or
+//! from members of an `.npz`, and writing f32 / u8 arrays.
+
+use npyz::{DType, NpyFile, TypeChar, WriterBuilder};
+use std::io::{self, Read, Write};
+use std::path::Path;
+
+/// Refuse arrays with more elements than this (about 4 GiB of f32); a guard against headers
+/// that promise absurd sizes.
+pub const MAX_ELEMENTS: u64 = 1 << 30;
+
+/// A dense array in C order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Array {
+    pub shape: Vec<u64>,
+    pub data: Vec<f64>,
+}
+
+impl Array {
+    /// The shape with a leading dimension of 1 removed, if present and the rank exceeds `min_rank`.
+    pub fn squeeze_leading(mut self, min_rank: usize) -> Self {
+        if self.shape.len() > min_rank && self.shape[0] == 1 {
+            self.shape.remove(0);
+        }
+        self
+    }
+}
+
+fn bad(msg: String) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidData, msg)
+}
+
+/// Reads an npy stream of any float (f4, f8), integer or bool dtype as f64.
+pub fn read_array<R: Read>(npy: NpyFile<R>) -> io::Result<Array> {
+    let shape = npy.shape().to_vec();
+    let count = shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d)).unwrap_or(u64::MAX);
+    if count > MAX_ELEMENTS {
+        return Err(bad(format!("array of shape {shape:?} is larger than the limit of {MAX_ELEMENTS} elements")));
+    }
+    if npy.order() == npyz::Order::Fortran && shape.len() > 1 {
+        return Err(bad("Fortran-ordered arrays are not supported; save with np.ascontiguousarray".into()));
+    }
+    let ts = match npy.dtype() {
+        DType::Plain(ts) => ts,
+        other => return Err(bad(format!("unsupported dtype {}", other.descr()))),
+    };
+    let data: Vec<f64> = match (ts.type_char(), ts.size_field()) {
+        (TypeChar::Float, 8) => npy.into_vec::<f64>()?,
+        (TypeChar::Float, 4) => npy.into_vec::<f32>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Uint, 1) | (TypeChar::Bool, 1) => npy.into_vec::<u8>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Uint, 2) => npy.into_vec::<u16>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Uint, 4) => npy.into_vec::<u32>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Int, 1) => npy.into_vec::<i8>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Int, 2) => npy.into_vec::<i16>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Int, 4) => npy.into_vec::<i32>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Int, 8) => npy.into_vec::<i64>()?.into_iter().map(|v| v as f64).collect(),
+        _ => return Err(bad(format!("unsupported dtype {ts}; expected a float, integer or bool array"))),
+    };
+    if data.len() as u64 != count {
+        return Err(bad(format!("array data holds {} values, its shape {shape:?} needs {count}", data.len())));
+    }
+    Ok(Array { shape, data })
+}
+
+/// Reads a `.npy` file.
+pub fn read_npy_file(path: &Path) -> io::Result<Array> {
+    let f = std::fs::File::open(path)?;
+    read_array(NpyFile::new(io::BufReader::new(f))?)
+}
+
+fn write_with<T: npyz::AutoSerialize + Copy>(path: &Path, shape: &[u64], data: &[T]) -> io::Result<()> {
+    let f = io::BufWriter::new(std::fs::File::create(path)?);
+    let mut w = npyz::WriteOptions::new().default_dtype().shape(shape).writer(f).begin_nd()?;
+    w.extend(data.iter().copied())?;
+    w.finish()
+}
+
+/// Writes a float32 array.
+pub fn write_f32(path: &Path, shape: &[u64], data: &[f32]) -> io::Result<()> {
+    write_with(path, shape, data)
+}
+
+/// Writes a uint8 array.
+pub fn write_u8(path: &Path, shape: &[u64], data: &[u8]) -> io::Result<()> {
+    write_with(path, shape, data)
+}
+
+/// Writes a float32 array into any writer (used to build `.npz` test files).
+pub fn write_f32_to<W: Write>(w: W, shape: &[u64], data: &[f32]) -> io::Result<()> {
+    let mut npy = npyz::WriteOptions::new().default_dtype().shape(shape).writer(w).begin_nd()?;
+    npy.extend(data.iter().copied())?;
+    npy.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_f32_and_u8() {
+        let dir = std::env::temp_dir().join(format!("mpiflow-npy-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("a.npy");
+        write_f32(&p, &[2, 3], &[0.0, 1.5, -2.0, 3.0, 4.0, 5.0]).unwrap();
+        let a = read_npy_file(&p).unwrap();
+        assert_eq!(a.shape, vec![2, 3]);
+        assert_eq!(a.data, vec![0.0, 1.5, -2.0, 3.0, 4.0, 5.0]);
+        write_u8(&p, &[3], &[0, 1, 255]).unwrap();
+        assert_eq!(read_npy_file(&p).unwrap().data, vec![0.0, 1.0, 255.0]);
+        std::fs::write(&p, b"\x93NUMPY garbage").unwrap();
+        assert!(read_npy_file(&p).is_err());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

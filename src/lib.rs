@@ -1,0 +1,9 @@
+//! mpiflow: realistic optical-flow training samples from still photos via multiplane images
+//! (MPI-Flow, ICCV 2023). The library holds the geometry, the MPI type and its construction,
+//! the renderer, file formats and benchmarks; the `mpiflow` binary is a thin CLI over it.
+
+pub mod bench;
+pub mod geometry;
+pub mod io;
+pub mod mpi;
+pub mod render;

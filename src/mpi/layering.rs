@@ -1,0 +1,1 @@
+//! Built-in RGB-D layering (placeholder, being written).

@@ -1,0 +1,212 @@
+//! The multiplane image: N fronto-parallel planes of (r, g, b, sigma) plus optional extra
+//! channels (object masks), plane disparities near to far, and the checks and sanitising that
+//! every MPI passes before it reaches the renderer.
+
+pub mod layering;
+pub mod npz;
+pub mod synthetic;
+
+use crate::geometry::{Intrinsics, Pose};
+
+/// Largest density kept after sanitising; large enough to be opaque over any plane gap, small
+/// enough that sigma * delta stays finite in f32 for deltas up to 1e8.
+pub const SIGMA_MAX: f32 = 1e30;
+
+#[derive(Debug, thiserror::Error)]
+pub enum MpiError {
+    #[error("cannot read {path}: {source}")]
+    Io { path: String, source: std::io::Error },
+    #[error("{path}: not a valid .npz archive: {reason}")]
+    BadArchive { path: String, reason: String },
+    #[error("{path}: missing array `{key}`")]
+    MissingKey { path: String, key: &'static str },
+    #[error("{path}: array `{key}` has shape {shape:?}, expected {expected}")]
+    BadShape { path: String, key: String, shape: Vec<u64>, expected: String },
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// How many values the sanitiser had to repair.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct SanitizeReport {
+    /// NaN or infinite colours and extra channels, set to 0.
+    pub nonfinite_color: usize,
+    /// NaN or negative densities set to 0, +inf or larger than SIGMA_MAX clamped.
+    pub bad_sigma: usize,
+}
+
+impl SanitizeReport {
+    pub fn total(&self) -> usize {
+        self.nonfinite_color + self.bad_sigma
+    }
+}
+
+/// A multiplane image. Plane 0 is the nearest; plane data is plane-major, row-major,
+/// interleaved (r, g, b, sigma) per pixel; extras are plane-major, row-major, `channels` per pixel.
+#[derive(Clone, Debug)]
+pub struct Mpi {
+    pub width: usize,
+    pub height: usize,
+    /// Plane disparities (1 / depth), strictly decreasing, >= 0 (0 = infinitely far).
+    pub disparity: Vec<f64>,
+    /// N * H * W * 4 values: r, g, b in [0, 1] (not enforced), sigma >= 0.
+    pub rgba: Vec<f32>,
+    /// Number of extra channels per plane pixel (0 when none).
+    pub extra_channels: usize,
+    /// N * H * W * extra_channels values.
+    pub extras: Vec<f32>,
+    /// Intrinsics stored with the MPI (from an npz `K`), if any.
+    pub intrinsics: Option<Intrinsics>,
+    /// Pose stored with the MPI (from an npz `G`), if any.
+    pub pose: Option<Pose>,
+}
+
+impl Mpi {
+    /// An MPI of transparent black planes at the given disparities.
+    pub fn new(width: usize, height: usize, disparity: Vec<f64>, extra_channels: usize) -> Self {
+        let n = disparity.len();
+        Self {
+            width,
+            height,
+            disparity,
+            rgba: vec![0.0; n * width * height * 4],
+            extra_channels,
+            extras: vec![0.0; n * width * height * extra_channels],
+            intrinsics: None,
+            pose: None,
+        }
+    }
+
+    pub fn planes(&self) -> usize {
+        self.disparity.len()
+    }
+
+    pub fn plane_len(&self) -> usize {
+        self.width * self.height
+    }
+
+    pub fn plane_rgba(&self, i: usize) -> &[f32] {
+        let n = self.plane_len() * 4;
+        &self.rgba[i * n..(i + 1) * n]
+    }
+
+    pub fn plane_rgba_mut(&mut self, i: usize) -> &mut [f32] {
+        let n = self.plane_len() * 4;
+        &mut self.rgba[i * n..(i + 1) * n]
+    }
+
+    pub fn plane_extras(&self, i: usize) -> &[f32] {
+        let n = self.plane_len() * self.extra_channels;
+        &self.extras[i * n..(i + 1) * n]
+    }
+
+    /// Bytes held by the plane data.
+    pub fn byte_size(&self) -> usize {
+        (self.rgba.len() + self.extras.len()) * 4
+    }
+
+    /// Structural checks: sizes agree, at least one plane, disparities finite, >= 0 and
+    /// strictly decreasing (near to far).
+    pub fn validate(&self) -> Result<(), MpiError> {
+        if self.width == 0 || self.height == 0 {
+            return Err(MpiError::Invalid(format!("MPI has an empty size {}x{}", self.width, self.height)));
+        }
+        let n = self.planes();
+        if n == 0 {
+            return Err(MpiError::Invalid("MPI has no planes".into()));
+        }
+        if self.rgba.len() != n * self.plane_len() * 4 || self.extras.len() != n * self.plane_len() * self.extra_channels {
+            return Err(MpiError::Invalid("MPI plane data does not match its size".into()));
+        }
+        for (i, &d) in self.disparity.iter().enumerate() {
+            if !d.is_finite() || d < 0.0 {
+                return Err(MpiError::Invalid(format!("plane {i} has disparity {d}; disparities must be finite and >= 0")));
+            }
+            if i > 0 && d >= self.disparity[i - 1] {
+                return Err(MpiError::Invalid(format!(
+                    "plane disparities must decrease strictly from near to far; plane {i} has {d} after {}",
+                    self.disparity[i - 1]
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Repairs values the renderer cannot use: non-finite colours become 0, NaN or negative
+    /// densities 0, densities above [`SIGMA_MAX`] (including +inf) are clamped.
+    pub fn sanitize(&mut self) -> SanitizeReport {
+        let mut report = SanitizeReport::default();
+        for px in self.rgba.chunks_exact_mut(4) {
+            for c in &mut px[..3] {
+                if !c.is_finite() {
+                    *c = 0.0;
+                    report.nonfinite_color += 1;
+                }
+            }
+            let s = px[3];
+            if s.is_nan() || s < 0.0 {
+                px[3] = 0.0;
+                report.bad_sigma += 1;
+            } else if s > SIGMA_MAX {
+                px[3] = SIGMA_MAX;
+                report.bad_sigma += 1;
+            }
+        }
+        for v in &mut self.extras {
+            if !v.is_finite() {
+                *v = 0.0;
+                report.nonfinite_color += 1;
+            }
+        }
+        report
+    }
+
+    /// Depth of plane i (infinite for disparity 0).
+    pub fn depth(&self, i: usize) -> f64 {
+        1.0 / self.disparity[i]
+    }
+
+    /// The public generator's fixed plane disparities: linspace(1.0, 0.001, n + 2)[1..n+1].
+    pub fn reference_disparities(n: usize) -> Vec<f64> {
+        let (a, b) = (1.0f64, 0.001f64);
+        let m = (n + 1) as f64;
+        (1..=n).map(|i| a + (b - a) * i as f64 / m).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reference_disparities_match_the_vectors() {
+        let d = Mpi::reference_disparities(8);
+        let expect = [0.889, 0.778, 0.667, 0.556, 0.445, 0.334, 0.223, 0.112];
+        for (a, b) in d.iter().zip(expect) {
+            assert!((a - b).abs() < 1e-7, "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn sanitize_repairs_and_counts() {
+        let mut m = Mpi::new(2, 1, vec![0.5, 0.1], 1);
+        m.rgba[0] = f32::NAN;
+        m.rgba[3] = f32::INFINITY;
+        m.rgba[7] = -1.0;
+        m.rgba[11] = f32::NAN;
+        m.extras[1] = f32::NEG_INFINITY;
+        let r = m.sanitize();
+        assert_eq!(r, SanitizeReport { nonfinite_color: 2, bad_sigma: 3 });
+        assert!(m.rgba.iter().all(|v| v.is_finite()));
+        assert_eq!(m.rgba[3], SIGMA_MAX);
+        assert_eq!(m.rgba[7], 0.0);
+    }
+
+    #[test]
+    fn validate_rejects_bad_disparities() {
+        assert!(Mpi::new(2, 2, vec![0.5, 0.6], 0).validate().is_err());
+        assert!(Mpi::new(2, 2, vec![0.5, f64::NAN], 0).validate().is_err());
+        assert!(Mpi::new(2, 2, vec![], 0).validate().is_err());
+        assert!(Mpi::new(2, 2, vec![1.0, 0.0], 0).validate().is_ok());
+    }
+}

@@ -1,0 +1,93 @@
+//! Import of an MPI from `.npz` in the public reference layout: `mpi_rgb` [1?,N,3,H,W],
+//! `mpi_sigma` [1?,N,1,H,W], `disparity` [1?,N] (near to far), optional `K` [1?,3,3],
+//! optional `G` [4,4] (X_tgt = R X_src + t) and optional `mask_in` [1?,1,H,W] (one 2-D mask
+//! shared by all planes, as the reference uses it) or [1?,N,C,H,W] (per-plane channels).
+
+use super::{Mpi, MpiError};
+use crate::geometry::{Intrinsics, Pose};
+use crate::io::npy::{read_array, Array};
+use std::path::Path;
+
+/// Loads an MPI. Values are not sanitised here; call [`Mpi::sanitize`].
+pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
+    let p = path.display().to_string();
+    let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| match e.kind() {
+        std::io::ErrorKind::NotFound | std::io::ErrorKind::PermissionDenied => MpiError::Io { path: p.clone(), source: e },
+        _ => MpiError::BadArchive { path: p.clone(), reason: e.to_string() },
+    })?;
+    let mut get = |key: &'static str| -> Result<Option<Array>, MpiError> {
+        match npz.by_name(key) {
+            Ok(Some(f)) => read_array(f).map(Some).map_err(|e| MpiError::BadArchive { path: p.clone(), reason: format!("array `{key}`: {e}") }),
+            Ok(None) => Ok(None),
+            Err(e) => Err(MpiError::BadArchive { path: p.clone(), reason: format!("array `{key}`: {e}") }),
+        }
+    };
+    let need = |a: Option<Array>, key: &'static str| a.ok_or(MpiError::MissingKey { path: p.clone(), key });
+    let rgb = need(get("mpi_rgb")?, "mpi_rgb")?.squeeze_leading(4);
+    let sigma = need(get("mpi_sigma")?, "mpi_sigma")?.squeeze_leading(4);
+    let disp = need(get("disparity")?, "disparity")?.squeeze_leading(1);
+    let k = get("K")?.map(|a| a.squeeze_leading(2));
+    let g = get("G")?.map(|a| a.squeeze_leading(2));
+    let mask = get("mask_in")?;
+    let shape_err = |key: &str, a: &Array, expected: &str| MpiError::BadShape { path: p.clone(), key: key.to_string(), shape: a.shape.clone(), expected: expected.to_string() };
+
+    if rgb.shape.len() != 4 || rgb.shape[1] != 3 {
+        return Err(shape_err("mpi_rgb", &rgb, "[1?, N, 3, H, W]"));
+    }
+    let (n, h, w) = (rgb.shape[0] as usize, rgb.shape[2] as usize, rgb.shape[3] as usize);
+    if sigma.shape != [n as u64, 1, h as u64, w as u64] {
+        return Err(shape_err("mpi_sigma", &sigma, &format!("[1?, {n}, 1, {h}, {w}]")));
+    }
+    if disp.shape != [n as u64] {
+        return Err(shape_err("disparity", &disp, &format!("[1?, {n}]")));
+    }
+    let mut mpi = Mpi::new(w, h, disp.data.clone(), 0);
+    let hw = w * h;
+    for i in 0..n {
+        let plane = mpi.plane_rgba_mut(i);
+        for c in 0..3 {
+            let src = &rgb.data[(i * 3 + c) * hw..(i * 3 + c + 1) * hw];
+            for (j, &v) in src.iter().enumerate() {
+                plane[4 * j + c] = v as f32;
+            }
+        }
+        for (j, &v) in sigma.data[i * hw..(i + 1) * hw].iter().enumerate() {
+            plane[4 * j + 3] = v as f32;
+        }
+    }
+    if let Some(m) = mask {
+        let dims = m.shape.len();
+        let (per_plane, channels) = match (dims, m.shape.as_slice()) {
+            (2, [mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
+            (3, [1, mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
+            (4, [1, 1, mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
+            (4, [mn, c, mh, mw]) if (*mn as usize, *mh as usize, *mw as usize) == (n, h, w) => (true, *c as usize),
+            (5, [1, mn, c, mh, mw]) if (*mn as usize, *mh as usize, *mw as usize) == (n, h, w) => (true, *c as usize),
+            _ => return Err(shape_err("mask_in", &m, &format!("[1?, 1, {h}, {w}] or [1?, {n}, C, {h}, {w}]"))),
+        };
+        mpi.extra_channels = channels;
+        mpi.extras = vec![0.0; n * hw * channels];
+        for i in 0..n {
+            for c in 0..channels {
+                let src = if per_plane { &m.data[(i * channels + c) * hw..(i * channels + c + 1) * hw] } else { &m.data[..hw] };
+                for (j, &v) in src.iter().enumerate() {
+                    mpi.extras[(i * hw + j) * channels + c] = v as f32;
+                }
+            }
+        }
+    }
+    if let Some(k) = k {
+        let arr: [f64; 9] = k.data.as_slice().try_into().map_err(|_| shape_err("K", &k, "[1?, 3, 3]"))?;
+        mpi.intrinsics = Some(Intrinsics::from_row_major(&arr).ok_or_else(|| MpiError::Invalid(format!("{p}: `K` is not a pinhole intrinsics matrix: {arr:?}")))?);
+    }
+    if let Some(g) = g {
+        let arr: [f64; 16] = g.data.as_slice().try_into().map_err(|_| shape_err("G", &g, "[4, 4]"))?;
+        let pose = Pose::from_row_major_4x4(&arr);
+        if !pose.is_finite() {
+            return Err(MpiError::Invalid(format!("{p}: `G` is not finite")));
+        }
+        mpi.pose = Some(pose);
+    }
+    mpi.validate().map_err(|e| MpiError::Invalid(format!("{p}: {e}")))?;
+    Ok(mpi)
+}

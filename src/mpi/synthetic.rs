@@ -1,0 +1,1 @@
+//! Synthetic MPIs for benchmarks and tests (placeholder, being written).

@@ -1,0 +1,275 @@
+//! Exact-mode rendering: every target ray is intersected with the planes analytically.
+//!
+//! For a target pixel p let u = K_t^-1 p (unit z), v = R^T u (the ray direction in source
+//! coordinates), s = v_z, C = -R^T t (the target centre in source coordinates) and k = -C_z.
+//! The ray C + lambda v meets plane Z = d_i at lambda_i = (d_i + k) / s, which is also the
+//! point's depth in the target camera. With g_i = lambda_i / d_i = (1 + k disp_i) / s the source
+//! pixel is q_i = (fx_s (C_x disp_i + v_x g_i) + cx_s, fy_s (C_y disp_i + v_y g_i) + cy_s),
+//! finite even for disparity 0. Planes with g_i <= 0 lie behind the target camera and are not
+//! seen; planes are composited in increasing lambda (source order when s > 0, reversed when the
+//! camera has passed the planes and looks back, s < 0); the gap between consecutive planes along
+//! the ray is (lambda_{i+1} - lambda_i) |u|, the last one [`DELTA_LAST`]. A ray that leaves the
+//! source image (q outside [-0.5, W-0.5] x [-0.5, H-0.5]) sees nothing on that plane, so holes
+//! show as coverage < 1 instead of smeared borders.
+//!
+//! The source view uses H_i p = K_t R K_s^-1 p + K_t t disp_i (homogeneous): planes whose point
+//! is behind the target camera (third coordinate <= 0) carry no flow; flow is the weight-
+//! normalised mean over the planes in front.
+
+use super::occupancy::Occupancy;
+use super::{for_each_band, mark_valid, RenderOutput, RenderParams, RenderStats, Tap, DELTA_LAST, DEPTH_MAX};
+use crate::mpi::Mpi;
+use crate::render::real::Real;
+
+/// Width of a target tile for plane skipping (its height is the band height).
+const TILE: usize = 16;
+
+struct PlaneConst<T> {
+    /// 1 + k disp
+    a: T,
+    depth: T,
+    ox: T,
+    oy: T,
+}
+
+#[inline(always)]
+fn cap<T: Real>(v: T, max: f64) -> T {
+    if v > T::of(max) {
+        T::of(max)
+    } else {
+        v
+    }
+}
+
+pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occupancy>, out: &mut RenderOutput) -> RenderStats {
+    let (w, h, n, c) = (mpi.width, mpi.height, mpi.planes(), mpi.extra_channels);
+    let (ks, kt) = (p.k_src, p.k_tgt);
+    let rt = p.pose.rotation.transpose();
+    let centre = p.pose.target_centre_in_source();
+    let k = -centre.z;
+    let planes: Vec<PlaneConst<T>> = mpi
+        .disparity
+        .iter()
+        .map(|&disp| PlaneConst {
+            a: T::of(1.0 + k * disp),
+            depth: T::of((1.0 / disp).min(DEPTH_MAX)),
+            ox: T::of(ks.fx * centre.x * disp + ks.cx),
+            oy: T::of(ks.fy * centre.y * disp + ks.cy),
+        })
+        .collect();
+    let r = |i: usize| [T::of(rt.row(i).x), T::of(rt.row(i).y), T::of(rt.row(i).z)];
+    let rt_t = [r(0), r(1), r(2)];
+    let (fxs, fys) = (T::of(ks.fx), T::of(ks.fy));
+    let (lo, hix, hiy) = (T::of(-0.5), T::of(w as f64 - 0.5), T::of(h as f64 - 0.5));
+    let (wm, hm) = (T::of((w - 1) as f64), T::of((h - 1) as f64));
+    let t_eps = T::of32(p.skip.transmittance_eps);
+    let delta_last = T::of(DELTA_LAST);
+    let ray = |x: f64, y: f64| -> ([T; 3], T) {
+        let u = [T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy), T::one()];
+        let v = [0, 1, 2].map(|i| rt_t[i][0] * u[0] + rt_t[i][1] * u[1] + rt_t[i][2]);
+        (v, (u[0] * u[0] + u[1] * u[1] + T::one()).sqrt())
+    };
+    let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
+
+    let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
+    for_each_band(w, h, [image, depth, coverage, extras], [3, 1, 1, c], |y0, rows, b| {
+        let mut stats = RenderStats::default();
+        let mut active = vec![true; n];
+        // planes met by the current ray, in order: (plane, g, lambda)
+        let mut hits: Vec<(usize, T, T)> = Vec::with_capacity(n);
+        let mut acc_ex = vec![T::zero(); c];
+        let mut ex = vec![T::zero(); c];
+        for tx0 in (0..w).step_by(TILE) {
+            let tx1 = (tx0 + TILE).min(w) - 1;
+            let ty1 = y0 + rows - 1;
+            match occ {
+                Some(o) => tile_activity(o, &planes, &ray, &source_px, [tx0, y0, tx1, ty1], &mut active),
+                None => active.iter_mut().for_each(|a| *a = true),
+            }
+            for ry in 0..rows {
+                let yy = y0 + ry;
+                for x in tx0..=tx1 {
+                    let (v, norm_u) = ray(x as f64, yy as f64);
+                    let s = v[2];
+                    hits.clear();
+                    if s.abs() > T::of(1e-12) {
+                        let inv_s = T::one() / s;
+                        let mut push = |i: usize| {
+                            let g = planes[i].a * inv_s;
+                            if g > T::zero() {
+                                hits.push((i, g, cap(g * planes[i].depth, DEPTH_MAX)));
+                            }
+                        };
+                        if s > T::zero() {
+                            (0..n).for_each(&mut push);
+                        } else {
+                            (0..n).rev().for_each(&mut push);
+                        }
+                    }
+                    let (mut tr, mut sum_w, mut sum_z) = (T::one(), T::zero(), T::zero());
+                    let mut rgb = [T::zero(); 3];
+                    acc_ex.iter_mut().for_each(|a| *a = T::zero());
+                    for (j, &(i, g, lambda)) in hits.iter().enumerate() {
+                        if tr < t_eps {
+                            stats.skipped_early += (hits.len() - j) as u64;
+                            break;
+                        }
+                        if !active[i] {
+                            stats.skipped_tile += 1;
+                            continue;
+                        }
+                        let (qx, qy) = source_px(&planes[i], &v, g);
+                        if !(qx >= lo && qx < hix && qy >= lo && qy < hiy) {
+                            continue;
+                        }
+                        let tap = Tap::new(qx.max(T::zero()).min(wm), qy.max(T::zero()).min(hm), w, h);
+                        let smp = tap.sample4(mpi.plane_rgba(i));
+                        stats.samples += 1;
+                        let sigma = smp[3];
+                        if sigma <= T::zero() {
+                            continue;
+                        }
+                        let delta = match hits.get(j + 1) {
+                            Some(&(_, _, next)) => cap((next - lambda) * norm_u, DELTA_LAST),
+                            None => delta_last,
+                        };
+                        let e = (-sigma * delta).exp();
+                        let wgt = tr * (T::one() - e);
+                        tr *= e;
+                        for k in 0..3 {
+                            rgb[k] += wgt * smp[k];
+                        }
+                        sum_w += wgt;
+                        sum_z += wgt * lambda;
+                        if c > 0 {
+                            tap.sample_c(mpi.plane_extras(i), c, &mut ex);
+                            for (a, e) in acc_ex.iter_mut().zip(&ex) {
+                                *a += wgt * *e;
+                            }
+                        }
+                    }
+                    let o = ry * w + x;
+                    for k in 0..3 {
+                        b[0][3 * o + k] = rgb[k].f32();
+                    }
+                    b[1][o] = if sum_w > T::of(1e-6) { (sum_z / sum_w).f32() } else { 0.0 };
+                    b[2][o] = sum_w.f32();
+                    for k in 0..c {
+                        b[3][c * o + k] = acc_ex[k].f32();
+                    }
+                }
+            }
+        }
+        stats
+    })
+}
+
+/// Marks which planes can contribute inside the target tile [x0, x1] x [y0, y1]: a plane is
+/// skipped when its source footprint over the tile (the bounding box of the four corner
+/// samples, grown by one pixel for the bilinear support) holds no occupied block. The footprint
+/// is exact only when the plane is in front of the camera over the whole tile, so a tile where
+/// some corner sees the plane from behind keeps the plane active.
+fn tile_activity<T: Real>(
+    occ: &Occupancy,
+    planes: &[PlaneConst<T>],
+    ray: &impl Fn(f64, f64) -> ([T; 3], T),
+    source_px: &impl Fn(&PlaneConst<T>, &[T; 3], T) -> (T, T),
+    [x0, y0, x1, y1]: [usize; 4],
+    active: &mut [bool],
+) {
+    let corners = [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].map(|(x, y)| ray(x as f64, y as f64).0);
+    for (i, pl) in planes.iter().enumerate() {
+        if !occ.plane_any[i] {
+            active[i] = false;
+            continue;
+        }
+        let (mut bx0, mut by0, mut bx1, mut by1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        let mut exact = true;
+        for v in &corners {
+            if v[2] <= T::zero() {
+                exact = false;
+                break;
+            }
+            let g = pl.a / v[2];
+            if g <= T::zero() {
+                exact = false;
+                break;
+            }
+            let (qx, qy) = source_px(pl, v, g);
+            let (qx, qy) = (qx.f64(), qy.f64());
+            bx0 = bx0.min(qx);
+            by0 = by0.min(qy);
+            bx1 = bx1.max(qx);
+            by1 = by1.max(qy);
+        }
+        active[i] = !exact || !(bx0.is_finite() && bx1.is_finite() && by0.is_finite() && by1.is_finite()) || occ.any_in(i, bx0 - 1.0, by0 - 1.0, bx1 + 1.0, by1 + 1.0);
+    }
+}
+
+pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut RenderOutput) {
+    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let (ks, kt) = (p.k_src, p.k_tgt);
+    let m = kt.matrix() * p.pose.rotation * ks.inverse_matrix();
+    let bt = kt.matrix() * p.pose.translation;
+    let mr = |i: usize| [T::of(m.row(i).x), T::of(m.row(i).y), T::of(m.row(i).z)];
+    let m_t = [mr(0), mr(1), mr(2)];
+    let b_t = [T::of(bt.x), T::of(bt.y), T::of(bt.z)];
+    let disp: Vec<T> = mpi.disparity.iter().map(|&d| T::of(d)).collect();
+    let depth: Vec<f64> = mpi.disparity.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
+    let depth_t: Vec<T> = depth.iter().map(|&d| T::of(d)).collect();
+    // gap to the next plane along a source ray of unit-z direction, before the |u| factor
+    let gap: Vec<T> = (0..n).map(|i| if i + 1 < n { T::of((depth[i + 1] - depth[i]).min(DELTA_LAST)) } else { T::of(DELTA_LAST) }).collect();
+    let t_eps = T::of32(p.skip.transmittance_eps);
+    let z_min = T::of(1e-9);
+    let mut flow = std::mem::take(&mut out.flow);
+    let mut zexp = std::mem::take(&mut out.source_depth_in_target);
+    let mut front = vec![0.0f32; w * h];
+    for_each_band(w, h, [&mut flow, &mut zexp, &mut front], [2, 1, 1], |y0, rows, b| {
+        for ry in 0..rows {
+            let yy = y0 + ry;
+            let y = T::of(yy as f64);
+            let uy = T::of((yy as f64 - ks.cy) / ks.fy);
+            for x in 0..w {
+                let xf = T::of(x as f64);
+                let ux = T::of((x as f64 - ks.cx) / ks.fx);
+                let norm_u = (ux * ux + uy * uy + T::one()).sqrt();
+                let a = [0, 1, 2].map(|r| m_t[r][0] * xf + m_t[r][1] * y + m_t[r][2]);
+                let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall) = (T::one(), T::zero(), T::zero(), T::zero(), T::zero(), T::zero());
+                let pix = yy * w + x;
+                for i in 0..n {
+                    if tr < t_eps {
+                        break;
+                    }
+                    let sigma = T::of32(mpi.plane_rgba(i)[4 * pix + 3]);
+                    if sigma <= T::zero() {
+                        continue;
+                    }
+                    let e = (-sigma * gap[i] * norm_u).exp();
+                    let wgt = tr * (T::one() - e);
+                    tr *= e;
+                    sall += wgt;
+                    let hz = a[2] + b_t[2] * disp[i];
+                    if hz > z_min * (a[2].abs() + T::one()) {
+                        let hx = a[0] + b_t[0] * disp[i];
+                        let hy = a[1] + b_t[1] * disp[i];
+                        fu += wgt * (hx / hz - xf);
+                        fv += wgt * (hy / hz - y);
+                        sw += wgt;
+                        sz += wgt * cap(hz * depth_t[i], DEPTH_MAX);
+                    }
+                }
+                let o = ry * w + x;
+                if sw > T::of(1e-6) {
+                    b[0][2 * o] = (fu / sw).f32();
+                    b[0][2 * o + 1] = (fv / sw).f32();
+                    b[1][o] = (sz / sw).f32();
+                }
+                b[2][o] = if sall > T::zero() { (sw / sall).f32() } else { 0.0 };
+            }
+        }
+        RenderStats::default()
+    });
+    out.valid = mark_valid(w, h, &flow, &front);
+    out.flow = flow;
+    out.source_depth_in_target = zexp;
+}
