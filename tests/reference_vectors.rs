@@ -47,7 +47,10 @@ fn check<T: Real>(name: &str, tol_abs: f64, tol_rel: f64) {
     let flow = max_diff_chw(&out.flow, &expected(name, "out_flow"), 2, hw, false);
     let mask = max_diff_chw(&out.extras, &expected(name, "out_mask"), 1, hw, false);
     let depth = max_diff_chw(&out.depth, &expected(name, "out_depth"), 1, hw, true);
-    println!("{name} ({}): rgb {rgb:.2e} flow {flow:.2e} mask {mask:.2e} depth(rel) {depth:.2e}", std::any::type_name::<T>());
+    println!(
+        "{name} ({}): rgb {rgb:.2e} flow {flow:.2e} mask {mask:.2e} depth(rel) {depth:.2e}",
+        std::any::type_name::<T>()
+    );
     assert!(rgb <= tol_abs, "rgb differs by {rgb}");
     assert!(flow <= tol_abs, "flow differs by {flow}");
     assert!(mask <= tol_abs, "mask differs by {mask}");

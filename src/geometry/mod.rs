@@ -91,10 +91,7 @@ impl Pose {
     /// The upper 3x4 of a row-major 4x4 matrix G = [[R, t], [0, 1]].
     pub fn from_row_major_4x4(g: &[f64; 16]) -> Self {
         let m = DMat4::from_cols_array(g).transpose();
-        Self {
-            rotation: DMat3::from_mat4(m),
-            translation: m.w_axis.truncate(),
-        }
+        Self { rotation: DMat3::from_mat4(m), translation: m.w_axis.truncate() }
     }
 
     pub fn is_finite(&self) -> bool {
@@ -145,11 +142,7 @@ pub fn apply_homography(h: &DMat3, x: f64, y: f64) -> (f64, f64, f64) {
 /// The three rows of a matrix as arrays, for the f32 hot loops.
 pub fn rows_f32(m: &DMat3) -> [[f32; 3]; 3] {
     let t = m.transpose();
-    [
-        t.x_axis.as_vec3().to_array(),
-        t.y_axis.as_vec3().to_array(),
-        t.z_axis.as_vec3().to_array(),
-    ]
+    [t.x_axis.as_vec3().to_array(), t.y_axis.as_vec3().to_array(), t.z_axis.as_vec3().to_array()]
 }
 
 #[cfg(test)]

@@ -1,6 +1,94 @@
-//! Built-in RGB-D layering (being written).
+//! Built-in RGB-D layering: builds an MPI from an image and a depth map without a network.
+//!
+//! # Method
+//!
+//! 1. **Inputs.** `rgb` is H x W x 3 (row-major, interleaved), `depth` H x W in the unit of the
+//!    translation; a depth that is non-finite or <= 0 is *unknown*. Sizes must agree,
+//!    `planes` must lie in `1..=`[`MAX_PLANES`], colours must be finite and at least one depth
+//!    must be known; anything else is [`MpiError::Invalid`] with a message saying what is wrong.
+//! 2. **Unknown depth.** Disparity (1 / depth, in f64) of an unknown pixel is copied from its
+//!    nearest known pixel: a multi-source breadth-first search over the 8-neighbourhood from
+//!    all known pixels (nearest in the chessboard metric; ties go to the source found first in
+//!    row-major scan order, so the result is deterministic). Copying rather than averaging never
+//!    invents depths between a foreground and its background.
+//! 3. **Planes.** Disparities are uniform in disparity from the nearest plane (largest
+//!    disparity) to the farthest: over the scene's own range [min, max] of (filled) disparity,
+//!    or over `disparity_range = Some((near, far))` (which must satisfy near > far >= 0, both
+//!    finite). When the scene's range is zero or too narrow to separate the planes (`max - min
+//!    < `[`MIN_RELATIVE_RANGE`]` * max`, e.g. a single constant depth) the nearest plane stays at
+//!    the scene's largest disparity and the farthest is moved back to `max * (1 -
+//!    MIN_RELATIVE_RANGE)`, so a constant-depth scene lies exactly on plane 0. One plane sits at
+//!    the middle `(near + far) / 2` of the (unwidened) range and is opaque everywhere.
+//! 4. **Assignment.** Let `k` be the last plane with `disp_k >= d` (the pixel's disparity) and
+//!    `t = (d - disp_{k+1}) / (disp_k - disp_{k+1})` in (0, 1]. Pixels in front of plane 0 go to
+//!    plane 0, pixels behind the farthest plane to the farthest plane.
+//!    - [`Layering::Hard`]: the pixel goes to the nearer of the two planes in disparity
+//!      (`k` when `t >= 1/2`, else `k + 1`) with alpha 1.
+//!    - [`Layering::Soft`]: the pixel's opacity is split linearly in disparity: composited
+//!      weights `w_k = t`, `w_{k+1} = 1 - t`, so the weight-averaged disparity is exactly `d`.
+//!      Front-to-back "over" compositing gives `w_k = a_k` and `w_{k+1} = (1 - a_k) a_{k+1}`;
+//!      with the far plane opaque (`a_{k+1} = 1`) this is `w_{k+1} = 1 - a_k`, so the per-plane
+//!      alphas that produce the split are simply `a_k = t`, `a_{k+1} = 1`. Both planes carry the
+//!      pixel's colour, so the composite `t c + (1 - t) c = c` reproduces it for any `t`.
+//!
+//!    Every plane in front of a pixel's planes has alpha exactly 0 there, and the farthest plane
+//!    is opaque everywhere.
+//! 5. **Alpha to density.** The renderer composites `alpha_i = 1 - exp(-sigma_i delta_i |K^-1 p|)`
+//!    with `delta_i = depth_{i+1} - depth_i` (capped at [`DELTA_LAST`], the last plane
+//!    [`DELTA_LAST`], depths capped at [`DEPTH_MAX`], exactly as in `render::exact`). We store
+//!    `sigma_i = -ln(1 - alpha_i) / delta_i` with alpha clamped to at most [`ALPHA_MAX`] (so
+//!    sigma stays finite; the 1e-6 of light that passes an "opaque" plane is below any 8-bit
+//!    colour step) and sigma capped at [`SIGMA_MAX`]; alpha 0 gives sigma exactly 0 (the renderer
+//!    skips exactly-empty tiles). The source-view composite therefore reproduces the alphas
+//!    exactly at the principal point, where `|K^-1 p| = 1`. Off-axis rays are longer
+//!    (`|K^-1 p| > 1`), which only raises the opacity (`1 - (1 - a)^{|K^-1 p|} >= a`): colours are
+//!    still reproduced (both planes of a pixel carry its colour, the far one is opaque anyway),
+//!    but Soft's expected disparity leans towards the near plane: at most by
+//!    `max_t (1 - (1 - t)^L - t)` of a plane spacing, about 1/6 at the corners of the reference
+//!    camera (`L = |K^-1 p| = 1.57`). [`build_mpi_for_camera`] divides by the per-pixel ray
+//!    length of a known source camera as well, which makes the source-view alphas exact at every
+//!    pixel.
+//! 6. **Colours.** Where a plane has alpha > 0 it carries the pixel's own colour. Elsewhere its
+//!    colour only shows through bilinear sampling at the plane's edges (non-last planes) or in
+//!    disocclusions (last plane), and is filled from *background*:
+//!    - plane `i` (not the last): the known set is every pixel with alpha > 0 on plane `i` or with
+//!      disparity `<= disp_i` (at or behind the plane; if the plane lies behind all content, the
+//!      farthest content); the rest is filled by a push-pull pyramid (2x2 means of known pixels
+//!      only, down to 1x1, then bilinear up-sampling into the unknown pixels only). Foreground
+//!      in front of the plane never contributes, so the colour a layer edge blends with is the
+//!      colour behind it (no foreground halos, and the slight fattening of bilinear density
+//!      sampling mixes in background rather than foreground).
+//!    - the farthest plane (opaque, what every disocclusion ends on): at each pixel the colour of
+//!      the content *behind that pixel*: the fill of plane `f + 1`, where `f` is the farthest
+//!      plane holding the pixel, whose known set contains only pixels strictly behind it (or the
+//!      pixel's own colour where the pixel lies on the farthest plane or is the farthest content).
+//!      For the pixels of the farthest content this is the rule above; for a foreground object in
+//!      front of a middle-distance wall in front of a far sky, the strip it uncovers shows the
+//!      wall (the local background), not the sky (the globally farthest content) and never the
+//!      object itself. (Filling the farthest plane only from the pixels at the farthest depth
+//!      would pull the sky into that strip.)
+//!
+//!    The fills act as a colour dilation of each layer into its surroundings; alphas are never
+//!    dilated, which keeps the identity render exact. In terms of the assignment, pixel `p` is a
+//!    colour source of plane `i` exactly when `i <= far(p)` (or `p` is the farthest content).
+//! 7. **Cost.** Planes are processed in parallel with rayon (fill and densities of each plane are
+//!    independent). 640 x 480 with 32 planes takes about 110 ms of user CPU time plus the kernel's
+//!    zeroing of the 157 MB of plane data on first touch (`build_time_640x480x32` in
+//!    `tests/layering.rs` prints the median wall time).
 
-use super::{Mpi, MpiError};
+use super::{Mpi, MpiError, SIGMA_MAX};
+use crate::geometry::Intrinsics;
+use crate::render::{DELTA_LAST, DEPTH_MAX};
+use rayon::prelude::*;
+use std::collections::VecDeque;
+
+/// Most planes the built-in layering makes.
+pub const MAX_PLANES: usize = 256;
+/// Alphas are clamped to at most this so that densities stay finite.
+pub const ALPHA_MAX: f64 = 1.0 - 1e-6;
+/// A scene disparity range narrower than this fraction of its largest disparity is widened
+/// (towards the far side) to `MIN_RELATIVE_RANGE * max`.
+pub const MIN_RELATIVE_RANGE: f64 = 1e-3;
 
 /// How pixels are assigned to planes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -20,8 +108,535 @@ pub struct LayeringOptions {
     pub disparity_range: Option<(f64, f64)>,
 }
 
+impl Default for LayeringOptions {
+    /// 32 planes, soft layering, the scene's own disparity range.
+    fn default() -> Self {
+        Self { planes: 32, layering: Layering::Soft, disparity_range: None }
+    }
+}
+
 /// Builds an MPI from an image (H x W x 3 in [0, 1]) and a depth map (H x W, in the unit of the
-/// translation; non-finite or <= 0 means unknown).
-pub fn build_mpi(_rgb: &[f32], _depth: &[f32], _width: usize, _height: usize, _opts: &LayeringOptions) -> Result<Mpi, MpiError> {
-    Err(MpiError::Invalid("built-in layering is not written yet".into()))
+/// translation; non-finite or <= 0 means unknown). See the module documentation for the method.
+pub fn build_mpi(
+    rgb: &[f32],
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    opts: &LayeringOptions,
+) -> Result<Mpi, MpiError> {
+    build(rgb, depth, width, height, opts, None)
+}
+
+/// As [`build_mpi`], but the densities also divide by each source pixel's ray length
+/// `|K^-1 p|`, so the source-view composite reproduces the layering's alphas at every pixel of a
+/// camera with intrinsics `k` (not only at the principal point). The intrinsics are not stored
+/// in the MPI.
+pub fn build_mpi_for_camera(
+    rgb: &[f32],
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    opts: &LayeringOptions,
+    k: &Intrinsics,
+) -> Result<Mpi, MpiError> {
+    if !k.is_valid() {
+        return Err(MpiError::Invalid(format!(
+            "layering: invalid intrinsics {k:?}: focal lengths must be finite and non-zero"
+        )));
+    }
+    build(rgb, depth, width, height, opts, Some(k))
+}
+
+/// The plane disparities the layering uses for a scene whose (known) disparities span
+/// `[scene_far, scene_near]`: uniform from near to far, strictly decreasing, >= 0. With
+/// `opts.disparity_range` set, that range is used instead of the scene's.
+pub fn plane_disparities(scene_near: f64, scene_far: f64, opts: &LayeringOptions) -> Result<Vec<f64>, MpiError> {
+    let n = opts.planes;
+    check_planes(n)?;
+    let (near, far) = match opts.disparity_range {
+        Some(r) => check_range(r)?,
+        None => {
+            if !(scene_near.is_finite() && scene_far.is_finite() && scene_far > 0.0 && scene_near >= scene_far) {
+                return Err(MpiError::Invalid(format!(
+                    "layering: scene disparity range ({scene_near}, {scene_far}) is not finite, positive and ordered"
+                )));
+            }
+            if n == 1 {
+                return Ok(vec![0.5 * (scene_near + scene_far)]);
+            }
+            if scene_near - scene_far < MIN_RELATIVE_RANGE * scene_near {
+                (scene_near, scene_near * (1.0 - MIN_RELATIVE_RANGE))
+            } else {
+                (scene_near, scene_far)
+            }
+        }
+    };
+    if n == 1 {
+        return Ok(vec![0.5 * (near + far)]);
+    }
+    let m = (n - 1) as f64;
+    let mut d: Vec<f64> = (0..n).map(|i| near + (far - near) * (i as f64 / m)).collect();
+    d[0] = near;
+    d[n - 1] = far;
+    if d.windows(2).any(|p| p[1] >= p[0]) || d.iter().any(|&v| !(v.is_finite() && v >= 0.0)) {
+        return Err(MpiError::Invalid(format!(
+            "layering: disparity range ({near}, {far}) is too narrow to hold {n} distinct planes"
+        )));
+    }
+    Ok(d)
+}
+
+fn check_planes(n: usize) -> Result<(), MpiError> {
+    if !(1..=MAX_PLANES).contains(&n) {
+        return Err(MpiError::Invalid(format!(
+            "layering: {n} planes requested; the built-in layering makes 1 to {MAX_PLANES}"
+        )));
+    }
+    Ok(())
+}
+
+fn check_range((near, far): (f64, f64)) -> Result<(f64, f64), MpiError> {
+    if !(near.is_finite() && far.is_finite() && far >= 0.0 && near > far) {
+        return Err(MpiError::Invalid(format!(
+            "layering: disparity range (near {near}, far {far}) must be finite with near > far >= 0"
+        )));
+    }
+    Ok((near, far))
+}
+
+/// Where one pixel goes: composited weight `a_near` on plane `near` and the rest on `far`
+/// (`far == near` when the pixel lies wholly on one plane, alpha 1 there). Plane indices fit a
+/// `u8` because there are at most [`MAX_PLANES`] planes.
+#[derive(Clone, Copy, Debug)]
+struct Slot {
+    near: u8,
+    far: u8,
+    a_near: f32,
+}
+
+fn assign(d: f64, disp: &[f64], layering: Layering) -> Slot {
+    let n = disp.len();
+    // planes with disp >= d form a prefix (disparities decrease)
+    let j = disp.partition_point(|&p| p >= d);
+    let whole = |i: usize| Slot { near: i as u8, far: i as u8, a_near: 1.0 };
+    if j == 0 {
+        return whole(0);
+    }
+    if j == n {
+        return whole(n - 1);
+    }
+    let k = j - 1;
+    let t = ((d - disp[k + 1]) / (disp[k] - disp[k + 1])).clamp(0.0, 1.0);
+    match layering {
+        Layering::Hard if t >= 0.5 => whole(k),
+        Layering::Hard => whole(k + 1),
+        Layering::Soft if t >= 1.0 => whole(k),
+        Layering::Soft => Slot { near: k as u8, far: (k + 1) as u8, a_near: t as f32 },
+    }
+}
+
+fn build(
+    rgb: &[f32],
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    opts: &LayeringOptions,
+    k: Option<&Intrinsics>,
+) -> Result<Mpi, MpiError> {
+    if width == 0 || height == 0 {
+        return Err(MpiError::Invalid(format!("layering: empty image size {width}x{height}")));
+    }
+    let len = width
+        .checked_mul(height)
+        .filter(|l| l.checked_mul(4 * MAX_PLANES).is_some())
+        .ok_or_else(|| MpiError::Invalid(format!("layering: image size {width}x{height} is too large")))?;
+    if rgb.len() != len * 3 {
+        return Err(MpiError::Invalid(format!(
+            "layering: rgb has {} values, expected {width}x{height}x3 = {}",
+            rgb.len(),
+            len * 3
+        )));
+    }
+    if depth.len() != len {
+        return Err(MpiError::Invalid(format!(
+            "layering: depth has {} values, expected {width}x{height} = {len}",
+            depth.len()
+        )));
+    }
+    check_planes(opts.planes)?;
+    if let Some(r) = opts.disparity_range {
+        check_range(r)?;
+    }
+    let bad_colours = rgb.iter().filter(|v| !v.is_finite()).count();
+    if bad_colours > 0 {
+        return Err(MpiError::Invalid(format!("layering: the image holds {bad_colours} non-finite colour values")));
+    }
+
+    // 2. disparities, unknown ones filled from the nearest known pixel
+    let mut disp = vec![0.0f64; len];
+    let mut known = vec![false; len];
+    for ((o, kn), &z) in disp.iter_mut().zip(known.iter_mut()).zip(depth) {
+        if z.is_finite() && z > 0.0 {
+            *o = 1.0 / z as f64;
+            *kn = true;
+        }
+    }
+    let n_known = known.iter().filter(|&&b| b).count();
+    if n_known == 0 {
+        return Err(MpiError::Invalid(
+            "layering: the depth map has no known value (every depth is non-finite or <= 0)".into(),
+        ));
+    }
+    if n_known < len {
+        fill_nearest(&mut disp, &known, width, height);
+    }
+    let (mut dmin, mut dmax) = (f64::INFINITY, 0.0f64);
+    for &d in &disp {
+        dmin = dmin.min(d);
+        dmax = dmax.max(d);
+    }
+
+    // 3. planes, 4. assignment
+    let planes = plane_disparities(dmax, dmin, opts)?;
+    let n = planes.len();
+    let slots: Vec<Slot> = disp.par_iter().map(|&d| assign(d, &planes, opts.layering)).collect();
+    // Plane i's colour sources are the pixels on it or behind it: disparity <= disp_i or alpha
+    // > 0 on plane i. For every layering above that is exactly `i <= far`; the farthest content
+    // is a source for every plane (so that planes behind all content still have sources).
+    let lim: Vec<u8> = slots.iter().zip(&disp).map(|(s, &d)| if d <= dmin { (n - 1) as u8 } else { s.far }).collect();
+    drop(disp);
+
+    // 5. per-plane gaps exactly as the renderer computes them, per-pixel ray lengths
+    let pdepth: Vec<f64> = planes.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
+    let gap: Vec<f64> =
+        (0..n).map(|i| if i + 1 < n { (pdepth[i + 1] - pdepth[i]).min(DELTA_LAST) } else { DELTA_LAST }).collect();
+    let ray_len: Option<Vec<f32>> =
+        k.map(|k| (0..len).map(|p| k.unproject((p % width) as f64, (p / width) as f64).length() as f32).collect());
+    let opaque_last: Vec<f32> = match &ray_len {
+        Some(r) => r.iter().map(|&l| density(1.0, DELTA_LAST * l as f64)).collect(),
+        None => vec![density(1.0, DELTA_LAST)],
+    };
+
+    let mut mpi = Mpi::new(width, height, planes, 0);
+    let plane_len = len * 4;
+    // 6. colours of plane i: own colour where alpha > 0, background fill elsewhere; densities
+    let ctx = PlaneCtx { rgb, w: width, h: height, lim: &lim };
+    mpi.rgba.par_chunks_mut(plane_len).enumerate().for_each_init(Vec::new, |levels, (i, out)| {
+        fill_plane(&ctx, i, levels, out);
+        let ray = |p: usize| ray_len.as_ref().map_or(1.0, |r| r[p] as f64);
+        if i + 1 == n {
+            for (p, px) in out.chunks_exact_mut(4).enumerate() {
+                px[3] = opaque_last[if opaque_last.len() == 1 { 0 } else { p }];
+            }
+            return;
+        }
+        let full = density(1.0, gap[i]);
+        for (p, (px, s)) in out.chunks_exact_mut(4).zip(&slots).enumerate() {
+            let (near, far) = (s.near as usize, s.far as usize);
+            px[3] = if i == far {
+                if ray_len.is_some() {
+                    density(1.0, gap[i] * ray(p))
+                } else {
+                    full
+                }
+            } else if i == near {
+                density(s.a_near as f64, gap[i] * ray(p))
+            } else {
+                0.0
+            };
+        }
+    });
+    // the farthest plane: the colour behind each pixel (the fill of the plane behind its planes)
+    if n > 1 {
+        let (front, back) = mpi.rgba.split_at_mut((n - 1) * plane_len);
+        let front: &[f32] = front;
+        back.par_chunks_mut(4 * width).enumerate().for_each(|(y, row)| {
+            for (x, px) in row.chunks_exact_mut(4).enumerate() {
+                let p = y * width + x;
+                let j = lim[p] as usize + 1;
+                if j < n - 1 {
+                    let q = j * plane_len + 4 * p;
+                    px[..3].copy_from_slice(&front[q..q + 3]);
+                }
+            }
+        });
+    }
+    Ok(mpi)
+}
+
+/// sigma = -ln(1 - alpha) / delta, alpha clamped to (0, ALPHA_MAX], finite and <= SIGMA_MAX.
+#[inline]
+fn density(alpha: f64, delta: f64) -> f32 {
+    let a = alpha.min(ALPHA_MAX);
+    let s = -(-a).ln_1p() / delta;
+    if s.is_finite() {
+        (s as f32).min(SIGMA_MAX)
+    } else {
+        SIGMA_MAX
+    }
+}
+
+/// Copies each unknown value from its nearest known pixel (multi-source BFS, 8-neighbourhood).
+fn fill_nearest(v: &mut [f64], known: &[bool], w: usize, h: usize) {
+    let mut done = known.to_vec();
+    let mut queue: VecDeque<usize> = (0..v.len()).filter(|&p| known[p]).collect();
+    while let Some(p) = queue.pop_front() {
+        let (x, y) = ((p % w) as isize, (p / w) as isize);
+        for dy in -1..=1isize {
+            for dx in -1..=1isize {
+                let (nx, ny) = (x + dx, y + dy);
+                if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
+                    continue;
+                }
+                let q = ny as usize * w + nx as usize;
+                if !done[q] {
+                    done[q] = true;
+                    v[q] = v[p];
+                    queue.push_back(q);
+                }
+            }
+        }
+    }
+}
+
+/// What every plane's colour fill reads.
+struct PlaneCtx<'a> {
+    rgb: &'a [f32],
+    w: usize,
+    h: usize,
+    /// Pixel p is a colour source of plane i when i <= lim[p].
+    lim: &'a [u8],
+}
+
+/// One level of the push-pull pyramid: colours and which of them are known.
+#[derive(Default)]
+struct Level {
+    w: usize,
+    h: usize,
+    c: Vec<[f32; 3]>,
+    known: Vec<bool>,
+}
+
+impl Level {
+    fn reset(&mut self, w: usize, h: usize) {
+        self.w = w;
+        self.h = h;
+        self.c.clear();
+        self.c.resize(w * h, [0.0; 3]);
+        self.known.clear();
+        self.known.resize(w * h, false);
+    }
+}
+
+/// Halves a level into `out`: each cell is the mean of its known children (known if any is).
+fn pull(w: usize, h: usize, at: impl Fn(usize) -> Option<[f32; 3]>, out: &mut Level) {
+    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+    out.reset(cw, ch);
+    for cy in 0..ch {
+        let rows = 2 * cy..(2 * cy + 2).min(h);
+        for cx in 0..cw {
+            let (mut s, mut m) = ([0.0f32; 3], 0u32);
+            for y in rows.clone() {
+                for x in 2 * cx..(2 * cx + 2).min(w) {
+                    if let Some(v) = at(y * w + x) {
+                        for k in 0..3 {
+                            s[k] += v[k];
+                        }
+                        m += 1;
+                    }
+                }
+            }
+            if m > 0 {
+                let inv = 1.0 / m as f32;
+                out.c[cy * cw + cx] = s.map(|v| v * inv);
+                out.known[cy * cw + cx] = true;
+            }
+        }
+    }
+}
+
+/// Bilinear taps of a coarse level for each fine column or row (fine pixel x lies at coarse
+/// coordinate (x - 0.5) / 2).
+fn taps(n: usize, cn: usize) -> Vec<(usize, usize, f32)> {
+    (0..n)
+        .map(|x| {
+            let f = ((x as f32 - 0.5) * 0.5).clamp(0.0, (cn - 1) as f32);
+            let x0 = (f.floor() as usize).min(cn - 1);
+            (x0, (x0 + 1).min(cn - 1), f - x0 as f32)
+        })
+        .collect()
+}
+
+#[inline(always)]
+fn bilinear(
+    c: &[[f32; 3]],
+    cw: usize,
+    (x0, x1, wx): (usize, usize, f32),
+    (y0, y1, wy): (usize, usize, f32),
+) -> [f32; 3] {
+    let (a, b, c, d) = (c[y0 * cw + x0], c[y0 * cw + x1], c[y1 * cw + x0], c[y1 * cw + x1]);
+    let mut o = [0.0f32; 3];
+    for k in 0..3 {
+        let top = a[k] + wx * (b[k] - a[k]);
+        let bot = c[k] + wx * (d[k] - c[k]);
+        o[k] = top + wy * (bot - top);
+    }
+    o
+}
+
+/// Fills the unknown cells of `fine` by bilinear up-sampling of the (fully filled) `coarse`.
+fn push(fine: &mut Level, coarse: &Level) {
+    let (xs, ys) = (taps(fine.w, coarse.w), taps(fine.h, coarse.h));
+    for (y, &ty) in ys.iter().enumerate() {
+        for (x, &tx) in xs.iter().enumerate() {
+            let p = y * fine.w + x;
+            if !fine.known[p] {
+                fine.c[p] = bilinear(&coarse.c, coarse.w, tx, ty);
+            }
+        }
+    }
+}
+
+/// Push-pull fill of plane `i`'s colours into `out` (4 values per pixel, colour in the first
+/// three): the image colour at the plane's sources (`i <= lim[p]`), elsewhere a smooth fill from
+/// the sources only (means of known pixels down to 1x1, then bilinear up-sampling into the
+/// unknown cells, level by level). Plane i always has a source: the farthest content.
+fn fill_plane(ctx: &PlaneCtx, i: usize, levels: &mut Vec<Level>, out: &mut [f32]) {
+    let (w, h, rgb, lim) = (ctx.w, ctx.h, ctx.rgb, ctx.lim);
+    let px = |p: usize| [rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]];
+    if lim.iter().all(|&l| l as usize >= i) {
+        for (o, c) in out.chunks_exact_mut(4).zip(rgb.chunks_exact(3)) {
+            o[..3].copy_from_slice(c);
+        }
+        return;
+    }
+    // pull: means of known pixels, down to 1x1
+    let mut depth = 0;
+    let (mut lw, mut lh) = (w, h);
+    while lw > 1 || lh > 1 {
+        if levels.len() <= depth {
+            levels.push(Level::default());
+        }
+        if depth == 0 {
+            pull(w, h, |p| (lim[p] as usize >= i).then(|| px(p)), &mut levels[0]);
+        } else {
+            let (prev, next) = levels.split_at_mut(depth);
+            let l = &prev[depth - 1];
+            pull(l.w, l.h, |p| l.known[p].then_some(l.c[p]), &mut next[0]);
+        }
+        (lw, lh) = (levels[depth].w, levels[depth].h);
+        depth += 1;
+    }
+    // push: fill each level's unknown cells from the level above
+    for li in (0..depth.saturating_sub(1)).rev() {
+        let (fine, coarse) = levels.split_at_mut(li + 1);
+        push(&mut fine[li], &coarse[0]);
+    }
+    let top = &levels[0];
+    let (xs, ys) = (taps(w, top.w), taps(h, top.h));
+    for (y, &ty) in ys.iter().enumerate() {
+        let row = &mut out[4 * y * w..4 * (y + 1) * w];
+        for ((x, &tx), o) in xs.iter().enumerate().zip(row.chunks_exact_mut(4)) {
+            let p = y * w + x;
+            let c = if lim[p] as usize >= i { px(p) } else { bilinear(&top.c, top.w, tx, ty) };
+            o[..3].copy_from_slice(&c);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn opts(planes: usize, layering: Layering) -> LayeringOptions {
+        LayeringOptions { planes, layering, disparity_range: None }
+    }
+
+    #[test]
+    fn disparities_are_uniform_and_strictly_decreasing() {
+        let d = plane_disparities(1.0, 0.25, &opts(4, Layering::Soft)).unwrap();
+        assert_eq!(d, vec![1.0, 0.75, 0.5, 0.25]);
+        let one = plane_disparities(1.0, 0.5, &opts(1, Layering::Soft)).unwrap();
+        assert_eq!(one, vec![0.75]);
+        // zero range: widened towards the far side, nearest plane at the scene disparity
+        let z = plane_disparities(0.5, 0.5, &opts(256, Layering::Soft)).unwrap();
+        assert_eq!(z[0], 0.5);
+        assert!(z.windows(2).all(|p| p[1] < p[0]));
+        assert!((z[255] - 0.5 * (1.0 - MIN_RELATIVE_RANGE)).abs() < 1e-15);
+        let mut o = opts(3, Layering::Hard);
+        o.disparity_range = Some((2.0, 0.0));
+        assert_eq!(plane_disparities(9.0, 1.0, &o).unwrap(), vec![2.0, 1.0, 0.0]);
+        for bad in [(1.0, 1.0), (0.5, 1.0), (1.0, -0.1), (f64::NAN, 0.1), (f64::INFINITY, 0.0)] {
+            o.disparity_range = Some(bad);
+            assert!(plane_disparities(1.0, 0.5, &o).is_err(), "{bad:?}");
+        }
+        o.disparity_range = Some((1.0, 1.0 - 1e-15));
+        o.planes = 256;
+        assert!(plane_disparities(1.0, 0.5, &o).is_err());
+    }
+
+    #[test]
+    fn soft_split_is_linear_in_disparity() {
+        let disp = [1.0, 0.5, 0.25];
+        let s = assign(0.375, &disp, Layering::Soft);
+        assert_eq!((s.near, s.far), (1, 2));
+        let a = s.a_near as f64;
+        assert!((a - 0.5).abs() < 1e-12);
+        // composited weights: w_near = a, w_far = (1 - a) * 1; expected disparity = d
+        let e = a * disp[1] + (1.0 - a) * disp[2];
+        assert!((e - 0.375).abs() < 1e-12);
+        let on = assign(0.5, &disp, Layering::Soft);
+        assert_eq!((on.near, on.far, on.a_near), (1, 1, 1.0));
+        assert_eq!(assign(2.0, &disp, Layering::Soft).far, 0);
+        assert_eq!(assign(0.1, &disp, Layering::Soft).near, 2);
+        assert_eq!(assign(0.76, &disp, Layering::Hard).near, 0);
+        assert_eq!(assign(0.74, &disp, Layering::Hard).near, 1);
+    }
+
+    #[test]
+    fn density_round_trips_and_stays_finite() {
+        for a in [1e-9, 0.1, 0.5, 0.9, 1.0] {
+            let s = density(a, 0.3) as f64;
+            let back = 1.0 - (-s * 0.3).exp();
+            assert!((back - a.min(ALPHA_MAX)).abs() < 1e-6, "{a} -> {back}");
+        }
+        assert_eq!(density(1.0, 0.0), SIGMA_MAX);
+        assert!(density(1.0, 1e-300).is_finite());
+    }
+
+    #[test]
+    fn nearest_fill_copies_known_values() {
+        let mut v = vec![1.0, 0.0, 0.0, 0.0, 0.0, 2.0];
+        let known = vec![true, false, false, false, false, true];
+        fill_nearest(&mut v, &known, 3, 2);
+        // pixel (1, 1) is at distance 1 from both sources: the first in scan order wins
+        assert_eq!(v, vec![1.0, 1.0, 2.0, 1.0, 1.0, 2.0]);
+    }
+
+    #[test]
+    fn plane_fill_keeps_sources_and_fills_from_sources_only() {
+        let (w, h) = (9, 7);
+        let mut rgb = vec![0.0f32; w * h * 3];
+        let mut lim = vec![0u8; w * h];
+        for p in 0..w * h {
+            if p % w >= 5 {
+                lim[p] = 3;
+                rgb[3 * p..3 * p + 3].copy_from_slice(&[0.2, 0.4, 0.6]);
+            } else {
+                rgb[3 * p..3 * p + 3].copy_from_slice(&[1.0, 0.0, 0.0]);
+            }
+        }
+        let ctx = PlaneCtx { rgb: &rgb, w, h, lim: &lim };
+        let mut out = vec![0.0f32; w * h * 4];
+        fill_plane(&ctx, 2, &mut Vec::new(), &mut out);
+        for px in out.chunks_exact(4) {
+            for (a, b) in px[..3].iter().zip([0.2, 0.4, 0.6]) {
+                assert!((a - b).abs() < 1e-6);
+            }
+        }
+        fill_plane(&ctx, 0, &mut Vec::new(), &mut out);
+        for (o, c) in out.chunks_exact(4).zip(rgb.chunks_exact(3)) {
+            assert_eq!(&o[..3], c);
+        }
+    }
 }

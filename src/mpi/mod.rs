@@ -81,10 +81,12 @@ impl Mpi {
         self.disparity.len()
     }
 
+    #[inline]
     pub fn plane_len(&self) -> usize {
         self.width * self.height
     }
 
+    #[inline]
     pub fn plane_rgba(&self, i: usize) -> &[f32] {
         let n = self.plane_len() * 4;
         &self.rgba[i * n..(i + 1) * n]
@@ -95,6 +97,7 @@ impl Mpi {
         &mut self.rgba[i * n..(i + 1) * n]
     }
 
+    #[inline]
     pub fn plane_extras(&self, i: usize) -> &[f32] {
         let n = self.plane_len() * self.extra_channels;
         &self.extras[i * n..(i + 1) * n]
@@ -115,12 +118,16 @@ impl Mpi {
         if n == 0 {
             return Err(MpiError::Invalid("MPI has no planes".into()));
         }
-        if self.rgba.len() != n * self.plane_len() * 4 || self.extras.len() != n * self.plane_len() * self.extra_channels {
+        if self.rgba.len() != n * self.plane_len() * 4
+            || self.extras.len() != n * self.plane_len() * self.extra_channels
+        {
             return Err(MpiError::Invalid("MPI plane data does not match its size".into()));
         }
         for (i, &d) in self.disparity.iter().enumerate() {
             if !d.is_finite() || d < 0.0 {
-                return Err(MpiError::Invalid(format!("plane {i} has disparity {d}; disparities must be finite and >= 0")));
+                return Err(MpiError::Invalid(format!(
+                    "plane {i} has disparity {d}; disparities must be finite and >= 0"
+                )));
             }
             if i > 0 && d >= self.disparity[i - 1] {
                 return Err(MpiError::Invalid(format!(

@@ -12,12 +12,16 @@ use std::path::Path;
 pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
     let p = path.display().to_string();
     let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound | std::io::ErrorKind::PermissionDenied => MpiError::Io { path: p.clone(), source: e },
+        std::io::ErrorKind::NotFound | std::io::ErrorKind::PermissionDenied => {
+            MpiError::Io { path: p.clone(), source: e }
+        }
         _ => MpiError::BadArchive { path: p.clone(), reason: e.to_string() },
     })?;
     let mut get = |key: &'static str| -> Result<Option<Array>, MpiError> {
         match npz.by_name(key) {
-            Ok(Some(f)) => read_array(f).map(Some).map_err(|e| MpiError::BadArchive { path: p.clone(), reason: format!("array `{key}`: {e}") }),
+            Ok(Some(f)) => read_array(f)
+                .map(Some)
+                .map_err(|e| MpiError::BadArchive { path: p.clone(), reason: format!("array `{key}`: {e}") }),
             Ok(None) => Ok(None),
             Err(e) => Err(MpiError::BadArchive { path: p.clone(), reason: format!("array `{key}`: {e}") }),
         }
@@ -29,7 +33,12 @@ pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
     let k = get("K")?.map(|a| a.squeeze_leading(2));
     let g = get("G")?.map(|a| a.squeeze_leading(2));
     let mask = get("mask_in")?;
-    let shape_err = |key: &str, a: &Array, expected: &str| MpiError::BadShape { path: p.clone(), key: key.to_string(), shape: a.shape.clone(), expected: expected.to_string() };
+    let shape_err = |key: &str, a: &Array, expected: &str| MpiError::BadShape {
+        path: p.clone(),
+        key: key.to_string(),
+        shape: a.shape.clone(),
+        expected: expected.to_string(),
+    };
 
     if rgb.shape.len() != 4 || rgb.shape[1] != 3 {
         return Err(shape_err("mpi_rgb", &rgb, "[1?, N, 3, H, W]"));
@@ -69,7 +78,11 @@ pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
         mpi.extras = vec![0.0; n * hw * channels];
         for i in 0..n {
             for c in 0..channels {
-                let src = if per_plane { &m.data[(i * channels + c) * hw..(i * channels + c + 1) * hw] } else { &m.data[..hw] };
+                let src = if per_plane {
+                    &m.data[(i * channels + c) * hw..(i * channels + c + 1) * hw]
+                } else {
+                    &m.data[..hw]
+                };
                 for (j, &v) in src.iter().enumerate() {
                     mpi.extras[(i * hw + j) * channels + c] = v as f32;
                 }
@@ -78,7 +91,10 @@ pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
     }
     if let Some(k) = k {
         let arr: [f64; 9] = k.data.as_slice().try_into().map_err(|_| shape_err("K", &k, "[1?, 3, 3]"))?;
-        mpi.intrinsics = Some(Intrinsics::from_row_major(&arr).ok_or_else(|| MpiError::Invalid(format!("{p}: `K` is not a pinhole intrinsics matrix: {arr:?}")))?);
+        mpi.intrinsics = Some(
+            Intrinsics::from_row_major(&arr)
+                .ok_or_else(|| MpiError::Invalid(format!("{p}: `K` is not a pinhole intrinsics matrix: {arr:?}")))?,
+        );
     }
     if let Some(g) = g {
         let arr: [f64; 16] = g.data.as_slice().try_into().map_err(|_| shape_err("G", &g, "[4, 4]"))?;

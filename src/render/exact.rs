@@ -41,7 +41,12 @@ fn cap<T: Real>(v: T, max: f64) -> T {
     }
 }
 
-pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occupancy>, out: &mut RenderOutput) -> RenderStats {
+pub(super) fn target_view<T: Real>(
+    mpi: &Mpi,
+    p: &RenderParams,
+    occ: Option<&Occupancy>,
+    out: &mut RenderOutput,
+) -> RenderStats {
     let (w, h, n, c) = (mpi.width, mpi.height, mpi.planes(), mpi.extra_channels);
     let (ks, kt) = (p.k_src, p.k_tgt);
     let rt = p.pose.rotation.transpose();
@@ -64,19 +69,24 @@ pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occ
     let (wm, hm) = (T::of((w - 1) as f64), T::of((h - 1) as f64));
     let t_eps = T::of32(p.skip.transmittance_eps);
     let delta_last = T::of(DELTA_LAST);
-    let ray = |x: f64, y: f64| -> ([T; 3], T) {
-        let u = [T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy), T::one()];
-        let v = [0, 1, 2].map(|i| rt_t[i][0] * u[0] + rt_t[i][1] * u[1] + rt_t[i][2]);
-        (v, (u[0] * u[0] + u[1] * u[1] + T::one()).sqrt())
+    let ux: Vec<T> = (0..w).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect();
+    let uy: Vec<T> = (0..h).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect();
+    let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
+        let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
+        (v, (ux * ux + uy * uy + T::one()).sqrt())
     };
+    let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
+    let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
     let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
 
     let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
     for_each_band(w, h, [image, depth, coverage, extras], [3, 1, 1, c], |y0, rows, b| {
         let mut stats = RenderStats::default();
         let mut active = vec![true; n];
-        // planes met by the current ray, in order: (plane, g, lambda)
-        let mut hits: Vec<(usize, T, T)> = Vec::with_capacity(n);
+        // planes that may contribute in this tile, in the order a ray with s > 0 (fwd) or
+        // s < 0 (rev) meets them
+        let mut fwd: Vec<usize> = Vec::with_capacity(n);
+        let mut rev: Vec<usize> = Vec::with_capacity(n);
         let mut acc_ex = vec![T::zero(); c];
         let mut ex = vec![T::zero(); c];
         for tx0 in (0..w).step_by(TILE) {
@@ -86,65 +96,66 @@ pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occ
                 Some(o) => tile_activity(o, &planes, &ray, &source_px, [tx0, y0, tx1, ty1], &mut active),
                 None => active.iter_mut().for_each(|a| *a = true),
             }
+            fwd.clear();
+            fwd.extend((0..n).filter(|&i| active[i]));
+            rev.clear();
+            rev.extend(fwd.iter().rev());
+            stats.skipped_tile += ((n - fwd.len()) * rows * (tx1 + 1 - tx0)) as u64;
             for ry in 0..rows {
                 let yy = y0 + ry;
-                for x in tx0..=tx1 {
-                    let (v, norm_u) = ray(x as f64, yy as f64);
+                for (x, &ux_x) in ux.iter().enumerate().take(tx1 + 1).skip(tx0) {
+                    let (v, norm_u) = ray_u(ux_x, uy[yy]);
                     let s = v[2];
-                    hits.clear();
-                    if s.abs() > T::of(1e-12) {
-                        let inv_s = T::one() / s;
-                        let mut push = |i: usize| {
-                            let g = planes[i].a * inv_s;
-                            if g > T::zero() {
-                                hits.push((i, g, cap(g * planes[i].depth, DEPTH_MAX)));
-                            }
-                        };
-                        if s > T::zero() {
-                            (0..n).for_each(&mut push);
-                        } else {
-                            (0..n).rev().for_each(&mut push);
-                        }
-                    }
                     let (mut tr, mut sum_w, mut sum_z) = (T::one(), T::zero(), T::zero());
                     let mut rgb = [T::zero(); 3];
                     acc_ex.iter_mut().for_each(|a| *a = T::zero());
-                    for (j, &(i, g, lambda)) in hits.iter().enumerate() {
-                        if tr < t_eps {
-                            stats.skipped_early += (hits.len() - j) as u64;
-                            break;
-                        }
-                        if !active[i] {
-                            stats.skipped_tile += 1;
-                            continue;
-                        }
-                        let (qx, qy) = source_px(&planes[i], &v, g);
-                        if !(qx >= lo && qx < hix && qy >= lo && qy < hiy) {
-                            continue;
-                        }
-                        let tap = Tap::new(qx.max(T::zero()).min(wm), qy.max(T::zero()).min(hm), w, h);
-                        let smp = tap.sample4(mpi.plane_rgba(i));
-                        stats.samples += 1;
-                        let sigma = smp[3];
-                        if sigma <= T::zero() {
-                            continue;
-                        }
-                        let delta = match hits.get(j + 1) {
-                            Some(&(_, _, next)) => cap((next - lambda) * norm_u, DELTA_LAST),
-                            None => delta_last,
-                        };
-                        let e = (-sigma * delta).exp();
-                        let wgt = tr * (T::one() - e);
-                        tr *= e;
-                        for k in 0..3 {
-                            rgb[k] += wgt * smp[k];
-                        }
-                        sum_w += wgt;
-                        sum_z += wgt * lambda;
-                        if c > 0 {
-                            tap.sample_c(mpi.plane_extras(i), c, &mut ex);
-                            for (a, e) in acc_ex.iter_mut().zip(&ex) {
-                                *a += wgt * *e;
+                    if s.abs() > T::of(1e-12) {
+                        let inv_s = T::one() / s;
+                        let forward = s > T::zero();
+                        let order = if forward { &fwd } else { &rev };
+                        for (j, &i) in order.iter().enumerate() {
+                            let pl = &planes[i];
+                            let g = pl.a * inv_s;
+                            if g <= T::zero() {
+                                continue; // behind the target camera
+                            }
+                            if tr < t_eps {
+                                stats.skipped_early += (order.len() - j) as u64;
+                                break;
+                            }
+                            let (qx, qy) = source_px(pl, &v, g);
+                            if !(qx >= lo && qx < hix && qy >= lo && qy < hiy) {
+                                continue; // the ray leaves the source image on this plane
+                            }
+                            let tap = Tap::new(qx.max(T::zero()).min(wm), qy.max(T::zero()).min(hm), w, h);
+                            let smp = tap.sample4(rgba[i]);
+                            stats.samples += 1;
+                            let sigma = smp[3];
+                            if sigma <= T::zero() {
+                                continue;
+                            }
+                            let lambda = cap(g * pl.depth, DEPTH_MAX);
+                            // the next plane along the ray (in front of the camera whenever this one is)
+                            let next = if forward { i + 1 } else { i.wrapping_sub(1) };
+                            let delta = match planes.get(next) {
+                                Some(pn) if pn.a * inv_s > T::zero() => {
+                                    cap((cap(pn.a * inv_s * pn.depth, DEPTH_MAX) - lambda) * norm_u, DELTA_LAST)
+                                }
+                                _ => delta_last,
+                            };
+                            let e = T::exp_neg(sigma * delta);
+                            let wgt = tr * (T::one() - e);
+                            tr *= e;
+                            for k in 0..3 {
+                                rgb[k] += wgt * smp[k];
+                            }
+                            sum_w += wgt;
+                            sum_z += wgt * lambda;
+                            if c > 0 {
+                                tap.sample_c(mpi.plane_extras(i), c, &mut ex);
+                                for (a, e) in acc_ex.iter_mut().zip(&ex) {
+                                    *a += wgt * *e;
+                                }
                             }
                         }
                     }
@@ -202,11 +213,13 @@ fn tile_activity<T: Real>(
             bx1 = bx1.max(qx);
             by1 = by1.max(qy);
         }
-        active[i] = !exact || !(bx0.is_finite() && bx1.is_finite() && by0.is_finite() && by1.is_finite()) || occ.any_in(i, bx0 - 1.0, by0 - 1.0, bx1 + 1.0, by1 + 1.0);
+        active[i] = !exact
+            || ![bx0, bx1, by0, by1].iter().all(|v| v.is_finite())
+            || occ.any_in(i, bx0 - 1.0, by0 - 1.0, bx1 + 1.0, by1 + 1.0);
     }
 }
 
-pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut RenderOutput) {
+pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occupancy>, out: &mut RenderOutput) {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let (ks, kt) = (p.k_src, p.k_tgt);
     let m = kt.matrix() * p.pose.rotation * ks.inverse_matrix();
@@ -218,53 +231,67 @@ pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut Render
     let depth: Vec<f64> = mpi.disparity.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
     let depth_t: Vec<T> = depth.iter().map(|&d| T::of(d)).collect();
     // gap to the next plane along a source ray of unit-z direction, before the |u| factor
-    let gap: Vec<T> = (0..n).map(|i| if i + 1 < n { T::of((depth[i + 1] - depth[i]).min(DELTA_LAST)) } else { T::of(DELTA_LAST) }).collect();
+    let gap: Vec<T> = (0..n)
+        .map(|i| if i + 1 < n { T::of((depth[i + 1] - depth[i]).min(DELTA_LAST)) } else { T::of(DELTA_LAST) })
+        .collect();
     let t_eps = T::of32(p.skip.transmittance_eps);
     let z_min = T::of(1e-9);
+    let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
     let mut flow = std::mem::take(&mut out.flow);
     let mut zexp = std::mem::take(&mut out.source_depth_in_target);
     let mut front = vec![0.0f32; w * h];
     for_each_band(w, h, [&mut flow, &mut zexp, &mut front], [2, 1, 1], |y0, rows, b| {
-        for ry in 0..rows {
-            let yy = y0 + ry;
-            let y = T::of(yy as f64);
-            let uy = T::of((yy as f64 - ks.cy) / ks.fy);
-            for x in 0..w {
-                let xf = T::of(x as f64);
-                let ux = T::of((x as f64 - ks.cx) / ks.fx);
-                let norm_u = (ux * ux + uy * uy + T::one()).sqrt();
-                let a = [0, 1, 2].map(|r| m_t[r][0] * xf + m_t[r][1] * y + m_t[r][2]);
-                let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall) = (T::one(), T::zero(), T::zero(), T::zero(), T::zero(), T::zero());
-                let pix = yy * w + x;
-                for i in 0..n {
-                    if tr < t_eps {
-                        break;
+        let mut active: Vec<usize> = Vec::with_capacity(n);
+        for tx0 in (0..w).step_by(TILE) {
+            let tx1 = (tx0 + TILE).min(w) - 1;
+            active.clear();
+            match occ {
+                Some(o) => active
+                    .extend((0..n).filter(|&i| o.any_in(i, tx0 as f64, y0 as f64, tx1 as f64, (y0 + rows - 1) as f64))),
+                None => active.extend(0..n),
+            }
+            for ry in 0..rows {
+                let yy = y0 + ry;
+                let y = T::of(yy as f64);
+                let uy = T::of((yy as f64 - ks.cy) / ks.fy);
+                for x in tx0..=tx1 {
+                    let xf = T::of(x as f64);
+                    let ux = T::of((x as f64 - ks.cx) / ks.fx);
+                    let norm_u = (ux * ux + uy * uy + T::one()).sqrt();
+                    let a = [0, 1, 2].map(|r| m_t[r][0] * xf + m_t[r][1] * y + m_t[r][2]);
+                    let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall) =
+                        (T::one(), T::zero(), T::zero(), T::zero(), T::zero(), T::zero());
+                    let pix = 4 * (yy * w + x) + 3;
+                    for &i in &active {
+                        if tr < t_eps {
+                            break;
+                        }
+                        let sigma = T::of32(rgba[i][pix]);
+                        if sigma <= T::zero() {
+                            continue;
+                        }
+                        let e = T::exp_neg(sigma * gap[i] * norm_u);
+                        let wgt = tr * (T::one() - e);
+                        tr *= e;
+                        sall += wgt;
+                        let hz = a[2] + b_t[2] * disp[i];
+                        if hz > z_min * (a[2].abs() + T::one()) {
+                            let hx = a[0] + b_t[0] * disp[i];
+                            let hy = a[1] + b_t[1] * disp[i];
+                            fu += wgt * (hx / hz - xf);
+                            fv += wgt * (hy / hz - y);
+                            sw += wgt;
+                            sz += wgt * cap(hz * depth_t[i], DEPTH_MAX);
+                        }
                     }
-                    let sigma = T::of32(mpi.plane_rgba(i)[4 * pix + 3]);
-                    if sigma <= T::zero() {
-                        continue;
+                    let o = ry * w + x;
+                    if sw > T::of(1e-6) {
+                        b[0][2 * o] = (fu / sw).f32();
+                        b[0][2 * o + 1] = (fv / sw).f32();
+                        b[1][o] = (sz / sw).f32();
                     }
-                    let e = (-sigma * gap[i] * norm_u).exp();
-                    let wgt = tr * (T::one() - e);
-                    tr *= e;
-                    sall += wgt;
-                    let hz = a[2] + b_t[2] * disp[i];
-                    if hz > z_min * (a[2].abs() + T::one()) {
-                        let hx = a[0] + b_t[0] * disp[i];
-                        let hy = a[1] + b_t[1] * disp[i];
-                        fu += wgt * (hx / hz - xf);
-                        fv += wgt * (hy / hz - y);
-                        sw += wgt;
-                        sz += wgt * cap(hz * depth_t[i], DEPTH_MAX);
-                    }
+                    b[2][o] = if sall > T::zero() { (sw / sall).f32() } else { 0.0 };
                 }
-                let o = ry * w + x;
-                if sw > T::of(1e-6) {
-                    b[0][2 * o] = (fu / sw).f32();
-                    b[0][2 * o + 1] = (fv / sw).f32();
-                    b[1][o] = (sz / sw).f32();
-                }
-                b[2][o] = if sall > T::zero() { (sw / sall).f32() } else { 0.0 };
             }
         }
         RenderStats::default()

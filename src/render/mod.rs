@@ -162,7 +162,11 @@ pub struct RenderOutput {
 }
 
 /// Renders `mpi` with scalar type `T` (f32 in production).
-pub fn render<T: Real>(mpi: &Mpi, params: &RenderParams, occupancy: Option<&Occupancy>) -> Result<RenderOutput, RenderError> {
+pub fn render<T: Real>(
+    mpi: &Mpi,
+    params: &RenderParams,
+    occupancy: Option<&Occupancy>,
+) -> Result<RenderOutput, RenderError> {
     mpi.validate()?;
     if !params.k_src.is_valid() {
         return Err(RenderError::Intrinsics { which: "source", k: params.k_src });
@@ -180,20 +184,20 @@ pub fn render<T: Real>(mpi: &Mpi, params: &RenderParams, occupancy: Option<&Occu
     }
     let (w, h) = (mpi.width, mpi.height);
     let mut out = RenderOutput { width: w, height: h, extra_channels: mpi.extra_channels, ..Default::default() };
+    let built;
+    let occ = match (params.mode, params.skip.tiles, occupancy) {
+        (Mode::Exact, true, Some(o)) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
+        (Mode::Exact, true, _) => {
+            built = Occupancy::build(mpi, params.skip.tile_sigma_eps);
+            Some(&built)
+        }
+        _ => None,
+    };
     if fields.target {
         out.image = vec![0.0; w * h * 3];
         out.depth = vec![0.0; w * h];
         out.coverage = vec![0.0; w * h];
         out.extras = vec![0.0; w * h * mpi.extra_channels];
-        let built;
-        let occ = match (params.mode, params.skip.tiles, occupancy) {
-            (Mode::Exact, true, Some(o)) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
-            (Mode::Exact, true, _) => {
-                built = Occupancy::build(mpi, params.skip.tile_sigma_eps);
-                Some(&built)
-            }
-            _ => None,
-        };
         let stats = match params.mode {
             Mode::Reference => reference::target_view::<T>(mpi, params, &mut out),
             Mode::Exact => exact::target_view::<T>(mpi, params, occ, &mut out),
@@ -206,7 +210,7 @@ pub fn render<T: Real>(mpi: &Mpi, params: &RenderParams, occupancy: Option<&Occu
         out.valid = vec![0; w * h];
         match params.mode {
             Mode::Reference => reference::source_view::<T>(mpi, params, &mut out),
-            Mode::Exact => exact::source_view::<T>(mpi, params, &mut out),
+            Mode::Exact => exact::source_view::<T>(mpi, params, occ, &mut out),
         }
     }
     if fields.occlusion {
@@ -225,9 +229,10 @@ pub const OCCLUSION_TOLERANCE: f32 = 0.02;
 /// the image, or land on holes (coverage < 0.5), are not called occluded (`valid` covers them).
 fn occlusion_mask(out: &RenderOutput) -> Vec<u8> {
     let (w, h) = (out.width, out.height);
+    use rayon::prelude::*;
     let mut occ = vec![0u8; w * h];
-    for y in 0..h {
-        for x in 0..w {
+    occ.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
             let i = y * w + x;
             if out.valid[i] == 0 {
                 continue;
@@ -245,30 +250,49 @@ fn occlusion_mask(out: &RenderOutput) -> Vec<u8> {
                     break;
                 }
             }
-            occ[i] = hidden as u8;
+            *o = hidden as u8;
         }
-    }
+    });
     occ
 }
 
 /// The last line of defence of DESIGN §4: no NaN or Inf leaves the renderer. Returns how many
 /// values had to be replaced (0 in every tested case; the count is reported, not hidden).
 fn repair_nonfinite(out: &mut RenderOutput) -> u64 {
+    use rayon::prelude::*;
     let mut n = 0u64;
-    for buf in [&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras, &mut out.flow, &mut out.source_depth_in_target] {
-        for v in buf.iter_mut() {
-            if !v.is_finite() {
-                *v = 0.0;
-                n += 1;
-            }
-        }
+    for buf in [
+        &mut out.image,
+        &mut out.depth,
+        &mut out.coverage,
+        &mut out.extras,
+        &mut out.flow,
+        &mut out.source_depth_in_target,
+    ] {
+        n += buf
+            .par_chunks_mut(1 << 16)
+            .map(|chunk| {
+                let mut k = 0u64;
+                for v in chunk.iter_mut().filter(|v| !v.is_finite()) {
+                    *v = 0.0;
+                    k += 1;
+                }
+                k
+            })
+            .sum::<u64>();
     }
     n
 }
 
 /// Splits the image rows into bands of [`BAND_ROWS`] and hands each band's slices of the
 /// per-pixel buffers to `f`, in parallel. `bufs[k]` holds `stride[k]` values per pixel.
-pub(crate) fn for_each_band<const B: usize, F>(width: usize, height: usize, bufs: [&mut [f32]; B], strides: [usize; B], f: F) -> RenderStats
+pub(crate) fn for_each_band<const B: usize, F>(
+    width: usize,
+    height: usize,
+    bufs: [&mut [f32]; B],
+    strides: [usize; B],
+    f: F,
+) -> RenderStats
 where
     F: Fn(usize, usize, &mut [&mut [f32]; B]) -> RenderStats + Sync + Send,
 {
@@ -288,28 +312,26 @@ where
         bands.push((y0, rows, heads));
         y0 += rows;
     }
-    bands
-        .par_iter_mut()
-        .map(|(y0, rows, slices)| f(*y0, *rows, slices))
-        .reduce(RenderStats::default, |mut a, b| {
-            a += b;
-            a
-        })
+    bands.par_iter_mut().map(|(y0, rows, slices)| f(*y0, *rows, slices)).reduce(RenderStats::default, |mut a, b| {
+        a += b;
+        a
+    })
 }
 
 /// `valid` = the point is (by rendered weight, mostly) in front of the target camera and its
 /// flow target lies inside the image [0, W-1] x [0, H-1].
 pub(crate) fn mark_valid(w: usize, h: usize, flow: &[f32], front_fraction: &[f32]) -> Vec<u8> {
+    use rayon::prelude::*;
     let mut valid = vec![0u8; w * h];
-    for y in 0..h {
-        for x in 0..w {
+    valid.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, v) in row.iter_mut().enumerate() {
             let i = y * w + x;
             let tx = x as f32 + flow[2 * i];
             let ty = y as f32 + flow[2 * i + 1];
             let inside = tx >= 0.0 && tx <= (w - 1) as f32 && ty >= 0.0 && ty <= (h - 1) as f32;
-            valid[i] = (inside && front_fraction[i] >= 0.5) as u8;
+            *v = (inside && front_fraction[i] >= 0.5) as u8;
         }
-    }
+    });
     valid
 }
 
@@ -327,10 +349,10 @@ pub(crate) struct Tap<T> {
 impl<T: Real> Tap<T> {
     #[inline(always)]
     pub(crate) fn new(qx: T, qy: T, w: usize, h: usize) -> Self {
-        let fx = qx.floor();
-        let fy = qy.floor();
-        let x0 = (fx.f32() as usize).min(w - 1);
-        let y0 = (fy.f32() as usize).min(h - 1);
+        // q >= 0 here, so truncation is floor (and avoids a libm call without SSE4.1)
+        let x0 = (qx.f32() as usize).min(w - 1);
+        let y0 = (qy.f32() as usize).min(h - 1);
+        let (fx, fy) = (T::of(x0 as f64), T::of(y0 as f64));
         let x1 = (x0 + 1).min(w - 1);
         let y1 = (y0 + 1).min(h - 1);
         Self { i00: y0 * w + x0, i10: y0 * w + x1, i01: y1 * w + x0, i11: y1 * w + x1, wx: qx - fx, wy: qy - fy }
@@ -340,7 +362,12 @@ impl<T: Real> Tap<T> {
     #[inline(always)]
     pub(crate) fn sample4(&self, plane: &[f32]) -> [T; 4] {
         let (wx, wy) = (self.wx, self.wy);
-        let (a, b, c, d) = (&plane[4 * self.i00..4 * self.i00 + 4], &plane[4 * self.i10..4 * self.i10 + 4], &plane[4 * self.i01..4 * self.i01 + 4], &plane[4 * self.i11..4 * self.i11 + 4]);
+        let (a, b, c, d) = (
+            &plane[4 * self.i00..4 * self.i00 + 4],
+            &plane[4 * self.i10..4 * self.i10 + 4],
+            &plane[4 * self.i01..4 * self.i01 + 4],
+            &plane[4 * self.i11..4 * self.i11 + 4],
+        );
         let mut o = [T::zero(); 4];
         for k in 0..4 {
             let top = T::of32(a[k]) + wx * (T::of32(b[k]) - T::of32(a[k]));

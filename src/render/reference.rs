@@ -3,8 +3,15 @@
 //! `vectors/reference_render/README.md`: target samples at q = pi(H_i^-1 p) clamped to the image
 //! border, sigma zeroed where the warped Z < 0, T_i = prod_{j<i}(exp(-sigma_j delta_j) + 1e-6),
 //! last delta 1e3, depth = sum w Z / (sum w + 1e-5), flow = clip(sum w_src flow_i, -200, 200).
+//! One addition keeps it finite where the reference is not: plane depths are capped at
+//! [`DEPTH_MAX`], so a plane at disparity 0 sits very far away instead of at infinity.
 
-use super::{for_each_band, RenderOutput, RenderParams, RenderStats, DELTA_LAST};
+/// Plane depth as the reference uses it, capped so that disparity 0 stays finite.
+fn plane_depth(mpi: &Mpi, i: usize) -> f64 {
+    mpi.depth(i).min(DEPTH_MAX)
+}
+
+use super::{for_each_band, RenderOutput, RenderParams, RenderStats, DELTA_LAST, DEPTH_MAX};
 use crate::geometry::plane_homography;
 use crate::mpi::Mpi;
 use crate::render::real::Real;
@@ -19,11 +26,7 @@ fn to_t<T: Real>(m: &glam::DMat3) -> M3<T> {
 
 #[inline(always)]
 fn mul<T: Real>(m: &M3<T>, x: T, y: T) -> [T; 3] {
-    [
-        m[0][0] * x + m[0][1] * y + m[0][2],
-        m[1][0] * x + m[1][1] * y + m[1][2],
-        m[2][0] * x + m[2][1] * y + m[2][2],
-    ]
+    [m[0][0] * x + m[0][1] * y + m[0][2], m[1][0] * x + m[1][1] * y + m[1][2], m[2][0] * x + m[2][1] * y + m[2][2]]
 }
 
 pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut RenderOutput) -> RenderStats {
@@ -31,7 +34,7 @@ pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut Render
     // per plane: H_i^-1 (target pixel -> source pixel) and A_i = d_i R K_s^-1 (source pixel -> X_tgt - t)
     let planes: Vec<(M3<T>, M3<T>)> = (0..n)
         .map(|i| {
-            let d = mpi.depth(i);
+            let d = plane_depth(mpi, i);
             let hinv = plane_homography(&p.k_src, &p.k_tgt, &p.pose, d).inverse();
             let a = p.pose.rotation * p.k_src.inverse_matrix() * d;
             (to_t::<T>(&hinv), to_t::<T>(&a))
@@ -68,7 +71,7 @@ pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut Render
                     let sigma = if xt[2] < T::zero() { T::zero() } else { s[3] };
                     if let Some((ps, prgb, px)) = prev {
                         let d = ((xt[0] - px[0]).powi(2) + (xt[1] - px[1]).powi(2) + (xt[2] - px[2]).powi(2)).sqrt();
-                        let e = (-ps * d).exp();
+                        let e = T::exp_neg(ps * d);
                         let wgt = tr * (T::one() - e);
                         composite(wgt, prgb, px[2], &prev_ex, &mut rgb, &mut sum_w, &mut sum_z, &mut acc_ex);
                         tr *= e + eps_t;
@@ -77,8 +80,17 @@ pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut Render
                     std::mem::swap(&mut prev_ex, &mut cur_ex);
                 }
                 if let Some((ps, prgb, px)) = prev {
-                    let e = (-ps * T::of(DELTA_LAST)).exp();
-                    composite(tr * (T::one() - e), prgb, px[2], &prev_ex, &mut rgb, &mut sum_w, &mut sum_z, &mut acc_ex);
+                    let e = T::exp_neg(ps * T::of(DELTA_LAST));
+                    composite(
+                        tr * (T::one() - e),
+                        prgb,
+                        px[2],
+                        &prev_ex,
+                        &mut rgb,
+                        &mut sum_w,
+                        &mut sum_z,
+                        &mut acc_ex,
+                    );
                 }
                 let o = ry * w + x;
                 for k in 0..3 {
@@ -97,7 +109,16 @@ pub(super) fn target_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut Render
 
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn composite<T: Real>(wgt: T, rgb: [T; 3], z: T, ex: &[T], acc: &mut [T; 3], sum_w: &mut T, sum_z: &mut T, acc_ex: &mut [T]) {
+fn composite<T: Real>(
+    wgt: T,
+    rgb: [T; 3],
+    z: T,
+    ex: &[T],
+    acc: &mut [T; 3],
+    sum_w: &mut T,
+    sum_z: &mut T,
+    acc_ex: &mut [T],
+) {
     for k in 0..3 {
         acc[k] += wgt * rgb[k];
     }
@@ -110,8 +131,9 @@ fn composite<T: Real>(wgt: T, rgb: [T; 3], z: T, ex: &[T], acc: &mut [T; 3], sum
 
 pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut RenderOutput) {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
-    let hs: Vec<M3<T>> = (0..n).map(|i| to_t::<T>(&plane_homography(&p.k_src, &p.k_tgt, &p.pose, mpi.depth(i)))).collect();
-    let depths: Vec<T> = (0..n).map(|i| T::of(mpi.depth(i))).collect();
+    let hs: Vec<M3<T>> =
+        (0..n).map(|i| to_t::<T>(&plane_homography(&p.k_src, &p.k_tgt, &p.pose, plane_depth(mpi, i)))).collect();
+    let depths: Vec<T> = (0..n).map(|i| T::of(plane_depth(mpi, i))).collect();
     let ks = p.k_src;
     let clip = T::of(200.0);
     let eps_t = T::of(1e-6);
@@ -127,12 +149,13 @@ pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut Render
                 let xf = T::of(x as f64);
                 let ux = T::of((x as f64 - ks.cx) / ks.fx);
                 let norm_u = (ux * ux + uy * uy + T::one()).sqrt();
-                let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sfront) = (T::one(), T::zero(), T::zero(), T::zero(), T::zero(), T::zero());
+                let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sfront) =
+                    (T::one(), T::zero(), T::zero(), T::zero(), T::zero(), T::zero());
                 let pix = yy * w + x;
                 for i in 0..n {
                     let sigma = T::of32(mpi.plane_rgba(i)[4 * pix + 3]);
                     let delta = if i + 1 < n { (depths[i + 1] - depths[i]) * norm_u } else { T::of(DELTA_LAST) };
-                    let e = (-sigma * delta).exp();
+                    let e = T::exp_neg(sigma * delta);
                     let wgt = tr * (T::one() - e);
                     tr *= e + eps_t;
                     let hp = mul(&hs[i], xf, y);

@@ -1,0 +1,1 @@
+//! Error against run time (being written).

@@ -1,0 +1,80 @@
+//! Argument definitions and dispatch of the `mpiflow` subcommands.
+
+mod bench;
+mod render;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "mpiflow",
+    version,
+    about = "Optical-flow training data from still photos via multiplane images (MPI-Flow)"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render one novel view with its flow, depth and masks from an MPI (.npz) or an RGB-D pair.
+    Render(render::RenderArgs),
+    /// Benchmarks: render speed, and error against run time.
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+/// A failure the user can act on: printed as one line, exit code 2.
+#[derive(Debug)]
+pub struct CliError(pub String);
+
+impl<E: std::fmt::Display> From<E> for CliError {
+    fn from(e: E) -> Self {
+        CliError(e.to_string())
+    }
+}
+
+pub fn run() -> i32 {
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) if e.use_stderr() => {
+            // one line naming the problem (clap's own first line), exit code 2
+            let text = e.render().to_string();
+            eprintln!("{}", text.lines().next().unwrap_or("error: bad arguments"));
+            return 2;
+        }
+        Err(e) => {
+            let _ = e.print();
+            return 0;
+        }
+    };
+    let result = match cli.command {
+        Command::Render(a) => render::run(a),
+        Command::Bench(b) => bench::run(b),
+    };
+    match result {
+        Ok(()) => 0,
+        Err(CliError(msg)) => {
+            eprintln!("error: {}", msg.replace('\n', " "));
+            2
+        }
+    }
+}
+
+/// Parses exactly `N` comma-separated finite numbers.
+pub fn parse_floats<const N: usize>(s: &str) -> Result<[f64; N], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    if parts.len() != N {
+        return Err(format!("expected {N} comma-separated numbers, got {} in `{s}`", parts.len()));
+    }
+    let mut out = [0.0; N];
+    for (o, p) in out.iter_mut().zip(&parts) {
+        let v: f64 = p.parse().map_err(|_| format!("`{p}` is not a number"))?;
+        if !v.is_finite() {
+            return Err(format!("`{p}` is not finite"));
+        }
+        *o = v;
+    }
+    Ok(out)
+}
