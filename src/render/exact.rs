@@ -127,7 +127,22 @@ pub(super) fn target_view<T: Real>(
                             if !(qx >= lo && qx < hix && qy >= lo && qy < hiy) {
                                 continue; // the ray leaves the source image on this plane
                             }
-                            let tap = Tap::new(qx.max(T::zero()).min(wm), qy.max(T::zero()).min(hm), w, h);
+                            // inside [-0.5, W-0.5) x [-0.5, H-0.5): clamp the half-pixel border onto the edge pixels
+                            let qx = if qx < T::zero() {
+                                T::zero()
+                            } else if qx > wm {
+                                wm
+                            } else {
+                                qx
+                            };
+                            let qy = if qy < T::zero() {
+                                T::zero()
+                            } else if qy > hm {
+                                hm
+                            } else {
+                                qy
+                            };
+                            let tap = Tap::new(qx, qy, w, h);
                             let smp = tap.sample4(rgba[i]);
                             stats.samples += 1;
                             let sigma = smp[3];
