@@ -7,3 +7,5 @@ pub mod geometry;
 pub mod io;
 pub mod mpi;
 pub mod render;
+pub mod sample;
+pub mod scene;

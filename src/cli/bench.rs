@@ -2,13 +2,38 @@
 
 use super::CliError;
 use clap::{Args, Subcommand};
+use mpiflow::bench::accuracy::{
+    load_photo_scene, machine_description, markdown, run_accuracy, sphere_scene, tilted_plane_scene, write_plot,
+    AccuracyConfig, ReportMeta,
+};
 use mpiflow::bench::{bench_render, peak_rss_mib, RenderBenchConfig};
 use mpiflow::render::{Mode, Skip};
+use std::path::PathBuf;
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCommand {
     /// Median time of image + flow + depth renders of a synthetic MPI.
     Render(RenderBench),
+    /// Flow and image error against render time for N = 4..128 planes, both layerings, the
+    /// work-skipping thresholds and f32 against f64; writes a markdown report and a PNG plot.
+    Accuracy(AccuracyBench),
+}
+
+#[derive(Args, Debug)]
+pub struct AccuracyBench {
+    /// The markdown report; the plot is written next to it with the extension .png.
+    #[arg(long, default_value = "docs/accuracy.md")]
+    out: PathBuf,
+    #[arg(long, default_value_t = 320)]
+    width: usize,
+    #[arg(long, default_value_t = 240)]
+    height: usize,
+    /// Timed runs per configuration (after one warm-up run).
+    #[arg(long, default_value_t = 7)]
+    runs: usize,
+    /// The photo of the third scene (resized to the bench size).
+    #[arg(long, default_value = "examples/data/chelsea.png")]
+    photo: PathBuf,
 }
 
 #[derive(Args, Debug)]
@@ -34,7 +59,40 @@ pub struct RenderBench {
 pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
     match cmd {
         BenchCommand::Render(b) => render(b),
+        BenchCommand::Accuracy(a) => accuracy(a),
     }
+}
+
+fn accuracy(a: AccuracyBench) -> Result<(), CliError> {
+    if a.width < 8 || a.height < 8 || a.width * a.height > 4 << 20 || a.runs == 0 || a.runs > 1000 {
+        return Err(CliError("accuracy bench: the size must be 8x8 to 4 Mpx and runs 1 to 1000".into()));
+    }
+    let start = std::time::Instant::now();
+    let photo = load_photo_scene(&a.photo, a.width, a.height)?;
+    let scenes = [tilted_plane_scene(a.width, a.height), sphere_scene(a.width, a.height), photo];
+    let cfg = AccuracyConfig::new(a.width, a.height, a.runs);
+    let report = run_accuracy(&cfg, &scenes, &mut |line: &str| eprintln!("{line}"))?;
+    let plot = a.out.with_extension("png");
+    if let Some(dir) = a.out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| CliError(format!("{}: {e}", dir.display())))?;
+    }
+    write_plot(&report, &plot, 1500, 620)?;
+    let meta = ReportMeta {
+        command: format!(
+            "cargo run --release -- bench accuracy --out {} --width {} --height {} --runs {} --photo {}",
+            a.out.display(),
+            a.width,
+            a.height,
+            a.runs,
+            a.photo.display()
+        ),
+        machine: machine_description(),
+        plot: plot.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned()),
+        total_s: start.elapsed().as_secs_f64(),
+    };
+    std::fs::write(&a.out, markdown(&report, &meta)).map_err(|e| CliError(format!("{}: {e}", a.out.display())))?;
+    println!("wrote {} and {} in {:.0} s", a.out.display(), plot.display(), start.elapsed().as_secs_f64());
+    Ok(())
 }
 
 fn render(b: RenderBench) -> Result<(), CliError> {

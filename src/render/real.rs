@@ -27,7 +27,8 @@ fn exp_neg_f32(x: f32) -> f32 {
     let n = (t + 12_582_912.0) - 12_582_912.0;
     let f = t - n; // [-0.5, 0.5]
                    // 2^f = e^(f ln2), Taylor coefficients of e^y with y = f ln 2
-    const C: [f32; 7] = [1.0, 0.693_147_2, 0.240_226_5, 0.055_504_11, 0.009_618_129, 0.001_333_355_8, 0.000_154_035_3];
+    const C: [f32; 7] =
+        [1.0, std::f32::consts::LN_2, 0.240_226_5, 0.055_504_11, 0.009_618_129, 0.001_333_355_8, 0.000_154_035_3];
     let p = C[0] + f * (C[1] + f * (C[2] + f * (C[3] + f * (C[4] + f * (C[5] + f * C[6])))));
     // n in [-116, 0]; 2^n as f32 bits, split in two factors to stay in the normal range
     let n = n as i32;

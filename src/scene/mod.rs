@@ -1,0 +1,3 @@
+//! The per-source scene: depth, MPI and instance masks, from models or given with the source.
+
+pub mod masks;
