@@ -9,3 +9,4 @@ pub mod mpi;
 pub mod render;
 pub mod sample;
 pub mod scene;
+pub mod source;

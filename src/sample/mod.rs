@@ -4,3 +4,76 @@
 pub mod inpaint;
 pub mod motion;
 pub mod rng;
+
+use serde::{Deserialize, Serialize};
+
+use motion::Motion;
+
+/// Where a sample lives: same address, same bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct SampleAddress {
+    /// The source collection's fingerprint ([`crate::source::Source::fingerprint`]).
+    pub dataset: u64,
+    pub seed: u64,
+    pub index: u64,
+}
+
+/// One moved object, as recorded in the sample.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ObjectRecord {
+    /// The value of this object in `mask1` / `mask2` (1, 2, ...).
+    pub label: u8,
+    /// The instance id in the source's masks.
+    pub instance: u32,
+    pub score: f32,
+    /// Source-frame area in pixels (mask >= 0.5).
+    pub area: f64,
+    pub motion: Motion,
+}
+
+/// Milliseconds spent per stage of one sample.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StageTimings {
+    /// Getting the scene (0-ish on a cache hit).
+    pub scene_ms: f64,
+    /// Rendering the scene under the camera motion.
+    pub render_ms: f64,
+    /// Rendering the moving objects.
+    pub objects_ms: f64,
+    /// Merging scene and objects.
+    pub merge_ms: f64,
+    /// Inpainting the holes.
+    pub inpaint_ms: f64,
+    pub total_ms: f64,
+}
+
+/// A finished training sample. All images are `height` x `width`, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Sample {
+    pub address: SampleAddress,
+    /// The source's id.
+    pub source_id: String,
+    pub width: usize,
+    pub height: usize,
+    /// H x W x 3.
+    pub image1: Vec<u8>,
+    /// H x W x 3.
+    pub image2: Vec<u8>,
+    /// H x W x 2 (u, v), forward flow on image1's pixels; always finite.
+    pub flow: Vec<f32>,
+    /// H x W, 1 = the flow is valid (target inside image2, point in front of the camera).
+    pub valid: Vec<u8>,
+    /// H x W, 1 = the image1 point is hidden in image2.
+    pub occlusion: Vec<u8>,
+    /// H x W object labels in image1's frame (0 = background, else `ObjectRecord::label`).
+    pub mask1: Vec<u8>,
+    /// H x W object labels as visible in image2.
+    pub mask2: Vec<u8>,
+    pub camera: Motion,
+    pub objects: Vec<ObjectRecord>,
+    /// Pixels of image2 that were inpainted.
+    pub inpainted_pixels: u64,
+    /// Which implementation produced the scene's depth, MPI and masks.
+    pub provenance: Vec<String>,
+    pub timings: StageTimings,
+}

@@ -1,3 +1,105 @@
-//! The per-source scene: depth, MPI and instance masks, from models or given with the source.
+//! The per-source scene stage: depth, MPI and instance masks, from ONNX models, given with the
+//! source, or built in, behind three small traits; and the scene every sample of a source reuses.
+//!
+//! Scale convention (binding for every implementation): a scene's `disparity` is normalised to
+//! the reference generator's scale, values in [0, 1] with 1 = the nearest content (depth 1) and
+//! smaller = farther (depth = 1 / disparity); motion presets are defined in that scale. See
+//! [`scale`] for how each kind of depth input is brought to it.
 
 pub mod masks;
+
+use std::sync::Arc;
+
+use crate::geometry::Intrinsics;
+use crate::io::image::RgbImage;
+use crate::mpi::Mpi;
+use masks::InstanceMasks;
+
+/// A disparity map in the scene scale: H x W values in [0, 1], 1 = nearest (depth 1), every
+/// value finite (unknown pixels are filled by whoever produced the map).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Disparity {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<f32>,
+}
+
+/// Errors of the scene stage. Each names the model (or file) and, for models, the tensor.
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    /// ONNX Runtime itself could not be loaded (missing, too old, ORT_DYLIB_PATH wrong).
+    #[error("ONNX Runtime: {0}")]
+    Runtime(String),
+    /// A model file or its tensors do not fit the contract, or inference failed / gave NaN.
+    #[error("{kind} model {model}: {message}")]
+    Model { kind: &'static str, model: String, message: String },
+    /// A given file (depth, masks, MPI) is missing or malformed.
+    #[error("{path}: {message}")]
+    Given { path: String, message: String },
+    #[error(transparent)]
+    Mask(#[from] masks::MaskError),
+    #[error(transparent)]
+    Mpi(#[from] crate::mpi::MpiError),
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// Estimates disparity (scene scale, see the module docs) from an image.
+pub trait DepthEstimator: Send + Sync {
+    /// A short name for logs and sample metadata (e.g. `onnx:midas_small.onnx`).
+    fn name(&self) -> String;
+    fn estimate(&self, image: &RgbImage) -> Result<Disparity, SceneError>;
+}
+
+/// Lifts an image with its disparity into an MPI (planes near to far).
+pub trait MpiBuilder: Send + Sync {
+    fn name(&self) -> String;
+    fn build(&self, image: &RgbImage, disparity: &Disparity, k: &Intrinsics) -> Result<Mpi, SceneError>;
+}
+
+/// Finds object instances in an image.
+pub trait Segmenter: Send + Sync {
+    fn name(&self) -> String;
+    fn segment(&self, image: &RgbImage) -> Result<InstanceMasks, SceneError>;
+}
+
+/// Everything a source's samples reuse, computed once per source (and cached).
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// The source's id (file stem, shard key, ...).
+    pub id: String,
+    pub image: RgbImage,
+    pub disparity: Disparity,
+    pub mpi: Arc<Mpi>,
+    /// Instances (possibly none) on the image grid.
+    pub masks: InstanceMasks,
+    pub intrinsics: Intrinsics,
+    /// Which implementation produced each part, e.g. `["depth: given npy", "mpi: builtin soft 32"]`.
+    pub provenance: Vec<String>,
+}
+
+impl Scene {
+    /// Bytes held by the scene (for the cache's budget).
+    pub fn byte_size(&self) -> usize {
+        self.mpi.byte_size()
+            + self.image.data.len() * 4
+            + self.disparity.data.len() * 4
+            + self.masks.masks.iter().map(|m| m.mask.len() * 4).sum::<usize>()
+    }
+}
+
+/// Produces the scene of source item `i` of a collection (loading the source and running or
+/// skipping each model). Implemented by the scene stage; the sample generator caches its output.
+pub trait SceneLoader: Send + Sync {
+    /// Number of source items.
+    fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// The id of item `i` without loading it.
+    fn id(&self, i: usize) -> String;
+    /// The collection's fingerprint (see [`crate::source::Source::fingerprint`]) combined with
+    /// everything in the stage's configuration that changes the scene (models, planes).
+    fn fingerprint(&self) -> u64;
+    fn load_scene(&self, i: usize) -> Result<Scene, SceneError>;
+}
