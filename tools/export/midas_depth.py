@@ -1,0 +1,90 @@
+#!/usr/bin/env python3
+"""Exports a MiDaS-family DPT depth network (Hugging Face `transformers` DPTForDepthEstimation,
+no torch.hub) to ONNX with mpiflow's depth contract (docs/models.md):
+
+    input  `image`  f32 [1,3,H,W], RGB in [0,1] (the network's mean/std is applied inside)
+    output `depth`  f32 [1,H,W], relative inverse depth (larger = nearer)
+
+Examples:
+    # the DPT-Hybrid MiDaS checkpoint AdaMPI and MPI-Flow use (weights from the Hugging Face hub
+    # or a local copy of it)
+    python tools/export/midas_depth.py --model Intel/dpt-hybrid-midas --out models/depth.onnx
+    # the same architecture with random weights (no download; checks the recipe)
+    python tools/export/midas_depth.py --random-init dpt-hybrid --out /tmp/depth.onnx --check
+
+Needs: torch, transformers, onnx (and onnxruntime for --check).
+"""
+
+import argparse
+import sys
+
+import numpy as np
+import torch
+from torch import nn
+
+sys.path.insert(0, __import__("os").path.dirname(__file__))
+from _common import OPSET, check, export  # noqa: E402
+
+
+def random_config(arch):
+    from transformers import DPTConfig
+
+    if arch == "dpt-large":  # ViT-L/16, the transformers default (Intel/dpt-large)
+        return DPTConfig()
+    if arch == "dpt-hybrid":  # ViT-B/16 on a BiT ResNet stem, like Intel/dpt-hybrid-midas
+        return DPTConfig(
+            is_hybrid=True,
+            hidden_size=768,
+            num_hidden_layers=12,
+            num_attention_heads=12,
+            intermediate_size=3072,
+            neck_hidden_sizes=[256, 512, 768, 768],
+            backbone_out_indices=[2, 5, 8, 11],
+        )
+    raise SystemExit(f"unknown architecture {arch}")
+
+
+class DepthContract(nn.Module):
+    """[1,3,H,W] in [0,1] -> [1,H,W] relative inverse depth."""
+
+    def __init__(self, model, mean, std):
+        super().__init__()
+        self.model = model
+        self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32).view(1, 3, 1, 1))
+        self.register_buffer("std", torch.tensor(std, dtype=torch.float32).view(1, 3, 1, 1))
+
+    def forward(self, image):
+        return self.model(pixel_values=(image - self.mean) / self.std).predicted_depth
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--model", help="Hugging Face model id or local directory of a DPTForDepthEstimation checkpoint")
+    src.add_argument("--random-init", choices=["dpt-hybrid", "dpt-large"], help="the architecture with random weights")
+    p.add_argument("--height", type=int, default=384, help="static input height (multiple of 32; default 384)")
+    p.add_argument("--width", type=int, default=384, help="static input width (multiple of 32; default 384)")
+    p.add_argument("--mean", type=float, nargs=3, default=[0.5, 0.5, 0.5], help="normalisation baked into the graph")
+    p.add_argument("--std", type=float, nargs=3, default=[0.5, 0.5, 0.5], help="normalisation baked into the graph")
+    p.add_argument("--opset", type=int, default=OPSET)
+    p.add_argument("--out", required=True, help="the .onnx file to write")
+    p.add_argument("--check", action="store_true", help="compare ONNX Runtime with PyTorch on a random image")
+    a = p.parse_args()
+
+    from transformers import DPTForDepthEstimation
+
+    torch.manual_seed(0)
+    if a.model:
+        model = DPTForDepthEstimation.from_pretrained(a.model)
+    else:
+        model = DPTForDepthEstimation(random_config(a.random_init))
+    wrapper = DepthContract(model.eval(), a.mean, a.std).eval()
+    image = torch.rand(1, 3, a.height, a.width)
+    export(wrapper, (image,), a.out, ["image"], ["depth"], opset=a.opset)
+    print(f"wrote {a.out}: image [1,3,{a.height},{a.width}] -> depth [1,{a.height},{a.width}]")
+    if a.check:
+        check(wrapper, a.out, {"image": np.random.default_rng(1).random((1, 3, a.height, a.width), np.float32)})
+
+
+if __name__ == "__main__":
+    main()
