@@ -6,7 +6,12 @@
 //! smaller = farther (depth = 1 / disparity); motion presets are defined in that scale. See
 //! [`scale`] for how each kind of depth input is brought to it.
 
+pub mod builtin;
+pub mod cache;
 pub mod masks;
+pub mod onnx;
+pub mod scale;
+pub mod stage;
 
 use std::sync::Arc;
 

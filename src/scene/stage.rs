@@ -1,0 +1,317 @@
+//! The scene stage: turns a loaded source item into a [`Scene`] (disparity in the scene scale, MPI,
+//! instance masks, intrinsics), running each configured model only where the item does not
+//! already carry its result; and [`SourceScenes`], a source plus a stage as a [`SceneLoader`].
+//!
+//! # Rules (leave out what a scene does not need)
+//!
+//! 1. **MPI given** ([`SourceItem::mpi`], e.g. `mpis/NAME.npz`): neither the depth model nor the
+//!    MPI builder runs. The MPI is sanitised and validated; if its nearest plane has a disparity
+//!    above 1 all plane disparities are scaled so that it is 1 (and densities by the same factor,
+//!    which keeps every plane's opacity), otherwise it is used as is (the reference's MPIs already
+//!    live in the scene scale). The scene's disparity is the MPI's own: the source-view
+//!    composite `sum_i w_i disp_i` (plus the remaining transmittance times the farthest plane's
+//!    disparity) with the renderer's plane gaps, at unit ray length.
+//! 2. **Depth or disparity given**: brought to the scene scale by
+//!    [`scale::disparity_from_given`]; the depth model does not run.
+//! 3. **Otherwise** the depth model runs (its output must already be in the scene scale, see
+//!    [`DepthEstimator`]); with no depth model the item is an error: "source X has no depth and no
+//!    depth model is configured".
+//! 4. Without a given MPI, the MPI builder lifts image + disparity into an MPI.
+//! 5. **Masks given**: used (resized to the image by nearest neighbour if needed); the segmenter
+//!    does not run. No masks and no segmenter: no instances (objects simply do not move).
+//! 6. **Intrinsics**: the item's, else the given MPI's `K`, else the reference default
+//!    (`0.58 W, 0.58 H`, centre).
+//!
+//! [`Scene::provenance`] records which rule produced each part, e.g.
+//! `["depth: given metric depth, nearest 2.5 -> disparity 1", "mpi: builtin soft 32",
+//! "masks: given (3 instances)"]`.
+
+use super::masks::InstanceMasks;
+use super::scale::{self, DISPARITY_FLOOR};
+use super::{DepthEstimator, Disparity, MpiBuilder, Scene, SceneError, SceneLoader, Segmenter};
+use crate::geometry::Intrinsics;
+use crate::mpi::Mpi;
+use crate::render::{DELTA_LAST, DEPTH_MAX};
+use crate::source::{Fnv64, GivenDepth, Source, SourceError, SourceItem};
+use std::sync::Arc;
+
+impl From<SourceError> for SceneError {
+    fn from(e: SourceError) -> Self {
+        match e {
+            SourceError::File { path, message } => SceneError::Given { path, message },
+            SourceError::Invalid(m) => SceneError::Invalid(m),
+        }
+    }
+}
+
+/// The configured models of the scene stage.
+#[derive(Clone)]
+pub struct SceneStage {
+    /// Depth model, used for items without depth, disparity or MPI.
+    pub depth: Option<Arc<dyn DepthEstimator>>,
+    /// MPI builder, used for items without an MPI.
+    pub mpi: Arc<dyn MpiBuilder>,
+    /// Instance segmenter, used for items without masks.
+    pub segmenter: Option<Arc<dyn Segmenter>>,
+}
+
+impl std::fmt::Debug for SceneStage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.describe())
+    }
+}
+
+impl SceneStage {
+    /// A stage with only an MPI builder (items must carry depth or an MPI).
+    pub fn new(mpi: Arc<dyn MpiBuilder>) -> Self {
+        SceneStage { depth: None, mpi, segmenter: None }
+    }
+
+    /// The model-free default: the built-in layering with 32 soft planes, no depth model, no
+    /// segmenter.
+    pub fn builtin() -> Self {
+        Self::new(Arc::new(super::builtin::BuiltinMpi::default()))
+    }
+
+    pub fn with_depth(mut self, depth: Arc<dyn DepthEstimator>) -> Self {
+        self.depth = Some(depth);
+        self
+    }
+
+    pub fn with_segmenter(mut self, segmenter: Arc<dyn Segmenter>) -> Self {
+        self.segmenter = Some(segmenter);
+        self
+    }
+
+    /// `depth: NAME, mpi: NAME, masks: NAME` (`none` where no model is configured).
+    pub fn describe(&self) -> String {
+        format!(
+            "depth: {}, mpi: {}, masks: {}",
+            self.depth.as_ref().map_or("none".into(), |d| d.name()),
+            self.mpi.name(),
+            self.segmenter.as_ref().map_or("none".into(), |s| s.name())
+        )
+    }
+
+    /// A fingerprint of everything in the configuration that changes scenes (the models' names,
+    /// which include the MPI builder's planes and layering).
+    pub fn config_fingerprint(&self) -> u64 {
+        let mut h = Fnv64::new();
+        h.str("mpiflow scene stage v1");
+        h.str(&self.depth.as_ref().map_or("none".into(), |d| d.name()));
+        h.str(&self.mpi.name());
+        h.str(&self.segmenter.as_ref().map_or("none".into(), |s| s.name()));
+        h.finish()
+    }
+
+    /// Builds the scene of one item (see the module documentation for which parts are computed).
+    pub fn scene(&self, item: SourceItem) -> Result<Scene, SceneError> {
+        let SourceItem { id, image, depth, masks, mpi, intrinsics } = item;
+        let (w, h) = (image.width, image.height);
+        if w == 0 || h == 0 || Some(image.data.len()) != w.checked_mul(h).and_then(|n| n.checked_mul(3)) {
+            return Err(SceneError::Invalid(format!(
+                "source {id}: image of {w} x {h} holds {} values",
+                image.data.len()
+            )));
+        }
+        let mut provenance = Vec::with_capacity(3);
+
+        let (disparity, mpi, intrinsics) = if let Some(given) = mpi {
+            let (mpi, note) = prepare_given_mpi(&id, given, w, h)?;
+            let k = intrinsics.or(mpi.intrinsics).unwrap_or_else(|| Intrinsics::reference_default(w, h));
+            let disparity = composite_disparity(&mpi);
+            provenance.push("depth: composited from the given MPI".to_string());
+            provenance.push(format!("mpi: given ({} planes{note})", mpi.planes()));
+            (disparity, Arc::new(mpi), k)
+        } else {
+            let disparity = match depth {
+                Some(GivenDepth::Depth(d)) => {
+                    let (disp, d_min) = scale::disparity_from_depth(&d, w, h).map_err(|e| in_source(&id, e))?;
+                    provenance.push(format!("depth: given metric depth, nearest {d_min} -> disparity 1"));
+                    disp
+                }
+                Some(GivenDepth::Disparity(d)) => {
+                    let disp = scale::disparity_from_unit(&d, w, h).map_err(|e| in_source(&id, e))?;
+                    provenance.push("depth: given disparity".to_string());
+                    disp
+                }
+                None => match &self.depth {
+                    Some(est) => {
+                        let mut disp = est.estimate(&image)?;
+                        let bad = |message: String| SceneError::Model { kind: "depth", model: est.name(), message };
+                        if (disp.width, disp.height) != (w, h) {
+                            return Err(bad(format!(
+                                "source {id}: disparity of {} x {} for an image of {w} x {h}",
+                                disp.width, disp.height
+                            )));
+                        }
+                        scale::check_scene_scale(&disp).map_err(|m| bad(format!("source {id}: {m}")))?;
+                        scale::clamp_to_scale(&mut disp.data);
+                        provenance.push(format!("depth: {}", est.name()));
+                        disp
+                    }
+                    None => {
+                        return Err(SceneError::Invalid(format!(
+                            "source {id} has no depth and no depth model is configured"
+                        )))
+                    }
+                },
+            };
+            let k = intrinsics.unwrap_or_else(|| Intrinsics::reference_default(w, h));
+            let mpi = self.mpi.build(&image, &disparity, &k)?;
+            if (mpi.width, mpi.height) != (w, h) {
+                return Err(SceneError::Invalid(format!(
+                    "MPI builder {} made a {} x {} MPI for the {w} x {h} image of source {id}",
+                    self.mpi.name(),
+                    mpi.width,
+                    mpi.height
+                )));
+            }
+            provenance.push(format!("mpi: {}", self.mpi.name()));
+            (disparity, Arc::new(mpi), k)
+        };
+
+        let masks = match masks {
+            Some(m) => {
+                let m = if (m.width, m.height) != (w, h) { m.resize_nearest(w, h) } else { m };
+                provenance.push(format!("masks: given ({} instances)", m.masks.len()));
+                m
+            }
+            None => match &self.segmenter {
+                Some(seg) => {
+                    let m = seg.segment(&image)?;
+                    if (m.width, m.height) != (w, h) || m.masks.iter().any(|i| i.mask.len() != w * h) {
+                        return Err(SceneError::Model {
+                            kind: "segmentation",
+                            model: seg.name(),
+                            message: format!(
+                                "source {id}: masks of {} x {} for an image of {w} x {h}",
+                                m.width, m.height
+                            ),
+                        });
+                    }
+                    provenance.push(format!("masks: {} ({} instances)", seg.name(), m.masks.len()));
+                    m
+                }
+                None => {
+                    provenance.push("masks: none (no masks given and no segmenter configured)".to_string());
+                    InstanceMasks::new(w, h)
+                }
+            },
+        };
+
+        Ok(Scene { id, image, disparity, mpi, masks, intrinsics, provenance })
+    }
+}
+
+fn in_source(id: &str, e: SceneError) -> SceneError {
+    match e {
+        SceneError::Invalid(m) => SceneError::Invalid(format!("source {id}: {m}")),
+        other => other,
+    }
+}
+
+/// Sanitises, validates and (if needed) rescales a given MPI; returns it and a provenance note.
+fn prepare_given_mpi(id: &str, mut mpi: Mpi, w: usize, h: usize) -> Result<(Mpi, String), SceneError> {
+    if (mpi.width, mpi.height) != (w, h) {
+        return Err(SceneError::Invalid(format!(
+            "source {id}: the given MPI is {} x {} but the image is {w} x {h}",
+            mpi.width, mpi.height
+        )));
+    }
+    let report = mpi.sanitize();
+    mpi.validate()?;
+    let mut note = String::new();
+    if report.total() > 0 {
+        note.push_str(&format!(", {} values repaired", report.total()));
+    }
+    let near = mpi.disparity[0];
+    if near > 1.0 {
+        let s = 1.0 / near;
+        for d in mpi.disparity.iter_mut() {
+            *d *= s;
+        }
+        mpi.disparity[0] = 1.0;
+        // depths grow by 1/s, so densities shrink by s: sigma * delta (each plane's opacity) is kept
+        let sf = s as f32;
+        for px in mpi.rgba.chunks_exact_mut(4) {
+            px[3] *= sf;
+        }
+        note.push_str(&format!(", disparities scaled by {s} to put the nearest plane at 1"));
+    }
+    Ok((mpi, note))
+}
+
+/// The MPI's own disparity as seen from the source camera: per pixel, front-to-back compositing
+/// with `alpha_i = 1 - exp(-sigma_i delta_i)`, `delta_i` the gap to the next plane's depth (capped
+/// at `DELTA_LAST`, the last plane `DELTA_LAST`, depths capped at `DEPTH_MAX`, as the renderer
+/// does at unit ray length), the light left after the last plane given the farthest plane's
+/// disparity; clamped to the scene scale.
+pub fn composite_disparity(mpi: &Mpi) -> Disparity {
+    let n = mpi.planes();
+    let hw = mpi.plane_len();
+    let depth: Vec<f64> = mpi.disparity.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
+    let delta: Vec<f64> =
+        (0..n).map(|i| if i + 1 < n { (depth[i + 1] - depth[i]).min(DELTA_LAST) } else { DELTA_LAST }).collect();
+    let mut acc = vec![0f64; hw];
+    let mut trans = vec![1f64; hw];
+    for (i, (&delta_i, &disp)) in delta.iter().zip(&mpi.disparity).enumerate() {
+        let plane = mpi.plane_rgba(i);
+        for ((px, a), t) in plane.chunks_exact(4).zip(acc.iter_mut()).zip(trans.iter_mut()) {
+            let sigma = f64::from(px[3]);
+            if sigma <= 0.0 || *t == 0.0 {
+                continue;
+            }
+            let alpha = 1.0 - (-sigma * delta_i).exp();
+            *a += *t * alpha * disp;
+            *t *= 1.0 - alpha;
+        }
+    }
+    let last = mpi.disparity[n - 1];
+    let mut data: Vec<f32> = acc.iter().zip(&trans).map(|(&a, &t)| (a + t * last) as f32).collect();
+    scale::clamp_to_scale(&mut data);
+    debug_assert!(data.iter().all(|&v| v >= DISPARITY_FLOOR));
+    Disparity { width: mpi.width, height: mpi.height, data }
+}
+
+/// A source plus a scene stage: the [`SceneLoader`] the sample generator uses.
+#[derive(Clone)]
+pub struct SourceScenes {
+    pub source: Arc<dyn Source>,
+    pub stage: Arc<SceneStage>,
+}
+
+impl SourceScenes {
+    pub fn new(source: Arc<dyn Source>, stage: Arc<SceneStage>) -> Self {
+        SourceScenes { source, stage }
+    }
+
+    /// `SOURCE; STAGE`.
+    pub fn describe(&self) -> String {
+        format!("{}; {}", self.source.describe(), self.stage.describe())
+    }
+}
+
+impl SceneLoader for SourceScenes {
+    fn len(&self) -> usize {
+        self.source.len()
+    }
+
+    fn id(&self, i: usize) -> String {
+        self.source.id(i)
+    }
+
+    /// FNV-1a of the source's fingerprint and the stage's configuration fingerprint.
+    fn fingerprint(&self) -> u64 {
+        Fnv64::new()
+            .str("mpiflow source scenes v1")
+            .u64(self.source.fingerprint())
+            .u64(self.stage.config_fingerprint())
+            .finish()
+    }
+
+    fn load_scene(&self, i: usize) -> Result<Scene, SceneError> {
+        let item = self.source.load(i)?;
+        self.stage.scene(item)
+    }
+}

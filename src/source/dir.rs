@@ -1,0 +1,656 @@
+//! Sources from the file system: a directory of plain photos, a directory in the public
+//! reference generator's input layout (images with optional depth, disparity, instance masks and
+//! precomputed MPIs), or a single image file.
+//!
+//! # Layouts
+//!
+//! - **Reference layout**, chosen when `DIR/images/` is a folder: one item per
+//!   `images/NAME.(png|jpg|jpeg)` (sorted by file name), each with optional companions sharing
+//!   the image's stem `NAME`:
+//!   - `depths/NAME.npy`: float depth `[H, W]` (also `[1, H, W]`, `[H, W, 1]`, `[1, 1, H, W]`; any
+//!     numeric dtype), any linear unit; non-finite or `<= 0` = unknown;
+//!   - `depths/NAME.pfm`: the same as a one-channel PFM (`Pf`);
+//!   - `depths/NAME.png`: the same as a 16-bit grey PNG (e.g. millimetres; 0 = unknown);
+//!   - `disps/NAME.png`: disparity in `[0, 1]`: an 8-bit grey PNG read as value / 255 (as the
+//!     reference reads it) or a 16-bit one read as value / 65535;
+//!   - `masks/NAME.png`: instance ids (0 = background; see
+//!     [`InstanceMasks::from_index_png`](crate::scene::masks::InstanceMasks::from_index_png)),
+//!     or `masks/NAME.json`: COCO annotations (RLE or polygons);
+//!   - `mpis/NAME.npz`: a whole MPI in the reference's npz layout (see [`crate::mpi::npz`]).
+//!
+//!   When several depth files exist for one name, `.npy` wins over `.pfm` over `.png`; a depth file
+//!   wins over a disparity PNG (it gives exact geometry); `.png` masks win over `.json`.
+//! - **Plain layout**, otherwise: one item per `DIR/*.(png|jpg|jpeg)`, sorted by file name, with
+//!   nothing but the image.
+//! - **Single file**: a path to one image is a one-item source.
+//!
+//! Ids are file stems (the whole file name where two images share a stem). Listing reads file
+//! names and sizes only; [`Source::load`] decodes an item's files under [`ImageLimits`], and a
+//! missing or corrupt file is a [`SourceError::File`] naming the file and the problem, for that
+//! item only.
+//!
+//! # Sizes and camera
+//!
+//! Depth, disparity and masks whose size differs from the image's are resized to it (nearest
+//! neighbour, so unknown depth stays unknown and ids stay ids), as the reference resizes all its
+//! inputs to one size. With [`SourceOptions::resize`] every item is resized to that size: the
+//! image with an antialiasing triangle filter, depth and masks by nearest neighbour. A given MPI
+//! must have the size of the (resized) image; it is never resized. Intrinsics are the reference's
+//! default (`0.58 W, 0.58 H`, centre; left to the scene stage) unless
+//! [`SourceOptions::intrinsics`] sets them for the run.
+//!
+//! # Fingerprint
+//!
+//! FNV-1a 64 ([`Fnv64`]) over the layout, each item's relative file paths (`/`-separated) and
+//! sizes in bytes, and the options that change what is loaded (resize, intrinsics). It does not
+//! depend on where the directory is (same files, same fingerprint on every machine), but a file
+//! edited in place to the same size keeps it unless [`SourceOptions::hash_contents`] is set
+//! (which reads every file once at open and hashes its bytes too).
+
+use super::{Fnv64, GivenDepth, Source, SourceError, SourceItem};
+use crate::geometry::Intrinsics;
+use crate::io::image::{decode_file, load_depth_png16_with_limits, load_rgb, ImageLimits, RgbImage};
+use crate::io::npy::read_npy_file;
+use crate::mpi::{Mpi, MpiError};
+use crate::scene::masks::{resize_nearest, InstanceMasks};
+use ::image::DynamicImage;
+use std::collections::HashMap;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+/// Camera intrinsics set for a whole run.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum IntrinsicsSpec {
+    /// fx, fy, cx, cy in pixels of the image as loaded (after any resize).
+    Pixels(Intrinsics),
+    /// fx, cy as fractions of the width and fy, cy of the height (the reference's default is
+    /// `Relative(Intrinsics::new(0.58, 0.58, 0.5, 0.5))`).
+    Relative(Intrinsics),
+}
+
+impl IntrinsicsSpec {
+    /// The intrinsics of a `width x height` image.
+    pub fn for_size(&self, width: usize, height: usize) -> Intrinsics {
+        match *self {
+            IntrinsicsSpec::Pixels(k) => k,
+            IntrinsicsSpec::Relative(r) => {
+                let (w, h) = (width as f64, height as f64);
+                Intrinsics::new(r.fx * w, r.fy * h, r.cx * w, r.cy * h)
+            }
+        }
+    }
+}
+
+/// How a file-system source is read.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SourceOptions {
+    /// Resize every item to (width, height) (the reference uses 1280 x 384); `None` keeps sizes.
+    pub resize: Option<(usize, usize)>,
+    /// Limits for images, depth and mask files (file size and dimensions, checked before
+    /// decoding).
+    pub limits: ImageLimits,
+    /// Largest accepted `.npz` MPI file in bytes (MPIs are much larger than images).
+    pub max_mpi_bytes: u64,
+    /// Intrinsics for every item; `None` = the reference default (or the MPI's own `K`).
+    pub intrinsics: Option<IntrinsicsSpec>,
+    /// Also hash every file's bytes into the fingerprint (reads all files once at open).
+    pub hash_contents: bool,
+}
+
+impl Default for SourceOptions {
+    /// Sizes kept, default image limits, MPIs up to 4 GiB, reference intrinsics, fingerprint
+    /// from names and sizes.
+    fn default() -> Self {
+        SourceOptions {
+            resize: None,
+            limits: ImageLimits::default(),
+            max_mpi_bytes: 4 << 30,
+            intrinsics: None,
+            hash_contents: false,
+        }
+    }
+}
+
+/// How a [`DirSource`] found its items.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// `DIR/*.png|jpg|jpeg`.
+    Plain,
+    /// `DIR/images/`, `depths/`, `disps/`, `masks/`, `mpis/`.
+    Reference,
+    /// One image file.
+    File,
+}
+
+/// The kind of a depth file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthFile {
+    Npy,
+    Pfm,
+    Png16,
+}
+
+/// The kind of a mask file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MaskFile {
+    IndexPng,
+    CocoJson,
+}
+
+#[derive(Clone, Debug)]
+struct FileRef {
+    /// Relative to the root, `/`-separated.
+    rel: String,
+    size: u64,
+}
+
+#[derive(Clone, Debug)]
+struct Entry {
+    id: String,
+    image: FileRef,
+    depth: Option<(DepthFile, FileRef)>,
+    disparity: Option<FileRef>,
+    masks: Option<(MaskFile, FileRef)>,
+    mpi: Option<FileRef>,
+}
+
+/// The files of one item (absolute paths).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ItemFiles {
+    pub image: PathBuf,
+    pub depth: Option<(DepthFile, PathBuf)>,
+    pub disparity: Option<PathBuf>,
+    pub masks: Option<(MaskFile, PathBuf)>,
+    pub mpi: Option<PathBuf>,
+}
+
+/// A directory (or single image) source; see the module documentation.
+#[derive(Clone, Debug)]
+pub struct DirSource {
+    root: PathBuf,
+    layout: Layout,
+    entries: Vec<Entry>,
+    options: SourceOptions,
+    fingerprint: u64,
+}
+
+const IMAGE_EXTS: [&str; 3] = ["png", "jpg", "jpeg"];
+
+fn lower_ext(name: &str) -> Option<(String, String)> {
+    let p = Path::new(name);
+    let ext = p.extension()?.to_str()?.to_ascii_lowercase();
+    let stem = p.file_stem()?.to_str()?.to_string();
+    Some((stem, ext))
+}
+
+fn io_err(path: &Path, e: &std::io::Error) -> SourceError {
+    let message = if e.kind() == std::io::ErrorKind::NotFound { "not found".to_string() } else { e.to_string() };
+    SourceError::File { path: path.display().to_string(), message }
+}
+
+/// A file error whose message does not repeat the path when the underlying error already starts
+/// with it.
+fn file_err(path: &Path, e: impl std::fmt::Display) -> SourceError {
+    let p = path.display().to_string();
+    let m = e.to_string();
+    let message = m.strip_prefix(&format!("{p}: ")).map(str::to_string).unwrap_or(m);
+    SourceError::File { path: p, message }
+}
+
+/// Regular files of a directory as (name, size), sorted by name; names that are not UTF-8 are
+/// skipped (they cannot be ids).
+fn list_files(dir: &Path) -> Result<Vec<(String, u64)>, SourceError> {
+    let rd = std::fs::read_dir(dir).map_err(|e| io_err(dir, &e))?;
+    let mut out = Vec::new();
+    for ent in rd {
+        let ent = ent.map_err(|e| io_err(dir, &e))?;
+        let Ok(name) = ent.file_name().into_string() else { continue };
+        // follow symlinks: a linked photo is a photo
+        let Ok(meta) = std::fs::metadata(ent.path()) else { continue };
+        if meta.is_file() {
+            out.push((name, meta.len()));
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+/// Images of a listing as (stem, name, size), with ids made unique.
+fn image_entries(files: &[(String, u64)], prefix: &str) -> Vec<Entry> {
+    let images: Vec<(String, String, u64)> = files
+        .iter()
+        .filter_map(|(name, size)| {
+            let (stem, ext) = lower_ext(name)?;
+            IMAGE_EXTS.contains(&ext.as_str()).then(|| (stem, name.clone(), *size))
+        })
+        .collect();
+    let mut stem_count: HashMap<&str, usize> = HashMap::new();
+    for (stem, _, _) in &images {
+        *stem_count.entry(stem.as_str()).or_insert(0) += 1;
+    }
+    images
+        .iter()
+        .map(|(stem, name, size)| Entry {
+            id: if stem_count[stem.as_str()] > 1 { name.clone() } else { stem.clone() },
+            image: FileRef { rel: format!("{prefix}{name}"), size: *size },
+            depth: None,
+            disparity: None,
+            masks: None,
+            mpi: None,
+        })
+        .collect()
+}
+
+/// Companion files of a reference-layout subfolder by stem: (lower-case extension, name, size).
+type Companions = HashMap<String, Vec<(String, String, u64)>>;
+
+fn companions(root: &Path, sub: &str) -> Result<Companions, SourceError> {
+    let dir = root.join(sub);
+    let mut map: Companions = HashMap::new();
+    if !dir.is_dir() {
+        return Ok(map);
+    }
+    for (name, size) in list_files(&dir)? {
+        if let Some((stem, ext)) = lower_ext(&name) {
+            map.entry(stem).or_default().push((ext, name, size));
+        }
+    }
+    Ok(map)
+}
+
+fn pick(map: &Companions, sub: &str, stem: &str, ext: &str) -> Option<FileRef> {
+    map.get(stem)?
+        .iter()
+        .find(|(e, _, _)| e == ext)
+        .map(|(_, name, size)| FileRef { rel: format!("{sub}/{name}"), size: *size })
+}
+
+fn stem_of(entry: &Entry) -> String {
+    let name = entry.image.rel.rsplit('/').next().unwrap_or(&entry.image.rel);
+    lower_ext(name).map(|(s, _)| s).unwrap_or_else(|| name.to_string())
+}
+
+impl DirSource {
+    /// Lists a directory (reference or plain layout) or a single image file. Reads names and
+    /// sizes only (and contents with [`SourceOptions::hash_contents`]). A path that does not
+    /// exist, or a directory without images, is an error.
+    pub fn open(path: &Path, options: &SourceOptions) -> Result<Self, SourceError> {
+        let meta = std::fs::metadata(path).map_err(|e| io_err(path, &e))?;
+        let (root, layout, entries) = if meta.is_file() {
+            let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
+            let entries = image_entries(&[(name.clone(), meta.len())], "");
+            if entries.is_empty() {
+                return Err(SourceError::File {
+                    path: path.display().to_string(),
+                    message: "not a .png, .jpg or .jpeg image".into(),
+                });
+            }
+            let root = path.parent().map(Path::to_path_buf).unwrap_or_default();
+            (root, Layout::File, entries)
+        } else if path.join("images").is_dir() {
+            let mut entries = image_entries(&list_files(&path.join("images"))?, "images/");
+            let depths = companions(path, "depths")?;
+            let disps = companions(path, "disps")?;
+            let masks = companions(path, "masks")?;
+            let mpis = companions(path, "mpis")?;
+            for e in &mut entries {
+                let stem = stem_of(e);
+                e.depth = pick(&depths, "depths", &stem, "npy")
+                    .map(|f| (DepthFile::Npy, f))
+                    .or_else(|| pick(&depths, "depths", &stem, "pfm").map(|f| (DepthFile::Pfm, f)))
+                    .or_else(|| pick(&depths, "depths", &stem, "png").map(|f| (DepthFile::Png16, f)));
+                e.disparity = pick(&disps, "disps", &stem, "png");
+                e.masks = pick(&masks, "masks", &stem, "png")
+                    .map(|f| (MaskFile::IndexPng, f))
+                    .or_else(|| pick(&masks, "masks", &stem, "json").map(|f| (MaskFile::CocoJson, f)));
+                e.mpi = pick(&mpis, "mpis", &stem, "npz");
+            }
+            (path.to_path_buf(), Layout::Reference, entries)
+        } else {
+            (path.to_path_buf(), Layout::Plain, image_entries(&list_files(path)?, ""))
+        };
+        if entries.is_empty() {
+            let message = if layout == Layout::Reference {
+                "no .png, .jpg or .jpeg images in images/"
+            } else {
+                "no .png, .jpg or .jpeg images (and no images/ folder)"
+            };
+            return Err(SourceError::File { path: path.display().to_string(), message: message.into() });
+        }
+        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0 };
+        src.fingerprint = src.compute_fingerprint()?;
+        Ok(src)
+    }
+
+    /// The folder the items' relative paths start from.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    pub fn layout(&self) -> Layout {
+        self.layout
+    }
+
+    pub fn options(&self) -> &SourceOptions {
+        &self.options
+    }
+
+    /// The files item `i` is read from (`None` when out of range).
+    pub fn files(&self, i: usize) -> Option<ItemFiles> {
+        let e = self.entries.get(i)?;
+        let abs = |f: &FileRef| self.root.join(&f.rel);
+        Some(ItemFiles {
+            image: abs(&e.image),
+            depth: e.depth.as_ref().map(|(k, f)| (*k, abs(f))),
+            disparity: e.disparity.as_ref().map(abs),
+            masks: e.masks.as_ref().map(|(k, f)| (*k, abs(f))),
+            mpi: e.mpi.as_ref().map(abs),
+        })
+    }
+
+    fn compute_fingerprint(&self) -> Result<u64, SourceError> {
+        let mut h = Fnv64::new();
+        h.str("mpiflow dir source v1");
+        h.str(match self.layout {
+            Layout::Plain => "plain",
+            Layout::Reference => "reference",
+            Layout::File => "file",
+        });
+        h.u64(self.entries.len() as u64);
+        let file = |h: &mut Fnv64, role: &str, f: &FileRef| -> Result<(), SourceError> {
+            h.str(role).str(&f.rel).u64(f.size);
+            if self.options.hash_contents {
+                h.u64(hash_file(&self.root.join(&f.rel))?);
+            }
+            Ok(())
+        };
+        for e in &self.entries {
+            h.str(&e.id);
+            file(&mut h, "image", &e.image)?;
+            if let Some((_, f)) = &e.depth {
+                file(&mut h, "depth", f)?;
+            }
+            if let Some(f) = &e.disparity {
+                file(&mut h, "disparity", f)?;
+            }
+            if let Some((_, f)) = &e.masks {
+                file(&mut h, "masks", f)?;
+            }
+            if let Some(f) = &e.mpi {
+                file(&mut h, "mpi", f)?;
+            }
+        }
+        match self.options.resize {
+            None => h.str("size as is"),
+            Some((w, hh)) => h.str("resize").u64(w as u64).u64(hh as u64),
+        };
+        match self.options.intrinsics {
+            None => h.str("intrinsics default"),
+            Some(IntrinsicsSpec::Pixels(k)) => h.str("intrinsics px").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
+            Some(IntrinsicsSpec::Relative(k)) => h.str("intrinsics rel").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
+        };
+        Ok(h.finish())
+    }
+
+    fn load_entry(&self, e: &Entry) -> Result<SourceItem, SourceError> {
+        let limits = &self.options.limits;
+        let ipath = self.root.join(&e.image.rel);
+        let mut image = load_rgb(&ipath, limits).map_err(|err| file_err(&ipath, err))?;
+        let (w0, h0) = (image.width, image.height);
+
+        let mut depth = match &e.depth {
+            Some((kind, f)) => {
+                let p = self.root.join(&f.rel);
+                let (w, h, d) = read_depth(&p, *kind, limits)?;
+                Some(GivenDepth::Depth(fit(d, w, h, w0, h0)))
+            }
+            None => match &e.disparity {
+                Some(f) => {
+                    let p = self.root.join(&f.rel);
+                    let (w, h, d) = read_disparity_png(&p, limits)?;
+                    Some(GivenDepth::Disparity(fit(d, w, h, w0, h0)))
+                }
+                None => None,
+            },
+        };
+
+        let mut masks = match &e.masks {
+            Some((kind, f)) => {
+                let p = self.root.join(&f.rel);
+                let m = match kind {
+                    MaskFile::IndexPng => InstanceMasks::from_index_png_with_limits(&p, limits),
+                    MaskFile::CocoJson => {
+                        let size = std::fs::metadata(&p).map_err(|err| io_err(&p, &err))?.len();
+                        if size > limits.max_bytes {
+                            return Err(file_err(
+                                &p,
+                                format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes),
+                            ));
+                        }
+                        InstanceMasks::from_coco_json_file(&p, h0, w0)
+                    }
+                }
+                .map_err(|err| file_err(&p, err))?;
+                Some(if (m.width, m.height) != (w0, h0) { m.resize_nearest(w0, h0) } else { m })
+            }
+            None => None,
+        };
+
+        let mpi = match &e.mpi {
+            Some(f) => Some(self.read_mpi(&self.root.join(&f.rel))?),
+            None => None,
+        };
+
+        if let Some((rw, rh)) = self.options.resize {
+            if (rw, rh) != (w0, h0) {
+                if rw == 0 || rh == 0 {
+                    return Err(SourceError::Invalid(format!("cannot resize to {rw} x {rh}")));
+                }
+                image = resize_rgb(&image, rw, rh);
+                depth = depth.map(|d| match d {
+                    GivenDepth::Depth(v) => GivenDepth::Depth(resize_nearest(&v, w0, h0, rw, rh)),
+                    GivenDepth::Disparity(v) => GivenDepth::Disparity(resize_nearest(&v, w0, h0, rw, rh)),
+                });
+                masks = masks.map(|m| m.resize_nearest(rw, rh));
+            }
+        }
+        if let (Some(m), Some(f)) = (&mpi, &e.mpi) {
+            if (m.width, m.height) != (image.width, image.height) {
+                return Err(file_err(
+                    &self.root.join(&f.rel),
+                    format!(
+                        "the MPI is {} x {} but its image is {} x {}{}; MPIs are not resized",
+                        m.width,
+                        m.height,
+                        image.width,
+                        image.height,
+                        if self.options.resize.is_some() { " after resizing" } else { "" }
+                    ),
+                ));
+            }
+        }
+        let intrinsics = self.options.intrinsics.map(|s| s.for_size(image.width, image.height));
+        Ok(SourceItem { id: e.id.clone(), image, depth, masks, mpi, intrinsics })
+    }
+
+    fn read_mpi(&self, p: &Path) -> Result<Mpi, SourceError> {
+        let size = std::fs::metadata(p).map_err(|e| io_err(p, &e))?.len();
+        if size > self.options.max_mpi_bytes {
+            return Err(file_err(
+                p,
+                format!("{size} bytes is larger than the MPI limit of {} bytes", self.options.max_mpi_bytes),
+            ));
+        }
+        let mpi = crate::mpi::npz::load_npz(p).map_err(|e| file_err(p, mpi_message(e)))?;
+        mpi.validate().map_err(|e| file_err(p, mpi_message(e)))?;
+        Ok(mpi)
+    }
+}
+
+fn mpi_message(e: MpiError) -> String {
+    match e {
+        MpiError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => "not found".into(),
+        MpiError::Io { source, .. } => source.to_string(),
+        MpiError::BadArchive { reason, .. } => format!("not a valid .npz archive: {reason}"),
+        MpiError::MissingKey { key, .. } => format!("missing array `{key}`"),
+        MpiError::BadShape { key, shape, expected, .. } => {
+            format!("array `{key}` has shape {shape:?}, expected {expected}")
+        }
+        MpiError::Invalid(m) => m,
+    }
+}
+
+/// Resizes `data` (w x h) to (w0 x h0) by nearest neighbour when the sizes differ.
+fn fit(data: Vec<f32>, w: usize, h: usize, w0: usize, h0: usize) -> Vec<f32> {
+    if (w, h) == (w0, h0) {
+        data
+    } else {
+        resize_nearest(&data, w, h, w0, h0)
+    }
+}
+
+/// Reads a depth file as (width, height, values).
+pub fn read_depth(p: &Path, kind: DepthFile, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    match kind {
+        DepthFile::Npy => read_depth_npy(p, limits),
+        DepthFile::Pfm => {
+            let pfm = super::pfm::read_pfm(p, limits).map_err(|m| file_err(p, m))?;
+            if pfm.channels != 1 {
+                return Err(file_err(p, "a colour PFM (PF) cannot be read as depth; expected a one-channel Pf"));
+            }
+            Ok((pfm.width, pfm.height, pfm.data))
+        }
+        DepthFile::Png16 => load_depth_png16_with_limits(p, limits).map_err(|e| file_err(p, e)),
+    }
+}
+
+/// Reads a float (or integer) `.npy` depth of shape `[H, W]`, `[1, H, W]`, `[H, W, 1]` or
+/// `[1, 1, H, W]`, under the limits (file size, then dimensions).
+pub fn read_depth_npy(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    let size = std::fs::metadata(p).map_err(|e| io_err(p, &e))?.len();
+    if size > limits.max_bytes {
+        return Err(file_err(p, format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes)));
+    }
+    let a = read_npy_file(p).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            io_err(p, &e)
+        } else {
+            file_err(p, format!("not a valid .npy depth: {e}"))
+        }
+    })?;
+    let (h, w) = match a.shape.as_slice() {
+        [h, w] | [1, h, w] | [h, w, 1] | [1, 1, h, w] => (*h, *w),
+        s => {
+            return Err(file_err(
+                p,
+                format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])"),
+            ))
+        }
+    };
+    let dims_ok = matches!((u32::try_from(w), u32::try_from(h)), (Ok(w), Ok(h)) if w > 0 && h > 0 && limits.check_dimensions(w, h));
+    if !dims_ok {
+        return Err(file_err(p, format!("depth of {w} x {h} pixels is empty or too large ({limits})")));
+    }
+    Ok((w as usize, h as usize, a.data.into_iter().map(|v| v as f32).collect()))
+}
+
+/// Reads a grey disparity PNG as values in [0, 1]: 8-bit / 255, 16-bit / 65535 (alpha ignored;
+/// an RGB PNG is accepted when it is grey, R = G = B).
+pub fn read_disparity_png(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    let img = decode_file(p, limits).map_err(|e| file_err(p, e))?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    fn grey<T: Copy + Into<f32> + PartialEq>(raw: &[T], ch: usize, max: f32) -> Option<Vec<f32>> {
+        let mut out = Vec::with_capacity(raw.len() / ch);
+        for px in raw.chunks_exact(ch) {
+            if ch >= 3 && (px[0] != px[1] || px[1] != px[2]) {
+                return None;
+            }
+            out.push(px[0].into() / max);
+        }
+        Some(out)
+    }
+    let data = match &img {
+        DynamicImage::ImageLuma8(b) => grey(b.as_raw(), 1, 255.0),
+        DynamicImage::ImageLumaA8(b) => grey(b.as_raw(), 2, 255.0),
+        DynamicImage::ImageRgb8(b) => grey(b.as_raw(), 3, 255.0),
+        DynamicImage::ImageRgba8(b) => grey(b.as_raw(), 4, 255.0),
+        DynamicImage::ImageLuma16(b) => grey(b.as_raw(), 1, 65535.0),
+        DynamicImage::ImageLumaA16(b) => grey(b.as_raw(), 2, 65535.0),
+        DynamicImage::ImageRgb16(b) => grey(b.as_raw(), 3, 65535.0),
+        DynamicImage::ImageRgba16(b) => grey(b.as_raw(), 4, 65535.0),
+        _ => None,
+    };
+    data.map(|d| (w, h, d)).ok_or_else(|| {
+        file_err(
+            p,
+            format!("a {:?} image is not a grey disparity map (expected an 8- or 16-bit grey PNG)", img.color()),
+        )
+    })
+}
+
+/// Resizes an RGB image with the `image` crate's triangle filter (bilinear when enlarging,
+/// antialiased when shrinking).
+pub fn resize_rgb(img: &RgbImage, width: usize, height: usize) -> RgbImage {
+    if (img.width, img.height) == (width, height) {
+        return img.clone();
+    }
+    let buf = ::image::Rgb32FImage::from_raw(img.width as u32, img.height as u32, img.data.clone())
+        .expect("RgbImage holds width * height * 3 values");
+    let out = ::image::imageops::resize(&buf, width as u32, height as u32, ::image::imageops::FilterType::Triangle);
+    RgbImage { width, height, data: out.into_raw().into_iter().map(|v| v.clamp(0.0, 1.0)).collect() }
+}
+
+fn hash_file(p: &Path) -> Result<u64, SourceError> {
+    let f = std::fs::File::open(p).map_err(|e| io_err(p, &e))?;
+    let mut r = std::io::BufReader::with_capacity(1 << 16, f);
+    let mut h = Fnv64::new();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = r.read(&mut buf).map_err(|e| io_err(p, &e))?;
+        if n == 0 {
+            break;
+        }
+        h.bytes(&buf[..n]);
+    }
+    Ok(h.finish())
+}
+
+impl Source for DirSource {
+    fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    fn id(&self, i: usize) -> String {
+        self.entries.get(i).map(|e| e.id.clone()).unwrap_or_default()
+    }
+
+    fn load(&self, i: usize) -> Result<SourceItem, SourceError> {
+        let e = self.entries.get(i).ok_or_else(|| {
+            SourceError::Invalid(format!("item {i} is out of range ({} has {} items)", self.describe(), self.len()))
+        })?;
+        self.load_entry(e)
+    }
+
+    fn fingerprint(&self) -> u64 {
+        self.fingerprint
+    }
+
+    fn describe(&self) -> String {
+        let n = self.entries.len();
+        let root = self.root.display();
+        match self.layout {
+            Layout::Plain => format!("dir:{root} ({n} images)"),
+            Layout::File => format!("file:{}", self.root.join(&self.entries[0].image.rel).display()),
+            Layout::Reference => {
+                let count = |f: fn(&Entry) -> bool| self.entries.iter().filter(|e| f(e)).count();
+                format!(
+                    "dir:{root} ({n} images, reference layout: {} depths, {} disparities, {} masks, {} MPIs)",
+                    count(|e| e.depth.is_some()),
+                    count(|e| e.disparity.is_some()),
+                    count(|e| e.masks.is_some()),
+                    count(|e| e.mpi.is_some())
+                )
+            }
+        }
+    }
+}
