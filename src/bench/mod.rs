@@ -2,6 +2,7 @@
 //! run time (`accuracy`).
 
 pub mod accuracy;
+pub mod sample;
 
 use crate::geometry::{Intrinsics, Pose};
 use crate::mpi::synthetic::bench_mpi;

@@ -17,6 +17,36 @@ pub enum BenchCommand {
     /// Flow and image error against render time for N = 4..128 planes, both layerings, the
     /// work-skipping thresholds and f32 against f64; writes a markdown report and a PNG plot.
     Accuracy(AccuracyBench),
+    /// Median time of whole samples (cached scene, renders, merge, inpainting) of a synthetic
+    /// RGB-D scene with one moving object, and without it; the share of each stage.
+    Sample(SampleBench),
+}
+
+#[derive(Args, Debug)]
+pub struct SampleBench {
+    #[arg(long, default_value_t = 640)]
+    width: usize,
+    #[arg(long, default_value_t = 480)]
+    height: usize,
+    #[arg(long, default_value_t = 32)]
+    planes: usize,
+    /// Timed samples per case (after one warm-up sample that fills the cache).
+    #[arg(long, default_value_t = 10)]
+    samples: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Merge rule: depth-aware or reference.
+    #[arg(long, default_value = "depth-aware")]
+    merge: mpiflow::sample::merge::MergeRule,
+    /// Motion preset: reference, paper-kitti or depthstillation.
+    #[arg(long, default_value = "reference")]
+    preset: mpiflow::sample::motion::MotionPreset,
+    /// Render the object and mask channel over full frames (the reference's way) instead of windows.
+    #[arg(long)]
+    full_frame: bool,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
 }
 
 #[derive(Args, Debug)]
@@ -60,6 +90,7 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
     match cmd {
         BenchCommand::Render(b) => render(b),
         BenchCommand::Accuracy(a) => accuracy(a),
+        BenchCommand::Sample(s) => sample(s),
     }
 }
 
@@ -125,6 +156,61 @@ fn render(b: RenderBench) -> Result<(), CliError> {
     }
     if let Some(m) = peak_rss_mib() {
         println!("peak memory {m:.0} MiB ({}x{}, {} planes, mode {:?})", b.width, b.height, b.planes, b.mode);
+    }
+    Ok(())
+}
+
+fn sample(b: SampleBench) -> Result<(), CliError> {
+    use mpiflow::bench::sample::{bench_sample, SampleBenchConfig};
+    use mpiflow::sample::recipe::SampleConfig;
+    if b.width < 16 || b.height < 16 || b.width * b.height > 16 << 20 || b.planes == 0 || b.planes > 256 {
+        return Err(CliError("bench sizes must be 16x16 to 16 Mpx and 1 to 256 planes".into()));
+    }
+    if b.samples == 0 || b.samples > 10_000 {
+        return Err(CliError("--samples must be 1 to 10000".into()));
+    }
+    let threads = b.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+    for object in [true, false] {
+        let sample = SampleConfig {
+            merge: b.merge,
+            windowed: !b.full_frame,
+            max_objects: usize::from(object),
+            ..SampleConfig::with_preset(b.preset)
+        };
+        let cfg = SampleBenchConfig {
+            width: b.width,
+            height: b.height,
+            planes: b.planes,
+            samples: b.samples,
+            object,
+            seed: b.seed,
+            sample,
+        };
+        let r = pool.install(|| bench_sample(&cfg))?;
+        println!(
+            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}:",
+            b.width,
+            b.height,
+            b.planes,
+            r.objects,
+            if r.objects == 1 { "" } else { "s" },
+            b.merge,
+            b.preset,
+            if b.full_frame { "full-frame object renders" } else { "windowed object renders" }
+        );
+        println!(
+            "median {:.1} ms (min {:.1}, max {:.1}) over {} samples, {threads} threads; median {} holes inpainted",
+            r.wall.median, r.wall.min, r.wall.max, r.wall.runs, r.holes_median
+        );
+        println!("  {:<8} {:>10} {:>10} {:>7}", "stage", "median ms", "mean ms", "share");
+        for (name, median, mean, share) in r.stage_table() {
+            println!("  {name:<8} {median:>10.2} {mean:>10.2} {:>6.1}%", 100.0 * share);
+        }
+        println!();
+    }
+    if let Some(m) = peak_rss_mib() {
+        println!("peak memory {m:.0} MiB");
     }
     Ok(())
 }

@@ -2,7 +2,11 @@
 //! holes, and the deterministic recipe that ties a sample to its address.
 
 pub mod inpaint;
+pub mod merge;
 pub mod motion;
+pub mod object;
+pub mod preblend;
+pub mod recipe;
 pub mod rng;
 
 use serde::{Deserialize, Serialize};

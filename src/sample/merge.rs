@@ -1,0 +1,305 @@
+//! Merging the scene render (camera motion) with the object renders (each object's own motion)
+//! into image2, the forward flow, `valid`, `occlusion` and the object label masks, and finding
+//! the holes that inpainting fills.
+//!
+//! # Inputs
+//!
+//! - The scene render of the whole frame: image (premultiplied by coverage), depth `D_t`,
+//!   coverage, flow, `valid` and expected target depth of every source pixel, and the **scene
+//!   mask** `s` = the reference's scene mask channel `1 - U` rendered under the camera motion
+//!   (`U` = union of the moved objects' source masks), i.e. how much of each target pixel shows
+//!   background rather than a moved object's original place or a hole. `M_t = 1 - s` in the
+//!   paper's notation. Without objects `s` is the coverage.
+//! - Per object `j` (label `j + 1`): its source mask `M_j` and its render under its own motion,
+//!   over a window of the frame ([`WindowRender`]): image, depth `D_t^obj`, the rendered mask
+//!   channel `m_j` (`M_j` under the object's motion), flow, `valid`, expected target depth.
+//!
+//! With threshold `tau` (the reference's 0.99), a target pixel is a **candidate** of object `j`
+//! when `m_j >= tau`. (As in the reference, the channel is the mask on *every* plane, so the
+//! planes behind the object at the object's pixels move with the object: where the object
+//! moves away from its place, its render shows those planes, counted as the object.)
+//!
+//! # [`MergeRule::Reference`] (the public script, for one object; several: see below)
+//!
+//! - image2 = scene image; where some object is a candidate, that object's image (the
+//!   object is always on top); among several candidates the largest `m_j` (ties: lower slot);
+//! - holes = `s < tau` and no candidate;
+//! - images are converted to u8 before merging ([`unit_to_u8`]), as the reference does.
+//!
+//! # [`MergeRule::DepthAware`] (the paper's module; the default)
+//!
+//! Background nearer than a moved object stays in front: object `j` is hidden at a candidate
+//! pixel where `M_occ = s * m_j * [D_t < D_t^obj_j] >= 1/2` (`s = 1 - M_t`). Among the candidates
+//! not hidden, the nearest (`D_t^obj` smallest; ties: lower slot) is drawn. Holes = `s < tau`
+//! and nothing drawn (scene holes include rays that left the source frustum, coverage < tau).
+//!
+//! # Both rules, source side
+//!
+//! - flow, `valid` and the expected target depth come from the scene render, except where some
+//!   `M_j >= tau` (the source-frame mask, as the reference's `flow[M_src >= 0.99] = object flow`):
+//!   there from object `j` (the largest `M_j`, ties: lower slot): an object pixel's `valid`
+//!   is the object render's (flow target inside the frame, point in front of the camera).
+//! - `mask1` = label `j + 1` where `M_j >= 1/2` (largest `M_j`, ties: lower slot), else 0;
+//!   `mask2` = the label of the object drawn at each image2 pixel.
+//! - `occlusion`: a valid source pixel is occluded when its expected target depth exceeds the
+//!   depth of what image2 shows, by more than [`OCCLUSION_TOLERANCE`] relative, at all four
+//!   bilinear neighbours of where it lands (the renderer's rule, applied to the merged frame).
+//!   What image2 shows: the drawn object's `D_t^obj`, else the scene's `D_t`; holes show
+//!   nothing and never occlude. So it covers scene self-occlusion, scene points covered by a
+//!   drawn nearer object, object points hidden by nearer background or another object, and an
+//!   object's self-occlusion.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::object::{Rect, WindowRender};
+use crate::render::OCCLUSION_TOLERANCE;
+
+/// How scene and object renders are merged.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum MergeRule {
+    /// The public reference script: object on top, no depth test.
+    Reference,
+    /// The paper's depth-aware merge: nearer background stays in front, objects by depth.
+    #[default]
+    DepthAware,
+}
+
+impl std::str::FromStr for MergeRule {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "reference" => Ok(MergeRule::Reference),
+            "depth-aware" => Ok(MergeRule::DepthAware),
+            _ => Err(format!("unknown merge rule `{s}` (expected reference or depth-aware)")),
+        }
+    }
+}
+
+/// The scene render, full frame (see the module documentation). `depth`, `flow` and `valid` are
+/// taken by value: the merge reuses them as buffers of its result (they are the largest arrays
+/// of a sample, and fresh memory costs page faults).
+#[derive(Clone, Debug)]
+pub struct SceneView<'a> {
+    pub width: usize,
+    pub height: usize,
+    /// H x W x 3, premultiplied by coverage.
+    pub image: &'a [f32],
+    /// `D_t`, H x W.
+    pub depth: Vec<f32>,
+    /// The scene mask channel `s` (H x W), except inside `scene_mask_patch`'s rectangle, whose
+    /// values (row-major over the rectangle) take precedence there.
+    pub scene_mask: &'a [f32],
+    pub scene_mask_patch: Option<(Rect, &'a [f32])>,
+    /// H x W x 2.
+    pub flow: Vec<f32>,
+    pub valid: Vec<u8>,
+    pub source_depth: &'a [f32],
+}
+
+/// One moved object (see the module documentation).
+#[derive(Clone, Copy, Debug)]
+pub struct ObjectView<'a> {
+    /// The value in mask1 / mask2.
+    pub label: u8,
+    /// `M_j`, H x W, in the source frame.
+    pub source_mask: &'a [f32],
+    /// Its render under its motion; the window's extra channel 0 is `m_j`.
+    pub render: &'a WindowRender,
+}
+
+/// The merged sample before inpainting.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Merged {
+    /// H x W x 3, holes not yet filled.
+    pub image2: Vec<u8>,
+    pub flow: Vec<f32>,
+    pub valid: Vec<u8>,
+    pub occlusion: Vec<u8>,
+    pub mask1: Vec<u8>,
+    pub mask2: Vec<u8>,
+    /// 1 = to be inpainted.
+    pub hole: Vec<u8>,
+    /// Number of hole pixels.
+    pub holes: u64,
+}
+
+/// `floor(255 v + 1/2)` with `v` clamped to [0, 1], NaN to 0 (round half up; the same as
+/// `io::image::rgb_to_u8` except for values within f32 rounding of a half level, and without a
+/// libm call on baseline x86-64).
+#[inline]
+pub fn unit_to_u8(v: f32) -> u8 {
+    // `as` truncates (the value is >= 0.5 here) and maps NaN to 0
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+/// What one object shows at a frame pixel.
+#[derive(Clone, Copy)]
+struct Hit {
+    slot: usize,
+    m: f32,
+    depth: f32,
+    idx: usize,
+}
+
+/// Merges (see the module documentation). `tau` is the mask threshold (0.99 in the reference).
+///
+/// # Panics
+/// If a buffer's size disagrees with `scene.width` x `scene.height`, or there are more than 255
+/// objects.
+pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, tau: f32) -> Merged {
+    let (w, h) = (scene.width, scene.height);
+    let n = w * h;
+    assert!(objects.len() < 256, "at most 255 objects");
+    assert!(scene.image.len() == 3 * n && scene.depth.len() == n && scene.scene_mask.len() == n);
+    assert!(scene.flow.len() == 2 * n && scene.valid.len() == n && scene.source_depth.len() == n);
+    if let Some((r, patch)) = scene.scene_mask_patch {
+        assert!(r.x1 <= w && r.y1 <= h && patch.len() == r.area());
+    }
+    for o in objects {
+        assert_eq!(o.source_mask.len(), n);
+        assert_eq!(o.render.out.extra_channels, 1);
+    }
+
+    // ---- target side: image2, mask2, depth of what is shown (inf = hole), holes
+    let mut image2 = vec![0u8; 3 * n];
+    let mut mask2 = vec![0u8; n];
+    let SceneView { image, depth, scene_mask, scene_mask_patch, flow, valid, source_depth, .. } = scene;
+    // D_t is read and then replaced, pixel by pixel, by the depth of what image2 shows
+    let mut shown_depth = depth;
+    let mut hole = vec![0u8; n];
+    let holes: u64 = image2
+        .par_chunks_mut(3 * w)
+        .zip(mask2.par_chunks_mut(w))
+        .zip(shown_depth.par_chunks_mut(w))
+        .zip(hole.par_chunks_mut(w))
+        .enumerate()
+        .map(|(y, (((img, lab), dep), hol))| {
+            let mut row_holes = 0u64;
+            for x in 0..w {
+                let i = y * w + x;
+                let s = match scene_mask_patch {
+                    Some((r, patch)) if r.contains(x, y) => patch[(y - r.y0) * r.width() + x - r.x0],
+                    _ => scene_mask[i],
+                };
+                let d_t = dep[x];
+                let mut best: Option<Hit> = None;
+                for (slot, o) in objects.iter().enumerate() {
+                    let Some(idx) = o.render.index(x, y) else { continue };
+                    let m = o.render.out.extras[idx];
+                    if m.is_nan() || m < tau {
+                        continue;
+                    }
+                    let depth = o.render.out.depth[idx];
+                    let hit = Hit { slot, m, depth, idx };
+                    match rule {
+                        MergeRule::Reference => {
+                            if best.map_or(true, |b| m > b.m) {
+                                best = Some(hit);
+                            }
+                        }
+                        MergeRule::DepthAware => {
+                            let occluded = d_t < depth;
+                            let m_occ = if occluded { s * m } else { 0.0 };
+                            if m_occ >= 0.5 {
+                                continue; // nearer background stays in front
+                            }
+                            if best.map_or(true, |b| depth < b.depth) {
+                                best = Some(hit);
+                            }
+                        }
+                    }
+                }
+                let px = &mut img[3 * x..3 * x + 3];
+                match best {
+                    Some(b) => {
+                        let src = &objects[b.slot].render.out.image[3 * b.idx..3 * b.idx + 3];
+                        for (d, &v) in px.iter_mut().zip(src) {
+                            *d = unit_to_u8(v);
+                        }
+                        lab[x] = objects[b.slot].label;
+                        dep[x] = b.depth;
+                    }
+                    None => {
+                        for (d, &v) in px.iter_mut().zip(&image[3 * i..3 * i + 3]) {
+                            *d = unit_to_u8(v);
+                        }
+                        if s < tau {
+                            hol[x] = 1;
+                            dep[x] = f32::INFINITY;
+                            row_holes += 1;
+                        }
+                    }
+                }
+            }
+            row_holes
+        })
+        .sum();
+
+    // ---- source side: mask1, flow, valid, occlusion
+    // the scene's flow and valid are read and then replaced, pixel by pixel
+    let (mut flow, mut valid) = (flow, valid);
+    let mut occlusion = vec![0u8; n];
+    let mut mask1 = vec![0u8; n];
+    flow.par_chunks_mut(2 * w)
+        .zip(valid.par_chunks_mut(w))
+        .zip(occlusion.par_chunks_mut(w))
+        .zip(mask1.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (((fl, va), oc), m1))| {
+            for x in 0..w {
+                let i = y * w + x;
+                let (mut label_m, mut flow_m) = (0.5f32, tau);
+                let mut owner: Option<usize> = None;
+                for (slot, o) in objects.iter().enumerate() {
+                    let m = o.source_mask[i];
+                    if m >= label_m && (m > label_m || m1[x] == 0) {
+                        label_m = m;
+                        m1[x] = o.label;
+                    }
+                    if m >= flow_m && (m > flow_m || owner.is_none()) {
+                        flow_m = m;
+                        owner = Some(slot);
+                    }
+                }
+                let (f, v, z) = match owner.and_then(|s| objects[s].render.index(x, y).map(|idx| (s, idx))) {
+                    Some((s, idx)) => {
+                        let r = &objects[s].render.out;
+                        ([r.flow[2 * idx], r.flow[2 * idx + 1]], r.valid[idx], r.source_depth_in_target[idx])
+                    }
+                    None => ([fl[2 * x], fl[2 * x + 1]], va[x], source_depth[i]),
+                };
+                let f = [finite_or_zero(f[0]), finite_or_zero(f[1])];
+                fl[2 * x] = f[0];
+                fl[2 * x + 1] = f[1];
+                va[x] = v;
+                if v != 0 {
+                    oc[x] = u8::from(hidden(&shown_depth, w, h, x as f32 + f[0], y as f32 + f[1], z));
+                }
+            }
+        });
+    Merged { image2, flow, valid, occlusion, mask1, mask2, hole, holes }
+}
+
+#[inline]
+fn finite_or_zero(v: f32) -> f32 {
+    if v.is_finite() {
+        v
+    } else {
+        0.0
+    }
+}
+
+/// The renderer's occlusion test against the merged frame's shown depth (inf = hole).
+#[inline]
+fn hidden(shown: &[f32], w: usize, h: usize, tx: f32, ty: f32, z: f32) -> bool {
+    let tx = tx.clamp(0.0, (w - 1) as f32);
+    let ty = ty.clamp(0.0, (h - 1) as f32);
+    let (x0, y0) = (tx as usize, ty as usize);
+    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+    [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].iter().all(|&(nx, ny)| {
+        let d = shown[ny * w + nx];
+        d.is_finite() && z > d * (1.0 + OCCLUSION_TOLERANCE)
+    })
+}

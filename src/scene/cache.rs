@@ -1,0 +1,271 @@
+//! The scene cache: a source's scene (depth, MPI, masks) is computed once and reused by every
+//! sample of that source. Bounded by bytes ([`Scene::byte_size`]), least recently used out.
+//!
+//! # Behaviour
+//!
+//! - [`SceneCache::get_or_load`] runs the loader at most once per key at a time: a thread that
+//!   asks for a key another thread is loading waits for that load and shares its result (counted
+//!   as a hit, and in [`CacheStats::waits`]).
+//! - A loaded scene is inserted and the least recently used entries are evicted until the cache
+//!   fits in its budget again. A scene larger than the whole budget is returned (also to the
+//!   threads waiting for it) but not kept ([`CacheStats::not_kept`]).
+//! - **Errors are not cached.** A failed load (or a loader that panics) leaves no entry; threads
+//!   that were waiting for it retry the load themselves, one at a time, and a later call retries
+//!   too. (A source that fails keeps costing a load attempt per request; the caller sees every
+//!   error.)
+//! - The lock is held only for bookkeeping, never while a loader runs, so loads of different
+//!   keys proceed in parallel.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+
+use super::Scene;
+
+/// What identifies a cached scene: the loader's fingerprint, the source item, and a `variant`
+/// word for anything applied to the loaded scene that changes it (e.g. the sample recipe's
+/// pre-blend option), so differently prepared scenes of one source never mix.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct SceneKey {
+    pub dataset: u64,
+    pub item: u64,
+    pub variant: u64,
+}
+
+impl SceneKey {
+    pub fn new(dataset: u64, item: u64, variant: u64) -> Self {
+        Self { dataset, item, variant }
+    }
+}
+
+/// Counters and the current size of a [`SceneCache`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CacheStats {
+    /// Calls answered without running the loader (including those that waited for a
+    /// concurrent load of the same key).
+    pub hits: u64,
+    /// Calls that ran the loader (successfully or not).
+    pub misses: u64,
+    /// Of the hits, those that waited for another thread's load.
+    pub waits: u64,
+    /// Entries removed to make room.
+    pub evictions: u64,
+    /// Loads that failed (returned an error or panicked); never cached.
+    pub load_errors: u64,
+    /// Loaded scenes larger than the whole budget: returned, not kept.
+    pub not_kept: u64,
+    /// Scenes held now.
+    pub entries: usize,
+    /// Bytes held now (sum of [`Scene::byte_size`] of the entries).
+    pub bytes: usize,
+    /// The budget.
+    pub max_bytes: usize,
+}
+
+/// The result slot of one load in progress, shared with the threads waiting for it.
+#[derive(Default)]
+struct Pending {
+    /// `None` while loading; `Some(Some(scene))` on success, `Some(None)` on failure.
+    done: Mutex<Option<Option<Arc<Scene>>>>,
+    cv: Condvar,
+}
+
+impl Pending {
+    fn finish(&self, result: Option<Arc<Scene>>) {
+        *lock(&self.done) = Some(result);
+        self.cv.notify_all();
+    }
+
+    fn wait(&self) -> Option<Arc<Scene>> {
+        let mut g = lock(&self.done);
+        loop {
+            if let Some(r) = g.as_ref() {
+                return r.clone();
+            }
+            g = self.cv.wait(g).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+}
+
+enum Slot {
+    Loading(Arc<Pending>),
+    Ready { scene: Arc<Scene>, bytes: usize, last_used: u64 },
+}
+
+#[derive(Default)]
+struct Inner {
+    map: HashMap<SceneKey, Slot>,
+    tick: u64,
+    bytes: usize,
+    stats: CacheStats,
+}
+
+/// A byte-bounded, least-recently-used cache of scenes, safe to share between threads.
+pub struct SceneCache {
+    max_bytes: usize,
+    inner: Mutex<Inner>,
+}
+
+impl std::fmt::Debug for SceneCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SceneCache").field("stats", &self.stats()).finish()
+    }
+}
+
+/// Locks, ignoring poisoning (the cache's invariants are restored by the guards below, and a
+/// panic in a loader never happens under the lock).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Removes the `Loading` slot and wakes the waiters if the loader unwinds.
+struct LoadGuard<'a> {
+    cache: &'a SceneCache,
+    key: SceneKey,
+    pending: Arc<Pending>,
+    armed: bool,
+}
+
+impl Drop for LoadGuard<'_> {
+    fn drop(&mut self) {
+        if self.armed {
+            let mut inner = lock(&self.cache.inner);
+            inner.stats.load_errors += 1;
+            if matches!(inner.map.get(&self.key), Some(Slot::Loading(p)) if Arc::ptr_eq(p, &self.pending)) {
+                inner.map.remove(&self.key);
+            }
+            drop(inner);
+            self.pending.finish(None);
+        }
+    }
+}
+
+impl SceneCache {
+    /// A cache holding at most `max_bytes` of scenes.
+    pub fn new(max_bytes: usize) -> Self {
+        Self { max_bytes, inner: Mutex::new(Inner::default()) }
+    }
+
+    pub fn max_bytes(&self) -> usize {
+        self.max_bytes
+    }
+
+    /// The scene of `key`: from the cache, from a concurrent load of the same key, or by running
+    /// `load` (see the module documentation). Errors of `load` are returned and not cached.
+    pub fn get_or_load<E>(&self, key: SceneKey, load: impl FnOnce() -> Result<Scene, E>) -> Result<Arc<Scene>, E> {
+        let mut load = Some(load);
+        loop {
+            let pending = {
+                let mut inner = lock(&self.inner);
+                inner.tick += 1;
+                let tick = inner.tick;
+                match inner.map.get_mut(&key) {
+                    Some(Slot::Ready { scene, last_used, .. }) => {
+                        *last_used = tick;
+                        let scene = scene.clone();
+                        inner.stats.hits += 1;
+                        return Ok(scene);
+                    }
+                    Some(Slot::Loading(p)) => {
+                        let p = p.clone();
+                        drop(inner);
+                        if let Some(scene) = p.wait() {
+                            let mut inner = lock(&self.inner);
+                            inner.stats.hits += 1;
+                            inner.stats.waits += 1;
+                            return Ok(scene);
+                        }
+                        // the load failed: try again (possibly loading it ourselves)
+                        continue;
+                    }
+                    None => {
+                        let p = Arc::new(Pending::default());
+                        inner.map.insert(key, Slot::Loading(p.clone()));
+                        inner.stats.misses += 1;
+                        p
+                    }
+                }
+            };
+            let mut guard = LoadGuard { cache: self, key, pending: pending.clone(), armed: true };
+            let f = load.take().expect("the loader runs at most once per call");
+            let result = f();
+            match result {
+                Ok(scene) => {
+                    guard.armed = false;
+                    let scene = Arc::new(scene);
+                    self.insert(key, &pending, scene.clone());
+                    pending.finish(Some(scene.clone()));
+                    return Ok(scene);
+                }
+                Err(e) => {
+                    // the guard removes the slot, counts the error and wakes the waiters
+                    drop(guard);
+                    return Err(e);
+                }
+            }
+        }
+    }
+
+    /// Replaces our `Loading` slot by the scene (or drops it when the scene is over budget) and
+    /// evicts least recently used entries until the budget holds.
+    fn insert(&self, key: SceneKey, pending: &Arc<Pending>, scene: Arc<Scene>) {
+        let bytes = scene.byte_size();
+        let mut inner = lock(&self.inner);
+        if matches!(inner.map.get(&key), Some(Slot::Loading(p)) if Arc::ptr_eq(p, pending)) {
+            inner.map.remove(&key);
+        }
+        if bytes > self.max_bytes {
+            inner.stats.not_kept += 1;
+            return;
+        }
+        inner.tick += 1;
+        let tick = inner.tick;
+        inner.map.insert(key, Slot::Ready { scene, bytes, last_used: tick });
+        inner.bytes += bytes;
+        while inner.bytes > self.max_bytes {
+            let victim = inner
+                .map
+                .iter()
+                .filter_map(|(k, s)| match s {
+                    Slot::Ready { last_used, .. } if *k != key => Some((*last_used, *k)),
+                    _ => None,
+                })
+                .min();
+            let Some((_, victim)) = victim else { break };
+            if let Some(Slot::Ready { bytes, .. }) = inner.map.remove(&victim) {
+                inner.bytes -= bytes;
+                inner.stats.evictions += 1;
+            }
+        }
+    }
+
+    /// The cached scene of `key`, if present (counts as a hit and refreshes its recency; a miss
+    /// is not counted since nothing is loaded).
+    pub fn get(&self, key: &SceneKey) -> Option<Arc<Scene>> {
+        let mut inner = lock(&self.inner);
+        inner.tick += 1;
+        let tick = inner.tick;
+        match inner.map.get_mut(key) {
+            Some(Slot::Ready { scene, last_used, .. }) => {
+                *last_used = tick;
+                let s = scene.clone();
+                inner.stats.hits += 1;
+                Some(s)
+            }
+            _ => None,
+        }
+    }
+
+    /// Drops every cached scene (loads in progress finish normally and are inserted).
+    pub fn clear(&self) {
+        let mut inner = lock(&self.inner);
+        inner.map.retain(|_, s| matches!(s, Slot::Loading(_)));
+        inner.bytes = 0;
+    }
+
+    /// Counters and the current size.
+    pub fn stats(&self) -> CacheStats {
+        let inner = lock(&self.inner);
+        let entries = inner.map.values().filter(|s| matches!(s, Slot::Ready { .. })).count();
+        CacheStats { entries, bytes: inner.bytes, max_bytes: self.max_bytes, ..inner.stats }
+    }
+}

@@ -1,0 +1,357 @@
+//! The deterministic sample recipe: same address, same bytes (across runs, generators and rayon
+//! pool sizes); different indices, different motions; motions within the preset ranges; no
+//! objects when k = 0; finite flow; the source order; errors that name the source.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+use mpiflow::geometry::Intrinsics;
+use mpiflow::io::image::RgbImage;
+use mpiflow::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions};
+use mpiflow::sample::merge::MergeRule;
+use mpiflow::sample::motion::{Component, Motion, MotionPreset, RigidLaw, RotationKind};
+use mpiflow::sample::object::ObjectChoice;
+use mpiflow::sample::recipe::Generator;
+use mpiflow::sample::recipe::{InpaintMethod, MotionSpec, SampleConfig, SampleError};
+use mpiflow::sample::{Sample, StageTimings};
+use mpiflow::scene::cache::SceneCache;
+use mpiflow::scene::masks::InstanceMasks;
+use mpiflow::scene::{Disparity, Scene, SceneError, SceneLoader};
+use mpiflow::source::Fnv64;
+
+const W: usize = 96;
+const H: usize = 64;
+
+/// Procedural RGB-D scenes: a ground plane receding upwards with a textured colour, and
+/// `1 + item % 3` box-shaped objects standing on it (instance ids 1, 2, 3 in an index map), laid
+/// out as an MPI by the built-in layering. Item `failing` (if any) fails to load.
+struct Procedural {
+    items: usize,
+    planes: usize,
+    failing: Option<usize>,
+    loads: AtomicUsize,
+}
+
+impl Procedural {
+    fn new(items: usize) -> Self {
+        Self { items, planes: 8, failing: None, loads: AtomicUsize::new(0) }
+    }
+}
+
+impl SceneLoader for Procedural {
+    fn len(&self) -> usize {
+        self.items
+    }
+
+    fn id(&self, i: usize) -> String {
+        format!("procedural-{i}")
+    }
+
+    fn fingerprint(&self) -> u64 {
+        let mut h = Fnv64::new();
+        h.str("procedural").u64(self.items as u64).u64(self.planes as u64).u64(W as u64).u64(H as u64);
+        h.finish()
+    }
+
+    fn load_scene(&self, i: usize) -> Result<Scene, SceneError> {
+        self.loads.fetch_add(1, Ordering::SeqCst);
+        if Some(i) == self.failing {
+            return Err(SceneError::Given { path: format!("procedural/{i}.npy"), message: "unreadable".into() });
+        }
+        let k = Intrinsics::reference_default(W, H);
+        let mut rgb = vec![0.0f32; W * H * 3];
+        let mut depth = vec![0.0f32; W * H];
+        let mut ids = vec![0u32; W * H];
+        let boxes = [(10usize, 30usize, 30usize, 52usize, 2.0f32), (45, 60, 20, 50, 2.6), (68, 88, 34, 58, 1.7)];
+        let n_obj = 1 + i % 3;
+        for y in 0..H {
+            for x in 0..W {
+                let o = y * W + x;
+                let (s, t) = (x as f32 / W as f32, y as f32 / H as f32);
+                let mut d = 1.3 + 5.0 * (1.0 - t).powi(2);
+                let ph = i as f32;
+                let mut c =
+                    [0.5 + 0.4 * (8.0 * s + ph).sin(), 0.5 + 0.4 * (6.0 * t - 2.0 * s).cos(), 0.3 + 0.4 * s * t];
+                for (j, &(x0, x1, y0, y1, bd)) in boxes.iter().enumerate().take(n_obj) {
+                    if (x0..x1).contains(&x) && (y0..y1).contains(&y) {
+                        d = bd;
+                        c = [0.8 - 0.2 * j as f32, 0.2 + 0.3 * j as f32, 0.3 + 0.2 * (5.0 * t).sin().abs()];
+                        ids[o] = j as u32 + 1;
+                    }
+                }
+                depth[o] = d;
+                rgb[3 * o..3 * o + 3].copy_from_slice(&c);
+            }
+        }
+        let opts = LayeringOptions { planes: self.planes, layering: Layering::Soft, disparity_range: None };
+        let mpi = build_mpi_for_camera(&rgb, &depth, W, H, &opts, &k)?;
+        let mut masks = InstanceMasks::from_index_map(&ids, W, H)?;
+        // distinct scores so that the ranking is by score: id 2 first, then 1, then 3
+        for m in &mut masks.masks {
+            m.score = [0.0, 0.7, 0.9, 0.5][m.id as usize];
+        }
+        let near = depth.iter().cloned().fold(f32::MAX, f32::min);
+        Ok(Scene {
+            id: self.id(i),
+            image: RgbImage { width: W, height: H, data: rgb },
+            disparity: Disparity { width: W, height: H, data: depth.iter().map(|d| near / d).collect() },
+            mpi: Arc::new(mpi),
+            masks,
+            intrinsics: k,
+            provenance: vec!["depth: procedural".into(), "mpi: builtin soft 8".into()],
+        })
+    }
+}
+
+fn generator(loader: Procedural, config: SampleConfig) -> Generator {
+    Generator::new(Arc::new(loader), Arc::new(SceneCache::new(1 << 30)), config).unwrap()
+}
+
+/// Everything but the timings.
+fn bytes(s: &Sample) -> Sample {
+    Sample { timings: StageTimings::default(), ..s.clone() }
+}
+
+fn assert_same_bytes(a: &Sample, b: &Sample) {
+    assert_eq!(bytes(a), bytes(b));
+    // PartialEq treats -0.0 as 0.0: compare the flow's bits too
+    assert!(a.flow.iter().zip(&b.flow).all(|(x, y)| x.to_bits() == y.to_bits()));
+}
+
+#[test]
+fn the_same_address_gives_the_same_bytes_across_runs_generators_and_thread_counts() {
+    let config = SampleConfig { max_objects: 2, ..SampleConfig::default() };
+    let g = generator(Procedural::new(3), config.clone());
+    let other = generator(Procedural::new(3), config);
+    let pool = |n: usize| rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap();
+    let (p1, p2) = (pool(1), pool(2));
+    for index in [0u64, 1, 2, 5, 1000] {
+        let a = g.sample(42, index).unwrap();
+        let b = g.sample(42, index).unwrap();
+        let c = other.sample(42, index).unwrap();
+        let d = p1.install(|| g.sample(42, index)).unwrap();
+        let e = p2.install(|| other.sample(42, index)).unwrap();
+        for s in [&b, &c, &d, &e] {
+            assert_same_bytes(&a, s);
+        }
+        assert_eq!(a.address.dataset, g.fingerprint());
+        assert_eq!((a.address.seed, a.address.index), (42, index));
+    }
+}
+
+#[test]
+fn different_indices_and_seeds_give_different_motions() {
+    let g = generator(Procedural::new(2), SampleConfig::default());
+    let cams: Vec<Motion> = (0..8).map(|i| g.sample(7, i).unwrap().camera).collect();
+    for i in 0..cams.len() {
+        for j in i + 1..cams.len() {
+            assert_ne!(cams[i].translation, cams[j].translation, "indices {i} and {j}");
+        }
+    }
+    let a = g.sample(7, 3).unwrap();
+    let b = g.sample(8, 3).unwrap();
+    assert_ne!(a.camera.translation, b.camera.translation);
+    assert_ne!(a.objects[0].motion.translation, b.objects[0].motion.translation);
+    assert_ne!(a.image2, b.image2);
+}
+
+fn within(law: &RigidLaw, m: &Motion) {
+    let comps = [
+        (&law.translation.x, m.translation[0]),
+        (&law.translation.y, m.translation[1]),
+        (&law.translation.z, m.translation[2]),
+        (&law.rotation.x, m.angles[0]),
+        (&law.rotation.y, m.angles[1]),
+        (&law.rotation.z, m.angles[2]),
+    ];
+    for (c, v) in comps {
+        let (lo, hi) = c.bounds();
+        assert!(v >= lo && v <= hi, "{v} outside [{lo}, {hi}] ({c:?})");
+        match *c {
+            Component::RandomSign { min, .. } => assert!(v.abs() >= min, "|{v}| < {min}"),
+            Component::Forward { .. } => assert!(v <= 0.0, "forward motion has t_z <= 0"),
+            Component::Uniform { .. } => {}
+        }
+    }
+    assert_eq!(m.rotation_kind, law.rotation_kind);
+}
+
+#[test]
+fn motions_stay_within_each_presets_ranges() {
+    for preset in MotionPreset::ALL {
+        let ranges = preset.ranges();
+        let config = SampleConfig { max_objects: 3, ..SampleConfig::with_preset(preset) };
+        let g = generator(Procedural::new(3), config);
+        for index in 0..12 {
+            let s = g.sample(1, index).unwrap();
+            within(&ranges.camera, &s.camera);
+            assert_eq!(s.camera.law, preset.name());
+            for o in &s.objects {
+                within(&ranges.object, &o.motion);
+            }
+            if preset == MotionPreset::PaperKitti {
+                assert_eq!(s.camera.rotation_kind, RotationKind::EulerZyx);
+            }
+        }
+    }
+}
+
+#[test]
+fn k_zero_gives_no_objects_and_empty_masks() {
+    let g = generator(Procedural::new(3), SampleConfig { max_objects: 0, ..SampleConfig::default() });
+    for index in 0..3 {
+        let s = g.sample(3, index).unwrap();
+        assert!(s.objects.is_empty());
+        assert!(s.mask1.iter().all(|&v| v == 0));
+        assert!(s.mask2.iter().all(|&v| v == 0));
+    }
+}
+
+#[test]
+fn outputs_are_finite_binary_and_sized() {
+    for preset in MotionPreset::ALL {
+        for merge in [MergeRule::DepthAware, MergeRule::Reference] {
+            let config = SampleConfig { max_objects: 3, merge, ..SampleConfig::with_preset(preset) };
+            let g = generator(Procedural::new(3), config);
+            for index in 0..6 {
+                let s = g.sample(11, index).unwrap();
+                let n = W * H;
+                assert_eq!((s.width, s.height), (W, H));
+                assert_eq!(s.image1.len(), 3 * n);
+                assert_eq!(s.image2.len(), 3 * n);
+                assert_eq!(s.flow.len(), 2 * n);
+                assert!(s.flow.iter().all(|v| v.is_finite()), "{preset} {merge:?} {index}: non-finite flow");
+                for m in [&s.valid, &s.occlusion] {
+                    assert_eq!(m.len(), n);
+                    assert!(m.iter().all(|&v| v <= 1));
+                }
+                let labels = s.objects.len() as u8;
+                assert!(s.mask1.iter().chain(&s.mask2).all(|&v| v <= labels));
+                for (j, o) in s.objects.iter().enumerate() {
+                    assert_eq!(o.label as usize, j + 1);
+                    assert!(s.mask1.contains(&o.label), "object {} is in mask1", o.label);
+                }
+                // occluded points are valid points
+                assert!(s.occlusion.iter().zip(&s.valid).all(|(&o, &v)| o == 0 || v == 1));
+                let t = s.timings;
+                assert!(t.total_ms >= t.render_ms + t.objects_ms + t.merge_ms + t.inpaint_ms - 1e-9);
+            }
+        }
+    }
+}
+
+#[test]
+fn source_items_follow_motions_per_image() {
+    let config = SampleConfig { motions_per_image: 3, ..SampleConfig::default() };
+    let loader = Procedural::new(3);
+    let g = generator(loader, config);
+    let ids: Vec<String> = (0..10).map(|i| g.sample(0, i).unwrap().source_id).collect();
+    let expect: Vec<String> = [0, 0, 0, 1, 1, 1, 2, 2, 2, 0].iter().map(|i| format!("procedural-{i}")).collect();
+    assert_eq!(ids, expect);
+    // each scene was loaded once and then served from the cache
+    let stats = g.cache().stats();
+    assert_eq!(stats.misses, 3);
+    assert_eq!(stats.hits, 7);
+    assert_eq!(g.source_item(10), Some(0));
+}
+
+#[test]
+fn object_choice_is_keyed_and_top_picks_the_best_score() {
+    // item 2 has three objects; ids by score: 2 (0.9), 1 (0.7), 3 (0.5)
+    let top =
+        generator(Procedural::new(3), SampleConfig { object_choice: ObjectChoice::Top, ..SampleConfig::default() });
+    for index in [2u64, 5, 8] {
+        let s = top.sample(0, index).unwrap();
+        assert_eq!(s.objects.iter().map(|o| o.instance).collect::<Vec<_>>(), vec![2]);
+    }
+    let random = generator(Procedural::new(3), SampleConfig::default());
+    let mut seen = std::collections::BTreeSet::new();
+    for r in 0..12u64 {
+        let s = random.sample(0, 2 + 3 * r).unwrap();
+        assert_eq!(s.objects.len(), 1);
+        seen.insert(s.objects[0].instance);
+    }
+    assert_eq!(seen.len(), 3, "a uniform choice reaches every object: {seen:?}");
+    // two of three, in rank order
+    let two = generator(Procedural::new(3), SampleConfig { max_objects: 2, ..SampleConfig::default() });
+    for r in 0..6u64 {
+        let s = two.sample(0, 2 + 3 * r).unwrap();
+        let score: Vec<f32> = s.objects.iter().map(|o| o.score).collect();
+        assert_eq!(score.len(), 2);
+        assert!(score[0] >= score[1]);
+    }
+}
+
+#[test]
+fn every_inpainting_method_and_option_runs() {
+    for method in
+        [InpaintMethod::Telea, InpaintMethod::TeleaKnownOnly, InpaintMethod::TeleaZeroOrder, InpaintMethod::TeleaOpencv]
+    {
+        let config = SampleConfig { inpaint_method: method, inpaint_radius: 5.0, ..SampleConfig::default() };
+        let s = generator(Procedural::new(2), config).sample(0, 1).unwrap();
+        assert!(s.inpainted_pixels > 0);
+    }
+    let follow = SampleConfig { objects_follow_camera: true, preblend: true, ..SampleConfig::default() };
+    let g = generator(Procedural::new(2), follow);
+    let a = g.sample(0, 1).unwrap();
+    let b = generator(Procedural::new(2), SampleConfig::default()).sample(0, 1).unwrap();
+    assert_eq!(a.camera, b.camera);
+    assert_eq!(a.objects[0].motion, b.objects[0].motion, "the drawn motion is recorded, not the composed one");
+    assert_ne!(a.flow, b.flow, "objects that follow the camera move differently");
+    assert!(a.provenance.iter().any(|p| p.starts_with("preblend")));
+}
+
+#[test]
+fn errors_name_the_source() {
+    let empty = generator(Procedural::new(0), SampleConfig::default());
+    assert!(matches!(empty.sample(0, 0), Err(SampleError::EmptySource)));
+
+    let mut loader = Procedural::new(3);
+    loader.failing = Some(1);
+    let g = generator(loader, SampleConfig::default());
+    assert!(g.sample(0, 0).is_ok());
+    let err = g.sample(0, 1).unwrap_err();
+    let text = err.to_string();
+    assert!(matches!(err, SampleError::Scene { item: 1, .. }));
+    assert!(text.contains("procedural-1") && text.contains("procedural/1.npy"), "{text}");
+    // errors are not cached: the next request tries again
+    assert!(g.sample(0, 1).is_err());
+    assert_eq!(g.cache().stats().load_errors, 2);
+
+    let bad = SampleConfig { mask_threshold: 0.0, ..SampleConfig::default() };
+    let e = Generator::new(Arc::new(Procedural::new(1)), Arc::new(SceneCache::new(1 << 20)), bad).unwrap_err();
+    assert!(e.to_string().contains("mask_threshold"), "{e}");
+    let mut ranges = MotionPreset::Reference.ranges();
+    ranges.camera.translation.x = Component::Uniform { lo: 1.0, hi: -1.0 };
+    let bad = SampleConfig { motion: MotionSpec::Ranges(Box::new(ranges)), ..SampleConfig::default() };
+    let e = Generator::new(Arc::new(Procedural::new(1)), Arc::new(SceneCache::new(1 << 20)), bad).unwrap_err();
+    assert!(e.to_string().contains("camera.translation.x"), "{e}");
+}
+
+#[test]
+fn config_round_trips_through_json() {
+    let c: SampleConfig = serde_json::from_str(
+        r#"{"motion": "paper-kitti", "max_objects": 2, "merge": "reference", "inpaint_method": "telea-opencv",
+            "mode": "exact", "skip": {"transmittance_eps": 0.001, "tiles": true, "tile_sigma_eps": 0.0}}"#,
+    )
+    .unwrap();
+    assert_eq!(c.motion, MotionSpec::Preset(MotionPreset::PaperKitti));
+    assert_eq!((c.max_objects, c.merge, c.inpaint_method), (2, MergeRule::Reference, InpaintMethod::TeleaOpencv));
+    assert_eq!(c.skip.transmittance_eps, 0.001);
+    assert_eq!(c.inpaint_radius, 3.0, "left-out fields take their defaults");
+    for config in [
+        c,
+        SampleConfig::default(),
+        SampleConfig {
+            motion: MotionSpec::Ranges(Box::new(MotionPreset::Depthstillation.ranges())),
+            ..SampleConfig::default()
+        },
+    ] {
+        let json = serde_json::to_string(&config).unwrap();
+        let back: SampleConfig = serde_json::from_str(&json).unwrap();
+        assert_eq!(back, config, "{json}");
+    }
+    assert!(serde_json::from_str::<SampleConfig>(r#"{"max_object": 2}"#).is_err(), "unknown fields are refused");
+    let d = SampleConfig::default();
+    assert_eq!((d.max_objects, d.merge, d.inpaint_radius, d.motions_per_image), (1, MergeRule::DepthAware, 3.0, 1));
+}
