@@ -3,6 +3,7 @@
 //! the renderer, file formats and benchmarks; the `mpiflow` binary is a thin CLI over it.
 
 pub mod bench;
+pub mod export;
 pub mod geometry;
 pub mod io;
 pub mod mpi;

@@ -1,6 +1,7 @@
 //! Argument definitions and dispatch of the `mpiflow` subcommands.
 
 mod bench;
+mod generate;
 mod render;
 
 use clap::{Parser, Subcommand};
@@ -23,6 +24,8 @@ enum Command {
     /// Benchmarks: render speed, and error against run time.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// Write a training set to disk (flo, kitti or webdataset layout) with preview sheets.
+    Generate(generate::GenerateArgs),
 }
 
 /// A failure the user can act on: printed as one line, exit code 2.
@@ -52,6 +55,7 @@ pub fn run() -> i32 {
     let result = match cli.command {
         Command::Render(a) => render::run(a),
         Command::Bench(b) => bench::run(b),
+        Command::Generate(a) => generate::run(a),
     };
     match result {
         Ok(()) => 0,

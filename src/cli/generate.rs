@@ -1,0 +1,336 @@
+//! `mpiflow generate`: an offline training set on disk (`flo`, `kitti` or `webdataset` layout,
+//! see `docs/export.md`), made from a source folder or the bundled default scenes, with a
+//! progress bar, preview sheets and a summary line.
+//!
+//! Samples are generated in parallel (rayon, chunks of a few samples per thread), encoded on the
+//! workers and written in index order by one writer thread, so the output does not depend on the
+//! thread count. A sample whose source fails is skipped with a one-line warning; the run goes on.
+
+use std::path::PathBuf;
+use std::sync::mpsc::sync_channel;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
+use mpiflow::export::{sample_key, EncodedSample, ExportFormat, ExportOptions, Exporter, PreviewOptions};
+use mpiflow::geometry::Intrinsics;
+use mpiflow::mpi::layering::{Layering, MAX_PLANES};
+use mpiflow::sample::merge::MergeRule;
+use mpiflow::sample::motion::MotionPreset;
+use mpiflow::sample::recipe::{Generator, SampleConfig, SampleError};
+use mpiflow::sample::Sample;
+use mpiflow::scene::builtin::BuiltinMpi;
+use mpiflow::scene::cache::SceneCache;
+use mpiflow::scene::onnx::{OnnxDepth, OnnxDepthConfig, OnnxMpi, OnnxMpiConfig, OnnxSegmenter, OnnxSegmenterConfig};
+use mpiflow::scene::stage::{SceneStage, SourceScenes};
+use mpiflow::scene::{MpiBuilder, SceneLoader};
+use mpiflow::source::builtin::{BuiltinOptions, BuiltinSource};
+use mpiflow::source::dir::{DirSource, IntrinsicsSpec, SourceOptions};
+use mpiflow::source::Source;
+use rayon::prelude::*;
+
+use super::{parse_floats, CliError};
+
+#[derive(Args, Debug)]
+pub struct GenerateArgs {
+    /// Source photos: a folder of images, a folder in the reference layout (images/ with
+    /// optional depths/, disps/, masks/, mpis/), or one image. Default: the bundled scenes.
+    #[arg(long, value_name = "DIR")]
+    source: Option<PathBuf>,
+    /// Number of samples (indices --start .. --start + N).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    count: u64,
+    /// Output folder (created if missing).
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Layout: flo (FlyingChairs-style, .flo flow), kitti (16-bit flow PNG) or webdataset (tar shards).
+    #[arg(long, default_value = "flo", value_parser = parse_format)]
+    format: ExportFormat,
+    /// Consecutive samples made from each source item (its scene is computed once).
+    #[arg(long, value_name = "M", default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    motions_per_image: u64,
+    /// Seed of the samples: same source, seed and index, same sample.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// First sample index.
+    #[arg(long, value_name = "I", default_value_t = 0)]
+    start: u64,
+    /// Motion law: reference, paper-kitti or depthstillation.
+    #[arg(long, value_name = "NAME", default_value = "reference")]
+    preset: MotionPreset,
+    /// Most objects moved independently per sample (0 = camera motion only).
+    #[arg(long, value_name = "K", default_value_t = 1, value_parser = clap::value_parser!(u8))]
+    objects: u8,
+    /// How object and scene renders are merged: reference or depth-aware.
+    #[arg(long, value_name = "RULE", default_value = "depth-aware")]
+    merge: MergeRule,
+    /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
+    #[arg(long, value_name = "N", default_value_t = 32)]
+    planes: usize,
+    /// Camera intrinsics fx,fy,cx,cy in pixels for every source image (default 0.58 W, 0.58 H,
+    /// centre). Only with --source.
+    #[arg(long, value_name = "FX,FY,CX,CY", value_parser = parse_floats::<4>, allow_hyphen_values = true)]
+    intrinsics: Option<[f64; 4]>,
+    /// Resize every source image to WxH (default: keep sizes; the bundled scenes are 640x480).
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    size: Option<(usize, usize)>,
+    /// Depth model (ONNX, default contract) for source images without depth.
+    #[arg(long, value_name = "FILE.onnx")]
+    depth_model: Option<PathBuf>,
+    /// MPI network (ONNX, AdaMPI-style default contract) instead of the built-in layering.
+    #[arg(long, value_name = "FILE.onnx")]
+    mpi_model: Option<PathBuf>,
+    /// Instance segmentation model (ONNX, Mask R-CNN-style default contract) for images without masks.
+    #[arg(long, value_name = "FILE.onnx")]
+    segment_model: Option<PathBuf>,
+    /// Worker threads (default: all cores).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..=1024))]
+    threads: Option<u64>,
+    /// Samples per WebDataset shard (sample I goes to shard I / S).
+    #[arg(long, value_name = "S", default_value_t = 1000, value_parser = clap::value_parser!(u64).range(1..))]
+    shard_size: u64,
+    /// A preview contact sheet at every index that is a multiple of N, and at the first sample (0 = none).
+    #[arg(long, value_name = "N", default_value_t = 100)]
+    preview_every: u64,
+    /// Rows (samples) per preview sheet.
+    #[arg(long, value_name = "R", default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=256))]
+    preview_rows: u64,
+    /// Width of one preview panel in pixels.
+    #[arg(long, value_name = "PX", default_value_t = 160, value_parser = clap::value_parser!(u64).range(8..=4096))]
+    preview_width: u64,
+    /// Scene cache budget in MiB (a 640x480 scene with 32 planes takes about 160 MiB).
+    #[arg(long, value_name = "MIB", default_value_t = 2048, value_parser = clap::value_parser!(u64).range(1..))]
+    cache_mb: u64,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn parse_format(s: &str) -> Result<ExportFormat, String> {
+    s.parse()
+}
+
+/// `WxH` with both sides at least 16 pixels.
+fn parse_size(s: &str) -> Result<(usize, usize), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH (e.g. 640x480), got `{s}`"))?;
+    let side = |v: &str| -> Result<usize, String> {
+        let n: usize = v.trim().parse().map_err(|_| format!("`{v}` is not a whole number of pixels"))?;
+        if !(16..=16384).contains(&n) {
+            return Err(format!("{n} pixels is outside 16 to 16384"));
+        }
+        Ok(n)
+    };
+    Ok((side(w)?, side(h)?))
+}
+
+fn open_source(a: &GenerateArgs) -> Result<Arc<dyn Source>, CliError> {
+    match &a.source {
+        Some(path) => {
+            let intrinsics = match a.intrinsics {
+                Some(v) => {
+                    let k = Intrinsics::new(v[0], v[1], v[2], v[3]);
+                    if !k.is_valid() {
+                        return Err(CliError("--intrinsics: focal lengths must be non-zero".into()));
+                    }
+                    Some(IntrinsicsSpec::Pixels(k))
+                }
+                None => None,
+            };
+            let options = SourceOptions { resize: a.size, intrinsics, ..SourceOptions::default() };
+            let source = DirSource::open(path, &options).map_err(|e| CliError(format!("--source: {e}")))?;
+            Ok(Arc::new(source))
+        }
+        None => {
+            if a.intrinsics.is_some() {
+                return Err(CliError(
+                    "--intrinsics needs --source (the bundled scenes are composed for their own camera)".into(),
+                ));
+            }
+            let mut options = BuiltinOptions::default();
+            if let Some((w, h)) = a.size {
+                options.width = w;
+                options.height = h;
+            }
+            let source = BuiltinSource::open(&options).map_err(|e| CliError(format!("bundled scenes: {e}")))?;
+            Ok(Arc::new(source))
+        }
+    }
+}
+
+fn scene_stage(a: &GenerateArgs) -> Result<SceneStage, CliError> {
+    let mpi: Arc<dyn MpiBuilder> = match &a.mpi_model {
+        Some(p) => Arc::new(OnnxMpi::new(OnnxMpiConfig::new(p))?),
+        None => {
+            if !(1..=MAX_PLANES).contains(&a.planes) {
+                return Err(CliError(format!("--planes {}: expected 1 to {MAX_PLANES}", a.planes)));
+            }
+            let b = BuiltinMpi::new(a.planes, Layering::Soft);
+            b.validate()?;
+            Arc::new(b)
+        }
+    };
+    let mut stage = SceneStage::new(mpi);
+    if let Some(p) = &a.depth_model {
+        stage = stage.with_depth(Arc::new(OnnxDepth::new(OnnxDepthConfig::new(p))?));
+    }
+    if let Some(p) = &a.segment_model {
+        stage = stage.with_segmenter(Arc::new(OnnxSegmenter::new(OnnxSegmenterConfig::new(p))?));
+    }
+    Ok(stage)
+}
+
+/// What a worker hands to the writer for one index.
+enum Outcome {
+    Done(Box<(Sample, EncodedSample)>),
+    /// The sample could not be made (or encoded): the warning text.
+    Skipped(String),
+}
+
+fn progress_bar(count: u64, quiet: bool) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let pb = ProgressBar::with_draw_target(Some(count), ProgressDrawTarget::stderr());
+    let style = ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} samples, {rate}, ETA {eta} {msg}",
+    )
+    .unwrap_or_else(|_| ProgressStyle::default_bar())
+    .with_key("rate", |state: &ProgressState, w: &mut dyn std::fmt::Write| {
+        let _ = write!(w, "{:.2} samples/s", state.per_sec());
+    });
+    pb.set_style(style);
+    pb.enable_steady_tick(Duration::from_millis(250));
+    pb
+}
+
+pub fn run(a: GenerateArgs) -> Result<(), CliError> {
+    let end = a
+        .start
+        .checked_add(a.count)
+        .ok_or_else(|| CliError(format!("--start {} + --count {} overflows", a.start, a.count)))?;
+    if a.out.exists() && !a.out.is_dir() {
+        return Err(CliError(format!("--out {}: exists and is not a directory", a.out.display())));
+    }
+    let source = open_source(&a)?;
+    if source.is_empty() {
+        return Err(CliError(format!("{}: no images to make samples from", source.describe())));
+    }
+    let stage = Arc::new(scene_stage(&a)?);
+    let loader = Arc::new(SourceScenes::new(source.clone(), stage));
+    let config = SampleConfig {
+        max_objects: usize::from(a.objects),
+        merge: a.merge,
+        motions_per_image: a.motions_per_image,
+        ..SampleConfig::with_preset(a.preset)
+    };
+    let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));
+    let generator = Generator::new(loader.clone() as Arc<dyn SceneLoader>, cache, config)?;
+
+    let threads = match a.threads {
+        Some(n) => n as usize,
+        None => std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("mpiflow-generate-{i}"))
+        .build()
+        .map_err(|e| CliError(format!("cannot start {threads} worker threads: {e}")))?;
+
+    let mut options = ExportOptions::new(a.format, &a.out);
+    options.shard_size = a.shard_size;
+    options.preview =
+        PreviewOptions { every: a.preview_every, rows: a.preview_rows as usize, panel_width: a.preview_width as usize };
+    let exporter = Exporter::create(options)?;
+
+    eprintln!(
+        "generate: {} samples (indices {}..{end}) from {} into {} ({}), {threads} threads",
+        a.count,
+        a.start,
+        loader.describe(),
+        a.out.display(),
+        a.format
+    );
+    let started = Instant::now();
+    let pb = progress_bar(a.count, a.quiet);
+
+    // the writer: takes chunks in index order, writes them, reports skips
+    let (tx, rx) = sync_channel::<Vec<(u64, Outcome)>>(2);
+    let writer_pb = pb.clone();
+    let writer = std::thread::Builder::new()
+        .name("mpiflow-generate-writer".into())
+        .spawn(move || {
+            let mut exporter = exporter;
+            let mut skipped = 0u64;
+            for chunk in rx {
+                for (index, outcome) in chunk {
+                    match outcome {
+                        Outcome::Done(b) => {
+                            let (sample, encoded) = *b;
+                            exporter.write_encoded(&encoded, Some(&sample))?;
+                        }
+                        Outcome::Skipped(why) => {
+                            skipped += 1;
+                            writer_pb.suspend(|| eprintln!("warning: sample {} skipped: {why}", sample_key(index)));
+                        }
+                    }
+                    writer_pb.inc(1);
+                }
+            }
+            let summary = exporter.finish()?;
+            Ok::<_, mpiflow::export::ExportError>((summary, skipped))
+        })
+        .map_err(|e| CliError(format!("cannot start the writer thread: {e}")))?;
+
+    let format = a.format;
+    let make = |index: u64| -> Outcome {
+        let describe_source = || match generator.source_item(index) {
+            Some(item) => format!("source item {item} ({})", loader.id(item)),
+            None => "no source".into(),
+        };
+        match generator.sample(a.seed, index) {
+            Ok(sample) => match mpiflow::export::encode_sample(index, &sample, format.flow_encoding()) {
+                Ok(encoded) => Outcome::Done(Box::new((sample, encoded))),
+                Err(e) => Outcome::Skipped(format!("{}: cannot encode: {e}", describe_source())),
+            },
+            // a scene error already names the source item
+            Err(e @ SampleError::Scene { .. }) => Outcome::Skipped(e.to_string()),
+            Err(e) => Outcome::Skipped(format!("{}: {e}", describe_source())),
+        }
+    };
+    let chunk = (threads * 2).max(2) as u64;
+    let mut next = a.start;
+    pool.install(|| {
+        while next < end {
+            let stop = end.min(next + chunk);
+            let outcomes: Vec<(u64, Outcome)> = (next..stop).into_par_iter().map(|i| (i, make(i))).collect();
+            if tx.send(outcomes).is_err() {
+                break; // the writer stopped on an error; it is reported below
+            }
+            next = stop;
+        }
+    });
+    drop(tx);
+    let joined = writer.join();
+    pb.finish_and_clear();
+    let (summary, skipped) = match joined {
+        Ok(r) => r?,
+        Err(_) => return Err(CliError("the writer thread panicked".into())),
+    };
+    let secs = started.elapsed().as_secs_f64();
+    let mut extra = format!("{} preview sheet(s)", summary.previews.len());
+    if format == ExportFormat::WebDataset {
+        extra.push_str(&format!(", {} shard(s)", summary.shards.len()));
+    }
+    println!(
+        "generate: wrote {} samples ({skipped} skipped) to {} in {secs:.1} s ({:.2} samples/s, {:.1} MB, {extra}), format {format}",
+        summary.samples,
+        a.out.display(),
+        summary.samples as f64 / secs.max(1e-9),
+        summary.bytes as f64 / 1e6,
+    );
+    if summary.samples == 0 {
+        return Err(CliError(format!("no sample written: all {} samples failed (see the warnings above)", a.count)));
+    }
+    Ok(())
+}
