@@ -10,4 +10,5 @@ pub mod mpi;
 pub mod render;
 pub mod sample;
 pub mod scene;
+pub mod service;
 pub mod source;

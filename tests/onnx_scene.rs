@@ -27,7 +27,7 @@ fn models() -> &'static Path {
         let python = std::env::var_os("MPIFLOW_PYTHON")
             .filter(|v| !v.is_empty())
             .unwrap_or_else(|| panic!("MPIFLOW_PYTHON is not set: {HOW}"));
-        if std::env::var_os("ORT_DYLIB_PATH").map_or(true, |v| v.is_empty()) {
+        if std::env::var_os("ORT_DYLIB_PATH").is_none_or(|v| v.is_empty()) {
             panic!("ORT_DYLIB_PATH is not set: {HOW}");
         }
         let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("onnx_scene_models_{}", std::process::id()));

@@ -20,6 +20,9 @@ pub enum BenchCommand {
     /// Median time of whole samples (cached scene, renders, merge, inpainting) of a synthetic
     /// RGB-D scene with one moving object, and without it; the share of each stage.
     Sample(SampleBench),
+    /// Delivered samples/s of `mpiflow serve` over loopback against the in-process generator
+    /// rate on the same workers; time to first sample, p99 gap, memory with stalled/fast clients.
+    Serve(super::bench_serve::ServeBench),
 }
 
 #[derive(Args, Debug)]
@@ -91,6 +94,7 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::Render(b) => render(b),
         BenchCommand::Accuracy(a) => accuracy(a),
         BenchCommand::Sample(s) => sample(s),
+        BenchCommand::Serve(s) => super::bench_serve::run(s),
     }
 }
 

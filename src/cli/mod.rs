@@ -1,8 +1,12 @@
 //! Argument definitions and dispatch of the `mpiflow` subcommands.
 
 mod bench;
+mod bench_serve;
 mod generate;
+mod health;
+mod pull;
 mod render;
+mod serve;
 
 use clap::{Parser, Subcommand};
 
@@ -26,6 +30,12 @@ enum Command {
     Bench(bench::BenchCommand),
     /// Write a training set to disk (flo, kitti or webdataset layout) with preview sheets.
     Generate(generate::GenerateArgs),
+    /// Serve endless reproducible sample streams over gRPC (mpiflow.v1.MpiFlow).
+    Serve(serve::ServeArgs),
+    /// Pull samples from a server (optionally saving them in the flo layout) and report the rate.
+    Pull(pull::PullArgs),
+    /// gRPC health check of a server: exit code 0 only when it is SERVING.
+    Health(health::HealthArgs),
 }
 
 /// A failure the user can act on: printed as one line, exit code 2.
@@ -56,6 +66,9 @@ pub fn run() -> i32 {
         Command::Render(a) => render::run(a),
         Command::Bench(b) => bench::run(b),
         Command::Generate(a) => generate::run(a),
+        Command::Serve(a) => serve::run(a),
+        Command::Pull(a) => pull::run(a),
+        Command::Health(a) => health::run(a),
     };
     match result {
         Ok(()) => 0,

@@ -190,7 +190,7 @@ impl PreviewCollector {
     }
 
     fn starts_sheet(&self, index: u64) -> bool {
-        !self.seen_any || index % self.options.every == 0
+        !self.seen_any || index.is_multiple_of(self.options.every)
     }
 
     /// Whether the sample with this index (the next one written) goes into a sheet.

@@ -202,7 +202,7 @@ pub fn write_kitti_flow_png(
     let mut bytes = Vec::with_capacity(flow.len() / 2 * 6);
     for (i, p) in flow.chunks_exact(2).enumerate() {
         let px = if p[0].is_finite() && p[1].is_finite() {
-            let ok = valid.map_or(true, |v| v[i] != 0);
+            let ok = valid.is_none_or(|v| v[i] != 0);
             [kitti_encode(p[0]), kitti_encode(p[1]), u16::from(ok)]
         } else {
             [32768, 32768, 0]

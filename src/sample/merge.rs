@@ -195,7 +195,7 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
                     let hit = Hit { slot, m, depth, idx };
                     match rule {
                         MergeRule::Reference => {
-                            if best.map_or(true, |b| m > b.m) {
+                            if best.is_none_or(|b| m > b.m) {
                                 best = Some(hit);
                             }
                         }
@@ -205,7 +205,7 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
                             if m_occ >= 0.5 {
                                 continue; // nearer background stays in front
                             }
-                            if best.map_or(true, |b| depth < b.depth) {
+                            if best.is_none_or(|b| depth < b.depth) {
                                 best = Some(hit);
                             }
                         }

@@ -640,7 +640,10 @@ pub struct Generator {
     loader: Arc<dyn SceneLoader>,
     cache: Arc<SceneCache>,
     config: SampleConfig,
+    /// The dataset word of the addresses (the loader's fingerprint, or one given).
     fingerprint: u64,
+    /// The loader's fingerprint: the dataset word of the scene cache keys.
+    loader_fingerprint: u64,
     /// Tile occupancy of each cached scene's MPI (small: N x (W/8) x (H/8) counts), keyed by the
     /// scene's cache key and checked against the scene itself.
     occupancies: Mutex<Vec<OccupancyEntry>>,
@@ -663,16 +666,31 @@ impl Generator {
         cache: Arc<SceneCache>,
         config: SampleConfig,
     ) -> Result<Self, SampleError> {
-        config.validate()?;
         let fingerprint = loader.fingerprint();
-        Ok(Self { loader, cache, config, fingerprint, occupancies: Mutex::new(Vec::new()) })
+        Self::with_fingerprint(loader, cache, config, fingerprint)
+    }
+
+    /// [`Generator::new`] with an explicit dataset word for the sample addresses (e.g. one that
+    /// also covers the configuration, as the service's dataset fingerprint does). Scenes are still
+    /// cached under the loader's fingerprint, so generators with different configurations over one
+    /// loader share the cache.
+    pub fn with_fingerprint(
+        loader: Arc<dyn SceneLoader>,
+        cache: Arc<SceneCache>,
+        config: SampleConfig,
+        fingerprint: u64,
+    ) -> Result<Self, SampleError> {
+        config.validate()?;
+        let loader_fingerprint = loader.fingerprint();
+        Ok(Self { loader, cache, config, fingerprint, loader_fingerprint, occupancies: Mutex::new(Vec::new()) })
     }
 
     pub fn config(&self) -> &SampleConfig {
         &self.config
     }
 
-    /// The dataset word of every address this generator makes (the loader's fingerprint).
+    /// The dataset word of every address this generator makes (the loader's fingerprint, unless
+    /// given to [`Generator::with_fingerprint`]).
     pub fn fingerprint(&self) -> u64 {
         self.fingerprint
     }
@@ -687,7 +705,7 @@ impl Generator {
     }
 
     fn key(&self, item: usize) -> SceneKey {
-        SceneKey::new(self.fingerprint, item as u64, self.config.scene_variant())
+        SceneKey::new(self.loader_fingerprint, item as u64, self.config.scene_variant())
     }
 
     /// The prepared scene of source item `item`, from the cache or loaded into it.

@@ -307,7 +307,7 @@ pub fn mask_bbox(mask: &[u8], h: usize, w: usize) -> [f64; 4] {
 /// `frPyObjects` / `rleFrPoly` (see the module documentation). Fewer than one point gives an
 /// empty mask.
 pub fn polygon_to_rle(xy: &[f64], h: usize, w: usize) -> Result<Vec<u32>, MaskError> {
-    if xy.len() % 2 != 0 {
+    if !xy.len().is_multiple_of(2) {
         return Err(poly_err(format!("{} coordinates: expected x, y pairs", xy.len())));
     }
     if let Some(i) = xy.iter().position(|v| !v.is_finite()) {

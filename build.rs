@@ -1,0 +1,17 @@
+//! Generates the gRPC server and client code of `proto/mpiflow/v1/mpiflow.proto` (tonic + prost)
+//! and its file descriptor set (for gRPC reflection), with the vendored `protoc`.
+
+use std::path::PathBuf;
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    println!("cargo:rerun-if-changed=proto");
+    println!("cargo:rerun-if-changed=build.rs");
+    let protoc = protoc_bin_vendored::protoc_bin_path()?;
+    // build scripts run single-threaded: setting the variable here is sound
+    std::env::set_var("PROTOC", protoc);
+    let out = PathBuf::from(std::env::var("OUT_DIR")?);
+    tonic_prost_build::configure()
+        .file_descriptor_set_path(out.join("mpiflow_descriptor.bin"))
+        .compile_protos(&["proto/mpiflow/v1/mpiflow.proto"], &["proto"])?;
+    Ok(())
+}

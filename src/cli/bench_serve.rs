@@ -1,0 +1,219 @@
+//! `mpiflow bench serve`: delivered samples/s of `mpiflow serve` over loopback (a child server
+//! process, pulled by the Rust client) against the in-process generator rate on the same number
+//! of workers; time to first sample, p99 gap; server memory with stalled and fast clients.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use mpiflow::service::client::{connect, pull};
+use mpiflow::service::config::DatasetConfig;
+use mpiflow::service::dataset::Datasets;
+use mpiflow::service::pb;
+use mpiflow::service::ServiceConfig;
+use rayon::prelude::*;
+
+use super::CliError;
+
+#[derive(Args, Debug)]
+pub struct ServeBench {
+    /// Generation threads, in process and in the server (default: all cores).
+    #[arg(long)]
+    workers: Option<usize>,
+    /// Timed samples per run.
+    #[arg(long, default_value_t = 48)]
+    count: u64,
+    /// Source image size.
+    #[arg(long, value_name = "WxH", default_value = "640x480")]
+    size: String,
+    /// A folder of photos (default: the bundled scenes).
+    #[arg(long, value_name = "DIR")]
+    source: Option<String>,
+    #[arg(long, default_value_t = 1)]
+    batch_size: u32,
+    #[arg(long)]
+    lz4: bool,
+    /// Also measure the server's memory with this many stalled, then this many fast, clients (0 = skip).
+    #[arg(long, default_value_t = 8)]
+    clients: usize,
+    /// Seconds each memory phase lasts.
+    #[arg(long, default_value_t = 6.0)]
+    memory_s: f64,
+}
+
+fn rss_mib(pid: u32) -> Option<(f64, f64)> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let field = |name: &str| {
+        s.lines().find(|l| l.starts_with(name)).and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
+    };
+    Some((field("VmRSS:")? / 1024.0, field("VmHWM:")? / 1024.0))
+}
+
+struct ServerProcess {
+    child: Child,
+    addr: String,
+}
+
+impl ServerProcess {
+    fn start(args: &[String]) -> Result<Self, CliError> {
+        let exe = std::env::current_exe().map_err(|e| CliError(format!("cannot find the mpiflow binary: {e}")))?;
+        let mut child = Command::new(exe)
+            .arg("serve")
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .map_err(|e| CliError(format!("cannot start mpiflow serve: {e}")))?;
+        let stdout = child.stdout.take().ok_or_else(|| CliError("no stdout from mpiflow serve".into()))?;
+        let mut line = String::new();
+        BufReader::new(stdout).read_line(&mut line).map_err(|e| CliError(format!("mpiflow serve: {e}")))?;
+        let addr = line
+            .trim()
+            .strip_prefix("mpiflow serving on ")
+            .ok_or_else(|| CliError(format!("mpiflow serve printed {line:?}")))?
+            .to_string();
+        Ok(Self { child, addr })
+    }
+
+    fn terminate(mut self) {
+        let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
+        let _ = self.child.wait();
+    }
+}
+
+fn request(b: &ServeBench, seed: u64, count: u64) -> pb::StreamRequest {
+    pb::StreamRequest {
+        seed,
+        count,
+        batch_size: b.batch_size,
+        compression: if b.lz4 { pb::Compression::Lz4 } else { pb::Compression::None } as i32,
+        ..Default::default()
+    }
+}
+
+pub fn run(b: ServeBench) -> Result<(), CliError> {
+    let workers = b.workers.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let mut config = ServiceConfig { workers, size: Some(b.size.clone()), ..ServiceConfig::default() };
+    if let Some(s) = &b.source {
+        config.datasets = vec![DatasetConfig::parse(s).map_err(CliError)?];
+    }
+    config.validate()?;
+
+    // ---- in process: the generator on `workers` threads
+    let datasets = Datasets::open(&config)?;
+    let ds = datasets.default_dataset().clone();
+    let generator = ds.generator.clone();
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(workers).build()?;
+    let warm = ds.sources() as u64;
+    pool.install(|| (0..warm).into_par_iter().try_for_each(|i| generator.sample(0, i).map(drop)))?;
+    let t = Instant::now();
+    pool.install(|| (0..b.count).into_par_iter().try_for_each(|i| generator.sample(1, i).map(drop)))?;
+    let in_process = b.count as f64 / t.elapsed().as_secs_f64();
+    drop(datasets);
+    println!(
+        "in process: {in_process:.2} samples/s ({} samples of {}, {workers} workers, dataset {} with {} sources)",
+        b.count,
+        b.size,
+        ds.name,
+        ds.sources()
+    );
+
+    // ---- served: a child server process, pulled over loopback
+    let mut args: Vec<String> = vec![
+        "--addr".into(),
+        "127.0.0.1:0".into(),
+        "--workers".into(),
+        workers.to_string(),
+        "--size".into(),
+        b.size.clone(),
+        "--log-level".into(),
+        "warn".into(),
+    ];
+    if let Some(s) = &b.source {
+        args.extend(["--source".into(), s.clone()]);
+    }
+    let server = ServerProcess::start(&args)?;
+    let pid = server.child.id();
+    let addr = server.addr.clone();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError(format!("async runtime: {e}")))?;
+    let result = rt.block_on(async {
+        let mut client = connect(&addr).await.map_err(|e| CliError(format!("{addr}: {e}")))?;
+        // warm the server's scene cache like the in-process run
+        let w = pull(&mut client, request(&b, 0, warm), |_| {}).await.map_err(|s| CliError(s.to_string()))?;
+        if let Some(e) = w.error {
+            return Err(CliError(format!("warm-up pull: {e}")));
+        }
+        let r = pull(&mut client, request(&b, 1, b.count), |_| {}).await.map_err(|s| CliError(s.to_string()))?;
+        if let Some(e) = &r.error {
+            return Err(CliError(format!("pull: {e}")));
+        }
+        println!("served:     {}", r.summary());
+        println!(
+            "served / in process = {:.1}% (time to first sample {:.1} ms, p99 gap {:.1} ms, batch {}, lz4 {})",
+            100.0 * r.samples_per_s() / in_process,
+            r.first_sample_ms.unwrap_or(0.0),
+            r.gap_quantile_ms(0.99).unwrap_or(0.0),
+            b.batch_size,
+            b.lz4
+        );
+        if b.clients == 0 {
+            return Ok(());
+        }
+        let phase = Duration::from_secs_f64(b.memory_s);
+        let idle = rss_mib(pid).map_or(0.0, |m| m.0);
+        // stalled: streams opened and never read
+        let mut stalled = Vec::new();
+        for _ in 0..b.clients {
+            let mut c = connect(&addr).await.map_err(|e| CliError(e.to_string()))?;
+            let s = c.stream_samples(request(&b, 2, 0)).await.map_err(|s| CliError(s.to_string()))?;
+            stalled.push((c, s));
+        }
+        tokio::time::sleep(phase).await;
+        let stalled_rss = rss_mib(pid).map_or(0.0, |m| m.0);
+        drop(stalled);
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        // fast: streams read as fast as they come
+        let mut tasks = Vec::new();
+        for i in 0..b.clients {
+            let addr = addr.clone();
+            let req = request(&b, 3 + i as u64, 0);
+            tasks.push(tokio::spawn(async move {
+                let mut c = connect(&addr).await.ok()?;
+                let mut s = c.stream_samples(req).await.ok()?.into_inner();
+                let stop = Instant::now() + phase;
+                let mut n = 0u64;
+                while Instant::now() < stop {
+                    match s.message().await {
+                        Ok(Some(batch)) => n += batch.samples.len() as u64,
+                        _ => break,
+                    }
+                }
+                Some(n)
+            }));
+        }
+        let mut peak = 0.0f64;
+        let start = Instant::now();
+        while start.elapsed() < phase {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            peak = peak.max(rss_mib(pid).map_or(0.0, |m| m.0));
+        }
+        let mut fast_samples = 0;
+        for t in tasks {
+            fast_samples += t.await.ok().flatten().unwrap_or(0);
+        }
+        println!(
+            "server memory (RSS): {idle:.0} MiB idle after the runs; {stalled_rss:.0} MiB with {n} stalled clients \
+             after {s:.0} s; peak {peak:.0} MiB with {n} fast clients ({fast_samples} samples in {s:.0} s)",
+            n = b.clients,
+            s = b.memory_s
+        );
+        Ok(())
+    });
+    server.terminate();
+    result
+}

@@ -1,0 +1,176 @@
+//! `mpiflow pull`: a Rust client of the service. Pulls a stream, optionally saves the samples in
+//! the export `flo` layout (`I_img1.png`, ... with `I` the global index) with preview sheets, and
+//! prints samples/s, MB/s, the time to first sample and the gaps between samples.
+
+use std::path::PathBuf;
+use std::sync::mpsc::sync_channel;
+
+use clap::Args;
+use mpiflow::export::{ExportFormat, ExportOptions, Exporter, PreviewOptions};
+use mpiflow::service::client::{connect, pull};
+use mpiflow::service::encode::{decode_tensor, from_proto};
+use mpiflow::service::error::cursor_of;
+use mpiflow::service::pb;
+
+use super::CliError;
+
+#[derive(Args, Debug)]
+pub struct PullArgs {
+    /// Server address.
+    #[arg(long, value_name = "HOST:PORT", default_value = "127.0.0.1:50051")]
+    addr: String,
+    /// Samples to pull.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    count: u64,
+    /// Save the samples here (flo layout with previews); without it samples are received,
+    /// decoded and dropped (for benchmarks).
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// This consumer's rank among --world-size consumers.
+    #[arg(long, default_value_t = 0)]
+    rank: u32,
+    #[arg(long, default_value_t = 1)]
+    world_size: u32,
+    /// The resume cursor: the first index pulled is start_index + rank.
+    #[arg(long, value_name = "I", default_value_t = 0)]
+    start_index: u64,
+    /// Dataset name (default: the server's default dataset).
+    #[arg(long, default_value = "")]
+    dataset: String,
+    /// Expected dataset fingerprint (16 hex digits); the server refuses a different one.
+    #[arg(long, value_name = "HEX")]
+    fingerprint: Option<String>,
+    /// Ask for lz4-compressed tensors.
+    #[arg(long)]
+    lz4: bool,
+    /// Ask for f16 flow.
+    #[arg(long)]
+    f16: bool,
+    /// Samples per message.
+    #[arg(long, default_value_t = 1)]
+    batch_size: u32,
+    /// Samples the server makes ahead for this stream (0 = the server's default).
+    #[arg(long, default_value_t = 0)]
+    prefetch: u32,
+    /// Motion preset: reference, paper-kitti or depthstillation (default: the dataset's).
+    #[arg(long, default_value = "")]
+    preset: String,
+    /// Moving objects per sample (default: the dataset's).
+    #[arg(long)]
+    objects: Option<u32>,
+    /// Consecutive samples per source photo (default: the dataset's).
+    #[arg(long)]
+    motions_per_image: Option<u32>,
+    /// Crop every sample to WxH (centre, or random with --random-crop).
+    #[arg(long, value_name = "WxH")]
+    crop: Option<String>,
+    #[arg(long)]
+    random_crop: bool,
+    /// A preview sheet at every multiple of N (with --out; 0 = none).
+    #[arg(long, value_name = "N", default_value_t = 100)]
+    preview_every: u64,
+}
+
+fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
+    let fingerprint = match &a.fingerprint {
+        Some(h) => u64::from_str_radix(h.trim_start_matches("0x"), 16)
+            .map_err(|_| CliError(format!("--fingerprint {h}: expected hex digits")))?,
+        None => 0,
+    };
+    let crop = match &a.crop {
+        Some(s) => {
+            let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| CliError(format!("--crop {s}: expected WxH")))?;
+            let p = |v: &str| v.trim().parse::<u32>().map_err(|_| CliError(format!("--crop {s}: expected WxH")));
+            Some(pb::OutputCrop {
+                width: p(w)?,
+                height: p(h)?,
+                mode: if a.random_crop { pb::CropMode::Random } else { pb::CropMode::Center } as i32,
+            })
+        }
+        None => None,
+    };
+    let mut fields = vec![pb::Field::Image1, pb::Field::Image2, pb::Field::Flow, pb::Field::Valid];
+    if a.out.is_some() {
+        fields.extend([pb::Field::Occlusion, pb::Field::Mask1]);
+    }
+    Ok(pb::StreamRequest {
+        dataset: a.dataset.clone(),
+        fingerprint,
+        seed: a.seed,
+        rank: a.rank,
+        world_size: a.world_size,
+        start_index: a.start_index,
+        count: a.count,
+        fields: fields.into_iter().map(|f| f as i32).collect(),
+        flow_dtype: if a.f16 { pb::FlowDtype::F16 } else { pb::FlowDtype::F32 } as i32,
+        compression: if a.lz4 { pb::Compression::Lz4 } else { pb::Compression::None } as i32,
+        crop,
+        motion_preset: a.preset.clone(),
+        motion_ranges_json: String::new(),
+        max_objects: a.objects,
+        motions_per_image: a.motions_per_image,
+        batch_size: a.batch_size,
+        prefetch: a.prefetch,
+    })
+}
+
+pub fn run(a: PullArgs) -> Result<(), CliError> {
+    let req = request(&a)?;
+    // the writer: decodes and writes in arrival (= index) order on its own thread
+    let (tx, rx) = sync_channel::<pb::Sample>(64);
+    let writer = match &a.out {
+        Some(dir) => {
+            let mut options = ExportOptions::new(ExportFormat::Flo, dir);
+            options.preview = PreviewOptions { every: a.preview_every, ..PreviewOptions::default() };
+            let mut exporter = Exporter::create(options)?;
+            std::thread::spawn(move || -> Result<u64, String> {
+                for s in rx {
+                    let sample = from_proto(&s).map_err(|e| format!("sample {}: {e}", s.index))?;
+                    exporter.write(s.index, &sample).map_err(|e| e.to_string())?;
+                }
+                exporter.finish().map(|summary| summary.samples).map_err(|e| e.to_string())
+            })
+        }
+        None => std::thread::spawn(move || -> Result<u64, String> {
+            let mut n = 0;
+            for s in rx {
+                for t in &s.tensors {
+                    decode_tensor(t).map_err(|e| format!("sample {}: {e}", s.index))?;
+                }
+                n += 1;
+            }
+            Ok(n)
+        }),
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError(format!("cannot start the async runtime: {e}")))?;
+    let report = rt.block_on(async {
+        let mut client = connect(&a.addr).await.map_err(|e| CliError(format!("{}: {e}", a.addr)))?;
+        pull(&mut client, req, |s| {
+            let _ = tx.send(s);
+        })
+        .await
+        .map_err(|s| CliError(format!("{:?}: {}", s.code(), s.message())))
+    });
+    drop(tx);
+    let written = writer.join().map_err(|_| CliError("the writer thread panicked".into()))?;
+    let report = report?;
+    let written = written.map_err(CliError)?;
+    println!("pull: {}", report.summary());
+    if let Some(dir) = &a.out {
+        println!("pull: wrote {written} samples to {} (flo layout, previews in previews/)", dir.display());
+    }
+    if let Some(status) = &report.error {
+        let cursor = cursor_of(status)
+            .map(|(n, r)| format!("; next index {n}, resume with --start-index {r}"))
+            .or_else(|| report.resume_start_index.map(|r| format!("; resume with --start-index {r}")))
+            .unwrap_or_default();
+        return Err(CliError(format!("the stream ended with {:?}: {}{cursor}", status.code(), status.message())));
+    }
+    Ok(())
+}

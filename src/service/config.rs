@@ -1,0 +1,458 @@
+//! The server's configuration: a TOML file (`deploy/mpiflow.toml` documents every key and its
+//! default), then `MPIFLOW_*` environment variables, then command-line flags, each overriding the
+//! one before.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use serde::{Deserialize, Serialize};
+
+use crate::io::image::ImageLimits;
+use crate::mpi::layering::{Layering, MAX_PLANES};
+use crate::sample::recipe::SampleConfig;
+use crate::scene::builtin::BuiltinMpi;
+use crate::scene::onnx::{OnnxDepth, OnnxDepthConfig, OnnxMpi, OnnxMpiConfig, OnnxSegmenter, OnnxSegmenterConfig};
+use crate::scene::stage::SceneStage;
+use crate::scene::MpiBuilder;
+
+use super::error::ServiceError;
+
+/// Bytes per pixel of a sample with every field: image1 and image2 (3 + 3), f32 flow (8), valid,
+/// occlusion, mask1, mask2 (4 x 1), f32 depth1 and depth2 (8).
+pub const BYTES_PER_PIXEL_ALL_FIELDS: u64 = 26;
+
+/// The largest gRPC message the server ever allows (well below protobuf's 2 GiB).
+pub const MAX_MESSAGE_CAP: u64 = 1 << 30;
+
+/// Log line format.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    #[default]
+    Text,
+    Json,
+}
+
+impl std::str::FromStr for LogFormat {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "text" => Ok(LogFormat::Text),
+            "json" => Ok(LogFormat::Json),
+            _ => Err(format!("unknown log format {s:?} (expected text or json)")),
+        }
+    }
+}
+
+/// The scene models shared by every dataset (ONNX files; none = the built-in layering, with depth
+/// and masks coming with the sources).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelConfig {
+    /// Planes of the built-in layering (when there is no MPI model). Default 32.
+    pub planes: usize,
+    /// Depth model (ONNX) for sources without depth.
+    pub depth_model: Option<PathBuf>,
+    /// MPI network (ONNX, AdaMPI-style) instead of the built-in layering.
+    pub mpi_model: Option<PathBuf>,
+    /// Instance segmentation model (ONNX) for sources without masks.
+    pub segment_model: Option<PathBuf>,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        Self { planes: 32, depth_model: None, mpi_model: None, segment_model: None }
+    }
+}
+
+impl ModelConfig {
+    /// Loads the models (ONNX sessions are created and warmed here) into a scene stage.
+    pub fn build_stage(&self) -> Result<SceneStage, String> {
+        let mpi: Arc<dyn MpiBuilder> = match &self.mpi_model {
+            Some(p) => Arc::new(OnnxMpi::new(OnnxMpiConfig::new(p)).map_err(|e| format!("mpi model: {e}"))?),
+            None => {
+                if !(1..=MAX_PLANES).contains(&self.planes) {
+                    return Err(format!("planes = {}: expected 1 to {MAX_PLANES}", self.planes));
+                }
+                let b = BuiltinMpi::new(self.planes, Layering::Soft);
+                b.validate().map_err(|e| e.to_string())?;
+                Arc::new(b)
+            }
+        };
+        let mut stage = SceneStage::new(mpi);
+        if let Some(p) = &self.depth_model {
+            let m = OnnxDepth::new(OnnxDepthConfig::new(p)).map_err(|e| format!("depth model: {e}"))?;
+            stage = stage.with_depth(Arc::new(m));
+        }
+        if let Some(p) = &self.segment_model {
+            let m = OnnxSegmenter::new(OnnxSegmenterConfig::new(p)).map_err(|e| format!("segment model: {e}"))?;
+            stage = stage.with_segmenter(Arc::new(m));
+        }
+        Ok(stage)
+    }
+}
+
+/// One dataset: a name and where its sources are.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetConfig {
+    /// The name clients use (default: the path's file name, or `builtin`).
+    #[serde(default)]
+    pub name: Option<String>,
+    /// A folder of photos (or the reference layout), one image, or `builtin` for the bundled scenes.
+    pub path: String,
+    /// This dataset's sample configuration (default: the server's `[sample]`).
+    #[serde(default)]
+    pub sample: Option<SampleConfig>,
+}
+
+impl DatasetConfig {
+    /// `NAME=PATH` or `PATH` (named after the path's file name).
+    pub fn parse(spec: &str) -> Result<Self, String> {
+        let spec = spec.trim();
+        if spec.is_empty() {
+            return Err("empty source".into());
+        }
+        let (name, path) = match spec.split_once('=') {
+            Some((n, p)) if !n.is_empty() && !n.contains('/') => (Some(n.to_string()), p.to_string()),
+            _ => (None, spec.to_string()),
+        };
+        if path.is_empty() {
+            return Err(format!("source {spec:?}: empty path"));
+        }
+        Ok(Self { name, path, sample: None })
+    }
+
+    /// The dataset's name: the given one, else `builtin` for the bundled scenes, else the path's
+    /// file name.
+    pub fn name(&self) -> String {
+        if let Some(n) = &self.name {
+            return n.clone();
+        }
+        if self.is_builtin() {
+            return "builtin".into();
+        }
+        Path::new(&self.path)
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .filter(|n| !n.is_empty())
+            .unwrap_or_else(|| self.path.clone())
+    }
+
+    pub fn is_builtin(&self) -> bool {
+        self.path == "builtin"
+    }
+}
+
+/// Everything the server reads at start-up.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ServiceConfig {
+    /// gRPC listen address. Default `127.0.0.1:50051` (port 0 = any free port).
+    pub addr: String,
+    /// Prometheus metrics address (HTTP `/metrics`); none = no metrics endpoint.
+    pub metrics_addr: Option<String>,
+    /// Generation threads (the rayon pool). 0 = all cores.
+    pub workers: usize,
+    /// Samples being made at once over all streams. 0 = 2 x workers.
+    pub max_in_flight: usize,
+    /// Concurrent StreamSamples calls; more are refused with RESOURCE_EXHAUSTED.
+    pub max_streams: usize,
+    /// Samples made ahead per stream when the request says 0.
+    pub default_prefetch: u32,
+    /// Cap of a request's `prefetch`.
+    pub max_prefetch: u32,
+    /// Largest `batch_size` a request may ask for.
+    pub max_batch_size: u32,
+    /// Largest source image side in pixels (checked in the file header before decoding).
+    pub max_image_side: u32,
+    /// Largest source image (and so sample) in pixels; sets the message limit.
+    pub max_image_pixels: u64,
+    /// Largest encoded source image file in bytes.
+    pub max_image_bytes: u64,
+    /// Largest upload (all files of one UploadSources call) in bytes.
+    pub max_upload_bytes: u64,
+    /// Resize every source image to `WxH` (e.g. `"640x480"`); none = keep sizes (the bundled
+    /// scenes are 640x480).
+    pub size: Option<String>,
+    /// Scene cache budget in MiB (a 640x480 scene with 32 planes takes about 160 MiB).
+    pub cache_mb: u64,
+    /// How long a graceful shutdown may take before open streams are cut.
+    pub drain_timeout_s: f64,
+    /// Extra wait after the warm-up sample before health reports SERVING.
+    pub warmup_delay_ms: u64,
+    pub log_format: LogFormat,
+    /// `error`, `warn`, `info`, `debug` or `trace`.
+    pub log_level: String,
+    pub models: ModelConfig,
+    /// The default sample configuration of every dataset (the recipe's JSON schema; see
+    /// `docs/api.md`).
+    pub sample: SampleConfig,
+    /// The datasets; the first is the default. None = the bundled scenes as `builtin`.
+    pub datasets: Vec<DatasetConfig>,
+}
+
+impl Default for ServiceConfig {
+    fn default() -> Self {
+        Self {
+            addr: "127.0.0.1:50051".into(),
+            metrics_addr: None,
+            workers: 0,
+            max_in_flight: 0,
+            max_streams: 64,
+            default_prefetch: 4,
+            max_prefetch: 64,
+            max_batch_size: 64,
+            max_image_side: 8192,
+            max_image_pixels: 4 << 20,
+            max_image_bytes: 64 << 20,
+            max_upload_bytes: 256 << 20,
+            size: None,
+            cache_mb: 2048,
+            drain_timeout_s: 10.0,
+            warmup_delay_ms: 0,
+            log_format: LogFormat::Text,
+            log_level: "info".into(),
+            models: ModelConfig::default(),
+            sample: SampleConfig::default(),
+            datasets: Vec::new(),
+        }
+    }
+}
+
+/// `WxH`, both sides 16 to 16384 pixels.
+pub fn parse_size(s: &str) -> Result<(usize, usize), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH (e.g. 640x480), got `{s}`"))?;
+    let side = |v: &str| -> Result<usize, String> {
+        let n: usize = v.trim().parse().map_err(|_| format!("`{v}` is not a whole number of pixels"))?;
+        if !(16..=16384).contains(&n) {
+            return Err(format!("{n} pixels is outside 16 to 16384"));
+        }
+        Ok(n)
+    };
+    Ok((side(w)?, side(h)?))
+}
+
+fn env_parse<T: std::str::FromStr>(key: &str, value: &str) -> Result<T, String>
+where
+    T::Err: std::fmt::Display,
+{
+    value.trim().parse::<T>().map_err(|e| format!("{key}={value:?}: {e}"))
+}
+
+impl ServiceConfig {
+    /// Reads a TOML file (every key optional).
+    pub fn from_file(path: &Path) -> Result<Self, ServiceError> {
+        let text =
+            std::fs::read_to_string(path).map_err(|e| ServiceError::Config(format!("{}: {e}", path.display())))?;
+        Self::from_toml(&text).map_err(|e| ServiceError::Config(format!("{}: {e}", path.display())))
+    }
+
+    pub fn from_toml(text: &str) -> Result<Self, String> {
+        toml::from_str(text).map_err(|e| e.to_string().trim().replace('\n', " "))
+    }
+
+    /// Applies the `MPIFLOW_*` variables of the process environment ([`Self::apply_env_vars`]).
+    pub fn apply_env(&mut self) -> Result<(), ServiceError> {
+        self.apply_env_vars(std::env::vars()).map_err(ServiceError::Config)
+    }
+
+    /// Applies `MPIFLOW_*` overrides: `ADDR`, `METRICS_ADDR` (empty = off), `WORKERS`,
+    /// `MAX_IN_FLIGHT`, `MAX_STREAMS`, `PREFETCH`, `MAX_PREFETCH`, `MAX_BATCH_SIZE`,
+    /// `MAX_IMAGE_SIDE`, `MAX_IMAGE_PIXELS`, `MAX_IMAGE_BYTES`, `MAX_UPLOAD_BYTES`, `SIZE`,
+    /// `CACHE_MB`, `DRAIN_TIMEOUT_S`, `WARMUP_DELAY_MS`, `LOG_FORMAT`, `LOG_LEVEL`, `PLANES`,
+    /// `DEPTH_MODEL`, `MPI_MODEL`, `SEGMENT_MODEL`, `PRESET`, `MAX_OBJECTS`, `MOTIONS_PER_IMAGE`
+    /// and `SOURCES` (comma-separated `NAME=PATH` or `PATH`; replaces the datasets). Other
+    /// variables (e.g. `MPIFLOW_PHOTOS`, read by the bundled source) are left alone.
+    pub fn apply_env_vars(&mut self, vars: impl IntoIterator<Item = (String, String)>) -> Result<(), String> {
+        for (key, value) in vars {
+            let Some(name) = key.strip_prefix("MPIFLOW_") else { continue };
+            let opt_path = |v: &str| (!v.trim().is_empty()).then(|| PathBuf::from(v.trim()));
+            match name {
+                "ADDR" => self.addr = value.trim().to_string(),
+                "METRICS_ADDR" => {
+                    self.metrics_addr = (!value.trim().is_empty()).then(|| value.trim().to_string());
+                }
+                "WORKERS" => self.workers = env_parse(&key, &value)?,
+                "MAX_IN_FLIGHT" => self.max_in_flight = env_parse(&key, &value)?,
+                "MAX_STREAMS" => self.max_streams = env_parse(&key, &value)?,
+                "PREFETCH" => self.default_prefetch = env_parse(&key, &value)?,
+                "MAX_PREFETCH" => self.max_prefetch = env_parse(&key, &value)?,
+                "MAX_BATCH_SIZE" => self.max_batch_size = env_parse(&key, &value)?,
+                "MAX_IMAGE_SIDE" => self.max_image_side = env_parse(&key, &value)?,
+                "MAX_IMAGE_PIXELS" => self.max_image_pixels = env_parse(&key, &value)?,
+                "MAX_IMAGE_BYTES" => self.max_image_bytes = env_parse(&key, &value)?,
+                "MAX_UPLOAD_BYTES" => self.max_upload_bytes = env_parse(&key, &value)?,
+                "SIZE" => self.size = (!value.trim().is_empty()).then(|| value.trim().to_string()),
+                "CACHE_MB" => self.cache_mb = env_parse(&key, &value)?,
+                "DRAIN_TIMEOUT_S" => self.drain_timeout_s = env_parse(&key, &value)?,
+                "WARMUP_DELAY_MS" => self.warmup_delay_ms = env_parse(&key, &value)?,
+                "LOG_FORMAT" => self.log_format = env_parse(&key, &value)?,
+                "LOG_LEVEL" => self.log_level = value.trim().to_string(),
+                "PLANES" => self.models.planes = env_parse(&key, &value)?,
+                "DEPTH_MODEL" => self.models.depth_model = opt_path(&value),
+                "MPI_MODEL" => self.models.mpi_model = opt_path(&value),
+                "SEGMENT_MODEL" => self.models.segment_model = opt_path(&value),
+                "PRESET" => {
+                    let p: crate::sample::motion::MotionPreset = env_parse(&key, &value)?;
+                    self.sample.motion = crate::sample::recipe::MotionSpec::Preset(p);
+                }
+                "MAX_OBJECTS" => self.sample.max_objects = env_parse(&key, &value)?,
+                "MOTIONS_PER_IMAGE" => self.sample.motions_per_image = env_parse(&key, &value)?,
+                "SOURCES" => {
+                    self.datasets = value
+                        .split(',')
+                        .filter(|s| !s.trim().is_empty())
+                        .map(DatasetConfig::parse)
+                        .collect::<Result<_, _>>()
+                        .map_err(|e| format!("{key}: {e}"))?;
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
+    /// Checks every value; the error names the key.
+    pub fn validate(&self) -> Result<(), ServiceError> {
+        let bad = |m: String| Err(ServiceError::Config(m));
+        if self.max_streams == 0 {
+            return bad("max_streams = 0 (expected at least 1)".into());
+        }
+        if self.default_prefetch == 0 || self.max_prefetch == 0 {
+            return bad("default_prefetch and max_prefetch must be at least 1".into());
+        }
+        if self.max_batch_size == 0 || self.max_batch_size > 4096 {
+            return bad(format!("max_batch_size = {} (expected 1 to 4096)", self.max_batch_size));
+        }
+        if self.max_image_side < 16 || self.max_image_pixels < 256 {
+            return bad("max_image_side must be at least 16 and max_image_pixels at least 256".into());
+        }
+        if !(self.drain_timeout_s.is_finite() && self.drain_timeout_s >= 0.0) {
+            return bad(format!("drain_timeout_s = {} (expected seconds >= 0)", self.drain_timeout_s));
+        }
+        if self.workers > 1024 {
+            return bad(format!("workers = {} (expected at most 1024)", self.workers));
+        }
+        if let Some((w, h)) = self.resize()? {
+            if (w * h) as u64 > self.max_image_pixels {
+                return bad(format!("size = {w}x{h} is larger than max_image_pixels = {}", self.max_image_pixels));
+            }
+        }
+        self.sample.validate().map_err(|e| ServiceError::Config(format!("[sample]: {e}")))?;
+        let mut names = std::collections::HashSet::new();
+        for d in &self.datasets {
+            let name = d.name();
+            if !valid_name(&name) {
+                return bad(format!("dataset name {name:?}: use letters, digits, '-', '_' and '.'"));
+            }
+            if !names.insert(name.clone()) {
+                return bad(format!("dataset name {name:?} is used twice"));
+            }
+            if let Some(s) = &d.sample {
+                s.validate().map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The parsed `size`.
+    pub fn resize(&self) -> Result<Option<(usize, usize)>, ServiceError> {
+        self.size.as_deref().map(parse_size).transpose().map_err(|e| ServiceError::Config(format!("size: {e}")))
+    }
+
+    /// The worker count (0 resolved to the number of cores).
+    pub fn worker_count(&self) -> usize {
+        match self.workers {
+            0 => std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            n => n,
+        }
+    }
+
+    /// The in-flight bound (0 resolved to 2 x workers).
+    pub fn in_flight_capacity(&self) -> usize {
+        match self.max_in_flight {
+            0 => 2 * self.worker_count(),
+            n => n,
+        }
+    }
+
+    /// Limits for decoding source images.
+    pub fn image_limits(&self) -> ImageLimits {
+        ImageLimits {
+            max_width: self.max_image_side,
+            max_height: self.max_image_side,
+            max_pixels: self.max_image_pixels,
+            max_bytes: self.max_image_bytes,
+        }
+    }
+
+    /// The largest sample in pixels: the resize size, else `max_image_pixels`.
+    pub fn max_sample_pixels(&self) -> u64 {
+        match self.resize() {
+            Ok(Some((w, h))) => (w * h) as u64,
+            _ => self.max_image_pixels,
+        }
+    }
+
+    /// The gRPC message limit (both directions, server and the Rust client): one sample of the
+    /// largest size with every field, plus 1 MiB for metadata, at least 64 MiB, at most 1 GiB.
+    /// A batch is cut short rather than exceed it.
+    pub fn max_message_bytes(&self) -> u64 {
+        (BYTES_PER_PIXEL_ALL_FIELDS * self.max_sample_pixels() + (1 << 20)).clamp(64 << 20, MAX_MESSAGE_CAP)
+    }
+}
+
+/// Dataset and upload names: 1 to 64 of letters, digits, `-`, `_`, `.`, not starting with `.`.
+pub fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && !name.starts_with('.')
+        && name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn toml_env_and_defaults() {
+        let mut c = ServiceConfig::from_toml(
+            "addr = \"0.0.0.0:1\"\nworkers = 3\n[sample]\nmax_objects = 2\n[[datasets]]\npath = \"/data/photos\"\n",
+        )
+        .unwrap();
+        assert_eq!(c.addr, "0.0.0.0:1");
+        assert_eq!(c.workers, 3);
+        assert_eq!(c.sample.max_objects, 2);
+        assert_eq!(c.datasets[0].name(), "photos");
+        assert_eq!(c.max_streams, 64);
+        c.apply_env_vars([
+            ("MPIFLOW_WORKERS".to_string(), "5".to_string()),
+            ("MPIFLOW_SOURCES".to_string(), "a=/x,/y/z".to_string()),
+            ("MPIFLOW_PHOTOS".to_string(), "/ignored".to_string()),
+            ("HOME".to_string(), "/root".to_string()),
+        ])
+        .unwrap();
+        assert_eq!(c.workers, 5);
+        assert_eq!(c.datasets.iter().map(|d| d.name()).collect::<Vec<_>>(), ["a", "z"]);
+        c.validate().unwrap();
+        let e = c.apply_env_vars([("MPIFLOW_WORKERS".to_string(), "many".to_string())]).unwrap_err();
+        assert!(e.contains("MPIFLOW_WORKERS"), "{e}");
+        assert!(ServiceConfig::from_toml("wrokers = 1").unwrap_err().contains("wrokers"));
+    }
+
+    #[test]
+    fn the_shipped_example_is_the_default() {
+        let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/deploy/mpiflow.toml")).unwrap();
+        let c = ServiceConfig::from_toml(&text).unwrap();
+        assert_eq!(c, ServiceConfig::default());
+    }
+
+    #[test]
+    fn message_limit_fits_the_largest_sample() {
+        let c = ServiceConfig::default();
+        assert!(c.max_message_bytes() >= BYTES_PER_PIXEL_ALL_FIELDS * c.max_image_pixels);
+        let small = ServiceConfig { size: Some("64x48".into()), ..ServiceConfig::default() };
+        assert_eq!(small.max_message_bytes(), 64 << 20);
+    }
+}

@@ -1,0 +1,205 @@
+//! The dataset registry: each name maps to sources, the shared scene stage and scene cache, and a
+//! default sample configuration; per-request overrides make generators that share the loader and
+//! the cache. A dataset's fingerprint covers its sources, the scene stage and the effective
+//! sample configuration, and is the dataset word of every sample address.
+
+use std::sync::{Arc, Mutex};
+
+use crate::sample::motion::{MotionPreset, MotionRanges};
+use crate::sample::recipe::{Generator, MotionSpec, SampleConfig, SampleError};
+use crate::scene::cache::SceneCache;
+use crate::scene::stage::{SceneStage, SourceScenes};
+use crate::scene::SceneLoader;
+use crate::source::builtin::{BuiltinOptions, BuiltinSource};
+use crate::source::dir::{DirSource, SourceOptions};
+use crate::source::{Fnv64, Source};
+
+use super::config::{DatasetConfig, ServiceConfig};
+use super::error::ServiceError;
+
+/// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
+/// (sources + scene stage) and the configuration's JSON.
+pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
+    // serialising a plain struct of numbers and strings cannot fail
+    let json = serde_json::to_string(config).unwrap_or_default();
+    Fnv64::new().str("mpiflow dataset v1").u64(loader_fingerprint).str(&json).finish()
+}
+
+/// Most generators with overridden configurations kept per dataset.
+const MAX_GENERATORS: usize = 16;
+
+/// One named dataset.
+pub struct Dataset {
+    pub name: String,
+    pub description: String,
+    pub source: Arc<dyn Source>,
+    pub loader: Arc<SourceScenes>,
+    pub cache: Arc<SceneCache>,
+    /// The generator of the default configuration.
+    pub generator: Arc<Generator>,
+    /// Generators of overridden configurations, most recent last.
+    overrides: Mutex<Vec<Arc<Generator>>>,
+}
+
+impl std::fmt::Debug for Dataset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Dataset").field("name", &self.name).field("fingerprint", &self.fingerprint()).finish()
+    }
+}
+
+/// Per-request changes to a dataset's sample configuration.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Overrides {
+    pub motion_preset: Option<MotionPreset>,
+    pub motion_ranges: Option<MotionRanges>,
+    pub max_objects: Option<usize>,
+    pub motions_per_image: Option<u64>,
+}
+
+impl Overrides {
+    pub fn is_empty(&self) -> bool {
+        *self == Overrides::default()
+    }
+}
+
+impl Dataset {
+    pub fn new(
+        name: String,
+        source: Arc<dyn Source>,
+        stage: Arc<SceneStage>,
+        cache: Arc<SceneCache>,
+        config: SampleConfig,
+    ) -> Result<Self, ServiceError> {
+        let loader = Arc::new(SourceScenes::new(source.clone(), stage));
+        let description = loader.describe();
+        let generator = Arc::new(
+            Self::make_generator(&loader, &cache, config)
+                .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?,
+        );
+        Ok(Self { name, description, source, loader, cache, generator, overrides: Mutex::new(Vec::new()) })
+    }
+
+    fn make_generator(
+        loader: &Arc<SourceScenes>,
+        cache: &Arc<SceneCache>,
+        config: SampleConfig,
+    ) -> Result<Generator, SampleError> {
+        let fingerprint = dataset_fingerprint(loader.fingerprint(), &config);
+        Generator::with_fingerprint(loader.clone() as Arc<dyn SceneLoader>, cache.clone(), config, fingerprint)
+    }
+
+    /// The fingerprint of the default configuration.
+    pub fn fingerprint(&self) -> u64 {
+        self.generator.fingerprint()
+    }
+
+    pub fn sources(&self) -> usize {
+        self.source.len()
+    }
+
+    /// The generator for the default configuration changed by `o` (shared with earlier requests
+    /// asking for the same configuration). Errors name the request field.
+    pub fn generator(&self, o: &Overrides) -> Result<Arc<Generator>, ServiceError> {
+        if o.is_empty() {
+            return Ok(self.generator.clone());
+        }
+        let mut config = self.generator.config().clone();
+        if let Some(p) = o.motion_preset {
+            config.motion = MotionSpec::Preset(p);
+        }
+        if let Some(r) = &o.motion_ranges {
+            r.validate().map_err(|e| ServiceError::invalid("motion_ranges_json", e.to_string()))?;
+            config.motion = MotionSpec::Ranges(Box::new(r.clone()));
+        }
+        if let Some(m) = o.max_objects {
+            config.max_objects = m;
+        }
+        if let Some(m) = o.motions_per_image {
+            config.motions_per_image = m;
+        }
+        if let Err(e) = config.validate() {
+            let field = match &e {
+                SampleError::Motion(_) => "motion_ranges_json",
+                SampleError::Config(m) if m.starts_with("max_objects") => "max_objects",
+                SampleError::Config(m) if m.starts_with("motions_per_image") => "motions_per_image",
+                _ => "motion_ranges_json",
+            };
+            return Err(ServiceError::invalid(field, e.to_string()));
+        }
+        if config == *self.generator.config() {
+            return Ok(self.generator.clone());
+        }
+        let mut list = self.overrides.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(pos) = list.iter().position(|g| *g.config() == config) {
+            let g = list.remove(pos);
+            list.push(g.clone());
+            return Ok(g);
+        }
+        let g = Arc::new(
+            Self::make_generator(&self.loader, &self.cache, config)
+                .map_err(|e| ServiceError::invalid("motion_ranges_json", e.to_string()))?,
+        );
+        if list.len() >= MAX_GENERATORS {
+            list.remove(0);
+        }
+        list.push(g.clone());
+        Ok(g)
+    }
+}
+
+/// All datasets of a server.
+pub struct Datasets {
+    pub list: Vec<Arc<Dataset>>,
+    pub cache: Arc<SceneCache>,
+    pub stage: Arc<SceneStage>,
+}
+
+impl Datasets {
+    /// Opens every configured dataset (the bundled scenes when none is configured) and loads the
+    /// models. Slow (models, directory scans): call it off the async runtime.
+    pub fn open(config: &ServiceConfig) -> Result<Self, ServiceError> {
+        let stage = Arc::new(config.models.build_stage().map_err(ServiceError::Config)?);
+        let cache_bytes = usize::try_from(config.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX);
+        let cache = Arc::new(SceneCache::new(cache_bytes));
+        let resize = config.resize()?;
+        let builtin = [DatasetConfig { name: None, path: "builtin".into(), sample: None }];
+        let specs: &[DatasetConfig] = if config.datasets.is_empty() { &builtin } else { &config.datasets };
+        let mut list = Vec::with_capacity(specs.len());
+        for spec in specs {
+            let name = spec.name();
+            let source: Arc<dyn Source> = if spec.is_builtin() {
+                let mut o = BuiltinOptions { limits: config.image_limits(), ..BuiltinOptions::default() };
+                if let Some((w, h)) = resize {
+                    o.width = w;
+                    o.height = h;
+                }
+                Arc::new(BuiltinSource::open(&o).map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?)
+            } else {
+                let o = SourceOptions { resize, limits: config.image_limits(), ..SourceOptions::default() };
+                let s = DirSource::open(std::path::Path::new(&spec.path), &o)
+                    .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
+                Arc::new(s)
+            };
+            if source.is_empty() {
+                return Err(ServiceError::Config(format!("dataset {name}: {} has no images", source.describe())));
+            }
+            let sample = spec.sample.clone().unwrap_or_else(|| config.sample.clone());
+            let ds = Dataset::new(name.clone(), source, stage.clone(), cache.clone(), sample)
+                .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
+            list.push(Arc::new(ds));
+        }
+        Ok(Self { list, cache, stage })
+    }
+
+    /// The dataset called `name`; the empty name is the default (the first).
+    pub fn get(&self, name: &str) -> Result<Arc<Dataset>, ServiceError> {
+        if name.is_empty() {
+            return self.list.first().cloned().ok_or_else(|| ServiceError::UnknownDataset(String::new()));
+        }
+        self.list.iter().find(|d| d.name == name).cloned().ok_or_else(|| ServiceError::UnknownDataset(name.into()))
+    }
+
+    pub fn default_dataset(&self) -> &Arc<Dataset> {
+        &self.list[0]
+    }
+}

@@ -1,0 +1,451 @@
+//! Samples on the wire: cropping (centre, or a position from the sample's own random stream),
+//! tensor encoding (raw little-endian, C order; f16 flow; lz4 block with the size prepended) and
+//! the way back (decoding a received sample, for `mpiflow pull` and tests).
+
+use half::f16;
+
+use super::pb;
+use crate::geometry::Intrinsics;
+use crate::sample::motion::{Motion, RotationKind};
+use crate::sample::rng::{Purpose, SampleRng};
+use crate::sample::{ObjectRecord, Sample, SampleAddress, StageTimings};
+
+/// The random stream of a sample's crop position: `Purpose::Other(CROP_PURPOSE)` of its address.
+pub const CROP_PURPOSE: u32 = 0x6372_6f70; // "crop"
+
+/// The default fields of a request that names none.
+pub const DEFAULT_FIELDS: [pb::Field; 4] = [pb::Field::Image1, pb::Field::Image2, pb::Field::Flow, pb::Field::Valid];
+
+/// How to cut samples.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CropSpec {
+    /// 0 = the rendered width.
+    pub width: u32,
+    /// 0 = the rendered height.
+    pub height: u32,
+    pub random: bool,
+}
+
+/// What a request wants of each sample.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct OutputSpec {
+    /// In wire order (the enum's order), without duplicates.
+    pub fields: Vec<pb::Field>,
+    pub flow_f16: bool,
+    pub lz4: bool,
+    pub crop: Option<CropSpec>,
+}
+
+impl Default for OutputSpec {
+    fn default() -> Self {
+        Self { fields: DEFAULT_FIELDS.to_vec(), flow_f16: false, lz4: false, crop: None }
+    }
+}
+
+/// The crop window `(x0, y0, width, height)` of a `w` x `h` sample at `address`. A requested side
+/// larger than the sample is clamped to the sample's side. Centre: `(w - cw) / 2`; random:
+/// `x0 = below(w - cw + 1)`, then `y0 = below(h - ch + 1)`, from the address's crop stream.
+pub fn crop_window(spec: &CropSpec, w: usize, h: usize, address: SampleAddress) -> (usize, usize, usize, usize) {
+    let cw = if spec.width == 0 { w } else { (spec.width as usize).min(w) };
+    let ch = if spec.height == 0 { h } else { (spec.height as usize).min(h) };
+    if spec.random {
+        let mut rng = SampleRng::new(address.dataset, address.seed, address.index, Purpose::Other(CROP_PURPOSE));
+        let x0 = rng.below((w - cw + 1) as u64) as usize;
+        let y0 = rng.below((h - ch + 1) as u64) as usize;
+        (x0, y0, cw, ch)
+    } else {
+        ((w - cw) / 2, (h - ch) / 2, cw, ch)
+    }
+}
+
+fn crop_plane<T: Copy>(data: &[T], w: usize, channels: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> Vec<T> {
+    if data.is_empty() {
+        return Vec::new();
+    }
+    let mut out = Vec::with_capacity(cw * ch * channels);
+    for y in y0..y0 + ch {
+        out.extend_from_slice(&data[(y * w + x0) * channels..(y * w + x0 + cw) * channels]);
+    }
+    out
+}
+
+/// Cuts every field of `s` to the window; the flow values stay (a displacement does not change
+/// when both images are cut alike), and `valid` is cleared where the flow target leaves the crop
+/// (the renderer's rule: target inside `[0, cw - 1] x [0, ch - 1]`).
+pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sample {
+    let w = s.width;
+    let flow = crop_plane(&s.flow, w, 2, x0, y0, cw, ch);
+    let mut valid = crop_plane(&s.valid, w, 1, x0, y0, cw, ch);
+    let (maxx, maxy) = ((cw - 1) as f32, (ch - 1) as f32);
+    for (i, v) in valid.iter_mut().enumerate() {
+        if *v != 0 {
+            let tx = (i % cw) as f32 + flow[2 * i];
+            let ty = (i / cw) as f32 + flow[2 * i + 1];
+            if !(tx >= 0.0 && tx <= maxx && ty >= 0.0 && ty <= maxy) {
+                *v = 0;
+            }
+        }
+    }
+    Sample {
+        address: s.address,
+        source_id: s.source_id.clone(),
+        width: cw,
+        height: ch,
+        image1: crop_plane(&s.image1, w, 3, x0, y0, cw, ch),
+        image2: crop_plane(&s.image2, w, 3, x0, y0, cw, ch),
+        flow,
+        valid,
+        occlusion: crop_plane(&s.occlusion, w, 1, x0, y0, cw, ch),
+        mask1: crop_plane(&s.mask1, w, 1, x0, y0, cw, ch),
+        mask2: crop_plane(&s.mask2, w, 1, x0, y0, cw, ch),
+        camera: s.camera.clone(),
+        objects: s.objects.clone(),
+        inpainted_pixels: s.inpainted_pixels,
+        provenance: s.provenance.clone(),
+        timings: s.timings,
+    }
+}
+
+/// A tensor from raw little-endian bytes, lz4-compressed on request.
+pub fn tensor(name: &str, shape: &[usize], dtype: pb::DType, raw: Vec<u8>, lz4: bool) -> pb::Tensor {
+    let raw_size = raw.len() as u64;
+    let (data, compression) = if lz4 {
+        (lz4_flex::block::compress_prepend_size(&raw), pb::Compression::Lz4)
+    } else {
+        (raw, pb::Compression::None)
+    };
+    pb::Tensor {
+        name: name.into(),
+        shape: shape.iter().map(|&d| d as u32).collect(),
+        dtype: dtype as i32,
+        compression: compression as i32,
+        raw_size,
+        data,
+    }
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(v.len() * 4);
+    for x in v {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+    out
+}
+
+fn f16_bytes(v: &[f32]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(v.len() * 2);
+    for &x in v {
+        out.extend_from_slice(&f16::from_f32(x).to_le_bytes());
+    }
+    out
+}
+
+/// The wire name of a field.
+pub fn field_name(f: pb::Field) -> &'static str {
+    match f {
+        pb::Field::Unspecified => "unspecified",
+        pb::Field::Image1 => "image1",
+        pb::Field::Image2 => "image2",
+        pb::Field::Flow => "flow",
+        pb::Field::Valid => "valid",
+        pb::Field::Occlusion => "occlusion",
+        pb::Field::Mask1 => "mask1",
+        pb::Field::Mask2 => "mask2",
+        pb::Field::Depth1 => "depth1",
+        pb::Field::Depth2 => "depth2",
+    }
+}
+
+fn motion_pb(m: &Motion) -> pb::Motion {
+    pb::Motion {
+        law: m.law.clone(),
+        translation: m.translation.to_vec(),
+        axis_angle: m.axis_angle.to_vec(),
+        rotation: m.rotation.iter().flatten().copied().collect(),
+        rotation_kind: match m.rotation_kind {
+            RotationKind::AxisAngle => "axis-angle".into(),
+            RotationKind::EulerZyx => "euler-zyx".into(),
+        },
+        angles: m.angles.to_vec(),
+    }
+}
+
+/// Encodes a (cropped) sample for the wire, moving its buffers. `crop` is the window's corner in
+/// the rendered frame; `intrinsics` are the rendered frame's (shifted here).
+pub fn to_proto(
+    mut s: Sample,
+    dataset: &str,
+    intrinsics: Intrinsics,
+    crop: (usize, usize),
+    out: &OutputSpec,
+) -> pb::Sample {
+    let t = std::time::Instant::now();
+    let (w, h) = (s.width, s.height);
+    let mut tensors = Vec::with_capacity(out.fields.len());
+    for &f in &out.fields {
+        let name = field_name(f);
+        let t = match f {
+            pb::Field::Image1 => tensor(name, &[h, w, 3], pb::DType::DtypeU8, std::mem::take(&mut s.image1), out.lz4),
+            pb::Field::Image2 => tensor(name, &[h, w, 3], pb::DType::DtypeU8, std::mem::take(&mut s.image2), out.lz4),
+            pb::Field::Flow if out.flow_f16 => {
+                tensor(name, &[h, w, 2], pb::DType::DtypeF16, f16_bytes(&s.flow), out.lz4)
+            }
+            pb::Field::Flow => tensor(name, &[h, w, 2], pb::DType::DtypeF32, f32_bytes(&s.flow), out.lz4),
+            pb::Field::Valid => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.valid), out.lz4),
+            pb::Field::Occlusion => {
+                tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.occlusion), out.lz4)
+            }
+            pb::Field::Mask1 => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.mask1), out.lz4),
+            pb::Field::Mask2 => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.mask2), out.lz4),
+            // TODO(merge: depth fields): Sample.depth1 / depth2 (refused by validation until then)
+            pb::Field::Depth1 | pb::Field::Depth2 | pb::Field::Unspecified => continue,
+        };
+        tensors.push(t);
+    }
+    let k = Intrinsics::new(intrinsics.fx, intrinsics.fy, intrinsics.cx - crop.0 as f64, intrinsics.cy - crop.1 as f64);
+    let tm = &s.timings;
+    pb::Sample {
+        index: s.address.index,
+        dataset: dataset.into(),
+        fingerprint: s.address.dataset,
+        seed: s.address.seed,
+        source_id: std::mem::take(&mut s.source_id),
+        width: w as u32,
+        height: h as u32,
+        tensors,
+        camera: Some(motion_pb(&s.camera)),
+        objects: s
+            .objects
+            .iter()
+            .map(|o| pb::ObjectMotion {
+                label: u32::from(o.label),
+                instance: o.instance,
+                score: o.score,
+                area: o.area,
+                motion: Some(motion_pb(&o.motion)),
+            })
+            .collect(),
+        intrinsics: Some(pb::Intrinsics { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy }),
+        timings: Some(pb::Timings {
+            scene_ms: tm.scene_ms,
+            render_ms: tm.render_ms,
+            objects_ms: tm.objects_ms,
+            merge_ms: tm.merge_ms,
+            inpaint_ms: tm.inpaint_ms,
+            total_ms: tm.total_ms,
+            encode_ms: t.elapsed().as_secs_f64() * 1e3,
+        }),
+        // TODO(merge: skip counters): Sample.skipped_sources
+        skipped_sources: 0,
+        crop_x: crop.0 as u32,
+        crop_y: crop.1 as u32,
+        inpainted_pixels: s.inpainted_pixels,
+        provenance: std::mem::take(&mut s.provenance),
+    }
+}
+
+/// Errors of decoding a received tensor or sample.
+#[derive(Debug, thiserror::Error)]
+#[error("tensor {name}: {message}")]
+pub struct DecodeError {
+    pub name: String,
+    pub message: String,
+}
+
+fn dtype_size(d: pb::DType) -> Option<usize> {
+    match d {
+        pb::DType::DtypeU8 => Some(1),
+        pb::DType::DtypeF16 => Some(2),
+        pb::DType::DtypeF32 => Some(4),
+        pb::DType::DtypeUnspecified => None,
+    }
+}
+
+/// The raw bytes of a tensor (decompressed), checked against its shape, dtype and `raw_size`.
+pub fn decode_tensor(t: &pb::Tensor) -> Result<Vec<u8>, DecodeError> {
+    let bad = |message: String| DecodeError { name: t.name.clone(), message };
+    let dtype = pb::DType::try_from(t.dtype).map_err(|_| bad(format!("unknown dtype {}", t.dtype)))?;
+    let size = dtype_size(dtype).ok_or_else(|| bad("unspecified dtype".into()))?;
+    let want = t
+        .shape
+        .iter()
+        .try_fold(size as u64, |a, &d| a.checked_mul(u64::from(d)))
+        .ok_or_else(|| bad("shape overflows".into()))?;
+    if want != t.raw_size {
+        return Err(bad(format!("raw_size {} but shape {:?} x {size} bytes = {want}", t.raw_size, t.shape)));
+    }
+    let raw = match pb::Compression::try_from(t.compression) {
+        Ok(pb::Compression::Lz4) => {
+            lz4_flex::block::decompress_size_prepended(&t.data).map_err(|e| bad(format!("lz4: {e}")))?
+        }
+        Ok(pb::Compression::None | pb::Compression::Unspecified) => t.data.clone(),
+        Err(_) => return Err(bad(format!("unknown compression {}", t.compression))),
+    };
+    if raw.len() as u64 != want {
+        return Err(bad(format!("{} bytes, expected {want}", raw.len())));
+    }
+    Ok(raw)
+}
+
+/// A decoded f32 or f16 tensor as f32 values.
+pub fn decode_f32(t: &pb::Tensor) -> Result<Vec<f32>, DecodeError> {
+    let raw = decode_tensor(t)?;
+    match pb::DType::try_from(t.dtype) {
+        Ok(pb::DType::DtypeF32) => {
+            Ok(raw.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
+        }
+        Ok(pb::DType::DtypeF16) => Ok(raw.chunks_exact(2).map(|b| f16::from_le_bytes([b[0], b[1]]).to_f32()).collect()),
+        _ => Err(DecodeError { name: t.name.clone(), message: "expected an f32 or f16 tensor".into() }),
+    }
+}
+
+fn motion_from_pb(m: Option<&pb::Motion>) -> Motion {
+    let arr = |v: &[f64]| -> [f64; 3] { [0, 1, 2].map(|i| v.get(i).copied().unwrap_or(0.0)) };
+    match m {
+        Some(m) => {
+            let kind = if m.rotation_kind == "euler-zyx" { RotationKind::EulerZyx } else { RotationKind::AxisAngle };
+            let angles = if m.angles.len() == 3 { arr(&m.angles) } else { arr(&m.axis_angle) };
+            Motion::new(&m.law, arr(&m.translation), kind, angles)
+        }
+        None => Motion::new("unknown", [0.0; 3], RotationKind::AxisAngle, [0.0; 3]),
+    }
+}
+
+/// A received sample as the library's [`Sample`] (for the exporter); fields it does not carry are
+/// zero-filled.
+pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
+    let (w, h) = (s.width as usize, s.height as usize);
+    let n = w * h;
+    let mut out = Sample {
+        address: SampleAddress { dataset: s.fingerprint, seed: s.seed, index: s.index },
+        source_id: s.source_id.clone(),
+        width: w,
+        height: h,
+        image1: vec![0; n * 3],
+        image2: vec![0; n * 3],
+        flow: vec![0.0; n * 2],
+        valid: vec![0; n],
+        occlusion: vec![0; n],
+        mask1: vec![0; n],
+        mask2: vec![0; n],
+        camera: motion_from_pb(s.camera.as_ref()),
+        objects: s
+            .objects
+            .iter()
+            .map(|o| ObjectRecord {
+                label: o.label.min(255) as u8,
+                instance: o.instance,
+                score: o.score,
+                area: o.area,
+                motion: motion_from_pb(o.motion.as_ref()),
+            })
+            .collect(),
+        inpainted_pixels: s.inpainted_pixels,
+        provenance: s.provenance.clone(),
+        timings: s
+            .timings
+            .as_ref()
+            .map(|t| StageTimings {
+                scene_ms: t.scene_ms,
+                render_ms: t.render_ms,
+                objects_ms: t.objects_ms,
+                merge_ms: t.merge_ms,
+                inpaint_ms: t.inpaint_ms,
+                total_ms: t.total_ms,
+            })
+            .unwrap_or_default(),
+    };
+    for t in &s.tensors {
+        let check = |len: usize, want: usize| {
+            if len == want {
+                Ok(())
+            } else {
+                Err(DecodeError { name: t.name.clone(), message: format!("{len} values for a {w} x {h} sample") })
+            }
+        };
+        match t.name.as_str() {
+            "flow" => {
+                let v = decode_f32(t)?;
+                check(v.len(), n * 2)?;
+                out.flow = v;
+            }
+            name => {
+                let slot = match name {
+                    "image1" => &mut out.image1,
+                    "image2" => &mut out.image2,
+                    "valid" => &mut out.valid,
+                    "occlusion" => &mut out.occlusion,
+                    "mask1" => &mut out.mask1,
+                    "mask2" => &mut out.mask2,
+                    _ => continue,
+                };
+                let v = decode_tensor(t)?;
+                check(v.len(), slot.len())?;
+                *slot = v;
+            }
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lz4_and_f16_round_trip() {
+        let raw: Vec<u8> = (0..1000u32).map(|i| (i % 7) as u8).collect();
+        let t = tensor("valid", &[10, 100], pb::DType::DtypeU8, raw.clone(), true);
+        assert!(t.data.len() < raw.len());
+        assert_eq!(u32::from_le_bytes(t.data[..4].try_into().unwrap()), 1000);
+        assert_eq!(decode_tensor(&t).unwrap(), raw);
+        let flow = [0.5f32, -3.25, 100.0, 0.1];
+        let t = tensor("flow", &[1, 2, 2], pb::DType::DtypeF16, f16_bytes(&flow), false);
+        let back = decode_f32(&t).unwrap();
+        for (a, b) in flow.iter().zip(&back) {
+            assert!((a - b).abs() <= a.abs() * 1e-3, "{a} {b}");
+        }
+        let mut broken = tensor("flow", &[1, 2, 2], pb::DType::DtypeF32, f32_bytes(&flow), true);
+        broken.data.truncate(6);
+        assert!(decode_tensor(&broken).is_err());
+    }
+
+    #[test]
+    fn crop_clears_valid_where_the_target_leaves() {
+        let (w, h) = (6, 4);
+        let n = w * h;
+        let mut s = Sample {
+            address: SampleAddress { dataset: 1, seed: 2, index: 3 },
+            source_id: "t".into(),
+            width: w,
+            height: h,
+            image1: (0..n * 3).map(|i| i as u8).collect(),
+            image2: vec![0; n * 3],
+            flow: vec![0.0; n * 2],
+            valid: vec![1; n],
+            occlusion: vec![0; n],
+            mask1: vec![0; n],
+            mask2: vec![0; n],
+            camera: Motion::new("x", [0.0; 3], RotationKind::AxisAngle, [0.0; 3]),
+            objects: vec![],
+            inpainted_pixels: 0,
+            provenance: vec![],
+            timings: StageTimings::default(),
+        };
+        // every pixel moves 1.5 px right: inside the full frame except the last column
+        for i in 0..n {
+            s.flow[2 * i] = 1.5;
+            s.valid[i] = u8::from(i % w + 2 < w);
+        }
+        let c = crop_sample(&s, 1, 1, 3, 2);
+        assert_eq!((c.width, c.height), (3, 2));
+        assert_eq!(&c.image1[..3], &s.image1[3 * (w + 1)..3 * (w + 1) + 3]);
+        // crop columns 0..3 are frame columns 1..4; target x + 1.5 <= 2 only for x = 0
+        assert_eq!(c.valid, vec![1, 0, 0, 1, 0, 0]);
+        let spec = CropSpec { width: 3, height: 2, random: true };
+        let a = crop_window(&spec, w, h, s.address);
+        assert_eq!(a, crop_window(&spec, w, h, s.address));
+        assert!(a.0 + 3 <= w && a.1 + 2 <= h);
+        assert_eq!(crop_window(&CropSpec { width: 4, height: 0, random: false }, w, h, s.address), (1, 0, 4, 4));
+    }
+}

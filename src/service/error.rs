@@ -1,0 +1,90 @@
+//! The service's one error enum and its mapping to gRPC status codes (the only place where codes
+//! are chosen), with the resume cursor in the trailers of an interrupted stream.
+
+use tonic::metadata::MetadataValue;
+use tonic::{Code, Status};
+
+use crate::sample::recipe::SampleError;
+
+/// Trailer key of the next index an interrupted stream would have sent.
+pub const NEXT_INDEX_TRAILER: &str = "mpiflow-next-index";
+/// Trailer key of the `start_index` that resumes an interrupted stream.
+pub const RESUME_START_TRAILER: &str = "mpiflow-resume-start-index";
+
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// A request field is out of range or malformed; the message starts with the field's name.
+    #[error("{field}: {message}")]
+    InvalidArgument { field: &'static str, message: String },
+    #[error("unknown dataset {0:?} (GetInfo lists the datasets)")]
+    UnknownDataset(String),
+    #[error(
+        "fingerprint: the request expects dataset {dataset:?} to have fingerprint {requested:016x}, but it has \
+         {actual:016x} (different sources or sample configuration)"
+    )]
+    FingerprintMismatch { dataset: String, requested: u64, actual: u64 },
+    #[error("too many streams: {limit} are open (max_streams)")]
+    TooManyStreams { limit: usize },
+    #[error("{0}")]
+    LimitExceeded(String),
+    #[error("the server is shutting down: reconnect to another replica")]
+    Draining,
+    /// A sample could not be made.
+    #[error("sample {index}: {source}")]
+    Generation {
+        index: u64,
+        #[source]
+        source: SampleError,
+    },
+    #[error("{0}")]
+    Unimplemented(String),
+    /// A start-up configuration problem (never sent to clients during serving).
+    #[error("configuration: {0}")]
+    Config(String),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl ServiceError {
+    pub fn invalid(field: &'static str, message: impl Into<String>) -> Self {
+        ServiceError::InvalidArgument { field, message: message.into() }
+    }
+
+    pub fn code(&self) -> Code {
+        match self {
+            ServiceError::InvalidArgument { .. } => Code::InvalidArgument,
+            ServiceError::UnknownDataset(_) => Code::NotFound,
+            ServiceError::FingerprintMismatch { .. } => Code::FailedPrecondition,
+            ServiceError::TooManyStreams { .. } | ServiceError::LimitExceeded(_) => Code::ResourceExhausted,
+            ServiceError::Draining => Code::Unavailable,
+            ServiceError::Generation { .. } | ServiceError::Internal(_) | ServiceError::Config(_) => Code::Internal,
+            ServiceError::Unimplemented(_) => Code::Unimplemented,
+        }
+    }
+
+    /// The status of a stream that ends with this error, with the resume cursor in its trailers.
+    pub fn into_status_with_cursor(self, next_index: u64, resume_start_index: u64) -> Status {
+        let mut status: Status = self.into();
+        with_cursor(&mut status, next_index, resume_start_index);
+        status
+    }
+}
+
+/// Puts the resume cursor into a status's trailer metadata.
+pub fn with_cursor(status: &mut Status, next_index: u64, resume_start_index: u64) {
+    let md = status.metadata_mut();
+    md.insert(NEXT_INDEX_TRAILER, MetadataValue::from(next_index));
+    md.insert(RESUME_START_TRAILER, MetadataValue::from(resume_start_index));
+}
+
+/// Reads the resume cursor (`next_index`, `resume_start_index`) from a status's trailers.
+pub fn cursor_of(status: &Status) -> Option<(u64, u64)> {
+    let get = |k: &str| status.metadata().get(k)?.to_str().ok()?.parse::<u64>().ok();
+    Some((get(NEXT_INDEX_TRAILER)?, get(RESUME_START_TRAILER)?))
+}
+
+impl From<ServiceError> for Status {
+    fn from(e: ServiceError) -> Self {
+        Status::new(e.code(), e.to_string())
+    }
+}

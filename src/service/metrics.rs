@@ -1,0 +1,268 @@
+//! Prometheus metrics of the service (the `prometheus-client` crate, OpenMetrics text) and the
+//! small HTTP endpoint that serves them on `GET /metrics`.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::AtomicU64;
+use std::sync::{Arc, Mutex};
+
+use prometheus_client::encoding::text::encode;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::registry::Registry;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpListener;
+
+use crate::sample::recipe::SampleError;
+use crate::sample::StageTimings;
+use crate::scene::cache::SceneCache;
+
+type Labels = Vec<(String, String)>;
+
+fn label(k: &str, v: impl Into<String>) -> Labels {
+    vec![(k.to_string(), v.into())]
+}
+
+fn stage_histogram() -> Histogram {
+    // 0.25 ms to ~8 s
+    Histogram::new(exponential_buckets(0.000_25, 2.0, 16))
+}
+
+/// Every metric of one server.
+pub struct Metrics {
+    registry: Registry,
+    /// Samples made by the workers (for every stream and GetSample).
+    pub samples_generated: Counter,
+    /// Samples handed to the transport in StreamSamples batches.
+    pub samples_sent: Counter,
+    /// Encoded bytes of the batches handed to the transport.
+    pub bytes_sent: Counter,
+    /// Samples that could not be made, by reason.
+    pub generation_errors: Family<Labels, Counter>,
+    /// Bad sources passed over, by reason.
+    pub skipped_sources: Family<Labels, Counter>,
+    /// Seconds per stage of the recipe (from `Sample.timings`) and of the encoding.
+    pub stage_seconds: Family<Labels, Histogram, fn() -> Histogram>,
+    /// Finished samples waiting in each stream's queue.
+    pub queue_depth: Family<Labels, Gauge>,
+    pub active_streams: Gauge,
+    /// Samples being made now.
+    pub in_flight: Gauge,
+    /// The in-flight bound.
+    pub capacity: Gauge,
+    /// in_flight / capacity (0 to 1): the autoscaling signal.
+    pub saturation: Gauge<f64, AtomicU64>,
+    /// Worker seconds spent making samples (rate / workers = worker utilisation).
+    pub busy_seconds: Counter<f64, AtomicU64>,
+    pub workers: Gauge,
+    /// Requests refused, by gRPC code.
+    pub refused: Family<Labels, Counter>,
+    cache_hits: Counter,
+    cache_misses: Counter,
+    cache_evictions: Counter,
+    cache_bytes: Gauge,
+    cache_seen: Mutex<(u64, u64, u64)>,
+    cache: Mutex<Option<Arc<SceneCache>>>,
+    skipped_by_dataset: Mutex<BTreeMap<(String, String), u64>>,
+}
+
+impl std::fmt::Debug for Metrics {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Metrics")
+    }
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Metrics {
+    pub fn new() -> Self {
+        let mut r = Registry::with_prefix("mpiflow");
+        let m = Metrics {
+            registry: Registry::default(),
+            samples_generated: Counter::default(),
+            samples_sent: Counter::default(),
+            bytes_sent: Counter::default(),
+            generation_errors: Family::default(),
+            skipped_sources: Family::default(),
+            stage_seconds: Family::new_with_constructor(stage_histogram as fn() -> Histogram),
+            queue_depth: Family::default(),
+            active_streams: Gauge::default(),
+            in_flight: Gauge::default(),
+            capacity: Gauge::default(),
+            saturation: Gauge::default(),
+            busy_seconds: Counter::default(),
+            workers: Gauge::default(),
+            refused: Family::default(),
+            cache_hits: Counter::default(),
+            cache_misses: Counter::default(),
+            cache_evictions: Counter::default(),
+            cache_bytes: Gauge::default(),
+            cache_seen: Mutex::new((0, 0, 0)),
+            cache: Mutex::new(None),
+            skipped_by_dataset: Mutex::new(BTreeMap::new()),
+        };
+        r.register("samples_generated", "Samples made by the workers", m.samples_generated.clone());
+        r.register("samples_sent", "Samples handed to the transport in stream batches", m.samples_sent.clone());
+        r.register("bytes_sent", "Encoded bytes of the stream batches handed to the transport", m.bytes_sent.clone());
+        r.register("generation_errors", "Samples that could not be made, by reason", m.generation_errors.clone());
+        r.register("skipped_sources", "Bad sources passed over, by reason", m.skipped_sources.clone());
+        r.register(
+            "stage_seconds",
+            "Seconds per sample stage (scene, render, objects, merge, inpaint, encode, total)",
+            m.stage_seconds.clone(),
+        );
+        r.register("stream_queue_depth", "Finished samples waiting in a stream's queue", m.queue_depth.clone());
+        r.register("active_streams", "Open StreamSamples calls", m.active_streams.clone());
+        r.register("in_flight_jobs", "Samples being made now", m.in_flight.clone());
+        r.register("in_flight_capacity", "Bound on samples being made at once", m.capacity.clone());
+        r.register("saturation", "in_flight_jobs / in_flight_capacity (0 to 1), for autoscaling", m.saturation.clone());
+        r.register("worker_busy_seconds", "Worker seconds spent making samples", m.busy_seconds.clone());
+        r.register("workers", "Generation threads", m.workers.clone());
+        r.register("requests_refused", "Requests refused, by gRPC code", m.refused.clone());
+        r.register("scene_cache_hits", "Scene cache lookups answered from the cache", m.cache_hits.clone());
+        r.register("scene_cache_misses", "Scene cache lookups that loaded the scene", m.cache_misses.clone());
+        r.register("scene_cache_evictions", "Scenes evicted from the cache", m.cache_evictions.clone());
+        r.register("scene_cache_bytes", "Bytes held by the scene cache", m.cache_bytes.clone());
+        Metrics { registry: r, ..m }
+    }
+
+    /// Reports this cache's statistics at every scrape.
+    pub fn watch_cache(&self, cache: Arc<SceneCache>) {
+        *self.cache.lock().unwrap_or_else(|e| e.into_inner()) = Some(cache);
+    }
+
+    /// Records the stage timings of a made sample and its encoding time.
+    pub fn observe_sample(&self, t: &StageTimings, encode_ms: f64) {
+        self.samples_generated.inc();
+        let stages = [
+            ("scene", t.scene_ms),
+            ("render", t.render_ms),
+            ("objects", t.objects_ms),
+            ("merge", t.merge_ms),
+            ("inpaint", t.inpaint_ms),
+            ("encode", encode_ms),
+            ("total", t.total_ms + encode_ms),
+        ];
+        for (stage, ms) in stages {
+            self.stage_seconds.get_or_create(&label("stage", stage)).observe(ms / 1e3);
+        }
+    }
+
+    /// Counts a sample that could not be made.
+    pub fn observe_error(&self, dataset: &str, e: &SampleError) {
+        let reason = match e {
+            SampleError::Scene { .. } => "source",
+            SampleError::InvalidScene { .. } => "invalid-scene",
+            SampleError::Render { .. } => "render",
+            SampleError::Preblend { .. } => "preblend",
+            SampleError::EmptySource => "empty",
+            SampleError::Config(_) | SampleError::Motion(_) => "config",
+        };
+        self.generation_errors.get_or_create(&label("reason", reason)).inc();
+        // TODO(merge: skip counters): with skip-to-next-good-source, take these from
+        // Generator::skip_counts() / Sample.skipped_sources instead of failed samples.
+        if matches!(e, SampleError::Scene { .. } | SampleError::InvalidScene { .. }) {
+            self.skipped_sources.get_or_create(&label("reason", reason)).inc();
+            let mut m = self.skipped_by_dataset.lock().unwrap_or_else(|e| e.into_inner());
+            *m.entry((dataset.to_string(), reason.to_string())).or_default() += 1;
+        }
+    }
+
+    /// Skipped sources of a dataset by reason (for GetInfo).
+    pub fn skipped_of(&self, dataset: &str) -> std::collections::HashMap<String, u64> {
+        let m = self.skipped_by_dataset.lock().unwrap_or_else(|e| e.into_inner());
+        m.iter().filter(|((d, _), _)| d == dataset).map(|((_, r), n)| (r.clone(), *n)).collect()
+    }
+
+    /// Sets the in-flight gauges.
+    pub fn set_in_flight(&self, in_flight: usize, capacity: usize) {
+        self.in_flight.set(in_flight as i64);
+        self.capacity.set(capacity as i64);
+        self.saturation.set(if capacity == 0 { 0.0 } else { in_flight as f64 / capacity as f64 });
+    }
+
+    pub fn set_queue_depth(&self, stream: u64, depth: usize) {
+        self.queue_depth.get_or_create(&label("stream", stream.to_string())).set(depth as i64);
+    }
+
+    pub fn remove_stream(&self, stream: u64) {
+        self.queue_depth.remove(&label("stream", stream.to_string()));
+    }
+
+    pub fn count_refused(&self, code: tonic::Code) {
+        self.refused.get_or_create(&label("code", format!("{code:?}"))).inc();
+    }
+
+    fn update_cache(&self) {
+        let cache = self.cache.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        if let Some(c) = cache {
+            let s = c.stats();
+            let mut seen = self.cache_seen.lock().unwrap_or_else(|e| e.into_inner());
+            self.cache_hits.inc_by(s.hits.saturating_sub(seen.0));
+            self.cache_misses.inc_by(s.misses.saturating_sub(seen.1));
+            self.cache_evictions.inc_by(s.evictions.saturating_sub(seen.2));
+            *seen = (seen.0.max(s.hits), seen.1.max(s.misses), seen.2.max(s.evictions));
+            self.cache_bytes.set(s.bytes as i64);
+        }
+    }
+
+    /// The OpenMetrics text of every metric.
+    pub fn render(&self) -> String {
+        self.update_cache();
+        let mut out = String::new();
+        // writing into a String cannot fail
+        let _ = encode(&mut out, &self.registry);
+        out
+    }
+}
+
+/// Serves `GET /metrics` (and `GET /healthz`, always 200) on `listener` until the task is
+/// dropped. A minimal HTTP/1.1 responder: one request per connection.
+pub async fn serve_metrics(listener: TcpListener, metrics: Arc<Metrics>) {
+    loop {
+        let Ok((mut sock, _)) = listener.accept().await else { continue };
+        let metrics = metrics.clone();
+        tokio::spawn(async move {
+            let mut buf = vec![0u8; 8192];
+            let mut n = 0;
+            // read the request head (bounded; a slow client gets 5 s)
+            let read = tokio::time::timeout(std::time::Duration::from_secs(5), async {
+                while n < buf.len() {
+                    match sock.read(&mut buf[n..]).await {
+                        Ok(0) | Err(_) => break,
+                        Ok(k) => {
+                            n += k;
+                            if buf[..n].windows(4).any(|w| w == b"\r\n\r\n") {
+                                break;
+                            }
+                        }
+                    }
+                }
+            })
+            .await;
+            if read.is_err() {
+                return;
+            }
+            let head = String::from_utf8_lossy(&buf[..n]);
+            let path = head.split_whitespace().nth(1).unwrap_or("");
+            let (status, ctype, body) = match (head.starts_with("GET "), path) {
+                (true, "/metrics") => {
+                    ("200 OK", "application/openmetrics-text; version=1.0.0; charset=utf-8", metrics.render())
+                }
+                (true, "/healthz") => ("200 OK", "text/plain", "ok\n".to_string()),
+                _ => ("404 Not Found", "text/plain", "not found: try /metrics\n".to_string()),
+            };
+            let resp = format!(
+                "HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                body.len()
+            );
+            let _ = sock.write_all(resp.as_bytes()).await;
+            let _ = sock.shutdown().await;
+        });
+    }
+}

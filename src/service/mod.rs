@@ -1,0 +1,32 @@
+//! The gRPC sample service (`mpiflow.v1.MpiFlow`): a thin tonic layer over the sample generator.
+//!
+//! A request is validated ([`validate`]), resolved to a dataset and a generator ([`dataset`]),
+//! and served through the worker pool ([`pool`]: rayon workers, a bounded queue per stream, a
+//! global in-flight bound, round-robin between streams); samples are cropped and encoded on the
+//! workers ([`encode`]). Errors map to gRPC codes in one place ([`error`]). The server
+//! ([`server`]) adds health, reflection, Prometheus [`metrics`] and graceful drain; [`config`]
+//! reads the TOML file and `MPIFLOW_*` overrides; [`client`] is the Rust client side used by
+//! `mpiflow pull` and the tests. The API and its guarantees: `docs/api.md`.
+
+/// The generated protobuf messages and the tonic server and client of `mpiflow.v1`.
+#[allow(clippy::all, missing_docs)]
+pub mod pb {
+    tonic::include_proto!("mpiflow.v1");
+
+    /// The encoded file descriptor set of the API (for gRPC reflection).
+    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("mpiflow_descriptor");
+}
+
+pub mod client;
+pub mod config;
+pub mod dataset;
+pub mod encode;
+pub mod error;
+pub mod metrics;
+pub mod pool;
+pub mod server;
+pub mod validate;
+
+pub use config::ServiceConfig;
+pub use error::ServiceError;
+pub use server::{start, RunningServer};

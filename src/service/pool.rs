@@ -1,0 +1,459 @@
+//! The worker pool: samples are made on a rayon pool (never on tokio threads), each stream keeps
+//! a bounded queue (its prefetch depth), the total number of samples being made is bounded, and
+//! free slots go to the streams in round-robin order.
+//!
+//! # How it works
+//!
+//! Each stream has a cursor `k` over its indices `start + rank + k * world_size`. A job for the
+//! next `k` may start when the stream has fewer than `prefetch` samples dispatched but not yet
+//! handed to the transport, and fewer than `capacity` jobs run over all streams. A finished job
+//! puts its sample into the stream's queue (keyed by `k`, so jobs may finish out of order) and
+//! wakes the stream. The stream is polled by tonic only when the transport can take a message,
+//! so a client that stops reading stops its stream after at most `prefetch` samples: back-pressure
+//! reaches the workers and memory stays bounded. Every change (a job done, a batch taken, a stream
+//! opened or closed) re-runs the dispatch ([`Scheduler::pump`]), which walks the streams from
+//! where it stopped last time, one job per stream per turn.
+//!
+//! While draining, no new job starts; each stream sends what is finished and then ends with
+//! UNAVAILABLE and its resume cursor.
+
+use std::collections::BTreeMap;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::task::{Context, Poll, Waker};
+use std::time::Instant;
+
+use prost::Message;
+use tokio_stream::Stream;
+use tonic::Status;
+
+use super::error::{with_cursor, ServiceError};
+use super::metrics::Metrics;
+use super::pb;
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Makes the sample of one index (runs on a worker).
+pub type Produce = Arc<dyn Fn(u64) -> Result<pb::Sample, ServiceError> + Send + Sync>;
+
+/// The shape of one stream.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct StreamSpec {
+    pub start_index: u64,
+    pub rank: u64,
+    pub world_size: u64,
+    /// Samples to send; 0 = endless.
+    pub count: u64,
+    /// Samples per message (a batch is cut short rather than exceed `max_message_bytes`).
+    pub batch_size: usize,
+    /// Samples dispatched but not yet handed to the transport, at most (>= batch_size).
+    pub prefetch: usize,
+    pub max_message_bytes: usize,
+}
+
+impl StreamSpec {
+    /// The index of position `k`, or None past the end of the index space.
+    pub fn index(&self, k: u64) -> Option<u64> {
+        k.checked_mul(self.world_size)?.checked_add(self.start_index)?.checked_add(self.rank)
+    }
+
+    /// The number of positions this stream has (count, or as many as fit in u64).
+    pub fn len(&self) -> u64 {
+        let first = match self.start_index.checked_add(self.rank) {
+            Some(f) => f,
+            None => return 0,
+        };
+        let fit = ((u64::MAX - first) / self.world_size.max(1)).saturating_add(1);
+        if self.count == 0 {
+            fit
+        } else {
+            self.count.min(fit)
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The cursor (next_index, resume_start_index) after `k` positions were delivered.
+    pub fn cursor(&self, k: u64) -> (u64, u64) {
+        let next = self.index(k).unwrap_or(u64::MAX);
+        (next, next.saturating_sub(self.rank))
+    }
+}
+
+type Item = Result<(pb::Sample, usize), ServiceError>;
+
+struct StreamState {
+    /// Positions dispatched so far (the next job's k).
+    dispatched: u64,
+    /// Positions handed to the transport so far.
+    delivered: u64,
+    /// Jobs running now.
+    running: usize,
+    ready: BTreeMap<u64, Item>,
+    /// Samples made for this stream (for tests and logs).
+    produced: u64,
+    waker: Option<Waker>,
+    /// The consumer is gone or the stream ended.
+    closed: bool,
+    draining: bool,
+}
+
+/// One stream's shared state.
+pub struct StreamShared {
+    pub id: u64,
+    pub spec: StreamSpec,
+    len: u64,
+    produce: Produce,
+    state: Mutex<StreamState>,
+}
+
+impl StreamShared {
+    fn eligible(&self, s: &StreamState) -> bool {
+        !s.closed && !s.draining && s.dispatched < self.len && (s.dispatched - s.delivered) < self.spec.prefetch as u64
+    }
+
+    /// (dispatched, delivered, produced, queued) for tests and diagnostics.
+    pub fn counts(&self) -> (u64, u64, u64, usize) {
+        let s = lock(&self.state);
+        (s.dispatched, s.delivered, s.produced, s.ready.len())
+    }
+}
+
+struct Sched {
+    streams: Vec<Arc<StreamShared>>,
+    rr: usize,
+    in_flight: usize,
+    max_in_flight_seen: usize,
+    draining: bool,
+    next_id: u64,
+}
+
+/// The rayon pool and the dispatch state shared by all streams.
+pub struct Scheduler {
+    pool: rayon::ThreadPool,
+    workers: usize,
+    capacity: usize,
+    inner: Mutex<Sched>,
+    metrics: Arc<Metrics>,
+}
+
+impl std::fmt::Debug for Scheduler {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Scheduler").field("workers", &self.workers).field("capacity", &self.capacity).finish()
+    }
+}
+
+/// A snapshot of the scheduler for tests and GetInfo.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SchedulerStats {
+    pub streams: usize,
+    pub in_flight: usize,
+    pub max_in_flight_seen: usize,
+    pub capacity: usize,
+    /// Per stream: (id, dispatched, delivered, produced, queued).
+    pub per_stream: Vec<(u64, u64, u64, u64, usize)>,
+}
+
+impl Scheduler {
+    pub fn new(workers: usize, capacity: usize, metrics: Arc<Metrics>) -> Result<Arc<Self>, ServiceError> {
+        let workers = workers.max(1);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(workers)
+            .thread_name(|i| format!("mpiflow-worker-{i}"))
+            .build()
+            .map_err(|e| ServiceError::Config(format!("cannot start {workers} worker threads: {e}")))?;
+        metrics.workers.set(workers as i64);
+        metrics.set_in_flight(0, capacity.max(1));
+        Ok(Arc::new(Self {
+            pool,
+            workers,
+            capacity: capacity.max(1),
+            inner: Mutex::new(Sched {
+                streams: Vec::new(),
+                rr: 0,
+                in_flight: 0,
+                max_in_flight_seen: 0,
+                draining: false,
+                next_id: 1,
+            }),
+            metrics,
+        }))
+    }
+
+    pub fn workers(&self) -> usize {
+        self.workers
+    }
+
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// Runs `f` on the worker pool (for work outside streams, e.g. benchmarks).
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        self.pool.install(f)
+    }
+
+    /// Opens a stream; its samples are made as the returned stream is polled.
+    pub fn open(self: &Arc<Self>, spec: StreamSpec, produce: Produce) -> Result<SampleStream, ServiceError> {
+        let mut spec = spec;
+        spec.world_size = spec.world_size.max(1);
+        spec.batch_size = spec.batch_size.max(1);
+        spec.prefetch = spec.prefetch.max(spec.batch_size);
+        let shared = {
+            let mut s = lock(&self.inner);
+            if s.draining {
+                return Err(ServiceError::Draining);
+            }
+            let id = s.next_id;
+            s.next_id += 1;
+            let shared = Arc::new(StreamShared {
+                id,
+                spec,
+                len: spec.len(),
+                produce,
+                state: Mutex::new(StreamState {
+                    dispatched: 0,
+                    delivered: 0,
+                    running: 0,
+                    ready: BTreeMap::new(),
+                    produced: 0,
+                    waker: None,
+                    closed: false,
+                    draining: false,
+                }),
+            });
+            s.streams.push(shared.clone());
+            shared
+        };
+        self.pump();
+        Ok(SampleStream { shared, scheduler: self.clone(), finished: false })
+    }
+
+    /// Starts jobs while there is room, one per eligible stream per turn.
+    fn pump(self: &Arc<Self>) {
+        let mut s = lock(&self.inner);
+        while s.in_flight < self.capacity && !s.draining {
+            let n = s.streams.len();
+            let mut picked = None;
+            for off in 0..n {
+                let i = (s.rr + off) % n;
+                let st = &s.streams[i];
+                let mut g = lock(&st.state);
+                if st.eligible(&g) {
+                    let k = g.dispatched;
+                    g.dispatched += 1;
+                    g.running += 1;
+                    picked = Some((st.clone(), k));
+                    drop(g);
+                    s.rr = (i + 1) % n;
+                    break;
+                }
+            }
+            let Some((st, k)) = picked else { break };
+            s.in_flight += 1;
+            s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
+            self.metrics.set_in_flight(s.in_flight, self.capacity);
+            let me = self.clone();
+            self.pool.spawn(move || me.run_job(st, k));
+        }
+    }
+
+    fn run_job(self: Arc<Self>, st: Arc<StreamShared>, k: u64) {
+        let t = Instant::now();
+        let skip = lock(&st.state).closed;
+        let item: Option<Item> = if skip {
+            None
+        } else {
+            // the index exists: k < len
+            let index = st.spec.index(k).unwrap_or(u64::MAX);
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| (st.produce)(index)))
+                .unwrap_or_else(|_| Err(ServiceError::Internal(format!("sample {index}: the worker panicked"))));
+            Some(r.map(|s| {
+                let n = s.encoded_len();
+                (s, n)
+            }))
+        };
+        self.metrics.busy_seconds.inc_by(t.elapsed().as_secs_f64());
+        let waker = {
+            let mut g = lock(&st.state);
+            g.running -= 1;
+            if let Some(item) = item {
+                if !g.closed {
+                    g.produced += 1;
+                    g.ready.insert(k, item);
+                    self.metrics.set_queue_depth(st.id, g.ready.len());
+                }
+            }
+            g.waker.take()
+        };
+        if let Some(w) = waker {
+            w.wake();
+        }
+        {
+            let mut s = lock(&self.inner);
+            s.in_flight -= 1;
+            self.metrics.set_in_flight(s.in_flight, self.capacity);
+        }
+        self.pump();
+    }
+
+    fn close(self: &Arc<Self>, st: &Arc<StreamShared>) {
+        {
+            let mut g = lock(&st.state);
+            g.closed = true;
+            g.ready.clear();
+        }
+        {
+            let mut s = lock(&self.inner);
+            s.streams.retain(|x| !Arc::ptr_eq(x, st));
+            if s.rr >= s.streams.len() {
+                s.rr = 0;
+            }
+        }
+        self.metrics.remove_stream(st.id);
+        self.pump();
+    }
+
+    /// Stops starting jobs; every stream sends what is finished, then ends with its cursor.
+    pub fn begin_drain(&self) {
+        let streams = {
+            let mut s = lock(&self.inner);
+            s.draining = true;
+            s.streams.clone()
+        };
+        for st in streams {
+            let w = {
+                let mut g = lock(&st.state);
+                g.draining = true;
+                g.waker.take()
+            };
+            if let Some(w) = w {
+                w.wake();
+            }
+        }
+    }
+
+    pub fn is_draining(&self) -> bool {
+        lock(&self.inner).draining
+    }
+
+    pub fn stats(&self) -> SchedulerStats {
+        let s = lock(&self.inner);
+        SchedulerStats {
+            streams: s.streams.len(),
+            in_flight: s.in_flight,
+            max_in_flight_seen: s.max_in_flight_seen,
+            capacity: self.capacity,
+            per_stream: s
+                .streams
+                .iter()
+                .map(|st| {
+                    let (d, v, p, q) = st.counts();
+                    (st.id, d, v, p, q)
+                })
+                .collect(),
+        }
+    }
+}
+
+/// The consumer side of a stream: yields batches in index order as tonic polls it. Dropping it
+/// (the client went away) closes the stream.
+pub struct SampleStream {
+    shared: Arc<StreamShared>,
+    scheduler: Arc<Scheduler>,
+    finished: bool,
+}
+
+impl SampleStream {
+    pub fn id(&self) -> u64 {
+        self.shared.id
+    }
+
+    fn end_with(&mut self, mut status: Status, delivered: u64) -> Poll<Option<Result<pb::SampleBatch, Status>>> {
+        self.finished = true;
+        let (next, resume) = self.shared.spec.cursor(delivered);
+        with_cursor(&mut status, next, resume);
+        Poll::Ready(Some(Err(status)))
+    }
+}
+
+impl Stream for SampleStream {
+    type Item = Result<pb::SampleBatch, Status>;
+
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+        if self.finished {
+            return Poll::Ready(None);
+        }
+        let shared = self.shared.clone();
+        let spec = shared.spec;
+        let mut g = lock(&shared.state);
+        let remaining = shared.len - g.delivered;
+        if remaining == 0 {
+            drop(g);
+            self.finished = true;
+            return Poll::Ready(None);
+        }
+        // a failed sample at the head ends the stream; the cursor points at it
+        if matches!(g.ready.get(&g.delivered), Some(Err(_))) {
+            let delivered = g.delivered;
+            let Some(Err(e)) = g.ready.remove(&delivered) else { unreachable!() };
+            g.closed = true;
+            drop(g);
+            let (next, resume) = spec.cursor(delivered);
+            return self.end_with(e.into_status_with_cursor(next, resume), delivered);
+        }
+        let want = (spec.batch_size as u64).min(remaining) as usize;
+        let mut contiguous = 0usize;
+        while contiguous < want && matches!(g.ready.get(&(g.delivered + contiguous as u64)), Some(Ok(_))) {
+            contiguous += 1;
+        }
+        let drained = g.draining && g.running == 0;
+        if contiguous > 0 && (contiguous == want || drained) {
+            let mut samples = Vec::with_capacity(contiguous);
+            let mut bytes = 0usize;
+            for _ in 0..contiguous {
+                let k = g.delivered;
+                let size = match g.ready.get(&k) {
+                    Some(Ok((_, n))) => *n,
+                    _ => break,
+                };
+                if !samples.is_empty() && bytes + size + 16 > spec.max_message_bytes {
+                    break; // cut the batch short rather than exceed the message limit
+                }
+                if let Some(Ok((s, n))) = g.ready.remove(&k) {
+                    bytes += n + 16;
+                    samples.push(s);
+                    g.delivered += 1;
+                }
+            }
+            let delivered = g.delivered;
+            let depth = g.ready.len();
+            drop(g);
+            let (next_index, resume_start_index) = spec.cursor(delivered);
+            let m = &self.scheduler.metrics;
+            m.samples_sent.inc_by(samples.len() as u64);
+            m.bytes_sent.inc_by(bytes as u64);
+            m.set_queue_depth(shared.id, depth);
+            self.scheduler.pump();
+            return Poll::Ready(Some(Ok(pb::SampleBatch { samples, next_index, resume_start_index })));
+        }
+        if drained {
+            let delivered = g.delivered;
+            g.closed = true;
+            drop(g);
+            return self.end_with(Status::unavailable(ServiceError::Draining.to_string()), delivered);
+        }
+        g.waker = Some(cx.waker().clone());
+        Poll::Pending
+    }
+}
+
+impl Drop for SampleStream {
+    fn drop(&mut self) {
+        self.scheduler.close(&self.shared);
+    }
+}

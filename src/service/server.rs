@@ -1,0 +1,461 @@
+//! The tonic service (`mpiflow.v1.MpiFlow`) and the server around it: start-up (datasets, models,
+//! listener, health, reflection, metrics), warm-up, and graceful drain. Handlers stay thin:
+//! validate, call the domain (dataset, pool), convert back.
+
+use std::net::SocketAddr;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
+
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use tokio_stream::{Stream, StreamExt};
+use tonic::{Request, Response, Status, Streaming};
+use tonic_health::server::HealthReporter;
+use tonic_health::ServingStatus;
+
+use super::config::ServiceConfig;
+use super::dataset::{Dataset, Datasets};
+use super::encode::{crop_sample, crop_window, to_proto, OutputSpec};
+use super::error::ServiceError;
+use super::metrics::{serve_metrics, Metrics};
+use super::pb;
+use super::pb::mpi_flow_server::{MpiFlow, MpiFlowServer};
+use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
+use super::validate;
+use crate::geometry::Intrinsics;
+use crate::sample::recipe::Generator;
+
+/// The gRPC service name health reports on (besides "").
+pub const SERVICE_NAME: &str = "mpiflow.v1.MpiFlow";
+
+/// What the handlers share.
+pub struct State {
+    pub config: ServiceConfig,
+    pub datasets: Datasets,
+    pub scheduler: Arc<Scheduler>,
+    pub metrics: Arc<Metrics>,
+    health: HealthReporter,
+    serving: AtomicBool,
+    draining: AtomicBool,
+    active_streams: AtomicUsize,
+}
+
+impl std::fmt::Debug for State {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("State").field("scheduler", &self.scheduler).finish()
+    }
+}
+
+impl State {
+    pub fn is_serving(&self) -> bool {
+        self.serving.load(Ordering::SeqCst)
+    }
+
+    pub fn active_streams(&self) -> usize {
+        self.active_streams.load(Ordering::SeqCst)
+    }
+
+    async fn set_health(&self, status: ServingStatus) {
+        self.health.set_service_status("", status).await;
+        self.health.set_service_status(SERVICE_NAME, status).await;
+    }
+
+    /// The job of a stream: make the sample, crop it, encode it (on a worker).
+    fn produce(&self, dataset: Arc<Dataset>, generator: Arc<Generator>, seed: u64, out: OutputSpec) -> Produce {
+        let metrics = self.metrics.clone();
+        Arc::new(move |index| {
+            let s = generator.sample(seed, index).map_err(|source| {
+                metrics.observe_error(&dataset.name, &source);
+                tracing::warn!(dataset = %dataset.name, index, error = %source, "sample failed");
+                ServiceError::Generation { index, source }
+            })?;
+            // the scene is in the cache: this is a lookup
+            // TODO(merge: skip to next good source): take the source item the sample was made from
+            let k = generator
+                .source_item(index)
+                .and_then(|i| generator.scene(i).ok())
+                .map(|sc| sc.intrinsics)
+                .unwrap_or_else(|| Intrinsics::reference_default(s.width, s.height));
+            let timings = s.timings;
+            let (corner, s) = match &out.crop {
+                Some(c) => {
+                    let (x0, y0, cw, ch) = crop_window(c, s.width, s.height, s.address);
+                    if (cw, ch) == (s.width, s.height) {
+                        ((0, 0), s)
+                    } else {
+                        ((x0, y0), crop_sample(&s, x0, y0, cw, ch))
+                    }
+                }
+                None => ((0, 0), s),
+            };
+            let p = to_proto(s, &dataset.name, k, corner, &out);
+            metrics.observe_sample(&timings, p.timings.as_ref().map_or(0.0, |t| t.encode_ms));
+            Ok(p)
+        })
+    }
+
+    /// Resolves the dataset, the generator of the request's overrides, and checks the fingerprint.
+    fn resolve(
+        &self,
+        dataset: &str,
+        fingerprint: u64,
+        o: &super::dataset::Overrides,
+    ) -> Result<(Arc<Dataset>, Arc<Generator>), ServiceError> {
+        let ds = self.datasets.get(dataset)?;
+        let generator = ds.generator(o)?;
+        if fingerprint != 0 && fingerprint != generator.fingerprint() {
+            return Err(ServiceError::FingerprintMismatch {
+                dataset: ds.name.clone(),
+                requested: fingerprint,
+                actual: generator.fingerprint(),
+            });
+        }
+        Ok((ds, generator))
+    }
+
+    fn open_stream(self: &Arc<Self>, r: &pb::StreamRequest) -> Result<CountedStream, ServiceError> {
+        if self.draining.load(Ordering::SeqCst) {
+            return Err(ServiceError::Draining);
+        }
+        let (rank, world, batch, prefetch) = validate::stream_shape(r, &self.config)?;
+        let out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
+        // the stream limit
+        let limit = self.config.max_streams;
+        if self.active_streams.fetch_add(1, Ordering::SeqCst) >= limit {
+            self.active_streams.fetch_sub(1, Ordering::SeqCst);
+            return Err(ServiceError::TooManyStreams { limit });
+        }
+        let spec = StreamSpec {
+            start_index: r.start_index,
+            rank: u64::from(rank),
+            world_size: u64::from(world),
+            count: r.count,
+            batch_size: batch as usize,
+            prefetch: prefetch as usize,
+            max_message_bytes: self.config.max_message_bytes() as usize,
+        };
+        let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
+        let inner = match self.scheduler.open(spec, produce) {
+            Ok(s) => s,
+            Err(e) => {
+                self.active_streams.fetch_sub(1, Ordering::SeqCst);
+                return Err(e);
+            }
+        };
+        self.metrics.active_streams.inc();
+        tracing::info!(
+            stream = inner.id(),
+            dataset = %ds.name,
+            fingerprint = format!("{:016x}", generator.fingerprint()),
+            seed = r.seed,
+            rank,
+            world_size = world,
+            start_index = r.start_index,
+            count = r.count,
+            batch,
+            prefetch,
+            "stream opened"
+        );
+        Ok(CountedStream { inner, state: self.clone() })
+    }
+
+    /// One sample through the worker pool (GetSample and the warm-up).
+    pub async fn one_sample(self: &Arc<Self>, r: &pb::SampleRequest) -> Result<pb::Sample, Status> {
+        let out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
+        let spec = StreamSpec {
+            start_index: r.index,
+            rank: 0,
+            world_size: 1,
+            count: 1,
+            batch_size: 1,
+            prefetch: 1,
+            max_message_bytes: self.config.max_message_bytes() as usize,
+        };
+        let mut stream = self.scheduler.open(spec, self.produce(ds, generator, r.seed, out))?;
+        match stream.next().await {
+            Some(Ok(mut b)) if !b.samples.is_empty() => Ok(b.samples.swap_remove(0)),
+            Some(Err(status)) => Err(Status::new(status.code(), status.message().to_string())),
+            _ => Err(ServiceError::Internal("no sample came back".into()).into()),
+        }
+    }
+
+    fn info(&self) -> pb::InfoResponse {
+        let stage = &self.datasets.stage;
+        let mut models = vec![pb::ModelInfo { role: "mpi".into(), name: stage.mpi.name() }];
+        if let Some(d) = &stage.depth {
+            models.push(pb::ModelInfo { role: "depth".into(), name: d.name() });
+        }
+        if let Some(s) = &stage.segmenter {
+            models.push(pb::ModelInfo { role: "segment".into(), name: s.name() });
+        }
+        let c = &self.config;
+        pb::InfoResponse {
+            version: env!("CARGO_PKG_VERSION").into(),
+            datasets: self
+                .datasets
+                .list
+                .iter()
+                .enumerate()
+                .map(|(i, d)| pb::DatasetInfo {
+                    name: d.name.clone(),
+                    fingerprint: d.fingerprint(),
+                    sources: d.sources() as u64,
+                    description: d.description.clone(),
+                    is_default: i == 0,
+                    skipped: self.metrics.skipped_of(&d.name),
+                })
+                .collect(),
+            models,
+            limits: Some(pb::Limits {
+                max_message_bytes: c.max_message_bytes(),
+                max_streams: c.max_streams as u32,
+                max_batch_size: c.max_batch_size,
+                max_prefetch: c.max_prefetch,
+                max_image_side: c.max_image_side,
+                max_image_pixels: c.max_image_pixels,
+                max_upload_bytes: c.max_upload_bytes,
+            }),
+            workers: self.scheduler.workers() as u32,
+            serving: self.is_serving(),
+        }
+    }
+}
+
+/// A stream counted against `max_streams` while it lives.
+pub struct CountedStream {
+    inner: SampleStream,
+    state: Arc<State>,
+}
+
+impl Stream for CountedStream {
+    type Item = Result<pb::SampleBatch, Status>;
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Self::Item>> {
+        Pin::new(&mut self.inner).poll_next(cx)
+    }
+}
+
+impl Drop for CountedStream {
+    fn drop(&mut self) {
+        self.state.active_streams.fetch_sub(1, Ordering::SeqCst);
+        self.state.metrics.active_streams.dec();
+        tracing::info!(stream = self.inner.id(), "stream closed");
+    }
+}
+
+/// The tonic service.
+#[derive(Clone, Debug)]
+pub struct Service {
+    state: Arc<State>,
+}
+
+fn refused<T>(state: &State, r: Result<T, ServiceError>) -> Result<T, Status> {
+    r.map_err(|e| {
+        state.metrics.count_refused(e.code());
+        tracing::info!(error = %e, "request refused");
+        e.into()
+    })
+}
+
+#[tonic::async_trait]
+impl MpiFlow for Service {
+    type StreamSamplesStream = Pin<Box<dyn Stream<Item = Result<pb::SampleBatch, Status>> + Send + 'static>>;
+
+    async fn stream_samples(
+        &self,
+        request: Request<pb::StreamRequest>,
+    ) -> Result<Response<Self::StreamSamplesStream>, Status> {
+        let stream = refused(&self.state, self.state.open_stream(request.get_ref()))?;
+        Ok(Response::new(Box::pin(stream)))
+    }
+
+    async fn get_sample(&self, request: Request<pb::SampleRequest>) -> Result<Response<pb::Sample>, Status> {
+        if self.state.draining.load(Ordering::SeqCst) {
+            return Err(refused::<()>(&self.state, Err(ServiceError::Draining)).unwrap_err());
+        }
+        let r = self.state.one_sample(request.get_ref()).await;
+        if let Err(s) = &r {
+            self.state.metrics.count_refused(s.code());
+        }
+        r.map(Response::new)
+    }
+
+    async fn upload_sources(
+        &self,
+        _request: Request<Streaming<pb::SourceChunk>>,
+    ) -> Result<Response<pb::UploadSummary>, Status> {
+        // TODO(merge: upload store): hand the chunks to the upload store and register the dataset
+        let e = ServiceError::Unimplemented(
+            "UploadSources is not available in this server version: serve a directory with --source".into(),
+        );
+        Err(refused::<()>(&self.state, Err(e)).unwrap_err())
+    }
+
+    async fn get_info(&self, _request: Request<pb::InfoRequest>) -> Result<Response<pb::InfoResponse>, Status> {
+        Ok(Response::new(self.state.info()))
+    }
+}
+
+/// A started server.
+pub struct RunningServer {
+    /// The bound gRPC address (the real port when the config said 0).
+    pub addr: SocketAddr,
+    /// The bound metrics address, when metrics are on.
+    pub metrics_addr: Option<SocketAddr>,
+    pub state: Arc<State>,
+    shutdown: Option<oneshot::Sender<()>>,
+    server: JoinHandle<Result<(), tonic::transport::Error>>,
+    metrics_task: Option<JoinHandle<()>>,
+    warmup: JoinHandle<()>,
+}
+
+impl std::fmt::Debug for RunningServer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RunningServer").field("addr", &self.addr).finish()
+    }
+}
+
+async fn bind(addr: &str, what: &str) -> Result<tokio::net::TcpListener, ServiceError> {
+    tokio::net::TcpListener::bind(addr).await.map_err(|e| ServiceError::Config(format!("{what} {addr}: {e}")))
+}
+
+/// Opens the datasets (loading the models), binds the listeners and starts serving; health says
+/// NOT_SERVING until a warm-up sample of the default dataset is made, then SERVING.
+pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError> {
+    config.validate()?;
+    let metrics = Arc::new(Metrics::new());
+    let cfg = config.clone();
+    let datasets = tokio::task::spawn_blocking(move || Datasets::open(&cfg))
+        .await
+        .map_err(|e| ServiceError::Internal(format!("dataset start-up: {e}")))??;
+    metrics.watch_cache(datasets.cache.clone());
+    let scheduler = Scheduler::new(config.worker_count(), config.in_flight_capacity(), metrics.clone())?;
+    let (health, health_service) = tonic_health::server::health_reporter();
+    let state = Arc::new(State {
+        config: config.clone(),
+        datasets,
+        scheduler,
+        metrics: metrics.clone(),
+        health,
+        serving: AtomicBool::new(false),
+        draining: AtomicBool::new(false),
+        active_streams: AtomicUsize::new(0),
+    });
+    state.set_health(ServingStatus::NotServing).await;
+
+    let listener = bind(&config.addr, "addr").await?;
+    let addr = listener.local_addr().map_err(|e| ServiceError::Config(format!("addr: {e}")))?;
+    let (metrics_addr, metrics_task) = match &config.metrics_addr {
+        Some(a) => {
+            let l = bind(a, "metrics_addr").await?;
+            let bound = l.local_addr().map_err(|e| ServiceError::Config(format!("metrics_addr: {e}")))?;
+            (Some(bound), Some(tokio::spawn(serve_metrics(l, metrics.clone()))))
+        }
+        None => (None, None),
+    };
+
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    let refl_err = |e: tonic_reflection::server::Error| ServiceError::Internal(format!("reflection: {e}"));
+    let reflection_v1 = reflection().build_v1().map_err(refl_err)?;
+    let reflection_v1alpha = reflection().build_v1alpha().map_err(refl_err)?;
+    let limit = config.max_message_bytes() as usize;
+    let service = MpiFlowServer::new(Service { state: state.clone() })
+        .max_decoding_message_size(limit)
+        .max_encoding_message_size(limit);
+    let (tx, rx) = oneshot::channel::<()>();
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    let server = tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(health_service)
+            .add_service(reflection_v1)
+            .add_service(reflection_v1alpha)
+            .add_service(service)
+            .serve_with_incoming_shutdown(incoming, async {
+                let _ = rx.await;
+            }),
+    );
+    tracing::info!(
+        %addr,
+        metrics = ?metrics_addr,
+        workers = state.scheduler.workers(),
+        in_flight = state.scheduler.capacity(),
+        max_message_bytes = limit,
+        datasets = ?state.datasets.list.iter().map(|d| format!("{} ({:016x}, {} sources)", d.name, d.fingerprint(), d.sources())).collect::<Vec<_>>(),
+        "listening"
+    );
+
+    let warm = state.clone();
+    let warmup = tokio::spawn(async move {
+        let t = Instant::now();
+        let r = warm.one_sample(&pb::SampleRequest::default()).await;
+        match r {
+            Ok(s) => tracing::info!(
+                ms = t.elapsed().as_secs_f64() * 1e3,
+                source = %s.source_id,
+                "warm-up sample made"
+            ),
+            // the server keeps running (NOT_SERVING) so that the failure can be seen
+            Err(e) => {
+                tracing::error!(error = %e.message(), "warm-up sample failed: staying NOT_SERVING");
+                return;
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(warm.config.warmup_delay_ms)).await;
+        if !warm.draining.load(Ordering::SeqCst) {
+            warm.serving.store(true, Ordering::SeqCst);
+            warm.set_health(ServingStatus::Serving).await;
+            tracing::info!("serving");
+        }
+    });
+
+    Ok(RunningServer { addr, metrics_addr, state, shutdown: Some(tx), server, metrics_task, warmup })
+}
+
+impl RunningServer {
+    /// Graceful shutdown: health NOT_SERVING, no new connections or streams, no new samples
+    /// started; every open stream sends its finished samples and ends with UNAVAILABLE and its
+    /// resume cursor. Connections still open after `deadline` (a client that stopped reading) are
+    /// cut.
+    pub async fn shutdown(mut self, deadline: Duration) {
+        let started = Instant::now();
+        let state = self.state.clone();
+        state.draining.store(true, Ordering::SeqCst);
+        state.serving.store(false, Ordering::SeqCst);
+        self.warmup.abort();
+        state.set_health(ServingStatus::NotServing).await;
+        tracing::info!(streams = state.active_streams(), deadline_s = deadline.as_secs_f64(), "draining");
+        state.scheduler.begin_drain();
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        // the streams end by themselves once their finished samples are sent
+        while state.active_streams() > 0 && started.elapsed() < deadline {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let left = state.active_streams();
+        // a moment for the last frames and trailers; connections kept open by others (e.g. a
+        // health Watch) are not waited for past it
+        let grace = deadline.saturating_sub(started.elapsed()).min(Duration::from_secs(1));
+        if tokio::time::timeout(grace, &mut self.server).await.is_err() {
+            self.server.abort();
+        }
+        if let Some(t) = self.metrics_task.take() {
+            t.abort();
+        }
+        if left > 0 {
+            tracing::warn!(streams = left, "drain deadline passed: open streams were cut");
+        } else {
+            tracing::info!(ms = started.elapsed().as_secs_f64() * 1e3, "drained");
+        }
+    }
+}

@@ -1,0 +1,149 @@
+//! Request validation: every field of a request checked and turned into what the domain needs;
+//! each refusal is INVALID_ARGUMENT with a message that starts with the field's name.
+
+use super::config::ServiceConfig;
+use super::dataset::Overrides;
+use super::encode::{CropSpec, OutputSpec, DEFAULT_FIELDS};
+use super::error::ServiceError;
+use super::pb;
+use crate::sample::motion::{MotionPreset, MotionRanges};
+
+/// Largest `world_size` accepted.
+pub const MAX_WORLD_SIZE: u32 = 1 << 20;
+
+fn invalid(field: &'static str, message: impl Into<String>) -> ServiceError {
+    ServiceError::invalid(field, message)
+}
+
+/// The fields, flow dtype, compression and crop of a request.
+pub fn output_spec(
+    fields: &[i32],
+    flow_dtype: i32,
+    compression: i32,
+    crop: Option<&pb::OutputCrop>,
+    config: &ServiceConfig,
+) -> Result<OutputSpec, ServiceError> {
+    let mut list = Vec::with_capacity(fields.len());
+    for &f in fields {
+        let field = pb::Field::try_from(f).map_err(|_| invalid("fields", format!("unknown field value {f}")))?;
+        match field {
+            pb::Field::Unspecified => return Err(invalid("fields", "FIELD_UNSPECIFIED is not a field")),
+            // TODO(merge: depth fields): accept once Sample carries depth1 / depth2
+            pb::Field::Depth1 | pb::Field::Depth2 => {
+                return Err(invalid(
+                    "fields",
+                    format!("{} is not available from this server version", field.as_str_name()),
+                ))
+            }
+            _ => {}
+        }
+        list.push(field);
+    }
+    if list.is_empty() {
+        list = DEFAULT_FIELDS.to_vec();
+    }
+    list.sort_by_key(|f| *f as i32);
+    list.dedup();
+    let flow_f16 = match pb::FlowDtype::try_from(flow_dtype) {
+        Ok(pb::FlowDtype::Unspecified | pb::FlowDtype::F32) => false,
+        Ok(pb::FlowDtype::F16) => true,
+        Err(_) => return Err(invalid("flow_dtype", format!("unknown value {flow_dtype}"))),
+    };
+    let lz4 = match pb::Compression::try_from(compression) {
+        Ok(pb::Compression::Unspecified | pb::Compression::None) => false,
+        Ok(pb::Compression::Lz4) => true,
+        Err(_) => return Err(invalid("compression", format!("unknown value {compression}"))),
+    };
+    let crop = match crop {
+        None => None,
+        Some(c) => {
+            let random = match pb::CropMode::try_from(c.mode) {
+                Ok(pb::CropMode::Unspecified | pb::CropMode::Center) => false,
+                Ok(pb::CropMode::Random) => true,
+                Err(_) => return Err(invalid("crop.mode", format!("unknown value {}", c.mode))),
+            };
+            let side = config.max_image_side;
+            if c.width > side {
+                return Err(invalid("crop.width", format!("{} is larger than the largest image side {side}", c.width)));
+            }
+            if c.height > side {
+                return Err(invalid(
+                    "crop.height",
+                    format!("{} is larger than the largest image side {side}", c.height),
+                ));
+            }
+            (c.width != 0 || c.height != 0).then_some(CropSpec { width: c.width, height: c.height, random })
+        }
+    };
+    Ok(OutputSpec { fields: list, flow_f16, lz4, crop })
+}
+
+/// The sample-configuration overrides of a request.
+pub fn overrides(
+    motion_preset: &str,
+    motion_ranges_json: &str,
+    max_objects: Option<u32>,
+    motions_per_image: Option<u32>,
+) -> Result<Overrides, ServiceError> {
+    let motion_preset = if motion_preset.trim().is_empty() {
+        None
+    } else {
+        Some(motion_preset.parse::<MotionPreset>().map_err(|_| {
+            let names: Vec<&str> = MotionPreset::ALL.iter().map(|p| p.name()).collect();
+            invalid("motion_preset", format!("unknown preset {motion_preset:?} (expected one of {})", names.join(", ")))
+        })?)
+    };
+    let motion_ranges = if motion_ranges_json.trim().is_empty() {
+        None
+    } else {
+        if motion_ranges_json.len() > 64 << 10 {
+            return Err(invalid("motion_ranges_json", "longer than 64 KiB"));
+        }
+        let r: MotionRanges =
+            serde_json::from_str(motion_ranges_json).map_err(|e| invalid("motion_ranges_json", e.to_string()))?;
+        r.validate().map_err(|e| invalid("motion_ranges_json", e.to_string()))?;
+        Some(r)
+    };
+    if let Some(m) = max_objects {
+        if m > 255 {
+            return Err(invalid("max_objects", format!("{m} (at most 255 objects fit the u8 label masks)")));
+        }
+    }
+    if motions_per_image == Some(0) {
+        return Err(invalid("motions_per_image", "0 (expected at least 1)"));
+    }
+    Ok(Overrides {
+        motion_preset,
+        motion_ranges,
+        max_objects: max_objects.map(|m| m as usize),
+        motions_per_image: motions_per_image.map(u64::from),
+    })
+}
+
+/// Rank, world size, start, count, batch size and prefetch of a stream request:
+/// `(rank, world_size, batch_size, prefetch)`.
+pub fn stream_shape(r: &pb::StreamRequest, config: &ServiceConfig) -> Result<(u32, u32, u32, u32), ServiceError> {
+    let world = if r.world_size == 0 { 1 } else { r.world_size };
+    if world > MAX_WORLD_SIZE {
+        return Err(invalid("world_size", format!("{} is larger than {MAX_WORLD_SIZE}", r.world_size)));
+    }
+    if r.rank >= world {
+        return Err(invalid("rank", format!("{} must be below world_size {world}", r.rank)));
+    }
+    let first = r
+        .start_index
+        .checked_add(u64::from(r.rank))
+        .ok_or_else(|| invalid("start_index", format!("{} + rank {} overflows u64", r.start_index, r.rank)))?;
+    if r.count > 0 && (r.count - 1).checked_mul(u64::from(world)).and_then(|d| d.checked_add(first)).is_none() {
+        return Err(invalid("count", format!("{} samples from index {first} step {world} overflow u64", r.count)));
+    }
+    let batch = if r.batch_size == 0 { 1 } else { r.batch_size };
+    if batch > config.max_batch_size {
+        return Err(invalid(
+            "batch_size",
+            format!("{} is larger than max_batch_size {}", batch, config.max_batch_size),
+        ));
+    }
+    let prefetch = if r.prefetch == 0 { config.default_prefetch } else { r.prefetch.min(config.max_prefetch) };
+    Ok((r.rank, world, batch, prefetch.max(batch)))
+}

@@ -1,0 +1,589 @@
+//! The gRPC service end to end on loopback: in-process servers (`mpiflow::service::start`, port 0)
+//! and the real `mpiflow serve` binary, driven by the tonic client. Checks the promises of the
+//! API (pure addressing across processes, rank partition, resume without loss or repeat, drain
+//! with cursor, fingerprint refusal), back-pressure and the in-flight bound, each refusal's code
+//! and field, health transitions, encodings and crops. Samples are 64x48 to stay fast.
+
+use std::collections::BTreeSet;
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use mpiflow::service::client::client_for;
+use mpiflow::service::encode::{decode_f32, decode_tensor};
+use mpiflow::service::error::cursor_of;
+use mpiflow::service::pb;
+use mpiflow::service::pb::mpi_flow_client::MpiFlowClient;
+use mpiflow::service::{start, RunningServer, ServiceConfig};
+use tonic::transport::{Channel, Endpoint};
+use tonic::{Code, Status};
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+use tonic_health::pb::HealthCheckRequest;
+
+const SIZE: &str = "64x48";
+
+fn config() -> ServiceConfig {
+    ServiceConfig {
+        addr: "127.0.0.1:0".into(),
+        size: Some(SIZE.into()),
+        workers: 2,
+        log_level: "warn".into(),
+        ..ServiceConfig::default()
+    }
+}
+
+async fn server(c: ServiceConfig) -> RunningServer {
+    start(c).await.expect("server starts")
+}
+
+async fn channel(addr: &str) -> Channel {
+    Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.expect("connects")
+}
+
+async fn client(addr: impl ToString) -> MpiFlowClient<Channel> {
+    client_for(channel(&addr.to_string()).await)
+}
+
+async fn wait_serving(addr: &str) {
+    let mut h = HealthClient::new(channel(addr).await);
+    let t = Instant::now();
+    loop {
+        let s = h.check(HealthCheckRequest { service: String::new() }).await.unwrap().into_inner().status;
+        if s == ServingStatus::Serving as i32 {
+            return;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "never SERVING");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Everything a stream delivered: samples, each batch's (next_index, resume_start_index), and the
+/// status that ended it (None = OK).
+struct Pulled {
+    samples: Vec<pb::Sample>,
+    cursors: Vec<(u64, u64)>,
+    end: Option<Status>,
+}
+
+impl Pulled {
+    fn indices(&self) -> Vec<u64> {
+        self.samples.iter().map(|s| s.index).collect()
+    }
+}
+
+async fn pull_all(c: &mut MpiFlowClient<Channel>, r: pb::StreamRequest) -> Pulled {
+    let mut s = c.stream_samples(r).await.expect("stream opens").into_inner();
+    let mut p = Pulled { samples: vec![], cursors: vec![], end: None };
+    loop {
+        match s.message().await {
+            Ok(Some(b)) => {
+                p.cursors.push((b.next_index, b.resume_start_index));
+                p.samples.extend(b.samples);
+            }
+            Ok(None) => break,
+            Err(e) => {
+                p.end = Some(e);
+                break;
+            }
+        }
+    }
+    p
+}
+
+/// The sample without its timings (measurements, not content).
+fn content(mut s: pb::Sample) -> pb::Sample {
+    s.timings = None;
+    s
+}
+
+fn req(seed: u64, start_index: u64, count: u64) -> pb::StreamRequest {
+    pb::StreamRequest { seed, start_index, count, ..Default::default() }
+}
+
+/// A `mpiflow serve` child process.
+struct Binary {
+    child: Child,
+    addr: String,
+}
+
+impl Binary {
+    fn start(extra: &[&str]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+            .args(["serve", "--addr", "127.0.0.1:0", "--size", SIZE, "--log-level", "warn"])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("mpiflow serve starts");
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+        let addr = line.trim().strip_prefix("mpiflow serving on ").unwrap_or_else(|| panic!("printed {line:?}"));
+        Binary { addr: addr.to_string(), child }
+    }
+
+    fn sigterm(&self) {
+        let ok = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().unwrap();
+        assert!(ok.success());
+    }
+
+    fn wait_exit(&mut self, within: Duration) -> std::process::ExitStatus {
+        let t = Instant::now();
+        loop {
+            if let Some(s) = self.child.try_wait().unwrap() {
+                return s;
+            }
+            assert!(t.elapsed() < within, "the server did not exit within {within:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for Binary {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_server_processes_give_byte_identical_samples() {
+    let a = Binary::start(&["--workers", "1"]);
+    let b = Binary::start(&["--workers", "2"]);
+    let (mut ca, mut cb) = (client(&a.addr).await, client(&b.addr).await);
+    let ia = ca.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    let ib = cb.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    assert_eq!(ia.datasets[0].fingerprint, ib.datasets[0].fingerprint);
+    assert_ne!(ia.datasets[0].fingerprint, 0);
+    let all = vec![1, 2, 3, 4, 5, 6, 7];
+    let r = pb::StreamRequest { fields: all, ..req(7, 3, 6) };
+    let pa = pull_all(&mut ca, r.clone()).await;
+    let pb_ = pull_all(&mut cb, r).await;
+    assert!(pa.end.is_none() && pb_.end.is_none());
+    assert_eq!(pa.indices(), (3..9).collect::<Vec<_>>());
+    let sa: Vec<_> = pa.samples.into_iter().map(content).collect();
+    let sb: Vec<_> = pb_.samples.into_iter().map(content).collect();
+    assert_eq!(sa, sb, "same address, same bytes on two processes with different worker counts");
+    assert!(sa.iter().all(|s| s.fingerprint == ia.datasets[0].fingerprint && s.seed == 7));
+    // GetSample gives the same sample as the stream
+    let one = cb
+        .get_sample(pb::SampleRequest {
+            seed: 7,
+            index: 5,
+            fields: [1, 2, 3, 4, 5, 6, 7].to_vec(),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(content(one), sa[2]);
+    // another seed gives other samples
+    let other = pull_all(&mut ca, req(8, 3, 1)).await;
+    let first = decode_tensor(&other.samples[0].tensors[1]).unwrap();
+    assert_ne!(first, decode_tensor(&sa[0].tensors[1]).unwrap());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ranks_partition_the_indices() {
+    let s = server(config()).await;
+    let mut c = client(s.addr).await;
+    let (start, world, count) = (5u64, 3u32, 4u64);
+    let mut seen = BTreeSet::new();
+    for rank in 0..world {
+        let r = pb::StreamRequest { rank, world_size: world, batch_size: 3, ..req(1, start, count) };
+        let p = pull_all(&mut c, r).await;
+        assert!(p.end.is_none());
+        let want: Vec<u64> = (0..count).map(|k| start + u64::from(rank) + k * u64::from(world)).collect();
+        assert_eq!(p.indices(), want, "rank {rank}");
+        // batches of 3 then 1; each carries the cursor after its last sample
+        assert_eq!(p.cursors.len(), 2);
+        let last_of_first = want[2];
+        assert_eq!(p.cursors[0], (last_of_first + 3, last_of_first + 3 - u64::from(rank)));
+        assert_eq!(p.cursors[1].0, want[3] + 3);
+        for i in want {
+            assert!(seen.insert(i), "index {i} twice");
+        }
+    }
+    assert_eq!(seen, (start..start + count * u64::from(world)).collect());
+    s.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_then_resume_loses_and_repeats_nothing() {
+    let s = server(config()).await;
+    let mut c = client(s.addr).await;
+    let (rank, world) = (1u32, 2u32);
+    let base = pb::StreamRequest { rank, world_size: world, batch_size: 2, ..req(3, 10, 0) };
+    let reference = pull_all(&mut c, pb::StreamRequest { count: 10, ..base.clone() }).await;
+    assert_eq!(reference.samples.len(), 10);
+    // an endless stream, cancelled by the client after 3 batches
+    let mut got = Vec::new();
+    let mut cursor = None;
+    {
+        let mut st = c.stream_samples(base.clone()).await.unwrap().into_inner();
+        for _ in 0..3 {
+            let b = st.message().await.unwrap().unwrap();
+            cursor = Some(b.resume_start_index);
+            got.extend(b.samples);
+        }
+    }
+    let resumed = pull_all(&mut c, pb::StreamRequest { start_index: cursor.unwrap(), count: 4, ..base.clone() }).await;
+    got.extend(resumed.samples);
+    let got: Vec<_> = got.into_iter().map(content).collect();
+    let want: Vec<_> = reference.samples.into_iter().map(content).collect();
+    assert_eq!(got, want);
+    s.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_drains_with_a_cursor_that_resumes_exactly() {
+    let mut a = Binary::start(&["--prefetch", "4"]);
+    wait_serving(&a.addr).await;
+    let mut c = client(&a.addr).await;
+    let mut health = HealthClient::new(channel(&a.addr).await);
+    let mut watch =
+        health.watch(HealthCheckRequest { service: "mpiflow.v1.MpiFlow".into() }).await.unwrap().into_inner();
+    assert_eq!(watch.message().await.unwrap().unwrap().status, ServingStatus::Serving as i32);
+    let base = pb::StreamRequest { rank: 0, world_size: 2, ..req(11, 0, 0) };
+    let mut st = c.stream_samples(base.clone()).await.unwrap().into_inner();
+    let mut got = Vec::new();
+    let mut last_cursor = None;
+    for _ in 0..3 {
+        let b = st.message().await.unwrap().unwrap();
+        last_cursor = Some((b.next_index, b.resume_start_index));
+        got.extend(b.samples);
+    }
+    a.sigterm();
+    // health turns NOT_SERVING while draining
+    let t = Instant::now();
+    loop {
+        let m = tokio::time::timeout(Duration::from_secs(10), watch.message()).await.expect("a health update");
+        match m {
+            Ok(Some(r)) if r.status == ServingStatus::NotServing as i32 => break,
+            Ok(Some(_)) => {}
+            other => panic!("health watch ended before NOT_SERVING: {other:?}"),
+        }
+        assert!(t.elapsed() < Duration::from_secs(10));
+    }
+    // the stream sends what was made, then ends with UNAVAILABLE and the cursor in the trailers
+    let end = loop {
+        match tokio::time::timeout(Duration::from_secs(15), st.message()).await.expect("the stream ends") {
+            Ok(Some(b)) => {
+                last_cursor = Some((b.next_index, b.resume_start_index));
+                got.extend(b.samples);
+            }
+            Ok(None) => panic!("an endless stream ended without a status"),
+            Err(e) => break e,
+        }
+    };
+    assert_eq!(end.code(), Code::Unavailable, "{end:?}");
+    let trailer = cursor_of(&end).expect("the trailers carry the cursor");
+    assert_eq!(Some(trailer), last_cursor, "the trailer cursor is the one after the last sample received");
+    assert!(a.wait_exit(Duration::from_secs(15)).success());
+    assert!(got.len() >= 3);
+
+    // a new server resumes from the cursor: nothing lost, nothing repeated
+    let b = Binary::start(&[]);
+    let mut cb = client(&b.addr).await;
+    let n = got.len() as u64;
+    let resumed = pull_all(&mut cb, pb::StreamRequest { start_index: trailer.1, count: 3, ..base.clone() }).await;
+    assert_eq!(resumed.samples[0].index, trailer.0);
+    got.extend(resumed.samples);
+    let reference = pull_all(&mut cb, pb::StreamRequest { count: n + 3, ..base }).await;
+    let got: Vec<_> = got.into_iter().map(content).collect();
+    let want: Vec<_> = reference.samples.into_iter().map(content).collect();
+    assert_eq!(got, want);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_is_not_serving_until_warm_and_while_draining() {
+    let s = server(ServiceConfig { warmup_delay_ms: 1500, ..config() }).await;
+    let addr = s.addr.to_string();
+    let mut h = HealthClient::new(channel(&addr).await);
+    for service in ["", "mpiflow.v1.MpiFlow"] {
+        let r = h.check(HealthCheckRequest { service: service.into() }).await.unwrap().into_inner();
+        assert_eq!(r.status, ServingStatus::NotServing as i32, "service {service:?} right after start");
+    }
+    let mut c = client(&addr).await;
+    assert!(!c.get_info(pb::InfoRequest {}).await.unwrap().into_inner().serving);
+    wait_serving(&addr).await;
+    assert!(c.get_info(pb::InfoRequest {}).await.unwrap().into_inner().serving);
+    let mut watch = h.watch(HealthCheckRequest { service: String::new() }).await.unwrap().into_inner();
+    assert_eq!(watch.message().await.unwrap().unwrap().status, ServingStatus::Serving as i32);
+    let drain = tokio::spawn(s.shutdown(Duration::from_secs(5)));
+    let r = tokio::time::timeout(Duration::from_secs(5), watch.message()).await.unwrap().unwrap().unwrap();
+    assert_eq!(r.status, ServingStatus::NotServing as i32);
+    drain.await.unwrap();
+}
+
+async fn expect_refused(c: &mut MpiFlowClient<Channel>, r: pb::StreamRequest, code: Code, needle: &str) {
+    let e = match c.stream_samples(r.clone()).await {
+        Err(e) => e,
+        Ok(_) => panic!("{r:?} was accepted"),
+    };
+    assert_eq!(e.code(), code, "{r:?}: {e:?}");
+    assert!(e.message().contains(needle), "{:?} does not name {needle:?}", e.message());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refusals_have_the_right_code_and_name_the_field() {
+    let s = server(ServiceConfig { max_streams: 2, ..config() }).await;
+    let mut c = client(s.addr).await;
+    let d = pb::StreamRequest::default;
+    let inv = Code::InvalidArgument;
+    let crop = |w, h, mode| Some(pb::OutputCrop { width: w, height: h, mode });
+    let cases: Vec<(pb::StreamRequest, Code, &str)> = vec![
+        (pb::StreamRequest { world_size: (1 << 20) + 1, ..d() }, inv, "world_size"),
+        (pb::StreamRequest { rank: 2, world_size: 2, ..d() }, inv, "rank"),
+        (pb::StreamRequest { rank: 1, ..d() }, inv, "rank"),
+        (pb::StreamRequest { batch_size: 65, ..d() }, inv, "batch_size"),
+        (pb::StreamRequest { fields: vec![42], ..d() }, inv, "fields"),
+        (pb::StreamRequest { fields: vec![0], ..d() }, inv, "fields"),
+        (pb::StreamRequest { fields: vec![8], ..d() }, inv, "fields"),
+        (pb::StreamRequest { flow_dtype: 9, ..d() }, inv, "flow_dtype"),
+        (pb::StreamRequest { compression: 9, ..d() }, inv, "compression"),
+        (pb::StreamRequest { crop: crop(9000, 0, 0), ..d() }, inv, "crop.width"),
+        (pb::StreamRequest { crop: crop(0, 9000, 0), ..d() }, inv, "crop.height"),
+        (pb::StreamRequest { crop: crop(8, 8, 7), ..d() }, inv, "crop.mode"),
+        (pb::StreamRequest { motion_preset: "warp".into(), ..d() }, inv, "motion_preset"),
+        (pb::StreamRequest { motion_ranges_json: "{".into(), ..d() }, inv, "motion_ranges_json"),
+        (pb::StreamRequest { max_objects: Some(300), ..d() }, inv, "max_objects"),
+        (pb::StreamRequest { motions_per_image: Some(0), ..d() }, inv, "motions_per_image"),
+        (pb::StreamRequest { start_index: u64::MAX, rank: 1, world_size: 2, ..d() }, inv, "start_index"),
+        (pb::StreamRequest { count: 3, start_index: u64::MAX - 1, ..d() }, inv, "count"),
+        (pb::StreamRequest { dataset: "nope".into(), ..d() }, Code::NotFound, "nope"),
+        (pb::StreamRequest { fingerprint: 0x1234, ..d() }, Code::FailedPrecondition, "fingerprint"),
+    ];
+    for (r, code, needle) in cases {
+        expect_refused(&mut c, r, code, needle).await;
+    }
+    // GetSample refuses alike
+    let e = c.get_sample(pb::SampleRequest { crop: crop(9000, 0, 0), ..Default::default() }).await.unwrap_err();
+    assert_eq!((e.code(), e.message().starts_with("crop.width")), (inv, true), "{e:?}");
+    let e = c.get_sample(pb::SampleRequest { fingerprint: 7, ..Default::default() }).await.unwrap_err();
+    assert_eq!(e.code(), Code::FailedPrecondition);
+    // a valid motion_ranges_json is accepted (and changes the fingerprint)
+    let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    let ranges = serde_json::to_string(&mpiflow::sample::motion::MotionPreset::PaperKitti.ranges()).unwrap();
+    let one = c
+        .get_sample(pb::SampleRequest { motion_ranges_json: ranges.clone(), ..Default::default() })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_ne!(one.fingerprint, info.datasets[0].fingerprint);
+    // ... and a request naming that fingerprint with the same override is served
+    let again = pb::SampleRequest { motion_ranges_json: ranges, fingerprint: one.fingerprint, ..Default::default() };
+    assert!(c.get_sample(again).await.is_ok());
+    let stale = pb::SampleRequest { fingerprint: one.fingerprint, ..Default::default() };
+    assert_eq!(c.get_sample(stale).await.unwrap_err().code(), Code::FailedPrecondition);
+    // uploads are not available yet
+    let chunks = tokio_stream::iter(vec![pb::SourceChunk::default()]);
+    assert_eq!(c.upload_sources(chunks).await.unwrap_err().code(), Code::Unimplemented);
+    // the stream limit
+    let s1 = c.stream_samples(d()).await.unwrap();
+    let s2 = c.stream_samples(d()).await.unwrap();
+    expect_refused(&mut c, d(), Code::ResourceExhausted, "max_streams").await;
+    drop(s1);
+    let t = Instant::now();
+    loop {
+        match c.stream_samples(d()).await {
+            Ok(_) => break,
+            Err(e) => assert_eq!(e.code(), Code::ResourceExhausted),
+        }
+        assert!(t.elapsed() < Duration::from_secs(5), "a closed stream frees its slot");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    drop(s2);
+    s.shutdown(Duration::from_secs(5)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_client_stops_its_production_and_in_flight_is_bounded() {
+    let prefetch = 3u64;
+    let s = server(ServiceConfig { max_in_flight: 2, default_prefetch: prefetch as u32, ..config() }).await;
+    wait_serving(&s.addr.to_string()).await;
+    // the stalled client: small HTTP/2 windows, never reads
+    let small = Endpoint::from_shared(format!("http://{}", s.addr))
+        .unwrap()
+        .initial_stream_window_size(65_535)
+        .initial_connection_window_size(65_535)
+        .connect()
+        .await
+        .unwrap();
+    let mut stalled_client = client_for(small);
+    let _stalled = stalled_client.stream_samples(req(1, 0, 0)).await.unwrap();
+    // two fast clients meanwhile
+    let mut fast = Vec::new();
+    for seed in [2, 3] {
+        let addr = s.addr.to_string();
+        fast.push(tokio::spawn(async move {
+            let mut c = client(addr).await;
+            pull_all(&mut c, req(seed, 0, 60)).await.samples.len()
+        }));
+    }
+    for f in fast {
+        assert_eq!(f.await.unwrap(), 60, "the fast streams are not held up by the stalled one");
+    }
+    let stats = s.state.scheduler.stats();
+    assert_eq!(stats.capacity, 2);
+    assert!(stats.max_in_flight_seen <= 2, "{stats:?}");
+    assert_eq!(stats.max_in_flight_seen, 2, "three streams kept both slots busy");
+    assert_eq!(stats.per_stream.len(), 1, "only the stalled stream is left: {stats:?}");
+    let (_, dispatched, delivered, produced, _) = stats.per_stream[0];
+    assert!(dispatched - delivered <= prefetch, "{stats:?}");
+    assert!(delivered <= 4, "a 64 KiB window takes at most a couple of ~46 KB messages: {stats:?}");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let later = s.state.scheduler.stats().per_stream[0];
+    assert_eq!((later.1, later.3), (dispatched, produced), "production stopped");
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn lz4_f16_and_crops_round_trip() {
+    let s = server(ServiceConfig { metrics_addr: Some("127.0.0.1:0".into()), ..config() }).await;
+    let mut c = client(s.addr).await;
+    let fields = vec![1, 2, 3, 4];
+    let plain = c
+        .get_sample(pb::SampleRequest { index: 2, fields: fields.clone(), ..Default::default() })
+        .await
+        .unwrap()
+        .into_inner();
+    let packed = c
+        .get_sample(pb::SampleRequest {
+            index: 2,
+            fields: fields.clone(),
+            compression: pb::Compression::Lz4 as i32,
+            flow_dtype: pb::FlowDtype::F16 as i32,
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let (w, h) = (plain.width as usize, plain.height as usize);
+    assert_eq!((w, h), (64, 48));
+    for i in [0, 1, 3] {
+        assert_eq!(packed.tensors[i].compression, pb::Compression::Lz4 as i32);
+        assert_eq!(decode_tensor(&packed.tensors[i]).unwrap(), decode_tensor(&plain.tensors[i]).unwrap());
+    }
+    assert_eq!(packed.tensors[2].dtype, pb::DType::DtypeF16 as i32);
+    let (f32s, f16s) = (decode_f32(&plain.tensors[2]).unwrap(), decode_f32(&packed.tensors[2]).unwrap());
+    assert_eq!(f32s.len(), w * h * 2);
+    for (a, b) in f32s.iter().zip(&f16s) {
+        assert!((a - b).abs() <= a.abs() / 1024.0 + 1e-4, "{a} vs {b}");
+    }
+    // centre crop: the middle of the full sample, intrinsics shifted
+    let crop = |mode: pb::CropMode| Some(pb::OutputCrop { width: 32, height: 24, mode: mode as i32 });
+    let center = c
+        .get_sample(pb::SampleRequest {
+            index: 2,
+            fields: fields.clone(),
+            crop: crop(pb::CropMode::Center),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!((center.width, center.height, center.crop_x, center.crop_y), (32, 24, 16, 12));
+    let full1 = decode_tensor(&plain.tensors[0]).unwrap();
+    let crop1 = decode_tensor(&center.tensors[0]).unwrap();
+    for y in 0..24 {
+        assert_eq!(&crop1[y * 32 * 3..(y + 1) * 32 * 3], &full1[((y + 12) * w + 16) * 3..((y + 12) * w + 48) * 3]);
+    }
+    let (ki, kc) = (plain.intrinsics.unwrap(), center.intrinsics.unwrap());
+    assert_eq!((kc.cx, kc.cy, kc.fx), (ki.cx - 16.0, ki.cy - 12.0, ki.fx));
+    // valid is cleared exactly where the flow target leaves the crop
+    let (fullv, cropv) = (decode_tensor(&plain.tensors[3]).unwrap(), decode_tensor(&center.tensors[3]).unwrap());
+    let cropf = decode_f32(&center.tensors[2]).unwrap();
+    for y in 0..24 {
+        for x in 0..32 {
+            let (u, v) = (cropf[2 * (y * 32 + x)], cropf[2 * (y * 32 + x) + 1]);
+            let (tx, ty) = (x as f32 + u, y as f32 + v);
+            let inside = (0.0..=31.0).contains(&tx) && (0.0..=23.0).contains(&ty);
+            let want = u8::from(fullv[(y + 12) * w + x + 16] != 0 && inside);
+            assert_eq!(cropv[y * 32 + x], want, "pixel {x},{y}");
+        }
+    }
+    // random crop: reproducible, inside the frame
+    let r = pb::SampleRequest { index: 2, fields, crop: crop(pb::CropMode::Random), ..Default::default() };
+    let a = c.get_sample(r.clone()).await.unwrap().into_inner();
+    let b = c.get_sample(r).await.unwrap().into_inner();
+    assert_eq!(content(a.clone()), content(b));
+    assert!(a.crop_x <= 32 && a.crop_y <= 24);
+    // metrics saw these samples
+    let m = s.metrics_addr.unwrap();
+    let body = http_get(&m.to_string(), "/metrics").await;
+    for name in [
+        "mpiflow_samples_generated_total",
+        "mpiflow_stage_seconds_bucket",
+        "mpiflow_saturation",
+        "mpiflow_scene_cache_hits_total",
+    ] {
+        assert!(body.contains(name), "{name} missing from /metrics");
+    }
+    s.shutdown(Duration::from_secs(5)).await;
+}
+
+async fn http_get(addr: &str, path: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut sock = tokio::net::TcpStream::connect(addr).await.unwrap();
+    sock.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes()).await.unwrap();
+    let mut out = String::new();
+    sock.read_to_string(&mut out).await.unwrap();
+    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sample_over_grpc_default_4_mib_limit_arrives() {
+    // the bundled scenes at their full 640x480: with every field a sample is ~5.5 MB
+    let s = server(ServiceConfig { size: None, ..config() }).await;
+    let mut c = client(s.addr).await;
+    let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    let limits = info.limits.unwrap();
+    assert!(limits.max_message_bytes >= 26 * limits.max_image_pixels, "{limits:?}");
+    let all = vec![1, 2, 3, 4, 5, 6, 7];
+    let one = c.get_sample(pb::SampleRequest { fields: all, ..Default::default() }).await.unwrap().into_inner();
+    assert_eq!((one.width, one.height), (640, 480));
+    let bytes: usize = one.tensors.iter().map(|t| t.data.len()).sum();
+    assert!(bytes > 4 << 20, "{bytes}");
+    s.shutdown(Duration::from_secs(5)).await;
+}
+
+#[test]
+fn pull_saves_the_flo_layout_and_health_exits_by_status() {
+    let server = Binary::start(&[]);
+    let dir = std::env::temp_dir().join(format!("mpiflow-pull-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let bin = env!("CARGO_BIN_EXE_mpiflow");
+    let t = Instant::now();
+    loop {
+        let h = Command::new(bin).args(["health", "--addr", &server.addr]).output().unwrap();
+        if h.status.success() {
+            assert_eq!(String::from_utf8_lossy(&h.stdout).trim(), "SERVING");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(20), "never healthy");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let out = Command::new(bin)
+        .args(["pull", "--addr", &server.addr, "--count", "3", "--rank", "1", "--world-size", "2"])
+        .args(["--start-index", "4", "--lz4", "--f16", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout} {}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("samples/s") && stdout.contains("MB/s") && stdout.contains("first sample after"));
+    for i in [5, 7, 9] {
+        for f in ["img1.png", "img2.png", "flow.flo", "valid.png"] {
+            assert!(dir.join(format!("{i:08}_{f}")).is_file(), "{i} {f}");
+        }
+    }
+    assert!(!dir.join("00000004_img1.png").exists());
+    assert!(dir.join("previews").is_dir());
+    let _ = std::fs::remove_dir_all(&dir);
+    // health fails (exit code != 0) when nothing answers
+    drop(server);
+    let h = Command::new(bin).args(["health", "--addr", "127.0.0.1:1", "--timeout-s", "2"]).output().unwrap();
+    assert!(!h.status.success());
+}
