@@ -1,0 +1,44 @@
+"""Python client of mpiflow: optical-flow training samples streamed from an mpiflow server.
+
+    from mpiflow import Client, MPIFlowDataset
+    client = Client("127.0.0.1:50051")            # waits for health SERVING
+    s = client.get_sample(0, seed=0)              # s["image1"] u8 [H, W, 3], s["flow"] f32 [H, W, 2]
+    for s in client.stream(count=10): ...         # one consumer's stream, with failover
+    ds = MPIFlowDataset("127.0.0.1:50051")        # RAFT-style dicts; torch IterableDataset
+
+`MPIFlowDataset` imports torch (when installed) on first use only.
+"""
+from ._proto import mpiflow_pb2 as pb
+from .client import Client, MpiFlowError, NotReadyError, is_retryable, parse_addresses
+from .decode import DEFAULT_FIELDS, DecodeError, Sample, decode_sample, decode_tensor, to_raft_dict
+from .stream import FlowStream, Prefetcher, ProtocolError, StreamFailed
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Client",
+    "DEFAULT_FIELDS",
+    "DecodeError",
+    "FlowStream",
+    "MPIFlowDataset",
+    "MpiFlowError",
+    "NotReadyError",
+    "Prefetcher",
+    "ProtocolError",
+    "Sample",
+    "StreamFailed",
+    "decode_sample",
+    "decode_tensor",
+    "is_retryable",
+    "parse_addresses",
+    "pb",
+    "to_raft_dict",
+]
+
+
+def __getattr__(name):
+    if name == "MPIFlowDataset":
+        from . import dataset
+
+        return dataset.MPIFlowDataset
+    raise AttributeError(f"module 'mpiflow' has no attribute {name!r}")
