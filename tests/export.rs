@@ -128,8 +128,12 @@ fn make_sample(index: u64, objects: bool) -> Sample {
         mask2,
         camera,
         objects,
+        depth1: (0..n).map(|i| 1.0 + i as f32 * 0.01).collect(),
+        depth2: (0..n).map(|i| if i % 7 == 0 { 0.0 } else { 2.0 + i as f32 * 0.01 }).collect(),
         inpainted_pixels: 17,
+        skipped_sources: 0,
         provenance: vec!["depth: test".into(), "mpi: test".into()],
+        intrinsics: mpiflow::geometry::Intrinsics::reference_default(W, H),
         timings: StageTimings {
             scene_ms: 1.0,
             render_ms: 2.0,
@@ -745,7 +749,7 @@ fn write_png_rgb(path: &Path, w: u32, h: u32, seed: u32) {
 }
 
 #[test]
-fn generate_skips_a_failing_source_with_a_warning_and_counts_it() {
+fn generate_passes_over_a_failing_source_with_a_warning_and_counts_it() {
     let dir = tmpdir("gen-skip");
     let src = dir.join("src");
     std::fs::create_dir_all(src.join("images")).unwrap();
@@ -770,17 +774,20 @@ fn generate_skips_a_failing_source_with_a_warning_and_counts_it() {
     ]);
     let (stdout, stderr) = (text(&r.stdout), text(&r.stderr));
     assert!(r.status.success(), "{stdout}\n{stderr}");
-    assert!(stdout.contains("wrote 2 samples (2 skipped)"), "{stdout}");
+    // the bad source is passed over: its indices are served by the next good source
+    assert!(
+        stdout.contains("wrote 4 samples (0 skipped)") && stdout.contains("1 bad source(s) passed over"),
+        "{stdout}"
+    );
     let warnings: Vec<&str> = stderr.lines().filter(|l| l.starts_with("warning:")).collect();
-    assert_eq!(warnings.len(), 2, "{stderr}");
-    for (w, key) in warnings.iter().zip(["00000001", "00000003"]) {
-        assert!(w.contains(key) && w.contains("nodepth") && w.contains("no depth"), "{w}");
-    }
+    assert_eq!(warnings.len(), 1, "{stderr}");
+    assert!(warnings[0].contains("source item 1 (nodepth) skipped") && warnings[0].contains("no depth"), "{stderr}");
     let files = list_files(&out);
-    assert!(files.contains(&"00000000_flow.png".to_string()) && files.contains(&"00000002.json".to_string()));
-    assert!(!files.iter().any(|f| f.starts_with("00000001") || f.starts_with("00000003")), "{files:?}");
-    let j: Value = serde_json::from_slice(&std::fs::read(out.join("00000000.json")).unwrap()).unwrap();
-    assert_eq!(j["source_id"], "good");
+    for key in ["00000000", "00000001", "00000002", "00000003"] {
+        assert!(files.contains(&format!("{key}_flow.png")), "{files:?}");
+        let j: Value = serde_json::from_slice(&std::fs::read(out.join(format!("{key}.json"))).unwrap()).unwrap();
+        assert_eq!(j["source_id"], "good");
+    }
 
     // nothing written at all: exit code 2 and a one-line error
     std::fs::remove_file(src.join("depths/good.npy")).unwrap();

@@ -1,6 +1,7 @@
 //! The deterministic sample recipe: same address, same bytes (across runs, generators and rayon
 //! pool sizes); different indices, different motions; motions within the preset ranges; no
-//! objects when k = 0; finite flow; the source order; errors that name the source.
+//! objects when k = 0; finite flow; the source order; errors that name the source; failing
+//! sources skipped deterministically.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -306,17 +307,34 @@ fn errors_name_the_source() {
     let empty = generator(Procedural::new(0), SampleConfig::default());
     assert!(matches!(empty.sample(0, 0), Err(SampleError::EmptySource)));
 
+    // a failing item is skipped: its index is served by the next item, the failure is recorded
+    // with the item's id and file, remembered (not loaded again) and never cached as a scene
     let mut loader = Procedural::new(3);
     loader.failing = Some(1);
     let g = generator(loader, SampleConfig::default());
-    assert!(g.sample(0, 0).is_ok());
-    let err = g.sample(0, 1).unwrap_err();
-    let text = err.to_string();
-    assert!(matches!(err, SampleError::Scene { item: 1, .. }));
-    assert!(text.contains("procedural-1") && text.contains("procedural/1.npy"), "{text}");
-    // errors are not cached: the next request tries again
-    assert!(g.sample(0, 1).is_err());
-    assert_eq!(g.cache().stats().load_errors, 2);
+    assert_eq!(g.sample(0, 0).unwrap().skipped_sources, 0);
+    let s = g.sample(0, 1).unwrap();
+    assert_eq!((s.source_id.as_str(), s.skipped_sources), ("procedural-2", 1));
+    let skipped = g.skipped();
+    assert_eq!(skipped.len(), 1);
+    let (item, id, reason) = &skipped[0];
+    assert_eq!((*item, id.as_str()), (1, "procedural-1"));
+    assert!(reason.contains("procedural-1") && reason.contains("procedural/1.npy"), "{reason}");
+    assert_eq!(g.skip_counts().into_iter().collect::<Vec<_>>(), [("decode".to_string(), 1)]);
+    assert_eq!(bytes(&g.sample(0, 1).unwrap()), bytes(&s));
+    assert_eq!(g.cache().stats().load_errors, 1, "a known-bad item is not loaded again");
+    assert_eq!(g.cache().stats().entries, 2);
+
+    // nothing loads: an error naming the first failure
+    let mut loader = Procedural::new(1);
+    loader.failing = Some(0);
+    let g = generator(loader, SampleConfig::default());
+    for _ in 0..2 {
+        let err = g.sample(0, 0).unwrap_err();
+        assert!(matches!(err, SampleError::NoGoodSource { items: 1, .. }), "{err}");
+        assert!(err.to_string().contains("procedural/0.npy"), "{err}");
+    }
+    assert_eq!(g.cache().stats().load_errors, 1);
 
     let bad = SampleConfig { mask_threshold: 0.0, ..SampleConfig::default() };
     let e = Generator::new(Arc::new(Procedural::new(1)), Arc::new(SceneCache::new(1 << 20)), bad).unwrap_err();
@@ -354,4 +372,68 @@ fn config_round_trips_through_json() {
     assert!(serde_json::from_str::<SampleConfig>(r#"{"max_object": 2}"#).is_err(), "unknown fields are refused");
     let d = SampleConfig::default();
     assert_eq!((d.max_objects, d.merge, d.inpaint_radius, d.motions_per_image), (1, MergeRule::DepthAware, 3.0, 1));
+}
+
+#[test]
+fn depth1_is_the_scenes_depth_and_depth2_what_image2_shows() {
+    let g = generator(Procedural::new(3), SampleConfig { max_objects: 2, ..SampleConfig::default() });
+    for index in [0u64, 1, 2, 7] {
+        let s = g.sample(3, index).unwrap();
+        let item = g.source_item(index).unwrap();
+        let scene = g.scene(item).unwrap();
+        let n = W * H;
+        assert_eq!((s.depth1.len(), s.depth2.len()), (n, n));
+        // depth1 = 1 / disparity (the procedural depth divided by its nearest value)
+        assert_eq!(s.depth1, mpiflow::scene::scale::depth_from_disparity(&scene.disparity));
+        assert!(s.depth1.iter().all(|&d| (1.0..1000.0).contains(&d)));
+        // depth2: positive where image2 shows something, 0 exactly in the inpainted holes
+        assert!(s.depth2.iter().all(|d| d.is_finite() && *d >= 0.0));
+        let zeros = s.depth2.iter().filter(|&&d| d == 0.0).count() as u64;
+        assert_eq!(zeros, s.inpainted_pixels, "index {index}");
+        // where a moved object is drawn, its depth is that of one of the boxes (moved a little)
+        for (i, &label) in s.mask2.iter().enumerate() {
+            if label != 0 {
+                assert!(s.depth2[i] > 0.5 && s.depth2[i] < 3.0, "object depth {} at {i}", s.depth2[i]);
+            }
+        }
+    }
+
+    // without any motion, image2's depth is the source's, up to the MPI's layering
+    let still = RigidLaw {
+        translation: mpiflow::sample::motion::Axes {
+            x: Component::symmetric(0.0),
+            y: Component::symmetric(0.0),
+            z: Component::symmetric(0.0),
+        },
+        rotation_kind: RotationKind::AxisAngle,
+        rotation: mpiflow::sample::motion::Axes {
+            x: Component::symmetric(0.0),
+            y: Component::symmetric(0.0),
+            z: Component::symmetric(0.0),
+        },
+    };
+    let mut ranges = MotionPreset::Reference.ranges();
+    ranges.camera = still;
+    ranges.object = still;
+    let config = SampleConfig { motion: MotionSpec::Ranges(Box::new(ranges)), ..SampleConfig::default() };
+    // a scene made by the scene stage (whose MPI lives in the scene scale) from a given depth
+    let proc_scene = Procedural::new(1).load_scene(0).unwrap();
+    let depth: Vec<f32> = proc_scene.disparity.data.iter().map(|d| 3.0 / d).collect();
+    let item = mpiflow::source::SourceItem {
+        id: "given".into(),
+        image: proc_scene.image.clone(),
+        depth: Some(mpiflow::source::GivenDepth::Depth(depth)),
+        masks: None,
+        mpi: None,
+        intrinsics: None,
+    };
+    let scene = mpiflow::scene::stage::SceneStage::builtin().scene(item).unwrap();
+    let address = mpiflow::sample::SampleAddress { dataset: 1, seed: 0, index: 0 };
+    let s = mpiflow::sample::recipe::assemble(&scene, address, &config).unwrap();
+    assert_eq!(s.camera.translation, [0.0; 3]);
+    let mut rel: Vec<f32> =
+        s.depth1.iter().zip(&s.depth2).map(|(&a, &b)| if b > 0.0 { (b - a).abs() / a } else { 1.0 }).collect();
+    rel.sort_by(f32::total_cmp);
+    let (median, p95) = (rel[rel.len() / 2], rel[rel.len() * 95 / 100]);
+    assert!(median < 0.05 && p95 < 0.25, "relative depth error median {median}, p95 {p95}");
 }

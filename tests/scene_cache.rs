@@ -179,3 +179,45 @@ fn clear_drops_everything() {
     let s = cache.stats();
     assert_eq!((s.entries, s.bytes), (0, 0));
 }
+
+/// A loader that runs a parallel loop on a rayon pool can have the pool's thread steal another
+/// job asking for the same key while the load is in progress (the service runs every sample as a
+/// job on one pool). That job must not wait for the load below it on its own stack: it loads the
+/// scene itself. Before the fix this test deadlocked.
+#[test]
+fn a_request_nested_in_its_own_load_on_a_rayon_worker_does_not_deadlock() {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let cache = Arc::new(SceneCache::new(1 << 30));
+    let calls = Arc::new(AtomicUsize::new(0));
+    let (tx, rx) = std::sync::mpsc::channel();
+    {
+        let (cache, calls) = (cache.clone(), calls.clone());
+        pool.spawn(move || {
+            let outer = cache
+                .get_or_load(key(1), || -> Result<Scene, Never> {
+                    calls.fetch_add(1, Ordering::SeqCst);
+                    // the nested request on the same worker, for the key being loaded
+                    let (a, b) = rayon::join(
+                        || {
+                            cache.get_or_load(key(1), || -> Result<Scene, Never> {
+                                calls.fetch_add(1, Ordering::SeqCst);
+                                Ok(scene("s", 8, 8, 2))
+                            })
+                        },
+                        || 0,
+                    );
+                    assert_eq!(b, 0);
+                    assert_eq!(a.unwrap().id, "s");
+                    Ok(scene("s", 8, 8, 2))
+                })
+                .unwrap();
+            tx.send(outer.id.clone()).unwrap();
+        });
+    }
+    let got = rx.recv_timeout(Duration::from_secs(20)).expect("no deadlock");
+    assert_eq!(got, "s");
+    assert_eq!(calls.load(Ordering::SeqCst), 2, "the nested request loaded the scene itself");
+    // the outer load is the one cached
+    let again = cache.get_or_load(key(1), || -> Result<Scene, Never> { unreachable!() }).unwrap();
+    assert_eq!(again.id, "s");
+}

@@ -9,3 +9,5 @@ eval "$(bash tools/setup_python.sh)"
 cargo test --release --all-targets
 # The Python client against the real `mpiflow serve` (built by cargo test above).
 MPIFLOW_BIN="$PWD/target/release/mpiflow" "$MPIFLOW_PYTHON" -m pytest -q clients/python/tests
+# The Kubernetes manifests against the Kubernetes JSON schemas, offline (deploy/validate.sh).
+bash deploy/validate.sh

@@ -4,7 +4,9 @@
 //!
 //! Samples are generated in parallel (rayon, chunks of a few samples per thread), encoded on the
 //! workers and written in index order by one writer thread, so the output does not depend on the
-//! thread count. A sample whose source fails is skipped with a one-line warning; the run goes on.
+//! thread count. A source item that fails to load is passed over (its samples come from the next
+//! good item, see [`Generator::sample`]) with a one-line warning at the end; a sample that still
+//! cannot be made is skipped with a one-line warning; the run goes on.
 
 use std::path::PathBuf;
 use std::sync::mpsc::sync_channel;
@@ -26,7 +28,7 @@ use mpiflow::scene::onnx::{OnnxDepth, OnnxDepthConfig, OnnxMpi, OnnxMpiConfig, O
 use mpiflow::scene::stage::{SceneStage, SourceScenes};
 use mpiflow::scene::{MpiBuilder, SceneLoader};
 use mpiflow::source::builtin::{BuiltinOptions, BuiltinSource};
-use mpiflow::source::dir::{DirSource, IntrinsicsSpec, SourceOptions};
+use mpiflow::source::dir::{IntrinsicsSpec, SourceOptions};
 use mpiflow::source::Source;
 use rayon::prelude::*;
 
@@ -35,7 +37,8 @@ use super::{parse_floats, CliError};
 #[derive(Args, Debug)]
 pub struct GenerateArgs {
     /// Source photos: a folder of images, a folder in the reference layout (images/ with
-    /// optional depths/, disps/, masks/, mpis/), or one image. Default: the bundled scenes.
+    /// optional depths/, disps/, masks/, mpis/), one image, a WebDataset .tar shard or a folder
+    /// of shards. Default: the bundled scenes.
     #[arg(long, value_name = "DIR")]
     source: Option<PathBuf>,
     /// Number of samples (indices --start .. --start + N).
@@ -138,8 +141,8 @@ fn open_source(a: &GenerateArgs) -> Result<Arc<dyn Source>, CliError> {
                 None => None,
             };
             let options = SourceOptions { resize: a.size, intrinsics, ..SourceOptions::default() };
-            let source = DirSource::open(path, &options).map_err(|e| CliError(format!("--source: {e}")))?;
-            Ok(Arc::new(source))
+            // a directory, an image, a .tar shard or a directory of shards
+            mpiflow::source::open_source(path, &options).map_err(|e| CliError(format!("--source: {e}")))
         }
         None => {
             if a.intrinsics.is_some() {
@@ -318,7 +321,18 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         Err(_) => return Err(CliError("the writer thread panicked".into())),
     };
     let secs = started.elapsed().as_secs_f64();
+    // bad sources passed over (their samples came from the next good source), once each
+    for skipped in source.skipped() {
+        eprintln!("warning: {} left out of the source: {}", skipped.item, skipped.reason);
+    }
+    let bad = generator.skipped();
+    for (item, id, reason) in &bad {
+        eprintln!("warning: source item {item} ({id}) skipped, its samples use the next good source: {reason}");
+    }
     let mut extra = format!("{} preview sheet(s)", summary.previews.len());
+    if !bad.is_empty() {
+        extra.push_str(&format!(", {} bad source(s) passed over", bad.len()));
+    }
     if format == ExportFormat::WebDataset {
         extra.push_str(&format!(", {} shard(s)", summary.shards.len()));
     }

@@ -8,7 +8,7 @@
 use ::image::codecs::png::PngEncoder;
 use ::image::{DynamicImage, ExtendedColorType, ImageDecoder, ImageEncoder, ImageFormat};
 use std::fs::File;
-use std::io::{self, BufRead, BufReader, BufWriter, Cursor, Seek, Write};
+use std::io::{self, BufRead, BufReader, BufWriter, Cursor, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
 /// An RGB image, H x W x 3 values in [0, 1], row-major.
@@ -183,7 +183,101 @@ pub(crate) fn decode_file(path: &Path, limits: &ImageLimits) -> Result<DynamicIm
             max_bytes: limits.max_bytes,
         });
     }
-    decode_reader(BufReader::new(file), path, limits)
+    // read whole (the JPEG decoder buffers the whole stream anyway), at most max_bytes + 1
+    let mut bytes = Vec::with_capacity(meta.len() as usize);
+    BufReader::new(file)
+        .take(limits.max_bytes.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(|source| ImageError::Io { path: path.to_path_buf(), source })?;
+    decode_bytes(&bytes, path, limits)
+}
+
+/// Decodes an encoded PNG or JPEG held in memory, named `path` in errors: the byte size, a
+/// JPEG's completeness ([`jpeg_truncation`]) and the header's dimensions are checked before any
+/// pixel buffer is allocated.
+pub(crate) fn decode_bytes(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<DynamicImage, ImageError> {
+    if bytes.len() as u64 > limits.max_bytes {
+        return Err(ImageError::FileTooLarge {
+            path: path.to_path_buf(),
+            bytes: bytes.len() as u64,
+            max_bytes: limits.max_bytes,
+        });
+    }
+    if let Some(reason) = jpeg_truncation(bytes) {
+        return Err(ImageError::Corrupt { path: path.to_path_buf(), reason });
+    }
+    decode_reader(Cursor::new(bytes), path, limits)
+}
+
+/// Why a JPEG stream is truncated (`None` when it is complete or not a JPEG).
+///
+/// The decoder is lenient (it fills what is missing of a truncated JPEG with grey and reports
+/// success), so completeness is checked here: the marker segments are walked from the start
+/// (by their lengths, over the entropy-coded data of each scan, where `FF 00` stuffing and
+/// restart markers are skipped) until the end-of-image marker `FF D9`. Running off the end first
+/// means truncation. Anything else malformed is left to the decoder to report. Bytes after the
+/// end-of-image marker (camera trailers, appended videos) are allowed.
+pub fn jpeg_truncation(bytes: &[u8]) -> Option<String> {
+    if bytes.len() < 3 || bytes[0] != 0xFF || bytes[1] != 0xD8 || bytes[2] != 0xFF {
+        return None;
+    }
+    let truncated = |what: &str| Some(format!("truncated JPEG: the data ends {what} before the end-of-image marker"));
+    let n = bytes.len();
+    let mut pos = 2usize;
+    loop {
+        // a marker: 0xFF (any number of fill bytes), then its code
+        if pos >= n {
+            return truncated("between segments");
+        }
+        if bytes[pos] != 0xFF {
+            return None; // malformed: the decoder reports it (or copes)
+        }
+        while pos < n && bytes[pos] == 0xFF {
+            pos += 1;
+        }
+        if pos >= n {
+            return truncated("in a marker");
+        }
+        let code = bytes[pos];
+        pos += 1;
+        match code {
+            0xD9 => return None,
+            0x01 | 0xD0..=0xD7 => continue,
+            0x00 => return None,
+            _ => {}
+        }
+        if pos + 2 > n {
+            return truncated("in a segment header");
+        }
+        let len = usize::from(u16::from_be_bytes([bytes[pos], bytes[pos + 1]]));
+        if len < 2 {
+            return None;
+        }
+        pos += len;
+        if pos > n {
+            return truncated("inside a segment");
+        }
+        if code == 0xDA {
+            // entropy-coded data up to the next marker that is not stuffing or a restart
+            loop {
+                match bytes[pos..].iter().position(|&b| b == 0xFF) {
+                    None => return truncated("inside the image data"),
+                    Some(off) => {
+                        let p = pos + off;
+                        match bytes.get(p + 1) {
+                            None => return truncated("inside the image data"),
+                            Some(0x00 | 0xD0..=0xD7) => pos = p + 2,
+                            Some(0xFF) => pos = p + 1,
+                            Some(_) => {
+                                pos = p;
+                                break;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
 }
 
 /// Converts interleaved samples with `channels` per pixel to RGB f32 (gray is replicated, alpha
@@ -234,7 +328,12 @@ pub fn load_rgb_from_bytes(bytes: &[u8], limits: &ImageLimits) -> Result<RgbImag
             max_bytes: limits.max_bytes,
         });
     }
-    decode_reader(Cursor::new(bytes), path, limits).map(dynamic_to_rgb)
+    decode_bytes(bytes, path, limits).map(dynamic_to_rgb)
+}
+
+/// [`load_rgb_from_bytes`] with a name for the errors (e.g. `shard.tar:key.jpg`).
+pub fn load_rgb_from_bytes_named(bytes: &[u8], name: &str, limits: &ImageLimits) -> Result<RgbImage, ImageError> {
+    decode_bytes(bytes, Path::new(name), limits).map(dynamic_to_rgb)
 }
 
 /// Reads a 16-bit grayscale PNG (depth maps, e.g. millimetres) as its raw values 0..=65535,

@@ -33,6 +33,9 @@
 //! not hidden, the nearest (`D_t^obj` smallest; ties: lower slot) is drawn. Holes = `s < tau`
 //! and nothing drawn (scene holes include rays that left the source frustum, coverage < tau).
 //!
+//! The depth of what image2 shows (the drawn object's `D_t^obj`, else the scene's `D_t`; 0 in
+//! holes) is returned as [`Merged::depth2`].
+//!
 //! # Both rules, source side
 //!
 //! - flow, `valid` and the expected target depth come from the scene render, except where some
@@ -123,6 +126,9 @@ pub struct Merged {
     pub hole: Vec<u8>,
     /// Number of hole pixels.
     pub holes: u64,
+    /// H x W, the depth (z in the target camera) of what image2 shows: the drawn object's, else
+    /// the scene's; 0 in holes and where it is not a positive finite number.
+    pub depth2: Vec<f32>,
 }
 
 /// `floor(255 v + 1/2)` with `v` clamped to [0, 1], NaN to 0 (round half up; the same as
@@ -279,7 +285,16 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
                 }
             }
         });
-    Merged { image2, flow, valid, occlusion, mask1, mask2, hole, holes }
+    // what image2 shows, with holes (inf) and anything not positive and finite as 0
+    let mut depth2 = shown_depth;
+    depth2.par_chunks_mut(w.max(1)).for_each(|row| {
+        for d in row {
+            if !(d.is_finite() && *d > 0.0) {
+                *d = 0.0;
+            }
+        }
+    });
+    Merged { image2, flow, valid, occlusion, mask1, mask2, hole, holes, depth2 }
 }
 
 #[inline]

@@ -75,9 +75,21 @@ pub struct Sample {
     pub mask2: Vec<u8>,
     pub camera: Motion,
     pub objects: Vec<ObjectRecord>,
+    /// H x W, the source frame's depth in the scene scale: `1 / disparity` of the scene
+    /// (nearest content ~1), as the MPI was built from.
+    pub depth1: Vec<f32>,
+    /// H x W, the target frame's depth after the merge: the rendered depth (z in the target
+    /// camera) of what image2 shows, objects where they win the merge; 0 in holes (the pixels
+    /// that were inpainted) and where invalid.
+    pub depth2: Vec<f32>,
     /// Pixels of image2 that were inpainted.
     pub inpainted_pixels: u64,
+    /// Bad source items passed over to make this sample (see
+    /// [`recipe::Generator::sample`]); 0 when its own source item loaded.
+    pub skipped_sources: u32,
     /// Which implementation produced the scene's depth, MPI and masks.
     pub provenance: Vec<String>,
+    /// The camera of image1 (the scene's; image2 uses the same).
+    pub intrinsics: crate::geometry::Intrinsics,
     pub timings: StageTimings,
 }

@@ -34,12 +34,25 @@
 //! [`assemble`] had to build it), `objects_ms` (choosing and rendering objects and the
 //! scene mask), `merge_ms` (merge and image1), `inpaint_ms`, `total_ms`.
 //!
+//! **Bad sources** ([`Generator::sample`]): when the address's source item fails to load because
+//! of its data (corrupt, truncated or too large image, bad depth, masks or MPI), the next items
+//! (mod the collection's length) are tried in order and the first good one is used with the
+//! address's own motions; failed items are remembered and counted by reason class
+//! ([`Generator::skip_counts`]), [`Sample::skipped_sources`] says how many were passed over. The
+//! result depends only on which items are bad, not on what was asked before. Runtime, model,
+//! configuration and render errors are not the item's and are returned.
+//!
+//! Besides the images and flow, a sample carries `depth1` (the scene's `1 / disparity`, the
+//! source frame's depth in the scene scale) and `depth2` (the merge's depth of what image2 shows;
+//! 0 in holes), both taken from what the recipe computes anyway.
+//!
 //! An object's motion is by default its own rigid motion from the source camera to the target
 //! camera (the reference script renders the object with its own small pose, independent of the
 //! camera's); with `objects_follow_camera` it is composed with the camera's
 //! (`X_tgt = R_c (R_o X + t_o) + t_c`: the object moves, then the camera).
 
 use std::borrow::Cow;
+use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
 
@@ -251,6 +264,9 @@ pub enum SampleError {
         #[source]
         source: PreblendError,
     },
+    /// Every source item failed to load (see [`Generator::sample`]).
+    #[error("all {items} source items failed to load (first: {first})")]
+    NoGoodSource { items: usize, first: String },
 }
 
 /// Applies what the configuration does to a freshly loaded scene (the pre-blend), once, before
@@ -280,6 +296,10 @@ fn check_scene(scene: &Scene) -> Result<(), SampleError> {
     }
     if !scene.intrinsics.is_valid() {
         return bad(format!("invalid intrinsics {:?}", scene.intrinsics));
+    }
+    let d = &scene.disparity;
+    if d.width != w || d.height != h || d.data.len() != w * h {
+        return bad(format!("the disparity is {} x {} but the MPI {w} x {h}", d.width, d.height));
     }
     Ok(())
 }
@@ -453,6 +473,20 @@ pub fn assemble_with_occupancy(
         .collect();
     let mut merged = merge(view, &views, config.merge, config.mask_threshold);
     let image1: Vec<u8> = scene.image.data.iter().map(|&v| unit_to_u8(v)).collect();
+    // depth1 = 1 / disparity, written over the scene render's coverage (no longer needed; a
+    // buffer already in memory costs no page faults)
+    let mut depth1 = coverage;
+    if depth1.len() != w * h {
+        depth1 = vec![0.0; w * h];
+    }
+    {
+        use rayon::prelude::*;
+        depth1.par_chunks_mut(w).zip(scene.disparity.data.par_chunks(w)).for_each(|(out, disp)| {
+            for (o, &d) in out.iter_mut().zip(disp) {
+                *o = crate::scene::scale::depth_of_disparity(d);
+            }
+        });
+    }
     timings.merge_ms = ms(t);
 
     // ---- inpainting
@@ -477,8 +511,12 @@ pub fn assemble_with_occupancy(
         mask2: merged.mask2,
         camera,
         objects: records,
+        depth1,
+        depth2: merged.depth2,
         inpainted_pixels: merged.holes,
+        skipped_sources: 0,
         provenance: scene.provenance.clone(),
+        intrinsics: scene.intrinsics,
         timings,
     })
 }
@@ -647,6 +685,40 @@ pub struct Generator {
     /// Tile occupancy of each cached scene's MPI (small: N x (W/8) x (H/8) counts), keyed by the
     /// scene's cache key and checked against the scene itself.
     occupancies: Mutex<Vec<OccupancyEntry>>,
+    /// Source items known to fail, by item: (id, reason class, reason).
+    bad: Mutex<BTreeMap<usize, BadItem>>,
+}
+
+/// A source item that failed to load: its id, reason class and reason.
+#[derive(Clone, Debug)]
+struct BadItem {
+    id: String,
+    class: &'static str,
+    reason: String,
+}
+
+/// The reason class of a failure that makes a source item bad (skipped), or `None` for failures
+/// that are not the item's (the runtime, a model, the configuration, a render): those are
+/// returned to the caller.
+fn bad_source_class(e: &SampleError) -> Option<&'static str> {
+    use crate::source::failure_class;
+    match e {
+        SampleError::Scene { source, .. } => match &**source {
+            SceneError::Given { path, message } => Some(failure_class(path, message)),
+            SceneError::Invalid(m) => Some(failure_class("", m)),
+            SceneError::Mask(m) => Some(match failure_class("", &m.to_string()) {
+                "decode" | "depth" => "mask",
+                other => other,
+            }),
+            SceneError::Mpi(m) => Some(match failure_class("", &m.to_string()) {
+                "decode" | "depth" => "mpi",
+                other => other,
+            }),
+            SceneError::Runtime(_) | SceneError::Model { .. } => None,
+        },
+        SampleError::InvalidScene { .. } => Some("scene"),
+        _ => None,
+    }
 }
 
 impl std::fmt::Debug for Generator {
@@ -682,7 +754,15 @@ impl Generator {
     ) -> Result<Self, SampleError> {
         config.validate()?;
         let loader_fingerprint = loader.fingerprint();
-        Ok(Self { loader, cache, config, fingerprint, loader_fingerprint, occupancies: Mutex::new(Vec::new()) })
+        Ok(Self {
+            loader,
+            cache,
+            config,
+            fingerprint,
+            loader_fingerprint,
+            occupancies: Mutex::new(Vec::new()),
+            bad: Mutex::new(BTreeMap::new()),
+        })
     }
 
     pub fn config(&self) -> &SampleConfig {
@@ -743,17 +823,83 @@ impl Generator {
         Some(occ)
     }
 
+    fn bad_items(&self) -> std::sync::MutexGuard<'_, BTreeMap<usize, BadItem>> {
+        self.bad.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Records a bad item (once).
+    fn mark_bad(&self, item: usize, class: &'static str, error: &SampleError) {
+        let mut bad = self.bad_items();
+        bad.entry(item).or_insert_with(|| BadItem { id: self.loader.id(item), class, reason: error.to_string() });
+    }
+
+    /// The scene of a source item that loads and fits the recipe, or the error.
+    fn good_scene(&self, item: usize) -> Result<Arc<Scene>, SampleError> {
+        let scene = self.scene(item)?;
+        check_scene(&scene)?;
+        Ok(scene)
+    }
+
     /// The sample at (fingerprint, `seed`, `index`).
+    ///
+    /// **Bad sources are skipped deterministically.** If the address's source item `k` fails to
+    /// load (a corrupt, truncated or too large image, bad depth or masks: an error of the item's
+    /// data, not of the runtime, a model or the configuration), items `k + 1, k + 2, ...` (mod the
+    /// number of items) are tried in turn and the first that loads makes the sample, with the
+    /// address's own motions (the random streams stay keyed by (fingerprint, seed, index)), so a
+    /// sample never depends on what was asked before. Failed items are remembered (not loaded
+    /// again; failures are never cached as scenes) and recorded once each
+    /// ([`skipped`](Self::skipped), [`skip_counts`](Self::skip_counts));
+    /// [`Sample::skipped_sources`] counts the items passed over for this sample. When every
+    /// item fails the error is [`SampleError::NoGoodSource`].
     pub fn sample(&self, seed: u64, index: u64) -> Result<Sample, SampleError> {
         let start = Instant::now();
-        let item = self.source_item(index).ok_or(SampleError::EmptySource)?;
-        let scene = self.scene(item)?;
-        let occ = self.occupancy(self.key(item), &scene);
-        let scene_ms = ms(start);
-        let address = SampleAddress { dataset: self.fingerprint, seed, index };
-        let mut s = assemble_with_occupancy(&scene, address, &self.config, occ.as_deref())?;
-        s.timings.scene_ms = scene_ms;
-        s.timings.total_ms += scene_ms;
-        Ok(s)
+        let first = self.source_item(index).ok_or(SampleError::EmptySource)?;
+        let len = self.loader.len();
+        let mut passed = 0u32;
+        for step in 0..len {
+            let item = (first + step) % len;
+            if self.bad_items().contains_key(&item) {
+                passed += 1;
+                continue;
+            }
+            let scene = match self.good_scene(item) {
+                Ok(scene) => scene,
+                Err(e) => match bad_source_class(&e) {
+                    Some(class) => {
+                        self.mark_bad(item, class, &e);
+                        passed += 1;
+                        continue;
+                    }
+                    None => return Err(e),
+                },
+            };
+            let occ = self.occupancy(self.key(item), &scene);
+            let scene_ms = ms(start);
+            let address = SampleAddress { dataset: self.fingerprint, seed, index };
+            let mut s = assemble_with_occupancy(&scene, address, &self.config, occ.as_deref())?;
+            s.skipped_sources = passed;
+            s.timings.scene_ms = scene_ms;
+            s.timings.total_ms += scene_ms;
+            return Ok(s);
+        }
+        let bad = self.bad_items();
+        let first_reason = bad.values().next().map(|b| b.reason.clone()).unwrap_or_default();
+        Err(SampleError::NoGoodSource { items: len, first: first_reason })
+    }
+
+    /// The source items found bad so far, in item order: (item, id, reason).
+    pub fn skipped(&self) -> Vec<(usize, String, String)> {
+        self.bad_items().iter().map(|(&i, b)| (i, b.id.clone(), b.reason.clone())).collect()
+    }
+
+    /// How many source items were found bad so far, by reason class (`decode`, `truncated`,
+    /// `too-large`, `depth`, `mask`, `mpi`, `scene`; see [`crate::source::failure_class`]).
+    pub fn skip_counts(&self) -> BTreeMap<String, u64> {
+        let mut out = BTreeMap::new();
+        for b in self.bad_items().values() {
+            *out.entry(b.class.to_string()).or_insert(0) += 1;
+        }
+        out
     }
 }

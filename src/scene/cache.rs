@@ -5,7 +5,10 @@
 //!
 //! - [`SceneCache::get_or_load`] runs the loader at most once per key at a time: a thread that
 //!   asks for a key another thread is loading waits for that load and shares its result (counted
-//!   as a hit, and in [`CacheStats::waits`]).
+//!   as a hit, and in [`CacheStats::waits`]). Except on a rayon worker thread: there it loads the
+//!   scene itself (counted as a miss) instead of blocking, because the load it would wait for can
+//!   be further down its own stack (rayon runs other jobs while a job waits in a parallel loop),
+//!   which would deadlock the pool.
 //! - A loaded scene is inserted and the least recently used entries are evicted until the cache
 //!   fits in its budget again. A scene larger than the whole budget is returned (also to the
 //!   threads waiting for it) but not kept ([`CacheStats::not_kept`]).
@@ -164,6 +167,17 @@ impl SceneCache {
                         let scene = scene.clone();
                         inner.stats.hits += 1;
                         return Ok(scene);
+                    }
+                    Some(Slot::Loading(_)) if rayon::current_thread_index().is_some() => {
+                        // On a rayon worker, never block on another load: the loader may be this
+                        // very thread further down its stack (a job stolen while the loading job
+                        // waits in a parallel loop) or a worker waiting on us, and waiting would
+                        // deadlock the pool. Load it here instead (same content; the first load
+                        // to finish is the one cached).
+                        inner.stats.misses += 1;
+                        drop(inner);
+                        let f = load.take().expect("the loader runs at most once per call");
+                        return f().map(Arc::new);
                     }
                     Some(Slot::Loading(p)) => {
                         let p = p.clone();

@@ -540,6 +540,22 @@ impl InstanceMasks {
         Self::from_index_map(&ids, w, h).map_err(|e| e.prefixed(&path.display().to_string()))
     }
 
+    /// [`from_index_png_with_limits`](Self::from_index_png_with_limits) for a PNG held in memory
+    /// (a shard member, an upload), named `name` in errors.
+    pub fn from_index_png_bytes(bytes: &[u8], name: &str, limits: &ImageLimits) -> Result<Self, MaskError> {
+        let path = Path::new(name);
+        if !bytes.starts_with(&PNG_SIGNATURE) {
+            return Err(MaskError::IndexPng {
+                path: path.to_path_buf(),
+                reason: "not a PNG file (instance masks must be lossless PNGs)".into(),
+            });
+        }
+        let img = crate::io::image::decode_bytes(bytes, path, limits)?;
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let ids = index_ids(&img).map_err(|reason| MaskError::IndexPng { path: path.to_path_buf(), reason })?;
+        Self::from_index_map(&ids, w, h).map_err(|e| e.prefixed(name))
+    }
+
     /// The index map of the instances: each pixel gets the id of the instance with the largest
     /// mask value `>= threshold` there (ties: the earlier instance), 0 where none reaches it.
     pub fn to_index_map(&self, threshold: f32) -> Vec<u32> {

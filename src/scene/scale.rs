@@ -117,7 +117,13 @@ pub fn normalise_relative(values: &[f32], width: usize, height: usize) -> Result
 /// Depth of a scene-scale disparity: `1 / max(disparity, DISPARITY_FLOOR)`, so always finite and
 /// in `[1, 1000]` for values in the scene scale.
 pub fn depth_from_disparity(disparity: &Disparity) -> Vec<f32> {
-    disparity.data.iter().map(|&d| 1.0 / sanitize(d)).collect()
+    disparity.data.iter().map(|&d| depth_of_disparity(d)).collect()
+}
+
+/// The depth of one scene-scale disparity value, as [`depth_from_disparity`].
+#[inline]
+pub fn depth_of_disparity(d: f32) -> f32 {
+    1.0 / sanitize(d)
 }
 
 /// Checks that a disparity map claims to be in the scene scale: the right size and every value

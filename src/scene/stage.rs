@@ -39,7 +39,7 @@ impl From<SourceError> for SceneError {
     fn from(e: SourceError) -> Self {
         match e {
             SourceError::File { path, message } => SceneError::Given { path, message },
-            SourceError::Invalid(m) => SceneError::Invalid(m),
+            SourceError::Invalid(m) | SourceError::Limit(m) => SceneError::Invalid(m),
         }
     }
 }

@@ -3,7 +3,8 @@
 //! the cache. A dataset's fingerprint covers its sources, the scene stage and the effective
 //! sample configuration, and is the dataset word of every sample address.
 
-use std::sync::{Arc, Mutex};
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, RwLock};
 
 use crate::sample::motion::{MotionPreset, MotionRanges};
 use crate::sample::recipe::{Generator, MotionSpec, SampleConfig, SampleError};
@@ -11,8 +12,9 @@ use crate::scene::cache::SceneCache;
 use crate::scene::stage::{SceneStage, SourceScenes};
 use crate::scene::SceneLoader;
 use crate::source::builtin::{BuiltinOptions, BuiltinSource};
-use crate::source::dir::{DirSource, SourceOptions};
-use crate::source::{Fnv64, Source};
+use crate::source::dir::SourceOptions;
+use crate::source::upload::{UploadLimits, UploadStore, UploadSummary};
+use crate::source::{open_source, Fnv64, Source};
 
 use super::config::{DatasetConfig, ServiceConfig};
 use super::error::ServiceError;
@@ -97,6 +99,16 @@ impl Dataset {
         self.source.len()
     }
 
+    /// What the source left out when it was opened (e.g. a truncated shard's last sample), counted
+    /// by reason class.
+    pub fn opened_skips(&self) -> BTreeMap<String, u64> {
+        let mut out = BTreeMap::new();
+        for s in self.source.skipped() {
+            *out.entry(s.class).or_insert(0) += 1;
+        }
+        out
+    }
+
     /// The generator for the default configuration changed by `o` (shared with earlier requests
     /// asking for the same configuration). Errors name the request field.
     pub fn generator(&self, o: &Overrides) -> Result<Arc<Generator>, ServiceError> {
@@ -147,11 +159,18 @@ impl Dataset {
     }
 }
 
-/// All datasets of a server.
+/// All datasets of a server: the configured ones (fixed at start) and the uploaded ones (added
+/// or replaced by `UploadSources`).
 pub struct Datasets {
     pub list: Vec<Arc<Dataset>>,
     pub cache: Arc<SceneCache>,
     pub stage: Arc<SceneStage>,
+    /// The received upload files.
+    pub uploads: Arc<UploadStore>,
+    /// Datasets made from uploads, by name.
+    uploaded: RwLock<BTreeMap<String, Arc<Dataset>>>,
+    /// The sample configuration of uploaded datasets.
+    upload_sample: SampleConfig,
 }
 
 impl Datasets {
@@ -176,10 +195,12 @@ impl Datasets {
                 Arc::new(BuiltinSource::open(&o).map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?)
             } else {
                 let o = SourceOptions { resize, limits: config.image_limits(), ..SourceOptions::default() };
-                let s = DirSource::open(std::path::Path::new(&spec.path), &o)
-                    .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
-                Arc::new(s)
+                open_source(std::path::Path::new(&spec.path), &o)
+                    .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?
             };
+            for s in source.skipped() {
+                tracing::warn!(dataset = %name, item = %s.item, class = %s.class, reason = %s.reason, "source item left out");
+            }
             if source.is_empty() {
                 return Err(ServiceError::Config(format!("dataset {name}: {} has no images", source.describe())));
             }
@@ -188,7 +209,17 @@ impl Datasets {
                 .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
             list.push(Arc::new(ds));
         }
-        Ok(Self { list, cache, stage })
+        let upload_options = SourceOptions { resize, limits: config.image_limits(), ..SourceOptions::default() };
+        let upload_limits = UploadLimits { max_upload_bytes: config.max_upload_bytes, ..UploadLimits::default() };
+        let uploads = UploadStore::new(upload_options, upload_limits);
+        Ok(Self {
+            list,
+            cache,
+            stage,
+            uploads,
+            uploaded: RwLock::new(BTreeMap::new()),
+            upload_sample: config.sample.clone(),
+        })
     }
 
     /// The dataset called `name`; the empty name is the default (the first).
@@ -196,7 +227,42 @@ impl Datasets {
         if name.is_empty() {
             return self.list.first().cloned().ok_or_else(|| ServiceError::UnknownDataset(String::new()));
         }
-        self.list.iter().find(|d| d.name == name).cloned().ok_or_else(|| ServiceError::UnknownDataset(name.into()))
+        if let Some(d) = self.list.iter().find(|d| d.name == name) {
+            return Ok(d.clone());
+        }
+        let up = self.uploaded.read().unwrap_or_else(|e| e.into_inner());
+        up.get(name).cloned().ok_or_else(|| ServiceError::UnknownDataset(name.into()))
+    }
+
+    /// Every dataset: the configured ones (the default first), then the uploaded ones by name.
+    pub fn all(&self) -> Vec<Arc<Dataset>> {
+        let mut out = self.list.clone();
+        out.extend(self.uploaded.read().unwrap_or_else(|e| e.into_inner()).values().cloned());
+        out
+    }
+
+    /// After an upload to `summary.dataset`: (re)makes that dataset from the upload store's
+    /// current content. A name of a configured dataset cannot be uploaded to.
+    pub fn refresh_upload(&self, summary: &UploadSummary) -> Result<Arc<Dataset>, ServiceError> {
+        let name = &summary.dataset;
+        let source = self
+            .uploads
+            .dyn_source(name)
+            .ok_or_else(|| ServiceError::invalid("dataset", format!("upload dataset {name} holds no images")))?;
+        let ds = Arc::new(Dataset::new(
+            name.clone(),
+            source,
+            self.stage.clone(),
+            self.cache.clone(),
+            self.upload_sample.clone(),
+        )?);
+        self.uploaded.write().unwrap_or_else(|e| e.into_inner()).insert(name.clone(), ds.clone());
+        Ok(ds)
+    }
+
+    /// Whether `name` is a configured (not uploaded) dataset.
+    pub fn is_configured(&self, name: &str) -> bool {
+        self.list.iter().any(|d| d.name == name)
     }
 
     pub fn default_dataset(&self) -> &Arc<Dataset> {

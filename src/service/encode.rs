@@ -100,8 +100,17 @@ pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sa
         mask2: crop_plane(&s.mask2, w, 1, x0, y0, cw, ch),
         camera: s.camera.clone(),
         objects: s.objects.clone(),
+        depth1: crop_plane(&s.depth1, w, 1, x0, y0, cw, ch),
+        depth2: crop_plane(&s.depth2, w, 1, x0, y0, cw, ch),
         inpainted_pixels: s.inpainted_pixels,
+        skipped_sources: s.skipped_sources,
         provenance: s.provenance.clone(),
+        intrinsics: crate::geometry::Intrinsics::new(
+            s.intrinsics.fx,
+            s.intrinsics.fy,
+            s.intrinsics.cx - x0 as f64,
+            s.intrinsics.cy - y0 as f64,
+        ),
         timings: s.timings,
     }
 }
@@ -197,8 +206,9 @@ pub fn to_proto(
             }
             pb::Field::Mask1 => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.mask1), out.lz4),
             pb::Field::Mask2 => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.mask2), out.lz4),
-            // TODO(merge: depth fields): Sample.depth1 / depth2 (refused by validation until then)
-            pb::Field::Depth1 | pb::Field::Depth2 | pb::Field::Unspecified => continue,
+            pb::Field::Depth1 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth1), out.lz4),
+            pb::Field::Depth2 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth2), out.lz4),
+            pb::Field::Unspecified => continue,
         };
         tensors.push(t);
     }
@@ -235,8 +245,7 @@ pub fn to_proto(
             total_ms: tm.total_ms,
             encode_ms: t.elapsed().as_secs_f64() * 1e3,
         }),
-        // TODO(merge: skip counters): Sample.skipped_sources
-        skipped_sources: 0,
+        skipped_sources: s.skipped_sources,
         crop_x: crop.0 as u32,
         crop_y: crop.1 as u32,
         inpainted_pixels: s.inpainted_pixels,
@@ -340,8 +349,16 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
                 motion: motion_from_pb(o.motion.as_ref()),
             })
             .collect(),
+        depth1: vec![0.0; n],
+        depth2: vec![0.0; n],
         inpainted_pixels: s.inpainted_pixels,
+        skipped_sources: s.skipped_sources,
         provenance: s.provenance.clone(),
+        intrinsics: s
+            .intrinsics
+            .as_ref()
+            .map(|k| Intrinsics::new(k.fx, k.fy, k.cx, k.cy))
+            .unwrap_or_else(|| Intrinsics::reference_default(w, h)),
         timings: s
             .timings
             .as_ref()
@@ -368,6 +385,15 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
                 let v = decode_f32(t)?;
                 check(v.len(), n * 2)?;
                 out.flow = v;
+            }
+            "depth1" | "depth2" => {
+                let v = decode_f32(t)?;
+                check(v.len(), n)?;
+                if t.name == "depth1" {
+                    out.depth1 = v;
+                } else {
+                    out.depth2 = v;
+                }
             }
             name => {
                 let slot = match name {
@@ -428,8 +454,12 @@ mod tests {
             mask2: vec![0; n],
             camera: Motion::new("x", [0.0; 3], RotationKind::AxisAngle, [0.0; 3]),
             objects: vec![],
+            depth1: vec![1.0; n],
+            depth2: vec![1.0; n],
             inpainted_pixels: 0,
+            skipped_sources: 0,
             provenance: vec![],
+            intrinsics: Intrinsics::reference_default(w, h),
             timings: StageTimings::default(),
         };
         // every pixel moves 1.5 px right: inside the full frame except the last column

@@ -40,8 +40,8 @@ pub struct Metrics {
     pub bytes_sent: Counter,
     /// Samples that could not be made, by reason.
     pub generation_errors: Family<Labels, Counter>,
-    /// Bad sources passed over, by reason.
-    pub skipped_sources: Family<Labels, Counter>,
+    /// Bad source items found so far (each passed over deterministically), by dataset and reason.
+    pub skipped_sources: Family<Labels, Gauge>,
     /// Seconds per stage of the recipe (from `Sample.timings`) and of the encoding.
     pub stage_seconds: Family<Labels, Histogram, fn() -> Histogram>,
     /// Finished samples waiting in each stream's queue.
@@ -154,9 +154,10 @@ impl Metrics {
     }
 
     /// Counts a sample that could not be made.
-    pub fn observe_error(&self, dataset: &str, e: &SampleError) {
+    pub fn observe_error(&self, _dataset: &str, e: &SampleError) {
         let reason = match e {
             SampleError::Scene { .. } => "source",
+            SampleError::NoGoodSource { .. } => "no-good-source",
             SampleError::InvalidScene { .. } => "invalid-scene",
             SampleError::Render { .. } => "render",
             SampleError::Preblend { .. } => "preblend",
@@ -164,13 +165,24 @@ impl Metrics {
             SampleError::Config(_) | SampleError::Motion(_) => "config",
         };
         self.generation_errors.get_or_create(&label("reason", reason)).inc();
-        // TODO(merge: skip counters): with skip-to-next-good-source, take these from
-        // Generator::skip_counts() / Sample.skipped_sources instead of failed samples.
-        if matches!(e, SampleError::Scene { .. } | SampleError::InvalidScene { .. }) {
-            self.skipped_sources.get_or_create(&label("reason", reason)).inc();
-            let mut m = self.skipped_by_dataset.lock().unwrap_or_else(|e| e.into_inner());
-            *m.entry((dataset.to_string(), reason.to_string())).or_default() += 1;
+    }
+
+    /// Records the bad source items of `dataset` known so far, by reason class (a generator's
+    /// [`skip_counts`](crate::sample::recipe::Generator::skip_counts), or what a source left out
+    /// when opened); counts only grow. True when a count grew (something new was skipped).
+    pub fn record_skips(&self, dataset: &str, counts: &BTreeMap<String, u64>) -> bool {
+        let mut grew = false;
+        let mut m = self.skipped_by_dataset.lock().unwrap_or_else(|e| e.into_inner());
+        for (reason, &n) in counts {
+            let slot = m.entry((dataset.to_string(), reason.clone())).or_default();
+            if n > *slot {
+                *slot = n;
+                grew = true;
+                let labels = vec![("dataset".to_string(), dataset.to_string()), ("reason".to_string(), reason.clone())];
+                self.skipped_sources.get_or_create(&labels).set(n as i64);
+            }
         }
+        grew
     }
 
     /// Skipped sources of a dataset by reason (for GetInfo).

@@ -25,7 +25,6 @@ use super::pb;
 use super::pb::mpi_flow_server::{MpiFlow, MpiFlowServer};
 use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
 use super::validate;
-use crate::geometry::Intrinsics;
 use crate::sample::recipe::Generator;
 
 /// The gRPC service name health reports on (besides "").
@@ -34,7 +33,7 @@ pub const SERVICE_NAME: &str = "mpiflow.v1.MpiFlow";
 /// What the handlers share.
 pub struct State {
     pub config: ServiceConfig,
-    pub datasets: Datasets,
+    pub datasets: Arc<Datasets>,
     pub scheduler: Arc<Scheduler>,
     pub metrics: Arc<Metrics>,
     health: HealthReporter,
@@ -72,13 +71,20 @@ impl State {
                 tracing::warn!(dataset = %dataset.name, index, error = %source, "sample failed");
                 ServiceError::Generation { index, source }
             })?;
-            // the scene is in the cache: this is a lookup
-            // TODO(merge: skip to next good source): take the source item the sample was made from
-            let k = generator
-                .source_item(index)
-                .and_then(|i| generator.scene(i).ok())
-                .map(|sc| sc.intrinsics)
-                .unwrap_or_else(|| Intrinsics::reference_default(s.width, s.height));
+            if s.skipped_sources > 0 {
+                let opened = dataset.opened_skips();
+                let mut counts = generator.skip_counts();
+                for (k, n) in opened {
+                    *counts.entry(k).or_default() += n;
+                }
+                if metrics.record_skips(&dataset.name, &counts) {
+                    for (item, id, reason) in generator.skipped() {
+                        tracing::warn!(dataset = %dataset.name, item, id = %id, reason = %reason, "bad source passed over");
+                    }
+                }
+            }
+            // the camera of the scene the sample was made from (before any crop)
+            let k = s.intrinsics;
             let timings = s.timings;
             let (corner, s) = match &out.crop {
                 Some(c) => {
@@ -186,6 +192,47 @@ impl State {
         }
     }
 
+    /// Receives an upload's chunks into a session of the upload store, commits it, and (re)makes
+    /// the uploaded dataset. Nothing of a failed upload is kept.
+    async fn upload(&self, mut chunks: Streaming<pb::SourceChunk>) -> Result<pb::UploadSummary, ServiceError> {
+        if self.draining.load(Ordering::SeqCst) {
+            return Err(ServiceError::Draining);
+        }
+        let mut session = self.datasets.uploads.session();
+        let mut dataset = String::new();
+        while let Some(chunk) = chunks.message().await.map_err(|e| ServiceError::invalid("chunks", e.message()))? {
+            if dataset.is_empty() {
+                dataset = chunk.dataset.clone();
+                if self.datasets.is_configured(&dataset) {
+                    return Err(ServiceError::invalid(
+                        "dataset",
+                        format!("{dataset} is a configured dataset; upload to another name"),
+                    ));
+                }
+            }
+            session.push(&dataset, &chunk.name, &chunk.kind, &chunk.data).map_err(upload_error)?;
+        }
+        let datasets = self.datasets.clone();
+        let summary = tokio::task::spawn_blocking(move || -> Result<_, ServiceError> {
+            let summary = session.finish().map_err(upload_error)?;
+            if summary.sources > 0 {
+                datasets.refresh_upload(&summary)?;
+            }
+            Ok(summary)
+        })
+        .await
+        .map_err(|e| ServiceError::Internal(format!("upload: {e}")))??;
+        tracing::info!(dataset = %summary.dataset, accepted = summary.accepted, rejected = summary.rejected.len(), sources = summary.sources, "upload");
+        let fingerprint = self.datasets.get(&summary.dataset).map(|d| d.fingerprint()).unwrap_or(summary.fingerprint);
+        Ok(pb::UploadSummary {
+            dataset: summary.dataset,
+            accepted: summary.accepted,
+            rejected: summary.rejected,
+            fingerprint,
+            sources: summary.sources,
+        })
+    }
+
     fn info(&self) -> pb::InfoResponse {
         let stage = &self.datasets.stage;
         let mut models = vec![pb::ModelInfo { role: "mpi".into(), name: stage.mpi.name() }];
@@ -200,7 +247,7 @@ impl State {
             version: env!("CARGO_PKG_VERSION").into(),
             datasets: self
                 .datasets
-                .list
+                .all()
                 .iter()
                 .enumerate()
                 .map(|(i, d)| pb::DatasetInfo {
@@ -288,13 +335,10 @@ impl MpiFlow for Service {
 
     async fn upload_sources(
         &self,
-        _request: Request<Streaming<pb::SourceChunk>>,
+        request: Request<Streaming<pb::SourceChunk>>,
     ) -> Result<Response<pb::UploadSummary>, Status> {
-        // TODO(merge: upload store): hand the chunks to the upload store and register the dataset
-        let e = ServiceError::Unimplemented(
-            "UploadSources is not available in this server version: serve a directory with --source".into(),
-        );
-        Err(refused::<()>(&self.state, Err(e)).unwrap_err())
+        let r = self.state.upload(request.into_inner()).await;
+        refused(&self.state, r).map(Response::new)
     }
 
     async fn get_info(&self, _request: Request<pb::InfoRequest>) -> Result<Response<pb::InfoResponse>, Status> {
@@ -321,6 +365,20 @@ impl std::fmt::Debug for RunningServer {
     }
 }
 
+/// An upload store error as the service's: limits are RESOURCE_EXHAUSTED, the rest name the
+/// request's fields.
+fn upload_error(e: crate::source::SourceError) -> ServiceError {
+    use crate::source::SourceError;
+    match e {
+        SourceError::Limit(m) => ServiceError::LimitExceeded(m),
+        SourceError::Invalid(m) => match m.split_once(": ") {
+            Some(("dataset", rest)) => ServiceError::invalid("dataset", rest.to_string()),
+            _ => ServiceError::invalid("chunks", m),
+        },
+        other => ServiceError::invalid("chunks", other.to_string()),
+    }
+}
+
 async fn bind(addr: &str, what: &str) -> Result<tokio::net::TcpListener, ServiceError> {
     tokio::net::TcpListener::bind(addr).await.map_err(|e| ServiceError::Config(format!("{what} {addr}: {e}")))
 }
@@ -335,11 +393,14 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         .await
         .map_err(|e| ServiceError::Internal(format!("dataset start-up: {e}")))??;
     metrics.watch_cache(datasets.cache.clone());
+    for d in datasets.all() {
+        metrics.record_skips(&d.name, &d.opened_skips());
+    }
     let scheduler = Scheduler::new(config.worker_count(), config.in_flight_capacity(), metrics.clone())?;
     let (health, health_service) = tonic_health::server::health_reporter();
     let state = Arc::new(State {
         config: config.clone(),
-        datasets,
+        datasets: Arc::new(datasets),
         scheduler,
         metrics: metrics.clone(),
         health,

@@ -26,16 +26,8 @@ pub fn output_spec(
     let mut list = Vec::with_capacity(fields.len());
     for &f in fields {
         let field = pb::Field::try_from(f).map_err(|_| invalid("fields", format!("unknown field value {f}")))?;
-        match field {
-            pb::Field::Unspecified => return Err(invalid("fields", "FIELD_UNSPECIFIED is not a field")),
-            // TODO(merge: depth fields): accept once Sample carries depth1 / depth2
-            pb::Field::Depth1 | pb::Field::Depth2 => {
-                return Err(invalid(
-                    "fields",
-                    format!("{} is not available from this server version", field.as_str_name()),
-                ))
-            }
-            _ => {}
+        if field == pb::Field::Unspecified {
+            return Err(invalid("fields", "FIELD_UNSPECIFIED is not a field"));
         }
         list.push(field);
     }

@@ -538,18 +538,32 @@ pub fn read_depth_npy(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, V
             file_err(p, format!("not a valid .npy depth: {e}"))
         }
     })?;
+    depth_from_array(a, limits).map_err(|m| file_err(p, m))
+}
+
+/// [`read_depth_npy`] for an `.npy` held in memory (errors without a name).
+pub fn depth_npy_from_bytes(bytes: &[u8], limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), String> {
+    if bytes.len() as u64 > limits.max_bytes {
+        return Err(format!("{} bytes is larger than the limit of {} bytes", bytes.len(), limits.max_bytes));
+    }
+    let a = npyz::NpyFile::new(bytes)
+        .and_then(crate::io::npy::read_array)
+        .map_err(|e| format!("not a valid .npy depth: {e}"))?;
+    depth_from_array(a, limits)
+}
+
+/// A depth array's shape checked (`[H, W]`, `[1, H, W]`, `[H, W, 1]`, `[1, 1, H, W]`) against the
+/// limits, as (width, height, values).
+fn depth_from_array(a: crate::io::npy::Array, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), String> {
     let (h, w) = match a.shape.as_slice() {
         [h, w] | [1, h, w] | [h, w, 1] | [1, 1, h, w] => (*h, *w),
         s => {
-            return Err(file_err(
-                p,
-                format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])"),
-            ))
+            return Err(format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])"))
         }
     };
     let dims_ok = matches!((u32::try_from(w), u32::try_from(h)), (Ok(w), Ok(h)) if w > 0 && h > 0 && limits.check_dimensions(w, h));
     if !dims_ok {
-        return Err(file_err(p, format!("depth of {w} x {h} pixels is empty or too large ({limits})")));
+        return Err(format!("depth of {w} x {h} pixels is empty or too large ({limits})"));
     }
     Ok((w as usize, h as usize, a.data.into_iter().map(|v| v as f32).collect()))
 }
@@ -558,6 +572,21 @@ pub fn read_depth_npy(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, V
 /// an RGB PNG is accepted when it is grey, R = G = B).
 pub fn read_disparity_png(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
     let img = decode_file(p, limits).map_err(|e| file_err(p, e))?;
+    disparity_from_image(&img).map_err(|m| file_err(p, m))
+}
+
+/// [`read_disparity_png`] for a PNG held in memory, named `name` in errors.
+pub fn disparity_png_from_bytes(
+    bytes: &[u8],
+    name: &str,
+    limits: &ImageLimits,
+) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    let p = Path::new(name);
+    let img = crate::io::image::decode_bytes(bytes, p, limits).map_err(|e| file_err(p, e))?;
+    disparity_from_image(&img).map_err(|m| file_err(p, m))
+}
+
+fn disparity_from_image(img: &DynamicImage) -> Result<(usize, usize, Vec<f32>), String> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     fn grey<T: Copy + Into<f32> + PartialEq>(raw: &[T], ch: usize, max: f32) -> Option<Vec<f32>> {
         let mut out = Vec::with_capacity(raw.len() / ch);
@@ -569,7 +598,7 @@ pub fn read_disparity_png(p: &Path, limits: &ImageLimits) -> Result<(usize, usiz
         }
         Some(out)
     }
-    let data = match &img {
+    let data = match img {
         DynamicImage::ImageLuma8(b) => grey(b.as_raw(), 1, 255.0),
         DynamicImage::ImageLumaA8(b) => grey(b.as_raw(), 2, 255.0),
         DynamicImage::ImageRgb8(b) => grey(b.as_raw(), 3, 255.0),
@@ -581,10 +610,7 @@ pub fn read_disparity_png(p: &Path, limits: &ImageLimits) -> Result<(usize, usiz
         _ => None,
     };
     data.map(|d| (w, h, d)).ok_or_else(|| {
-        file_err(
-            p,
-            format!("a {:?} image is not a grey disparity map (expected an 8- or 16-bit grey PNG)", img.color()),
-        )
+        format!("a {:?} image is not a grey disparity map (expected an 8- or 16-bit grey PNG)", img.color())
     })
 }
 

@@ -4,8 +4,9 @@ Two kinds of server run the same tests:
 - "real": the Rust `mpiflow serve` ($MPIFLOW_BIN, default <repo>/target/release/mpiflow). When
   MPIFLOW_BIN is set (tools/test.sh sets it) a missing binary is an error; otherwise the real
   tests are skipped when it has not been built.
-- "fake": tests/fake_server.py, a small Python stand-in with the same API and command line, so
-  the client's logic is checked without the Rust build.
+- "fake" (only with MPIFLOW_TEST_FAKE=1): tests/fake_server.py, a small Python stand-in with the
+  same API and command line, for working on the client without the Rust build. CI runs the
+  real server only.
 """
 from __future__ import annotations
 
@@ -144,7 +145,8 @@ class Server:
 
 
 def _kinds() -> List[str]:
-    return ["fake", "real"]
+    # the fake stand-in only on request (client development without the Rust build)
+    return ["fake", "real"] if os.environ.get("MPIFLOW_TEST_FAKE") == "1" else ["real"]
 
 
 @pytest.fixture(scope="session", params=_kinds())

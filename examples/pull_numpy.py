@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from the repo without installing
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients" / "python"))  # run from the repo without installing
 import mpiflow  # noqa: E402
 
 

@@ -23,7 +23,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch.utils.data import DataLoader
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from the repo without installing
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "clients" / "python"))  # run from the repo without installing
 from mpiflow import MPIFlowDataset  # noqa: E402
 
 

@@ -1,0 +1,567 @@
+//! Uploaded sources: named in-memory datasets that clients fill with images (and optional depth
+//! and instance masks) as streams of chunks, under byte and image limits. The gRPC layer calls
+//! this plain API: [`UploadStore::session`], [`UploadSession::push`] per chunk,
+//! [`UploadSession::finish`] at the end of the stream.
+//!
+//! # Files and chunks
+//!
+//! A chunk carries `(dataset, name, kind, data)` as the proto's `SourceChunk`: `dataset` is read
+//! from the first chunk of the upload (later values are ignored); a chunk with a non-empty `name`
+//! (and `kind`) different from the current file's starts a new file, an empty `name` continues the
+//! current one. `kind` is `image` (PNG or JPEG), `depth` (a `.npy` float depth in any linear unit,
+//! or an 8/16-bit grey PNG disparity in [0, 1], told apart by their first bytes) or `mask` (an
+//! instance-id PNG). Depth and mask attach to the image of the same name, sent in the same upload
+//! or already in the dataset.
+//!
+//! Names are **stems only**: 1 to 128 of `A-Z a-z 0-9 - _ .`, not starting with `.`, without
+//! `..` (so no paths, ever). A file with a bad name or kind, over the per-file limit
+//! ([`ImageLimits::max_bytes`](crate::io::image::ImageLimits::max_bytes)), sent twice, or that
+//! does not decode (checked at [`finish`](UploadSession::finish) by decoding it fully under the
+//! image limits) is **rejected** as `name: reason` and the upload goes on; an item with a
+//! rejected part is rejected whole (an image without the depth that was meant for it would make
+//! other samples). Over [`UploadLimits::max_upload_bytes`] (all chunks of one upload, checked as
+//! they arrive), or, at the commit, [`UploadLimits::max_total_bytes`] (everything stored, items
+//! replaced by the upload no longer counted) or the dataset and item counts, the upload fails
+//! with [`SourceError::Limit`] and nothing of it is stored; a malformed stream
+//! (no dataset, a file without a name) fails with [`SourceError::Invalid`].
+//!
+//! # Datasets
+//!
+//! An accepted upload is committed atomically: its items are added to the dataset (an item of an
+//! existing name is replaced; a lone depth or mask replaces that part of an existing item).
+//! [`UploadStore::source`] returns a snapshot: an immutable `Arc<dyn Source>` whose items are
+//! sorted by name (a deterministic order) and whose fingerprint is FNV-1a 64 over every item's
+//! name and each part's kind, size and content hash (and the [`SourceOptions`] that change
+//! loading), so it changes whenever the content does, and does not depend on the dataset's
+//! name or the upload order. Items decode exactly as a directory's would (sizes fitted,
+//! [`SourceOptions::resize`], intrinsics); errors name them `upload:DATASET/KIND/NAME`.
+
+use super::dir::{IntrinsicsSpec, SourceOptions};
+use super::encoded::{decode_item, sniff_depth, DepthEncoding, Encoded, EncodedItem};
+use super::{fnv1a64, Fnv64, Source, SourceError, SourceItem};
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+/// Byte and count limits of a [`UploadStore`] (per-file and image limits are the
+/// [`SourceOptions::limits`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct UploadLimits {
+    /// All chunks of one upload together.
+    pub max_upload_bytes: u64,
+    /// Everything stored, all datasets together.
+    pub max_total_bytes: u64,
+    /// Most datasets.
+    pub max_datasets: usize,
+    /// Most items in one dataset.
+    pub max_items: usize,
+}
+
+impl Default for UploadLimits {
+    /// 256 MiB per upload, 1 GiB stored, 64 datasets of at most 100 000 items.
+    fn default() -> Self {
+        UploadLimits { max_upload_bytes: 256 << 20, max_total_bytes: 1 << 30, max_datasets: 64, max_items: 100_000 }
+    }
+}
+
+/// What an upload did (the proto's `UploadSummary`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UploadSummary {
+    pub dataset: String,
+    /// Files accepted (images, depths and masks).
+    pub accepted: u32,
+    /// `name: reason` for each rejected file or item.
+    pub rejected: Vec<String>,
+    /// The dataset's fingerprint after the upload.
+    pub fingerprint: u64,
+    /// Items in the dataset after the upload.
+    pub sources: u64,
+}
+
+/// A dataset in [`UploadStore::datasets`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct UploadDatasetInfo {
+    pub name: String,
+    pub fingerprint: u64,
+    pub sources: u64,
+    /// Bytes of encoded files held.
+    pub bytes: u64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Kind {
+    Image,
+    Depth,
+    Mask,
+}
+
+impl Kind {
+    fn parse(s: &str) -> Option<Self> {
+        match s {
+            "image" => Some(Kind::Image),
+            "depth" => Some(Kind::Depth),
+            "mask" => Some(Kind::Mask),
+            _ => None,
+        }
+    }
+
+    fn as_str(self) -> &'static str {
+        match self {
+            Kind::Image => "image",
+            Kind::Depth => "depth",
+            Kind::Mask => "mask",
+        }
+    }
+}
+
+/// One stored encoded file with its content hash.
+#[derive(Debug)]
+struct Part {
+    bytes: Vec<u8>,
+    hash: u64,
+}
+
+impl Part {
+    fn new(bytes: Vec<u8>) -> Arc<Self> {
+        let hash = fnv1a64(&bytes);
+        Arc::new(Part { bytes, hash })
+    }
+}
+
+/// A stored item: its encoded files.
+#[derive(Clone, Debug)]
+struct Item {
+    image: Arc<Part>,
+    depth: Option<(DepthEncoding, Arc<Part>)>,
+    mask: Option<Arc<Part>>,
+}
+
+impl Item {
+    fn bytes(&self) -> u64 {
+        (self.image.bytes.len()
+            + self.depth.as_ref().map_or(0, |(_, p)| p.bytes.len())
+            + self.mask.as_ref().map_or(0, |p| p.bytes.len())) as u64
+    }
+}
+
+/// Checks an upload name: 1 to 128 of `A-Z a-z 0-9 - _ .`, not starting with `.`, no `..`.
+pub fn validate_name(name: &str) -> Result<(), String> {
+    if name.is_empty() {
+        return Err("empty name".into());
+    }
+    if name.len() > 128 {
+        return Err(format!("name of {} bytes (at most 128)", name.len()));
+    }
+    if let Some(c) = name.chars().find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))) {
+        return Err(format!("invalid character {c:?} (names are stems: letters, digits, '-', '_', '.'; no paths)"));
+    }
+    if name.starts_with('.') || name.contains("..") {
+        return Err("names may not start with '.' or contain '..'".into());
+    }
+    Ok(())
+}
+
+/// A snapshot of an upload dataset as a [`Source`] (items sorted by name).
+#[derive(Clone, Debug)]
+pub struct UploadSource {
+    dataset: String,
+    items: Vec<(String, Item)>,
+    options: SourceOptions,
+    fingerprint: u64,
+}
+
+impl UploadSource {
+    fn new(dataset: &str, items: &BTreeMap<String, Item>, options: &SourceOptions) -> Self {
+        let items: Vec<(String, Item)> = items.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        let mut h = Fnv64::new();
+        h.str("mpiflow upload source v1");
+        h.u64(items.len() as u64);
+        for (name, item) in &items {
+            h.str(name);
+            h.str("image").u64(item.image.bytes.len() as u64).u64(item.image.hash);
+            if let Some((enc, p)) = &item.depth {
+                h.str(match enc {
+                    DepthEncoding::Npy => "depth npy",
+                    DepthEncoding::DisparityPng => "disparity png",
+                });
+                h.u64(p.bytes.len() as u64).u64(p.hash);
+            }
+            if let Some(p) = &item.mask {
+                h.str("mask").u64(p.bytes.len() as u64).u64(p.hash);
+            }
+        }
+        match options.resize {
+            None => h.str("size as is"),
+            Some((w, hh)) => h.str("resize").u64(w as u64).u64(hh as u64),
+        };
+        match options.intrinsics {
+            None => h.str("intrinsics default"),
+            Some(IntrinsicsSpec::Pixels(k)) => h.str("intrinsics px").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
+            Some(IntrinsicsSpec::Relative(k)) => h.str("intrinsics rel").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
+        };
+        UploadSource { dataset: dataset.to_string(), items, options: *options, fingerprint: h.finish() }
+    }
+
+    pub fn dataset(&self) -> &str {
+        &self.dataset
+    }
+}
+
+fn part_name(dataset: &str, kind: Kind, name: &str) -> String {
+    format!("upload:{dataset}/{}/{name}", kind.as_str())
+}
+
+fn decode(dataset: &str, name: &str, item: &Item, options: &SourceOptions) -> Result<SourceItem, SourceError> {
+    decode_item(
+        EncodedItem {
+            id: name.to_string(),
+            image: Encoded { name: part_name(dataset, Kind::Image, name), bytes: &item.image.bytes },
+            depth: item
+                .depth
+                .as_ref()
+                .map(|(enc, p)| (*enc, Encoded { name: part_name(dataset, Kind::Depth, name), bytes: &p.bytes })),
+            masks: item.mask.as_ref().map(|p| Encoded { name: part_name(dataset, Kind::Mask, name), bytes: &p.bytes }),
+            intrinsics: None,
+        },
+        options,
+    )
+}
+
+impl Source for UploadSource {
+    fn len(&self) -> usize {
+        self.items.len()
+    }
+
+    fn id(&self, i: usize) -> String {
+        self.items.get(i).map(|(n, _)| n.clone()).unwrap_or_default()
+    }
+
+    fn load(&self, i: usize) -> Result<SourceItem, SourceError> {
+        let (name, item) = self.items.get(i).ok_or_else(|| {
+            SourceError::Invalid(format!("item {i} is out of range ({} has {} items)", self.describe(), self.len()))
+        })?;
+        decode(&self.dataset, name, item, &self.options)
+    }
+
+    fn fingerprint(&self) -> u64 {
+        self.fingerprint
+    }
+
+    fn describe(&self) -> String {
+        format!("upload:{} ({} images)", self.dataset, self.items.len())
+    }
+}
+
+struct Dataset {
+    items: BTreeMap<String, Item>,
+    snapshot: Arc<UploadSource>,
+}
+
+#[derive(Default)]
+struct Inner {
+    datasets: BTreeMap<String, Dataset>,
+    bytes: u64,
+}
+
+/// Named upload datasets held in memory; see the module documentation.
+pub struct UploadStore {
+    options: SourceOptions,
+    limits: UploadLimits,
+    inner: Mutex<Inner>,
+}
+
+impl std::fmt::Debug for UploadStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("UploadStore").field("limits", &self.limits).field("datasets", &self.datasets()).finish()
+    }
+}
+
+impl UploadStore {
+    /// An empty store; `options` decode the items (image limits, resize, intrinsics).
+    pub fn new(options: SourceOptions, limits: UploadLimits) -> Arc<Self> {
+        Arc::new(UploadStore { options, limits, inner: Mutex::new(Inner::default()) })
+    }
+
+    fn lock(&self) -> MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    pub fn limits(&self) -> &UploadLimits {
+        &self.limits
+    }
+
+    pub fn options(&self) -> &SourceOptions {
+        &self.options
+    }
+
+    /// Starts an upload.
+    pub fn session(self: &Arc<Self>) -> UploadSession {
+        UploadSession {
+            store: self.clone(),
+            dataset: None,
+            current: None,
+            files: Vec::new(),
+            rejected: Vec::new(),
+            rejected_names: BTreeSet::new(),
+            bytes: 0,
+        }
+    }
+
+    /// The dataset's current snapshot (`None` if there is no such dataset).
+    pub fn source(&self, dataset: &str) -> Option<Arc<UploadSource>> {
+        self.lock().datasets.get(dataset).map(|d| d.snapshot.clone())
+    }
+
+    /// [`source`](Self::source) as a trait object.
+    pub fn dyn_source(&self, dataset: &str) -> Option<Arc<dyn Source>> {
+        self.source(dataset).map(|s| s as Arc<dyn Source>)
+    }
+
+    /// The datasets, sorted by name.
+    pub fn datasets(&self) -> Vec<UploadDatasetInfo> {
+        self.lock()
+            .datasets
+            .iter()
+            .map(|(name, d)| UploadDatasetInfo {
+                name: name.clone(),
+                fingerprint: d.snapshot.fingerprint,
+                sources: d.items.len() as u64,
+                bytes: d.items.values().map(Item::bytes).sum(),
+            })
+            .collect()
+    }
+
+    /// Removes a dataset (snapshots already handed out stay valid); whether it existed.
+    pub fn remove(&self, dataset: &str) -> bool {
+        let mut inner = self.lock();
+        match inner.datasets.remove(dataset) {
+            Some(d) => {
+                inner.bytes -= d.items.values().map(Item::bytes).sum::<u64>();
+                true
+            }
+            None => false,
+        }
+    }
+
+    /// Bytes of encoded files held, all datasets together.
+    pub fn total_bytes(&self) -> u64 {
+        self.lock().bytes
+    }
+}
+
+/// The file being received.
+struct Current {
+    name: String,
+    kind: Option<Kind>,
+    data: Vec<u8>,
+    /// Rejected already (bad name, kind, size, duplicate): further chunks are dropped.
+    rejected: bool,
+}
+
+/// One upload in progress; see the module documentation.
+pub struct UploadSession {
+    store: Arc<UploadStore>,
+    dataset: Option<String>,
+    current: Option<Current>,
+    /// Files received whole and not rejected: (name, kind, bytes).
+    files: Vec<(String, Kind, Vec<u8>)>,
+    rejected: Vec<String>,
+    /// Names with a part rejected while receiving.
+    rejected_names: BTreeSet<String>,
+    bytes: u64,
+}
+
+impl std::fmt::Debug for UploadSession {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("UploadSession")
+            .field("dataset", &self.dataset)
+            .field("files", &self.files.len())
+            .field("bytes", &self.bytes)
+            .finish()
+    }
+}
+
+impl UploadSession {
+    /// Takes one chunk (see the module documentation). An error ends the upload (nothing of it is
+    /// stored); rejected files are reported by [`finish`](Self::finish).
+    pub fn push(&mut self, dataset: &str, name: &str, kind: &str, data: &[u8]) -> Result<(), SourceError> {
+        if self.dataset.is_none() {
+            validate_name(dataset).map_err(|m| SourceError::Invalid(format!("dataset: {m}")))?;
+            self.dataset = Some(dataset.to_string());
+        }
+        let limits = self.store.limits;
+        self.bytes += data.len() as u64;
+        if self.bytes > limits.max_upload_bytes {
+            return Err(SourceError::Limit(format!(
+                "upload: more than {} bytes (the per-upload limit)",
+                limits.max_upload_bytes
+            )));
+        }
+        let kind_parsed = if kind.is_empty() { None } else { Some(Kind::parse(kind)) };
+        let starts_new = !name.is_empty()
+            && match &self.current {
+                Some(c) => c.name != name || (!kind.is_empty() && c.kind != kind_parsed.flatten()),
+                None => true,
+            };
+        if starts_new {
+            self.close_current();
+            let mut c =
+                Current { name: name.to_string(), kind: kind_parsed.flatten(), data: Vec::new(), rejected: false };
+            let reason = if let Err(m) = validate_name(name) {
+                Some(m)
+            } else if kind.is_empty() {
+                Some("no kind (expected image, depth or mask)".to_string())
+            } else if c.kind.is_none() {
+                Some(format!("unknown kind {kind:?} (expected image, depth or mask)"))
+            } else if self.files.iter().any(|(n, k, _)| n == name && Some(*k) == c.kind) {
+                Some(format!("sent twice as {kind} in one upload"))
+            } else {
+                None
+            };
+            if let Some(r) = reason {
+                self.rejected.push(format!("{}: {r}", printable(name)));
+                self.rejected_names.insert(name.to_string());
+                c.rejected = true;
+            }
+            self.current = Some(c);
+        }
+        let Some(c) = self.current.as_mut() else {
+            return Err(SourceError::Invalid("name: the first chunk of a file must name it".into()));
+        };
+        if c.rejected {
+            return Ok(());
+        }
+        let max = self.store.options.limits.max_bytes;
+        if (c.data.len() + data.len()) as u64 > max {
+            self.rejected.push(format!("{}: more than {max} bytes (the per-file limit)", c.name));
+            self.rejected_names.insert(c.name.clone());
+            c.rejected = true;
+            c.data = Vec::new();
+            return Ok(());
+        }
+        c.data.extend_from_slice(data);
+        Ok(())
+    }
+
+    fn close_current(&mut self) {
+        if let Some(c) = self.current.take() {
+            if !c.rejected {
+                if let Some(k) = c.kind {
+                    self.files.push((c.name, k, c.data));
+                }
+            }
+        }
+    }
+
+    /// Ends the upload: checks every file by decoding it, commits what is accepted to the
+    /// dataset atomically, and reports. Errors (nothing stored): no chunk at all
+    /// ([`SourceError::Invalid`]), a limit of the store ([`SourceError::Limit`]).
+    pub fn finish(mut self) -> Result<UploadSummary, SourceError> {
+        self.close_current();
+        let dataset = self.dataset.clone().ok_or_else(|| SourceError::Invalid("dataset: no chunks received".into()))?;
+        let store = self.store.clone();
+        let options = store.options;
+        let mut rejected = std::mem::take(&mut self.rejected);
+
+        // the parts of each name sent in this upload
+        let mut by_name: BTreeMap<String, BTreeMap<Kind, Vec<u8>>> = BTreeMap::new();
+        for (name, kind, data) in self.files.drain(..) {
+            by_name.entry(name).or_default().insert(kind, data);
+        }
+        // names rejected while receiving take their other parts with them
+        let rejected_names = std::mem::take(&mut self.rejected_names);
+
+        let existing: BTreeMap<String, Item> =
+            store.lock().datasets.get(&dataset).map(|d| d.items.clone()).unwrap_or_default();
+        let mut accepted_items: BTreeMap<String, Item> = BTreeMap::new();
+        let mut accepted_files = 0u32;
+        for (name, mut parts) in by_name {
+            if rejected_names.contains(&name) {
+                let kinds: Vec<&str> = parts.keys().map(|k| k.as_str()).collect();
+                rejected.push(format!("{name}: not stored ({} dropped with the rejected part)", kinds.join(", ")));
+                continue;
+            }
+            let count = parts.len() as u32;
+            let base = match parts.remove(&Kind::Image) {
+                Some(bytes) => Item { image: Part::new(bytes), depth: None, mask: None },
+                None => match existing.get(&name) {
+                    Some(item) => item.clone(),
+                    None => {
+                        rejected.push(format!("{name}: depth or mask without an image (send the image too)"));
+                        continue;
+                    }
+                },
+            };
+            let mut item = base;
+            if let Some(bytes) = parts.remove(&Kind::Depth) {
+                match sniff_depth(&bytes) {
+                    Some(enc) => item.depth = Some((enc, Part::new(bytes))),
+                    None => {
+                        rejected.push(format!("{name}: depth is neither a .npy array nor a PNG"));
+                        continue;
+                    }
+                }
+            }
+            if let Some(bytes) = parts.remove(&Kind::Mask) {
+                item.mask = Some(Part::new(bytes));
+            }
+            // decode everything once, as a sample would
+            if let Err(e) = decode(&dataset, &name, &item, &options) {
+                rejected.push(format!("{name}: {e}"));
+                continue;
+            }
+            accepted_files += count;
+            accepted_items.insert(name, item);
+        }
+
+        // commit atomically under the limits
+        let limits = store.limits;
+        let mut inner = store.lock();
+        let is_new = !inner.datasets.contains_key(&dataset);
+        if is_new && inner.datasets.len() >= limits.max_datasets && !accepted_items.is_empty() {
+            return Err(SourceError::Limit(format!(
+                "dataset: the store holds {} datasets already",
+                limits.max_datasets
+            )));
+        }
+        let mut items = inner.datasets.get(&dataset).map(|d| d.items.clone()).unwrap_or_default();
+        let old_bytes: u64 = items.values().map(Item::bytes).sum();
+        for (name, item) in accepted_items {
+            items.insert(name, item);
+        }
+        if items.len() > limits.max_items {
+            return Err(SourceError::Limit(format!(
+                "dataset: {} items would exceed the limit of {} per dataset",
+                items.len(),
+                limits.max_items
+            )));
+        }
+        let new_bytes: u64 = items.values().map(Item::bytes).sum();
+        let total = inner.bytes - old_bytes + new_bytes;
+        if total > limits.max_total_bytes {
+            return Err(SourceError::Limit(format!(
+                "upload: the store would hold {total} bytes, over its limit of {} bytes",
+                limits.max_total_bytes
+            )));
+        }
+        let (fingerprint, sources) = if items.is_empty() {
+            (UploadSource::new(&dataset, &items, &options).fingerprint, 0)
+        } else {
+            let snapshot = Arc::new(UploadSource::new(&dataset, &items, &options));
+            let out = (snapshot.fingerprint, items.len() as u64);
+            inner.bytes = total;
+            inner.datasets.insert(dataset.clone(), Dataset { items, snapshot });
+            out
+        };
+        Ok(UploadSummary { dataset, accepted: accepted_files, rejected, fingerprint, sources })
+    }
+}
+
+/// A name as it may be shown in a report (control characters escaped, at most 64 characters).
+fn printable(name: &str) -> String {
+    let s: String = name.chars().take(64).flat_map(char::escape_debug).collect();
+    if name.chars().count() > 64 {
+        format!("{s}...")
+    } else {
+        s
+    }
+}

@@ -1,0 +1,217 @@
+//! Bad sources are skipped deterministically: a directory with a corrupt PNG, a truncated JPEG, a
+//! truncated PNG, an image over the limits and an unreadable depth file among good photos gives a
+//! sample for every index, byte-identical across fresh generators, request orders and thread
+//! counts, with each bad item skipped once and counted by reason.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use mpiflow::io::image::{jpeg_truncation, ImageLimits};
+use mpiflow::sample::recipe::{Generator, SampleConfig, SampleError};
+use mpiflow::sample::{Sample, StageTimings};
+use mpiflow::scene::cache::SceneCache;
+use mpiflow::scene::stage::{SceneStage, SourceScenes};
+use mpiflow::source::{failure_class, open_source, SourceOptions};
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("mpiflow-bad-sources-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A textured w x h photo, different per seed.
+fn photo(w: u32, h: u32, seed: u32) -> image::RgbImage {
+    image::RgbImage::from_fn(w, h, |x, y| {
+        let v = (x * 7 + y * 13 + seed * 31) % 256;
+        image::Rgb([v as u8, ((x * 3 + seed * 50) % 256) as u8, ((y * 5 + x * y / 7) % 256) as u8])
+    })
+}
+
+fn encode(img: &image::RgbImage, format: image::ImageFormat) -> Vec<u8> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, format).unwrap();
+    out.into_inner()
+}
+
+/// An 8-bit disparity map: a ramp from far (top) to near (bottom).
+fn disparity(w: u32, h: u32) -> Vec<u8> {
+    let img = image::GrayImage::from_fn(w, h, |_, y| image::Luma([(60 + 190 * y / h.max(1)) as u8]));
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+/// The reference layout: images/NAME.* with disps/NAME.png, and the bad items.
+fn dataset(root: &Path) {
+    for d in ["images", "disps", "depths"] {
+        std::fs::create_dir_all(root.join(d)).unwrap();
+    }
+    let (w, h) = (48, 32);
+    let write = |name: &str, bytes: &[u8]| std::fs::write(root.join(name), bytes).unwrap();
+    let png = |seed| encode(&photo(w, h, seed), image::ImageFormat::Png);
+    let jpg = |seed| encode(&photo(w, h, seed), image::ImageFormat::Jpeg);
+    // a: good
+    write("images/a.png", &png(1));
+    // b: corrupt PNG (a valid signature, then garbage)
+    let mut b = png(2);
+    for (i, v) in b.iter_mut().enumerate().skip(40) {
+        *v = (i * 17 % 251) as u8;
+    }
+    write("images/b.png", &b);
+    // c: truncated JPEG
+    let c = jpg(3);
+    assert!(jpeg_truncation(&c).is_none());
+    write("images/c.jpg", &c[..c.len() * 2 / 3]);
+    // d: good JPEG
+    write("images/d.jpg", &jpg(4));
+    // e: over the limits (the test's max width is 64)
+    write("images/e.png", &encode(&photo(80, 20, 5), image::ImageFormat::Png));
+    // f: good image, unreadable depth
+    write("images/f.png", &png(6));
+    write("depths/f.npy", b"\x93NUMPY garbage");
+    // g: good
+    write("images/g.png", &png(7));
+    // h: truncated PNG
+    let hb = png(8);
+    write("images/h.png", &hb[..hb.len() / 2]);
+    for name in ["a", "b", "c", "d", "e", "g", "h"] {
+        write(&format!("disps/{name}.png"), &disparity(w, h));
+    }
+}
+
+fn options() -> SourceOptions {
+    SourceOptions { limits: ImageLimits { max_width: 64, ..ImageLimits::default() }, ..SourceOptions::default() }
+}
+
+fn generator(root: &Path) -> Generator {
+    let source = open_source(root, &options()).unwrap();
+    let loader = SourceScenes::new(source, Arc::new(SceneStage::builtin()));
+    Generator::new(Arc::new(loader), Arc::new(SceneCache::new(1 << 30)), SampleConfig::default()).unwrap()
+}
+
+fn bytes(s: &Sample) -> Sample {
+    Sample { timings: StageTimings::default(), ..s.clone() }
+}
+
+#[test]
+fn every_index_gets_a_sample_from_the_next_good_source_deterministically() {
+    let root = tmp("dir");
+    dataset(&root);
+    let g = generator(&root);
+    let n = 8u64;
+    let samples: Vec<Sample> = (0..2 * n).map(|i| g.sample(5, i).unwrap()).collect();
+    let good = |i: u64| ["a", "d", "d", "d", "g", "g", "g", "a"][(i % n) as usize];
+    let passed = |i: u64| [0u32, 2, 1, 0, 2, 1, 0, 1][(i % n) as usize];
+    for (i, s) in samples.iter().enumerate() {
+        let i = i as u64;
+        assert_eq!((s.source_id.as_str(), s.skipped_sources), (good(i), passed(i)), "index {i}");
+        assert_eq!(s.address.index, i);
+    }
+    // the address keeps its own motions: indices served by the same source differ
+    assert_ne!(samples[1].camera, samples[3].camera);
+    assert_ne!(samples[1].image2, samples[3].image2);
+
+    // each bad item recorded once, with its reason class
+    let skipped = g.skipped();
+    let ids: Vec<(usize, &str)> = skipped.iter().map(|(i, id, _)| (*i, id.as_str())).collect();
+    assert_eq!(ids, [(1, "b"), (2, "c"), (4, "e"), (5, "f"), (7, "h")]);
+    for (_, id, reason) in &skipped {
+        assert!(reason.contains(&format!("({id})")), "{reason}");
+    }
+    let counts: Vec<(String, u64)> = g.skip_counts().into_iter().collect();
+    let expect = [("decode", 1u64), ("depth", 1), ("too-large", 1), ("truncated", 2)];
+    assert_eq!(counts, expect.map(|(k, v)| (k.to_string(), v)), "{skipped:#?}");
+    // a bad item is loaded once: 5 failures in the cache's counters, however many samples
+    assert_eq!(g.cache().stats().load_errors, 5);
+
+    // fresh generators, other request orders and thread counts give the same bytes
+    let pool = |t: usize| rayon::ThreadPoolBuilder::new().num_threads(t).build().unwrap();
+    let fresh = generator(&root);
+    for i in (0..2 * n).rev() {
+        assert_eq!(bytes(&fresh.sample(5, i).unwrap()), bytes(&samples[i as usize]), "index {i} (reverse order)");
+    }
+    for threads in [1, 2] {
+        let p = pool(threads);
+        for i in [1u64, 4, 7, 9] {
+            let one = generator(&root); // nothing known: finds the bad items itself
+            let s = p.install(|| one.sample(5, i)).unwrap();
+            assert_eq!(bytes(&s), bytes(&samples[i as usize]), "index {i}, {threads} threads");
+        }
+    }
+}
+
+#[test]
+fn all_bad_sources_is_an_error_not_a_loop() {
+    let root = tmp("all-bad");
+    std::fs::write(root.join("x.png"), b"\x89PNG\r\n\x1a\nnot really").unwrap();
+    std::fs::write(root.join("y.jpg"), b"\xff\xd8\xff\xe0 cut").unwrap();
+    let g = generator(&root);
+    for i in 0..3 {
+        match g.sample(0, i) {
+            Err(SampleError::NoGoodSource { items: 2, first }) => assert!(first.contains("x.png"), "{first}"),
+            other => panic!("expected NoGoodSource, got {other:?}"),
+        }
+    }
+    assert_eq!(g.skipped().len(), 2);
+    assert_eq!(g.cache().stats().load_errors, 2);
+}
+
+#[test]
+fn plain_images_without_depth_or_model_are_depth_skips() {
+    // plain images without depth and no depth model: every item says so, as a depth problem
+    let root = tmp("no-depth");
+    std::fs::write(root.join("p.png"), encode(&photo(16, 16, 1), image::ImageFormat::Png)).unwrap();
+    let g = generator(&root);
+    let e = g.sample(0, 0).unwrap_err();
+    assert!(e.to_string().contains("no depth"), "{e}");
+    assert_eq!(g.skip_counts().get("depth"), Some(&1));
+}
+
+#[test]
+fn failure_classes() {
+    let cases = [
+        ("/d/images/a.png", "corrupt or truncated image: invalid checksum", "decode"),
+        ("/d/images/a.png", "corrupt or truncated image: unexpected end of data (eof)", "truncated"),
+        ("/d/images/a.jpg", "corrupt or truncated image: truncated JPEG: the data ends inside", "truncated"),
+        ("/d/images/a.png", "image of 9000 x 10 pixels is too large (at most ...)", "too-large"),
+        ("/d/images/a.png", "300 bytes is larger than the limit of 200 bytes", "too-large"),
+        ("/d/depths/a.npy", "not a valid .npy depth: bad header", "depth"),
+        ("/d/disps/a.png", "a Rgb8 image is not a grey disparity map", "depth"),
+        ("s.tar:k1.depth.npy", "not a valid .npy depth", "depth"),
+        ("s.tar:k1.disp.png", "corrupt or truncated image: bad", "depth"),
+        ("s.tar:k1.mask.png", "corrupt or truncated image: bad", "mask"),
+        ("upload:ds/depth/a.b", "corrupt or truncated image: bad", "depth"),
+        ("upload:ds/mask/a", "not a PNG file", "mask"),
+        ("upload:ds/image/depthy", "corrupt or truncated image: bad", "decode"),
+        ("/d/mpis/a.npz", "not a valid .npz archive", "mpi"),
+        ("/d/photos/depth_photo.jpg", "not found", "decode"),
+        ("s.tar:k1.jpg", "truncated member: the shard ends inside its data", "truncated"),
+        ("", "source a has no depth and no depth model is configured", "depth"),
+    ];
+    for (path, message, class) in cases {
+        assert_eq!(failure_class(path, message), class, "{path}: {message}");
+    }
+}
+
+#[test]
+fn jpeg_truncation_finds_cuts_anywhere_and_accepts_trailers() {
+    let full = encode(&photo(40, 24, 9), image::ImageFormat::Jpeg);
+    assert_eq!(jpeg_truncation(&full), None);
+    let mut trailer = full.clone();
+    trailer.extend_from_slice(b"camera trailer \xff\xd9 junk");
+    assert_eq!(jpeg_truncation(&trailer), None);
+    for cut in [3, 10, 100, full.len() / 2, full.len() - 2, full.len() - 1] {
+        let r = jpeg_truncation(&full[..cut]);
+        assert!(r.as_deref().is_some_and(|m| m.contains("truncated JPEG")), "cut at {cut}: {r:?}");
+    }
+    // not a JPEG: not this check's business
+    assert_eq!(jpeg_truncation(b"\x89PNG\r\n\x1a\n"), None);
+    // and the decoder path reports it (the lenient decoder alone would fill in grey)
+    let e = mpiflow::io::image::load_rgb_from_bytes(&full[..full.len() / 2], &ImageLimits::default()).unwrap_err();
+    assert!(e.to_string().contains("truncated JPEG"), "{e}");
+    let src_dir = tmp("jpeg");
+    std::fs::write(src_dir.join("t.jpg"), &full[..full.len() - 1]).unwrap();
+    let src = open_source(&src_dir, &SourceOptions::default()).unwrap();
+    assert!(src.load(0).unwrap_err().to_string().contains("truncated JPEG"));
+}
