@@ -201,9 +201,12 @@ def check_references(docs: list[tuple[str, dict]]) -> None:
     check("Service targetPorts are container port names", not bad_ports, f"unknown: {bad_ports}")
 
     grpc_port = port_names.get("grpc")
+    # with TLS the probes go to the plaintext health-only listener (port "health", health_addr):
+    # the kubelet's gRPC probe cannot do TLS
+    probe_port = port_names.get("health", grpc_port)
     probes = {k: c.get(k) for k in ("startupProbe", "readinessProbe", "livenessProbe")}
-    check("probes are native gRPC probes on the grpc port",
-          all(p and "grpc" in p and p["grpc"]["port"] == grpc_port for p in probes.values()),
+    check("probes are native gRPC probes on the health (else grpc) port",
+          all(p and "grpc" in p and p["grpc"]["port"] == probe_port for p in probes.values()),
           f"{probes}")
     rp = (probes["readinessProbe"] or {}).get("grpc", {})
     check("readiness asks for service mpiflow.v1.MpiFlow", rp.get("service") == "mpiflow.v1.MpiFlow",
@@ -237,6 +240,10 @@ def check_references(docs: list[tuple[str, dict]]) -> None:
         mport = int(str(cfg["metrics_addr"]).rsplit(":", 1)[1])
         check("config metrics_addr port = container port metrics", mport == port_names.get("metrics"),
               f"{mport} vs {port_names.get('metrics')}")
+    if "health" in port_names or "health_addr" in cfg:
+        hport = int(str(cfg.get("health_addr", ":0")).rsplit(":", 1)[1])
+        check("config health_addr port = container port health", hport == port_names.get("health"),
+              f"{hport} vs {port_names.get('health')}")
     drain = float(cfg.get("drain_timeout_s", 10.0))
     pre = 0
     cmd = (c.get("lifecycle", {}).get("preStop", {}).get("exec", {}) or {}).get("command", [])

@@ -4,17 +4,22 @@
 use std::time::Duration;
 
 use clap::Args;
+use mpiflow::service::client::BearerToken;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
 
+use super::connect::ConnectArgs;
 use super::CliError;
 
 #[derive(Args, Debug)]
 pub struct HealthArgs {
-    /// Server address.
+    /// Server address (HOST:PORT; https://HOST:PORT or --tls-ca for TLS).
     #[arg(long, value_name = "HOST:PORT", default_value = "127.0.0.1:50051")]
     addr: String,
+    /// TLS options (health needs no token; one given is sent anyway).
+    #[command(flatten)]
+    connect: ConnectArgs,
     /// The service to ask about ("" = the whole server, or mpiflow.v1.MpiFlow).
     #[arg(long, value_name = "NAME", default_value = "")]
     service: String,
@@ -34,13 +39,12 @@ pub fn run(a: HealthArgs) -> Result<(), CliError> {
         .map_err(|e| CliError(format!("cannot start the async runtime: {e}")))?;
     let status = rt.block_on(async {
         let check = async {
-            let uri = mpiflow::service::client::endpoint_uri(&a.addr);
-            let channel = tonic::transport::Endpoint::from_shared(uri)
-                .map_err(|e| CliError(format!("{}: {e}", a.addr)))?
-                .connect()
+            let options = a.connect.options()?;
+            let channel = mpiflow::service::client::channel(&a.addr, &options)
                 .await
                 .map_err(|e| CliError(format!("{}: {e}", a.addr)))?;
-            let r = HealthClient::new(channel)
+            let token = BearerToken::new(options.token.as_deref()).map_err(|e| CliError(e.to_string()))?;
+            let r = HealthClient::with_interceptor(channel, token)
                 .check(HealthCheckRequest { service: a.service.clone() })
                 .await
                 .map_err(|s| CliError(format!("{}: {:?}: {}", a.addr, s.code(), s.message())))?;

@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_serve;
+mod connect;
 mod generate;
 mod health;
 mod pull;

@@ -7,18 +7,21 @@ use std::sync::mpsc::sync_channel;
 
 use clap::Args;
 use mpiflow::export::{ExportFormat, ExportOptions, Exporter, PreviewOptions};
-use mpiflow::service::client::{connect, pull};
+use mpiflow::service::client::{connect_with, pull};
 use mpiflow::service::encode::{decode_tensor, from_proto};
 use mpiflow::service::error::cursor_of;
 use mpiflow::service::pb;
 
+use super::connect::ConnectArgs;
 use super::CliError;
 
 #[derive(Args, Debug)]
 pub struct PullArgs {
-    /// Server address.
+    /// Server address (HOST:PORT; https://HOST:PORT or --tls-ca for TLS).
     #[arg(long, value_name = "HOST:PORT", default_value = "127.0.0.1:50051")]
     addr: String,
+    #[command(flatten)]
+    connect: ConnectArgs,
     /// Samples to pull.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     count: u64,
@@ -118,6 +121,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
 
 pub fn run(a: PullArgs) -> Result<(), CliError> {
     let req = request(&a)?;
+    let options = a.connect.options()?;
     // the writer: decodes and writes in arrival (= index) order on its own thread
     let (tx, rx) = sync_channel::<pb::Sample>(64);
     let writer = match &a.out {
@@ -150,7 +154,7 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
         .build()
         .map_err(|e| CliError(format!("cannot start the async runtime: {e}")))?;
     let report = rt.block_on(async {
-        let mut client = connect(&a.addr).await.map_err(|e| CliError(format!("{}: {e}", a.addr)))?;
+        let mut client = connect_with(&a.addr, &options).await.map_err(|e| CliError(format!("{}: {e}", a.addr)))?;
         pull(&mut client, req, |s| {
             let _ = tx.send(s);
         })

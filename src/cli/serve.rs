@@ -75,6 +75,23 @@ pub struct ServeArgs {
     /// Default consecutive samples per source photo.
     #[arg(long, value_name = "M")]
     motions_per_image: Option<u64>,
+    /// Also serve grpc.health.v1 alone, in plaintext, on this address (for probes that cannot
+    /// do TLS).
+    #[arg(long, value_name = "HOST:PORT")]
+    health_addr: Option<String>,
+    /// Serve TLS with this certificate chain (PEM; with --tls-key).
+    #[arg(long, value_name = "FILE", requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "FILE", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+    /// Require client certificates signed by this CA (PEM; needs --tls-cert).
+    #[arg(long, value_name = "FILE")]
+    tls_client_ca: Option<PathBuf>,
+    /// Require the bearer token in this file on every call except health (or set
+    /// MPIFLOW_AUTH_TOKEN; a token on the command line would show in the process list).
+    #[arg(long, value_name = "FILE")]
+    auth_token_file: Option<PathBuf>,
     /// Extra wait after the warm-up sample before health says SERVING.
     #[arg(long, value_name = "MS", hide = true)]
     warmup_delay_ms: Option<u64>,
@@ -110,6 +127,9 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
     if let Some(m) = &a.metrics_addr {
         c.metrics_addr = Some(m.clone());
     }
+    if let Some(h) = &a.health_addr {
+        c.health_addr = Some(h.clone());
+    }
     if let Some(s) = &a.size {
         parse_size(s).map_err(|e| CliError(format!("--size: {e}")))?;
         c.size = Some(s.clone());
@@ -118,10 +138,17 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
         (&a.depth_model, &mut c.models.depth_model),
         (&a.mpi_model, &mut c.models.mpi_model),
         (&a.segment_model, &mut c.models.segment_model),
+        (&a.tls_cert, &mut c.tls_cert),
+        (&a.tls_key, &mut c.tls_key),
+        (&a.tls_client_ca, &mut c.tls_client_ca),
     ] {
         if let Some(p) = flag {
             *slot = Some(p.clone());
         }
+    }
+    if let Some(p) = &a.auth_token_file {
+        c.auth_token = None;
+        c.auth_token_file = Some(p.clone());
     }
     if let Some(p) = a.preset {
         c.sample.motion = mpiflow::sample::recipe::MotionSpec::Preset(p);
@@ -188,6 +215,9 @@ pub fn run(a: ServeArgs) -> Result<(), CliError> {
             writeln!(out, "mpiflow serving on {}", server.addr).map_err(|e| CliError(format!("stdout: {e}")))?;
             if let Some(m) = server.metrics_addr {
                 writeln!(out, "mpiflow metrics on http://{m}/metrics").map_err(|e| CliError(format!("stdout: {e}")))?;
+            }
+            if let Some(h) = server.health_addr {
+                writeln!(out, "mpiflow health on {h}").map_err(|e| CliError(format!("stdout: {e}")))?;
             }
             out.flush().map_err(|e| CliError(format!("stdout: {e}")))?;
         }

@@ -190,6 +190,20 @@ pub struct ServiceConfig {
     pub sample: SampleConfig,
     /// The datasets; the first is the default. None = the bundled scenes as `builtin`.
     pub datasets: Vec<DatasetConfig>,
+    /// A second, plaintext listener serving only `grpc.health.v1`, for probes that cannot do TLS
+    /// (the kubelet's gRPC probe); none = health only on `addr`.
+    pub health_addr: Option<String>,
+    /// TLS: the server's certificate chain (PEM). With `tls_key`; none = plaintext.
+    pub tls_cert: Option<PathBuf>,
+    /// TLS: the server's private key (PEM).
+    pub tls_key: Option<PathBuf>,
+    /// TLS: require client certificates signed by this CA (PEM); none = no client certificates.
+    pub tls_client_ca: Option<PathBuf>,
+    /// The bearer token every `mpiflow.v1.MpiFlow` call (and reflection) must send as
+    /// `authorization: Bearer TOKEN`; health stays open. None = no token check.
+    pub auth_token: Option<String>,
+    /// The token read from a file (surrounding whitespace dropped), e.g. a mounted Secret.
+    pub auth_token_file: Option<PathBuf>,
 }
 
 impl Default for ServiceConfig {
@@ -216,6 +230,12 @@ impl Default for ServiceConfig {
             models: ModelConfig::default(),
             sample: SampleConfig::default(),
             datasets: Vec::new(),
+            health_addr: None,
+            tls_cert: None,
+            tls_key: None,
+            tls_client_ca: None,
+            auth_token: None,
+            auth_token_file: None,
         }
     }
 }
@@ -261,10 +281,14 @@ impl ServiceConfig {
     /// `MAX_IN_FLIGHT`, `MAX_STREAMS`, `PREFETCH`, `MAX_PREFETCH`, `MAX_BATCH_SIZE`,
     /// `MAX_IMAGE_SIDE`, `MAX_IMAGE_PIXELS`, `MAX_IMAGE_BYTES`, `MAX_UPLOAD_BYTES`, `SIZE`,
     /// `CACHE_MB`, `DRAIN_TIMEOUT_S`, `WARMUP_DELAY_MS`, `LOG_FORMAT`, `LOG_LEVEL`, `PLANES`,
-    /// `DEPTH_MODEL`, `MPI_MODEL`, `SEGMENT_MODEL`, `PRESET`, `MAX_OBJECTS`, `MOTIONS_PER_IMAGE`
+    /// `DEPTH_MODEL`, `MPI_MODEL`, `SEGMENT_MODEL`, `PRESET`, `MAX_OBJECTS`, `MOTIONS_PER_IMAGE`,
+    /// `HEALTH_ADDR`, `TLS_CERT`, `TLS_KEY`, `TLS_CLIENT_CA`, `AUTH_TOKEN`, `AUTH_TOKEN_FILE`
+    /// (empty = unset)
     /// and `SOURCES` (comma-separated `NAME=PATH` or `PATH`; replaces the datasets). Other
     /// variables (e.g. `MPIFLOW_PHOTOS`, read by the bundled source) are left alone.
     pub fn apply_env_vars(&mut self, vars: impl IntoIterator<Item = (String, String)>) -> Result<(), String> {
+        // a token from the environment replaces the file's token and token file
+        let (mut env_token, mut env_token_file) = (None, None);
         for (key, value) in vars {
             let Some(name) = key.strip_prefix("MPIFLOW_") else { continue };
             let opt_path = |v: &str| (!v.trim().is_empty()).then(|| PathBuf::from(v.trim()));
@@ -299,6 +323,14 @@ impl ServiceConfig {
                 }
                 "MAX_OBJECTS" => self.sample.max_objects = env_parse(&key, &value)?,
                 "MOTIONS_PER_IMAGE" => self.sample.motions_per_image = env_parse(&key, &value)?,
+                "HEALTH_ADDR" => {
+                    self.health_addr = (!value.trim().is_empty()).then(|| value.trim().to_string());
+                }
+                "TLS_CERT" => self.tls_cert = opt_path(&value),
+                "TLS_KEY" => self.tls_key = opt_path(&value),
+                "TLS_CLIENT_CA" => self.tls_client_ca = opt_path(&value),
+                "AUTH_TOKEN" => env_token = Some(value.trim().to_string()),
+                "AUTH_TOKEN_FILE" => env_token_file = Some(value.trim().to_string()),
                 "SOURCES" => {
                     self.datasets = value
                         .split(',')
@@ -309,6 +341,10 @@ impl ServiceConfig {
                 }
                 _ => {}
             }
+        }
+        if env_token.is_some() || env_token_file.is_some() {
+            self.auth_token = env_token.filter(|t| !t.is_empty());
+            self.auth_token_file = env_token_file.filter(|t| !t.is_empty()).map(PathBuf::from);
         }
         Ok(())
     }
@@ -340,6 +376,18 @@ impl ServiceConfig {
             }
         }
         self.sample.validate().map_err(|e| ServiceError::Config(format!("[sample]: {e}")))?;
+        if self.tls_cert.is_some() != self.tls_key.is_some() {
+            return bad("tls_cert and tls_key go together (both PEM files)".into());
+        }
+        if self.tls_client_ca.is_some() && self.tls_cert.is_none() {
+            return bad("tls_client_ca needs TLS (tls_cert and tls_key)".into());
+        }
+        if self.auth_token.is_some() && self.auth_token_file.is_some() {
+            return bad("auth_token and auth_token_file: give one of them".into());
+        }
+        if let Some(t) = &self.auth_token {
+            check_token(t).map_err(|e| ServiceError::Config(format!("auth_token: {e}")))?;
+        }
         let mut names = std::collections::HashSet::new();
         for d in &self.datasets {
             let name = d.name();
@@ -354,6 +402,20 @@ impl ServiceConfig {
             }
         }
         Ok(())
+    }
+
+    /// The bearer token to require: `auth_token`, or the contents of `auth_token_file`
+    /// (surrounding whitespace dropped); none = no token check.
+    pub fn resolved_auth_token(&self) -> Result<Option<String>, ServiceError> {
+        if let Some(t) = &self.auth_token {
+            return Ok(Some(t.clone()));
+        }
+        let Some(p) = &self.auth_token_file else { return Ok(None) };
+        let text = std::fs::read_to_string(p)
+            .map_err(|e| ServiceError::Config(format!("auth_token_file {}: {e}", p.display())))?;
+        let t = text.trim().to_string();
+        check_token(&t).map_err(|e| ServiceError::Config(format!("auth_token_file {}: {e}", p.display())))?;
+        Ok(Some(t))
     }
 
     /// The parsed `size`.
@@ -403,6 +465,14 @@ impl ServiceConfig {
     }
 }
 
+/// A bearer token: 1 to 4096 visible ASCII characters (it travels in an HTTP/2 header).
+fn check_token(t: &str) -> Result<(), String> {
+    if t.is_empty() || t.len() > 4096 || !t.bytes().all(|b| b.is_ascii_graphic()) {
+        return Err("expected 1 to 4096 visible ASCII characters (no spaces)".into());
+    }
+    Ok(())
+}
+
 /// Dataset and upload names: 1 to 64 of letters, digits, `-`, `_`, `.`, not starting with `.`.
 pub fn valid_name(name: &str) -> bool {
     !name.is_empty()
@@ -439,6 +509,45 @@ mod tests {
         let e = c.apply_env_vars([("MPIFLOW_WORKERS".to_string(), "many".to_string())]).unwrap_err();
         assert!(e.contains("MPIFLOW_WORKERS"), "{e}");
         assert!(ServiceConfig::from_toml("wrokers = 1").unwrap_err().contains("wrokers"));
+    }
+
+    #[test]
+    fn security_keys_from_toml_and_env() {
+        let mut c = ServiceConfig::from_toml(
+            "tls_cert = \"/tls/tls.crt\"\ntls_key = \"/tls/tls.key\"\nauth_token_file = \"/secret/token\"\n",
+        )
+        .unwrap();
+        assert_eq!(c.tls_cert.as_deref(), Some(Path::new("/tls/tls.crt")));
+        c.validate().unwrap();
+        // a token from the environment replaces the file's token file
+        c.apply_env_vars([
+            ("MPIFLOW_AUTH_TOKEN".to_string(), " abc \n".to_string()),
+            ("MPIFLOW_TLS_CLIENT_CA".to_string(), "/tls/ca.crt".to_string()),
+        ])
+        .unwrap();
+        assert_eq!((c.auth_token.as_deref(), c.auth_token_file.as_ref()), (Some("abc"), None));
+        assert_eq!(c.tls_client_ca.as_deref(), Some(Path::new("/tls/ca.crt")));
+        c.validate().unwrap();
+        assert_eq!(c.resolved_auth_token().unwrap().as_deref(), Some("abc"));
+        // both from the environment: refused
+        c.apply_env_vars([
+            ("MPIFLOW_AUTH_TOKEN".to_string(), "abc".to_string()),
+            ("MPIFLOW_AUTH_TOKEN_FILE".to_string(), "/t".to_string()),
+        ])
+        .unwrap();
+        assert!(c.validate().unwrap_err().to_string().contains("auth_token"));
+        // empty values unset
+        c.apply_env_vars([
+            ("MPIFLOW_AUTH_TOKEN".to_string(), String::new()),
+            ("MPIFLOW_TLS_CERT".to_string(), String::new()),
+            ("MPIFLOW_TLS_KEY".to_string(), String::new()),
+            ("MPIFLOW_TLS_CLIENT_CA".to_string(), String::new()),
+        ])
+        .unwrap();
+        assert_eq!((&c.auth_token, &c.auth_token_file, &c.tls_cert), (&None, &None, &None));
+        c.validate().unwrap();
+        let client_ca_alone = ServiceConfig { tls_client_ca: Some("/ca".into()), ..ServiceConfig::default() };
+        assert!(client_ca_alone.validate().unwrap_err().to_string().contains("tls_client_ca"));
     }
 
     #[test]

@@ -5,8 +5,9 @@
 //! global in-flight bound, round-robin between streams); samples are cropped and encoded on the
 //! workers ([`encode`]). Errors map to gRPC codes in one place ([`error`]). The server
 //! ([`server`]) adds health, reflection, Prometheus [`metrics`] and graceful drain; [`config`]
-//! reads the TOML file and `MPIFLOW_*` overrides; [`client`] is the Rust client side used by
-//! `mpiflow pull` and the tests. The API and its guarantees: `docs/api.md`.
+//! reads the TOML file and `MPIFLOW_*` overrides; [`security`] the optional TLS and bearer-token
+//! check; [`client`] is the Rust client side used by `mpiflow pull` and the tests. The API and
+//! its guarantees: `docs/api.md`.
 
 /// The generated protobuf messages and the tonic server and client of `mpiflow.v1`.
 #[allow(clippy::all, missing_docs)]
@@ -24,6 +25,7 @@ pub mod encode;
 pub mod error;
 pub mod metrics;
 pub mod pool;
+pub mod security;
 pub mod server;
 pub mod validate;
 

@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use tokio_stream::{Stream, StreamExt};
+use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 use tonic_health::server::HealthReporter;
 use tonic_health::ServingStatus;
@@ -24,6 +25,7 @@ use super::metrics::{serve_metrics, Metrics};
 use super::pb;
 use super::pb::mpi_flow_server::{MpiFlow, MpiFlowServer};
 use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
+use super::security::{server_tls, RequireToken};
 use super::validate;
 use crate::sample::recipe::Generator;
 
@@ -352,10 +354,13 @@ pub struct RunningServer {
     pub addr: SocketAddr,
     /// The bound metrics address, when metrics are on.
     pub metrics_addr: Option<SocketAddr>,
+    /// The bound plaintext health-only address, when `health_addr` is set.
+    pub health_addr: Option<SocketAddr>,
     pub state: Arc<State>,
     shutdown: Option<oneshot::Sender<()>>,
     server: JoinHandle<Result<(), tonic::transport::Error>>,
     metrics_task: Option<JoinHandle<()>>,
+    health_task: Option<JoinHandle<Result<(), tonic::transport::Error>>>,
     warmup: JoinHandle<()>,
 }
 
@@ -388,6 +393,9 @@ async fn bind(addr: &str, what: &str) -> Result<tokio::net::TcpListener, Service
 pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError> {
     config.validate()?;
     let metrics = Arc::new(Metrics::new());
+    // the token guards the API and reflection; health stays open for the probes
+    let auth = RequireToken::new(config.resolved_auth_token()?, metrics.clone());
+    let tls = server_tls(&config)?;
     let cfg = config.clone();
     let datasets = tokio::task::spawn_blocking(move || Datasets::open(&cfg))
         .await
@@ -420,6 +428,17 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         }
         None => (None, None),
     };
+    // plaintext, health only: for probes that cannot do TLS (it reports until the drain ends)
+    let (health_addr, health_task) = match &config.health_addr {
+        Some(a) => {
+            let l = bind(a, "health_addr").await?;
+            let bound = l.local_addr().map_err(|e| ServiceError::Config(format!("health_addr: {e}")))?;
+            let incoming = tonic::transport::server::TcpIncoming::from(l).with_nodelay(Some(true));
+            let health = tonic::transport::Server::builder().add_service(health_service.clone());
+            (Some(bound), Some(tokio::spawn(health.serve_with_incoming(incoming))))
+        }
+        None => (None, None),
+    };
 
     let reflection = || {
         tonic_reflection::server::Builder::configure()
@@ -433,14 +452,18 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let service = MpiFlowServer::new(Service { state: state.clone() })
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit);
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = tls.clone() {
+        builder = builder.tls_config(tls).map_err(|e| ServiceError::Config(format!("tls_cert / tls_key: {e}")))?;
+    }
     let (tx, rx) = oneshot::channel::<()>();
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
     let server = tokio::spawn(
-        tonic::transport::Server::builder()
+        builder
             .add_service(health_service)
-            .add_service(reflection_v1)
-            .add_service(reflection_v1alpha)
-            .add_service(service)
+            .add_service(InterceptedService::new(reflection_v1, auth.clone()))
+            .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
+            .add_service(InterceptedService::new(service, auth.clone()))
             .serve_with_incoming_shutdown(incoming, async {
                 let _ = rx.await;
             }),
@@ -448,9 +471,13 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     tracing::info!(
         %addr,
         metrics = ?metrics_addr,
+        health = ?health_addr,
         workers = state.scheduler.workers(),
         in_flight = state.scheduler.capacity(),
         max_message_bytes = limit,
+        tls = tls.is_some(),
+        client_certificates = config.tls_client_ca.is_some(),
+        token = auth.enabled(),
         datasets = ?state.datasets.list.iter().map(|d| format!("{} ({:016x}, {} sources)", d.name, d.fingerprint(), d.sources())).collect::<Vec<_>>(),
         "listening"
     );
@@ -479,7 +506,17 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         }
     });
 
-    Ok(RunningServer { addr, metrics_addr, state, shutdown: Some(tx), server, metrics_task, warmup })
+    Ok(RunningServer {
+        addr,
+        metrics_addr,
+        health_addr,
+        state,
+        shutdown: Some(tx),
+        server,
+        metrics_task,
+        health_task,
+        warmup,
+    })
 }
 
 impl RunningServer {
@@ -511,6 +548,9 @@ impl RunningServer {
             self.server.abort();
         }
         if let Some(t) = self.metrics_task.take() {
+            t.abort();
+        }
+        if let Some(t) = self.health_task.take() {
             t.abort();
         }
         if left > 0 {

@@ -83,6 +83,14 @@ def parse_addresses(addresses: Union[str, Iterable[str]]) -> List[str]:
     return out
 
 
+def _pem(v: Union[str, bytes, None]) -> Optional[bytes]:
+    """PEM bytes as given, or read from a file path."""
+    if v is None or isinstance(v, bytes):
+        return v
+    with open(v, "rb") as f:
+        return f.read()
+
+
 def _crop(crop: Any, mode: Union[str, int, None]) -> Optional["pb.OutputCrop"]:
     if crop is None:
         return None
@@ -172,6 +180,10 @@ class Client:
     `max_receive_message_bytes` (256 MiB by default). `token` is sent as
     `authorization: Bearer TOKEN` on every call.
 
+    TLS: `tls_ca` (the CA that signed the servers' certificates, a PEM file path or PEM bytes)
+    turns TLS on; `tls_cert` and `tls_key` add a client certificate for servers that require one;
+    `tls_domain` is the name to verify when the addresses are not names the certificate carries.
+
     Unary calls (`get_sample`, `info`) fail over to another replica on transport errors;
     `stream()` returns a FlowStream, which resumes a broken stream on a healthy replica from its
     cursor. Channels are made in the process that first uses them: create the Client after
@@ -188,8 +200,20 @@ class Client:
         max_receive_message_bytes: int = DEFAULT_MAX_RECEIVE,
         wait: bool = True,
         channel_options: Sequence[Tuple[str, Any]] = (),
+        tls_ca: Union[str, bytes, None] = None,
+        tls_cert: Union[str, bytes, None] = None,
+        tls_key: Union[str, bytes, None] = None,
+        tls_domain: Optional[str] = None,
     ):
         self.addresses = parse_addresses(addresses)
+        if (tls_cert is None) != (tls_key is None):
+            raise ValueError("tls_cert and tls_key go together")
+        if tls_ca is None and (tls_cert is not None or tls_domain is not None):
+            raise ValueError("tls_cert, tls_key and tls_domain need tls_ca (the server's CA)")
+        self._tls: Optional[Tuple[bytes, Optional[bytes], Optional[bytes]]] = (
+            (_pem(tls_ca), _pem(tls_key), _pem(tls_cert)) if tls_ca is not None else None
+        )
+        self._tls_domain = tls_domain
         self.timeout = float(timeout)
         self.rpc_timeout = float(rpc_timeout)
         self.metadata: Tuple[Tuple[str, str], ...] = (
@@ -219,8 +243,16 @@ class Client:
             ("grpc.max_reconnect_backoff_ms", 1000),
             # Each Client has its own connections (streams of one Client share them).
             ("grpc.use_local_subchannel_pool", 1),
+            *((("grpc.ssl_target_name_override", self._tls_domain),) if self._tls_domain else ()),
             *self._extra_options,
         ]
+
+    def _channel(self, address: str) -> grpc.Channel:
+        if self._tls is None:
+            return grpc.insecure_channel(address, options=self._options())
+        ca, key, cert = self._tls
+        creds = grpc.ssl_channel_credentials(root_certificates=ca, private_key=key, certificate_chain=cert)
+        return grpc.secure_channel(address, creds, options=self._options())
 
     def _replica(self, address: str) -> _Replica:
         r = self._replicas[address]
@@ -229,7 +261,7 @@ class Client:
                 if self._closed:
                     raise MpiFlowError("client is closed")
                 if r.channel is None:
-                    r.channel = grpc.insecure_channel(address, options=self._options())
+                    r.channel = self._channel(address)
                     r.stub = pb_grpc.MpiFlowStub(r.channel)
                     r.health = r.channel.unary_unary(
                         _health.CHECK_METHOD,

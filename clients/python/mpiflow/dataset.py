@@ -122,6 +122,7 @@ class _MPIFlowDatasetImpl:
     Failover: with several addresses, a broken stream resumes on another SERVING replica from its
     cursor (no gap, no repeat), with backoff, for up to `retry_timeout` seconds.
     `prefetch` samples are decoded ahead in a background thread (0: none).
+    `token`, `tls_ca`, `tls_cert`, `tls_key` and `tls_domain` are passed to each worker's Client.
     """
 
     def __init__(
@@ -149,6 +150,10 @@ class _MPIFlowDatasetImpl:
         prefetch: int = 8,
         server_prefetch: int = 0,
         token: Optional[str] = None,
+        tls_ca: Union[str, bytes, None] = None,
+        tls_cert: Union[str, bytes, None] = None,
+        tls_key: Union[str, bytes, None] = None,
+        tls_domain: Optional[str] = None,
         timeout: float = 120.0,
         retry_timeout: float = 120.0,
         fingerprint: int = 0,
@@ -181,6 +186,8 @@ class _MPIFlowDatasetImpl:
         self.prefetch = int(prefetch)
         self.server_prefetch = int(server_prefetch)
         self.token = token
+        # paths or PEM bytes (picklable: the Client is made in each worker)
+        self.tls = dict(tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key, tls_domain=tls_domain)
         self.timeout = float(timeout)
         self.retry_timeout = float(retry_timeout)
         self.fingerprint = int(fingerprint or 0)
@@ -336,7 +343,7 @@ class _MPIFlowDatasetImpl:
 
     def __iter__(self) -> Iterator[Dict[str, Any]]:
         c, num = self.consumer()
-        client = Client(self.addresses, token=self.token, timeout=self.timeout, wait=False)
+        client = Client(self.addresses, token=self.token, timeout=self.timeout, wait=False, **self.tls)
         pf = None
         try:
             stream = self.make_stream(client, c, num)

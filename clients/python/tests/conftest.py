@@ -67,9 +67,12 @@ def free_port() -> int:
 class Server:
     """One server process. `address` is HOST:PORT from its printed line."""
 
-    def __init__(self, kind: str, addr: str = "127.0.0.1:0", extra: Optional[List[str]] = None):
+    def __init__(self, kind: str, addr: str = "127.0.0.1:0", extra: Optional[List[str]] = None,
+                 client_kw: Optional[dict] = None):
         self.kind = kind
         self.extra = list(extra or [])
+        # Client arguments that reach this server (TLS) for the readiness wait.
+        self.client_kw = dict(client_kw or {})
         self.bind = addr
         self.proc: Optional[subprocess.Popen] = None
         self.address: Optional[str] = None
@@ -112,7 +115,7 @@ class Server:
                 break
         # The first run after the bind keeps the port for restarts.
         self.bind = self.address
-        c = mpiflow.Client(self.address, wait=False)
+        c = mpiflow.Client(self.address, wait=False, **self.client_kw)
         try:
             c.wait_ready(max(1.0, deadline - time.monotonic()))
         except mpiflow.NotReadyError as e:
