@@ -583,10 +583,10 @@ fn builtin_source_options_and_errors() {
 }
 
 /// Writes each built-in scene's image, depth (as disparity, 8-bit) and ids to
-/// `$MPIFLOW_DUMP_DIR` (default: a temp folder) for a look: `cargo test --release --test sources
-/// -- --ignored dump_builtin_scenes`.
+/// `$MPIFLOW_DUMP_DIR` (default: a temp folder; set it to keep the files for a look) and checks
+/// that the written files read back: full size, disparity spanning up to the nearest surface,
+/// one id per visible object plus the background.
 #[test]
-#[ignore]
 fn dump_builtin_scenes() {
     let out = std::env::var_os("MPIFLOW_DUMP_DIR").map(PathBuf::from).unwrap_or_else(|| tmp("dump"));
     std::fs::create_dir_all(&out).unwrap();
@@ -600,7 +600,15 @@ fn dump_builtin_scenes() {
         save_gray_png(&out.join(format!("{}_disp.png", c.id)), w, h, &bytes).unwrap();
         let ids: Vec<u8> = c.ids.iter().map(|&v| (v * 80) as u8).collect();
         save_gray_png(&out.join(format!("{}_ids.png", c.id)), w, h, &ids).unwrap();
-        println!("{} {:?} {:?}", c.id, c.background, c.objects);
+
+        let image = image::open(out.join(format!("{}_image.png", c.id))).unwrap();
+        assert_eq!((image.width() as usize, image.height() as usize), (w, h));
+        let disp = image::open(out.join(format!("{}_disp.png", c.id))).unwrap().to_luma8();
+        assert_eq!(disp.as_raw(), &bytes, "{}: the disparity PNG reads back", c.id);
+        assert_eq!(bytes.iter().max(), Some(&255), "{}: the nearest surface has disparity 1", c.id);
+        let back = image::open(out.join(format!("{}_ids.png", c.id))).unwrap().to_luma8();
+        let distinct: std::collections::BTreeSet<u8> = back.as_raw().iter().copied().collect();
+        let visible = c.objects.iter().filter(|o| o.visible_pixels > 0).count();
+        assert_eq!(distinct.len(), visible + 1, "{}: background + visible objects", c.id);
     }
-    println!("wrote {}", out.display());
 }

@@ -154,7 +154,7 @@ impl Metrics {
     }
 
     /// Counts a sample that could not be made.
-    pub fn observe_error(&self, _dataset: &str, e: &SampleError) {
+    pub fn observe_error(&self, e: &SampleError) {
         let reason = match e {
             SampleError::Scene { .. } => "source",
             SampleError::NoGoodSource { .. } => "no-good-source",

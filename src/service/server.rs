@@ -69,7 +69,7 @@ impl State {
         let metrics = self.metrics.clone();
         Arc::new(move |index| {
             let s = generator.sample(seed, index).map_err(|source| {
-                metrics.observe_error(&dataset.name, &source);
+                metrics.observe_error(&source);
                 tracing::warn!(dataset = %dataset.name, index, error = %source, "sample failed");
                 ServiceError::Generation { index, source }
             })?;

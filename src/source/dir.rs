@@ -97,6 +97,21 @@ pub struct SourceOptions {
     pub hash_contents: bool,
 }
 
+impl SourceOptions {
+    /// Feeds what of the options changes the items (resize, intrinsics) into a fingerprint.
+    pub fn hash_into(&self, h: &mut Fnv64) {
+        match self.resize {
+            None => h.str("size as is"),
+            Some((w, hh)) => h.str("resize").u64(w as u64).u64(hh as u64),
+        };
+        match self.intrinsics {
+            None => h.str("intrinsics default"),
+            Some(IntrinsicsSpec::Pixels(k)) => h.str("intrinsics px").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
+            Some(IntrinsicsSpec::Relative(k)) => h.str("intrinsics rel").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
+        };
+    }
+}
+
 impl Default for SourceOptions {
     /// Sizes kept, default image limits, MPIs up to 4 GiB, reference intrinsics, fingerprint
     /// from names and sizes.
@@ -380,15 +395,7 @@ impl DirSource {
                 file(&mut h, "mpi", f)?;
             }
         }
-        match self.options.resize {
-            None => h.str("size as is"),
-            Some((w, hh)) => h.str("resize").u64(w as u64).u64(hh as u64),
-        };
-        match self.options.intrinsics {
-            None => h.str("intrinsics default"),
-            Some(IntrinsicsSpec::Pixels(k)) => h.str("intrinsics px").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
-            Some(IntrinsicsSpec::Relative(k)) => h.str("intrinsics rel").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
-        };
+        self.options.hash_into(&mut h);
         Ok(h.finish())
     }
 

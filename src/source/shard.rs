@@ -45,7 +45,7 @@
 //! fields and sizes, and the options that change what is loaded (resize, intrinsics), plus every
 //! member's bytes with [`SourceOptions::hash_contents`].
 
-use super::dir::{IntrinsicsSpec, SourceOptions};
+use super::dir::SourceOptions;
 use super::encoded::{decode_item, intrinsics_from_json, DepthEncoding, Encoded, EncodedItem};
 use super::{Fnv64, SkippedItem, Source, SourceError, SourceItem};
 use std::collections::HashSet;
@@ -421,15 +421,7 @@ impl ShardSource {
                 }
             }
         }
-        match self.options.resize {
-            None => h.str("size as is"),
-            Some((w, hh)) => h.str("resize").u64(w as u64).u64(hh as u64),
-        };
-        match self.options.intrinsics {
-            None => h.str("intrinsics default"),
-            Some(IntrinsicsSpec::Pixels(k)) => h.str("intrinsics px").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
-            Some(IntrinsicsSpec::Relative(k)) => h.str("intrinsics rel").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
-        };
+        self.options.hash_into(&mut h);
         Ok(h.finish())
     }
 }

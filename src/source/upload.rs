@@ -36,7 +36,7 @@
 //! name or the upload order. Items decode exactly as a directory's would (sizes fitted,
 //! [`SourceOptions::resize`], intrinsics); errors name them `upload:DATASET/KIND/NAME`.
 
-use super::dir::{IntrinsicsSpec, SourceOptions};
+use super::dir::SourceOptions;
 use super::encoded::{decode_item, sniff_depth, DepthEncoding, Encoded, EncodedItem};
 use super::{fnv1a64, Fnv64, Source, SourceError, SourceItem};
 use std::collections::{BTreeMap, BTreeSet};
@@ -189,15 +189,7 @@ impl UploadSource {
                 h.str("mask").u64(p.bytes.len() as u64).u64(p.hash);
             }
         }
-        match options.resize {
-            None => h.str("size as is"),
-            Some((w, hh)) => h.str("resize").u64(w as u64).u64(hh as u64),
-        };
-        match options.intrinsics {
-            None => h.str("intrinsics default"),
-            Some(IntrinsicsSpec::Pixels(k)) => h.str("intrinsics px").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
-            Some(IntrinsicsSpec::Relative(k)) => h.str("intrinsics rel").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
-        };
+        options.hash_into(&mut h);
         UploadSource { dataset: dataset.to_string(), items, options: *options, fingerprint: h.finish() }
     }
 
