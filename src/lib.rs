@@ -8,6 +8,7 @@ pub mod geometry;
 pub mod io;
 pub mod mpi;
 pub mod render;
+pub mod rng;
 pub mod sample;
 pub mod scene;
 pub mod service;

@@ -140,6 +140,7 @@ fn flow_error_falls_with_planes_on_the_tilted_plane() {
 }
 
 #[test]
+#[cfg(feature = "plots")]
 fn tiny_sweep_writes_markdown_and_a_png() {
     let (w, h) = (48, 32);
     let photo =

@@ -67,15 +67,8 @@ fn palette_matches_flow_vis() {
 }
 
 #[test]
-fn grid_matches_shared_input_when_available() {
-    // the shared copy is not in the repo; where it exists, check the generator reproduces it
-    let shared =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/vectors/formats/flow_colorwheel/wheel_input_uv.npy");
-    if !shared.exists() {
-        eprintln!("skipping: {} not found", shared.display());
-        return;
-    }
-    let a = read_npy_file(&shared).unwrap();
+fn grid_matches_the_vectors_input() {
+    let a = read_npy_file(&data("wheel_input_uv.npy")).unwrap();
     assert_eq!(a.shape, vec![N as u64, N as u64, 2]);
     let ours: Vec<f64> = wheel_input().iter().map(|&v| f64::from(v)).collect();
     assert_eq!(ours, a.data);

@@ -30,7 +30,7 @@ fn f64s(v: &Value) -> Vec<f64> {
     v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
 }
 
-/// Every vector of `shared/vectors/formats/coco_rle_vectors.json` (pycocotools 2.0.11).
+/// Every vector of `tests/data/masks/coco_rle_vectors.json` (pycocotools 2.0.11).
 #[test]
 fn coco_rle_vectors() {
     let v = data("coco_rle_vectors.json");

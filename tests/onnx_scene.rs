@@ -571,3 +571,42 @@ fn inference_time_of_the_test_models() {
         );
     }
 }
+
+/// The fingerprint covers the model file's content, not its name: one changed byte of a weight
+/// under the same file name changes the dataset fingerprint; the same bytes in another folder
+/// (or under another name) do not.
+#[test]
+fn the_fingerprint_covers_model_content_not_file_names() {
+    use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
+    use mpiflow::sample::recipe::SampleConfig;
+    use mpiflow::scene::cache::SceneCache;
+    use mpiflow::scene::models::ModelConfig;
+
+    let bytes = std::fs::read(model("depth.onnx")).unwrap();
+    // depth.onnx's weights [2, 1, -0.5] are stored as raw little-endian f32
+    let pattern: Vec<u8> = [2.0f32, 1.0, -0.5].iter().flat_map(|v| v.to_le_bytes()).collect();
+    let at = bytes.windows(pattern.len()).position(|w| w == pattern.as_slice()).expect("the weights are in the file");
+    let mut changed = bytes.clone();
+    changed[at] ^= 1; // 2.0 -> 2.0000002
+    let root = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("fingerprint_models_{}", std::process::id()));
+    for (dir, data) in [("a", &bytes), ("b", &bytes), ("c", &changed)] {
+        std::fs::create_dir_all(root.join(dir)).unwrap();
+        std::fs::write(root.join(dir).join("depth.onnx"), data).unwrap();
+    }
+    std::fs::write(root.join("a").join("renamed.onnx"), &bytes).unwrap();
+    let photos = root.join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    image::RgbImage::from_fn(40, 30, |x, y| image::Rgb([(x * 6) as u8, (y * 8) as u8, 90]))
+        .save(photos.join("p.png"))
+        .unwrap();
+    let fingerprint = |m: PathBuf| {
+        let models = ModelConfig { depth_model: Some(m), ..ModelConfig::default() };
+        let stage = Arc::new(models.build_stage().unwrap());
+        let source = open_source(&SourceSpec::Path(photos.clone()), &OpenOptions::default()).unwrap();
+        Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 28)), SampleConfig::default()).unwrap().fingerprint()
+    };
+    let a = fingerprint(root.join("a/depth.onnx"));
+    assert_eq!(a, fingerprint(root.join("b/depth.onnx")), "same bytes in another folder");
+    assert_eq!(a, fingerprint(root.join("a/renamed.onnx")), "same bytes under another name");
+    assert_ne!(a, fingerprint(root.join("c/depth.onnx")), "one byte of a weight changed under the same name");
+}

@@ -3,6 +3,7 @@
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Barrier};
+
 use std::time::Duration;
 
 use mpiflow::geometry::Intrinsics;
@@ -53,34 +54,106 @@ fn second_request_is_a_hit_and_shares_the_scene() {
     assert_eq!(cache.stats().misses, 2);
 }
 
+/// Waits (bounded) until `n` callers wait for a load in progress: the observable state that
+/// proves the requests are concurrent.
+fn wait_for_waiters(cache: &SceneCache, n: usize) {
+    let t = std::time::Instant::now();
+    while cache.stats().waiting < n {
+        assert!(
+            t.elapsed() < Duration::from_secs(60),
+            "only {} of {n} callers waited: {:?}",
+            cache.stats().waiting,
+            cache.stats()
+        );
+        std::thread::yield_now();
+    }
+}
+
+/// Production's shape: every request is a job on a rayon pool (the service's worker pool), and
+/// the load itself runs parallel loops. 8 concurrent jobs for one key run the loader once; the
+/// loader is held until the 7 others are seen waiting, so the requests provably overlap.
 #[test]
-fn concurrent_requests_load_once() {
+fn concurrent_requests_on_a_rayon_pool_load_once() {
+    let threads = 8;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
     let cache = Arc::new(SceneCache::new(1 << 30));
     let calls = Arc::new(AtomicUsize::new(0));
-    let threads = 8;
-    let barrier = Arc::new(Barrier::new(threads));
-    let handles: Vec<_> = (0..threads)
-        .map(|_| {
-            let (cache, calls, barrier) = (cache.clone(), calls.clone(), barrier.clone());
-            std::thread::spawn(move || {
-                barrier.wait();
-                cache
-                    .get_or_load(key(3), || -> Result<Scene, Never> {
-                        calls.fetch_add(1, Ordering::SeqCst);
-                        std::thread::sleep(Duration::from_millis(100));
-                        Ok(scene("slow", 32, 16, 4))
+    let (release_tx, release_rx) = std::sync::mpsc::channel::<()>();
+    let release_rx = std::sync::Mutex::new(release_rx);
+    let scenes: Vec<Arc<Scene>> = std::thread::scope(|scope| {
+        let main = scope.spawn(|| {
+            pool.install(|| {
+                use rayon::prelude::*;
+                (0..threads)
+                    .into_par_iter()
+                    .map(|_| {
+                        cache
+                            .get_or_load(key(3), || -> Result<Scene, Never> {
+                                calls.fetch_add(1, Ordering::SeqCst);
+                                let _ = release_rx.lock().unwrap().recv_timeout(Duration::from_secs(60));
+                                // a parallel loop inside the load, as the layering and models run
+                                let sum: u64 = (0..10_000u64).into_par_iter().map(|i| i % 7).sum();
+                                assert!(sum > 0);
+                                Ok(scene("slow", 32, 16, 4))
+                            })
+                            .unwrap()
                     })
-                    .unwrap()
+                    .collect::<Vec<_>>()
             })
-        })
-        .collect();
-    let scenes: Vec<Arc<Scene>> = handles.into_iter().map(|h| h.join().unwrap()).collect();
+        });
+        wait_for_waiters(&cache, threads - 1);
+        release_tx.send(()).unwrap();
+        main.join().unwrap()
+    });
     assert_eq!(calls.load(Ordering::SeqCst), 1, "the loader ran more than once");
     assert!(scenes.iter().all(|s| Arc::ptr_eq(s, &scenes[0])));
     let s = cache.stats();
     assert_eq!(s.misses, 1);
     assert_eq!(s.hits, threads as u64 - 1);
-    assert!(s.waits >= 1, "some thread should have waited for the load: {s:?}");
+    assert_eq!(s.waits, threads as u64 - 1, "{s:?}");
+    assert_eq!(s.waiting, 0);
+}
+
+/// A worker pool smaller than the number of requests: a worker that waits for the load pool may
+/// run other jobs of its own pool, which then wait for the same load; the waits end because the
+/// load pool finishes the load and wakes the waiters itself. 2 workers, 32 jobs over 4 keys,
+/// loaders with parallel loops: each key loaded once, no deadlock.
+#[test]
+fn a_small_worker_pool_with_many_jobs_per_key_neither_deadlocks_nor_loads_twice() {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    let cache = Arc::new(SceneCache::new(1 << 30));
+    let calls: Arc<Vec<AtomicUsize>> = Arc::new((0..4).map(|_| AtomicUsize::new(0)).collect());
+    let (tx, rx) = std::sync::mpsc::channel();
+    {
+        let (cache, calls) = (cache.clone(), calls.clone());
+        pool.spawn(move || {
+            use rayon::prelude::*;
+            let ids: Vec<String> = (0..32u64)
+                .into_par_iter()
+                .map(|j| {
+                    let k = j % 4;
+                    cache
+                        .get_or_load(key(100 + k), || -> Result<Scene, Never> {
+                            calls[k as usize].fetch_add(1, Ordering::SeqCst);
+                            let sum: u64 = (0..50_000u64).into_par_iter().map(|i| i % 3).sum();
+                            assert!(sum > 0);
+                            Ok(scene(&format!("k{k}"), 16, 16, 2))
+                        })
+                        .unwrap()
+                        .id
+                        .clone()
+                })
+                .collect();
+            tx.send(ids).unwrap();
+        });
+    }
+    let ids = rx.recv_timeout(Duration::from_secs(60)).expect("no deadlock");
+    for (j, id) in ids.iter().enumerate() {
+        assert_eq!(*id, format!("k{}", j % 4));
+    }
+    for (k, c) in calls.iter().enumerate() {
+        assert_eq!(c.load(Ordering::SeqCst), 1, "key {k} loaded more than once");
+    }
 }
 
 #[test]
@@ -178,46 +251,4 @@ fn clear_drops_everything() {
     cache.clear();
     let s = cache.stats();
     assert_eq!((s.entries, s.bytes), (0, 0));
-}
-
-/// A loader that runs a parallel loop on a rayon pool can have the pool's thread steal another
-/// job asking for the same key while the load is in progress (the service runs every sample as a
-/// job on one pool). That job must not wait for the load below it on its own stack: it loads the
-/// scene itself. Before the fix this test deadlocked.
-#[test]
-fn a_request_nested_in_its_own_load_on_a_rayon_worker_does_not_deadlock() {
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-    let cache = Arc::new(SceneCache::new(1 << 30));
-    let calls = Arc::new(AtomicUsize::new(0));
-    let (tx, rx) = std::sync::mpsc::channel();
-    {
-        let (cache, calls) = (cache.clone(), calls.clone());
-        pool.spawn(move || {
-            let outer = cache
-                .get_or_load(key(1), || -> Result<Scene, Never> {
-                    calls.fetch_add(1, Ordering::SeqCst);
-                    // the nested request on the same worker, for the key being loaded
-                    let (a, b) = rayon::join(
-                        || {
-                            cache.get_or_load(key(1), || -> Result<Scene, Never> {
-                                calls.fetch_add(1, Ordering::SeqCst);
-                                Ok(scene("s", 8, 8, 2))
-                            })
-                        },
-                        || 0,
-                    );
-                    assert_eq!(b, 0);
-                    assert_eq!(a.unwrap().id, "s");
-                    Ok(scene("s", 8, 8, 2))
-                })
-                .unwrap();
-            tx.send(outer.id.clone()).unwrap();
-        });
-    }
-    let got = rx.recv_timeout(Duration::from_secs(20)).expect("no deadlock");
-    assert_eq!(got, "s");
-    assert_eq!(calls.load(Ordering::SeqCst), 2, "the nested request loaded the scene itself");
-    // the outer load is the one cached
-    let again = cache.get_or_load(key(1), || -> Result<Scene, Never> { unreachable!() }).unwrap();
-    assert_eq!(again.id, "s");
 }

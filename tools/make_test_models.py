@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Writes tiny ONNX models with mpiflow's three scene-model contracts (DESIGN section 5) whose
+"""Writes tiny ONNX models with mpiflow's three scene-model contracts (docs/models.md) whose
 outputs are known, simple functions of their inputs, plus broken variants for the error tests.
 
     python tools/make_test_models.py OUTDIR

@@ -6,7 +6,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 eval "$(bash tools/setup_python.sh)"
-cargo test --release --all-targets
+cargo test --release --all-targets --all-features
 # The Python client against the real `mpiflow serve` (built by cargo test above).
 MPIFLOW_BIN="$PWD/target/release/mpiflow" "$MPIFLOW_PYTHON" -m pytest -q clients/python/tests
 # The Kubernetes manifests against the Kubernetes JSON schemas, offline (deploy/validate.sh).

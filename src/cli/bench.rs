@@ -102,6 +102,12 @@ fn accuracy(a: AccuracyBench) -> Result<(), CliError> {
     if a.width < 8 || a.height < 8 || a.width * a.height > 4 << 20 || a.runs == 0 || a.runs > 1000 {
         return Err(CliError("accuracy bench: the size must be 8x8 to 4 Mpx and runs 1 to 1000".into()));
     }
+    if !cfg!(feature = "plots") {
+        return Err(CliError(
+            "accuracy bench: this build has no plotting; run it as `cargo run --release --features plots -- bench accuracy ...`"
+                .into(),
+        ));
+    }
     let start = std::time::Instant::now();
     let photo = load_photo_scene(&a.photo, a.width, a.height)?;
     let scenes = [tilted_plane_scene(a.width, a.height), sphere_scene(a.width, a.height), photo];
@@ -114,7 +120,7 @@ fn accuracy(a: AccuracyBench) -> Result<(), CliError> {
     write_plot(&report, &plot, 1500, 620)?;
     let meta = ReportMeta {
         command: format!(
-            "cargo run --release -- bench accuracy --out {} --width {} --height {} --runs {} --photo {}",
+            "cargo run --release --features plots -- bench accuracy --out {} --width {} --height {} --runs {} --photo {}",
             a.out.display(),
             a.width,
             a.height,

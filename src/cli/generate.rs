@@ -17,18 +17,15 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
 use mpiflow::export::{sample_key, EncodedSample, ExportFormat, ExportOptions, Exporter, PreviewOptions};
 use mpiflow::geometry::Intrinsics;
-use mpiflow::mpi::layering::{Layering, MAX_PLANES};
 use mpiflow::sample::merge::MergeRule;
 use mpiflow::sample::motion::MotionPreset;
-use mpiflow::sample::recipe::{Generator, SampleConfig, SampleError};
+use mpiflow::sample::pipeline::{open_source, parse_size, OpenOptions, Pipeline, SourceSpec};
+use mpiflow::sample::recipe::{SampleConfig, SampleError};
 use mpiflow::sample::Sample;
-use mpiflow::scene::builtin::BuiltinMpi;
 use mpiflow::scene::cache::SceneCache;
-use mpiflow::scene::onnx::{OnnxDepth, OnnxDepthConfig, OnnxMpi, OnnxMpiConfig, OnnxSegmenter, OnnxSegmenterConfig};
-use mpiflow::scene::stage::{SceneStage, SourceScenes};
-use mpiflow::scene::{MpiBuilder, SceneLoader};
-use mpiflow::source::builtin::{BuiltinOptions, BuiltinSource};
-use mpiflow::source::dir::{IntrinsicsSpec, SourceOptions};
+use mpiflow::scene::models::ModelConfig;
+use mpiflow::scene::SceneLoader;
+use mpiflow::source::dir::IntrinsicsSpec;
 use mpiflow::source::Source;
 use rayon::prelude::*;
 
@@ -114,73 +111,40 @@ fn parse_format(s: &str) -> Result<ExportFormat, String> {
     s.parse()
 }
 
-/// `WxH` with both sides at least 16 pixels.
-fn parse_size(s: &str) -> Result<(usize, usize), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH (e.g. 640x480), got `{s}`"))?;
-    let side = |v: &str| -> Result<usize, String> {
-        let n: usize = v.trim().parse().map_err(|_| format!("`{v}` is not a whole number of pixels"))?;
-        if !(16..=16384).contains(&n) {
-            return Err(format!("{n} pixels is outside 16 to 16384"));
-        }
-        Ok(n)
-    };
-    Ok((side(w)?, side(h)?))
-}
-
-fn open_source(a: &GenerateArgs) -> Result<Arc<dyn Source>, CliError> {
-    match &a.source {
-        Some(path) => {
-            let intrinsics = match a.intrinsics {
-                Some(v) => {
-                    let k = Intrinsics::new(v[0], v[1], v[2], v[3]);
-                    if !k.is_valid() {
-                        return Err(CliError("--intrinsics: focal lengths must be non-zero".into()));
-                    }
-                    Some(IntrinsicsSpec::Pixels(k))
-                }
-                None => None,
-            };
-            let options = SourceOptions { resize: a.size, intrinsics, ..SourceOptions::default() };
-            // a directory, an image, a .tar shard or a directory of shards
-            mpiflow::source::open_source(path, &options).map_err(|e| CliError(format!("--source: {e}")))
-        }
-        None => {
-            if a.intrinsics.is_some() {
-                return Err(CliError(
-                    "--intrinsics needs --source (the bundled scenes are composed for their own camera)".into(),
-                ));
-            }
-            let mut options = BuiltinOptions::default();
-            if let Some((w, h)) = a.size {
-                options.width = w;
-                options.height = h;
-            }
-            let source = BuiltinSource::open(&options).map_err(|e| CliError(format!("bundled scenes: {e}")))?;
-            Ok(Arc::new(source))
-        }
+/// The scene models of the flags (the same [`ModelConfig`] the server reads).
+fn model_config(a: &GenerateArgs) -> ModelConfig {
+    ModelConfig {
+        planes: a.planes,
+        depth_model: a.depth_model.clone(),
+        mpi_model: a.mpi_model.clone(),
+        segment_model: a.segment_model.clone(),
     }
 }
 
-fn scene_stage(a: &GenerateArgs) -> Result<SceneStage, CliError> {
-    let mpi: Arc<dyn MpiBuilder> = match &a.mpi_model {
-        Some(p) => Arc::new(OnnxMpi::new(OnnxMpiConfig::new(p))?),
-        None => {
-            if !(1..=MAX_PLANES).contains(&a.planes) {
-                return Err(CliError(format!("--planes {}: expected 1 to {MAX_PLANES}", a.planes)));
+/// The source of the flags, opened as the server opens a dataset's.
+fn source(a: &GenerateArgs) -> Result<Arc<dyn Source>, CliError> {
+    let intrinsics = match a.intrinsics {
+        Some(v) => {
+            let k = Intrinsics::new(v[0], v[1], v[2], v[3]);
+            if !k.is_valid() {
+                return Err(CliError("--intrinsics: focal lengths must be non-zero".into()));
             }
-            let b = BuiltinMpi::new(a.planes, Layering::Soft);
-            b.validate()?;
-            Arc::new(b)
+            Some(IntrinsicsSpec::Pixels(k))
         }
+        None => None,
     };
-    let mut stage = SceneStage::new(mpi);
-    if let Some(p) = &a.depth_model {
-        stage = stage.with_depth(Arc::new(OnnxDepth::new(OnnxDepthConfig::new(p))?));
-    }
-    if let Some(p) = &a.segment_model {
-        stage = stage.with_segmenter(Arc::new(OnnxSegmenter::new(OnnxSegmenterConfig::new(p))?));
-    }
-    Ok(stage)
+    let spec = match &a.source {
+        Some(path) => SourceSpec::Path(path.clone()),
+        None if intrinsics.is_some() => {
+            return Err(CliError(
+                "--intrinsics needs --source (the bundled scenes are composed for their own camera)".into(),
+            ))
+        }
+        None => SourceSpec::Builtin,
+    };
+    let options = OpenOptions { resize: a.size, intrinsics, ..OpenOptions::default() };
+    let what = if a.source.is_some() { "--source" } else { "bundled scenes" };
+    open_source(&spec, &options).map_err(|e| CliError(format!("{what}: {e}")))
 }
 
 /// What a worker hands to the writer for one index.
@@ -215,12 +179,11 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     if a.out.exists() && !a.out.is_dir() {
         return Err(CliError(format!("--out {}: exists and is not a directory", a.out.display())));
     }
-    let source = open_source(&a)?;
+    let source = source(&a)?;
     if source.is_empty() {
         return Err(CliError(format!("{}: no images to make samples from", source.describe())));
     }
-    let stage = Arc::new(scene_stage(&a)?);
-    let loader = Arc::new(SourceScenes::new(source.clone(), stage));
+    let stage = Arc::new(model_config(&a).build_stage().map_err(CliError)?);
     let config = SampleConfig {
         max_objects: usize::from(a.objects),
         merge: a.merge,
@@ -228,7 +191,9 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         ..SampleConfig::with_preset(a.preset)
     };
     let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));
-    let generator = Generator::new(loader.clone() as Arc<dyn SceneLoader>, cache, config)?;
+    let pipeline = Pipeline::new(source.clone(), stage, cache, config)?;
+    let generator = pipeline.generator().clone();
+    let loader = pipeline.loader().clone();
 
     let threads = match a.threads {
         Some(n) => n as usize,
@@ -247,12 +212,13 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     let exporter = Exporter::create(options)?;
 
     eprintln!(
-        "generate: {} samples (indices {}..{end}) from {} into {} ({}), {threads} threads",
+        "generate: {} samples (indices {}..{end}) from {} into {} ({}), {threads} threads, dataset fingerprint {:016x}",
         a.count,
         a.start,
         loader.describe(),
         a.out.display(),
-        a.format
+        a.format,
+        pipeline.fingerprint()
     );
     let started = Instant::now();
     let pb = progress_bar(a.count, a.quiet);

@@ -1,6 +1,6 @@
 //! Camera geometry in f64: pinhole intrinsics, rigid poses (axis-angle), and the plane-induced
 //! homographies H_i = K_t (R + t n^T / d_i) K_s^-1 that move a fronto-parallel source plane into
-//! the target view. Conventions (DESIGN §3): pixel centres at integer coordinates, x = column,
+//! the target view. Conventions (docs/design.md): pixel centres at integer coordinates, x = column,
 //! y = row, X_tgt = R X_src + t, plane normal n = (0, 0, 1) in the source camera.
 
 use glam::{DMat3, DMat4, DVec3};

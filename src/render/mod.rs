@@ -256,7 +256,7 @@ fn occlusion_mask(out: &RenderOutput) -> Vec<u8> {
     occ
 }
 
-/// The last line of defence of DESIGN §4: no NaN or Inf leaves the renderer. Returns how many
+/// The last line of defence of the numerics rule (docs/design.md): no NaN or Inf leaves the renderer. Returns how many
 /// values had to be replaced (0 in every tested case; the count is reported, not hidden).
 fn repair_nonfinite(out: &mut RenderOutput) -> u64 {
     use rayon::prelude::*;

@@ -33,7 +33,7 @@
 //! - `KnownOnly`: filled pixels contribute their value only (zero order).
 //! - `Off`: no gradient term at all (a convex combination: never leaves the known range).
 //!
-//! Measured on the four photographs of `shared/data/images` (u8, 10% of the pixels in random
+//! Measured on the four photographs of `examples/photos` (u8, 10% of the pixels in random
 //! discs, RMSE in grey levels, radius 5; `Propagated` / `KnownOnly` / `Off` / OpenCV variant):
 //! small discs (radius 1-4): astronaut 14.6 / 14.3 / 18.0 / 18.4, chelsea 8.7 / 8.4 / 10.2 /
 //! 10.7, coffee 15.2 / 14.6 / 15.7 / 15.9, rocket 12.4 / 11.8 / 11.5 / 11.6; large discs (radius

@@ -1,13 +1,17 @@
 //! Building one training sample: random motions, object motion and merging, inpainting of
 //! holes, and the deterministic recipe that ties a sample to its address.
 
+pub mod config;
+pub mod holes;
 pub mod inpaint;
 pub mod merge;
 pub mod motion;
 pub mod object;
+pub mod pipeline;
 pub mod preblend;
 pub mod recipe;
-pub mod rng;
+/// The keyed random streams live in the leaf [`crate::rng`] (the bundled source uses them too).
+pub use crate::rng;
 
 use serde::{Deserialize, Serialize};
 

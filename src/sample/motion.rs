@@ -4,7 +4,7 @@
 //!
 //! # Conventions
 //!
-//! A drawn motion is a [`Pose`]: `X_tgt = R X_src + t` (DESIGN §3), the source camera (or, for an
+//! A drawn motion is a [`Pose`]: `X_tgt = R X_src + t` (docs/design.md, geometry conventions), the source camera (or, for an
 //! object motion, the object's points) mapped into the target camera. The scene is scaled so that
 //! the nearest content lies at depth ~1, so translations are in units of that depth.
 //!

@@ -3,24 +3,28 @@
 //!
 //! # Behaviour
 //!
-//! - [`SceneCache::get_or_load`] runs the loader at most once per key at a time: a thread that
-//!   asks for a key another thread is loading waits for that load and shares its result (counted
-//!   as a hit, and in [`CacheStats::waits`]). Except on a rayon worker thread: there it loads the
-//!   scene itself (counted as a miss) instead of blocking, because the load it would wait for can
-//!   be further down its own stack (rayon runs other jobs while a job waits in a parallel loop),
-//!   which would deadlock the pool.
+//! - [`SceneCache::get_or_load`] runs the loader **at most once per key at a time, on every
+//!   thread**: a caller that asks for a key another caller is loading waits for that load and
+//!   shares its result (counted as a hit, and in [`CacheStats::waits`]). This holds on rayon
+//!   worker threads too (every production caller is one): loads run on their own pool
+//!   ([`load_pool`], threads named `mpiflow-scene-N`), never nested in the caller's rayon job,
+//!   and that pool finishes the load and wakes the waiters itself. A rayon worker that waits
+//!   (for the load pool or for another caller's load) may run other jobs of its own pool
+//!   meanwhile, and those may wait too, but no load ever waits for the caller's pool, so the
+//!   waits always end: no deadlock, no second load. (A loader must not ask the cache for its
+//!   own key: it would wait for itself.)
 //! - A loaded scene is inserted and the least recently used entries are evicted until the cache
 //!   fits in its budget again. A scene larger than the whole budget is returned (also to the
-//!   threads waiting for it) but not kept ([`CacheStats::not_kept`]).
-//! - **Errors are not cached.** A failed load (or a loader that panics) leaves no entry; threads
+//!   callers waiting for it) but not kept ([`CacheStats::not_kept`]).
+//! - **Errors are not cached.** A failed load (or a loader that panics) leaves no entry; callers
 //!   that were waiting for it retry the load themselves, one at a time, and a later call retries
 //!   too. (A source that fails keeps costing a load attempt per request; the caller sees every
 //!   error.)
 //! - The lock is held only for bookkeeping, never while a loader runs, so loads of different
-//!   keys proceed in parallel.
+//!   keys proceed in parallel (up to the load pool's size).
 
 use std::collections::HashMap;
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, OnceLock};
 
 use super::Scene;
 
@@ -48,8 +52,10 @@ pub struct CacheStats {
     pub hits: u64,
     /// Calls that ran the loader (successfully or not).
     pub misses: u64,
-    /// Of the hits, those that waited for another thread's load.
+    /// Of the hits, those that waited for another caller's load.
     pub waits: u64,
+    /// Callers waiting now for another caller's load.
+    pub waiting: usize,
     /// Entries removed to make room.
     pub evictions: u64,
     /// Loads that failed (returned an error or panicked); never cached.
@@ -114,6 +120,18 @@ impl std::fmt::Debug for SceneCache {
     }
 }
 
+/// The process-wide pool that runs scene loads (one thread per core, `mpiflow-scene-N`); a
+/// model's own threads (ONNX Runtime) come on top. `None` when no thread can be started: loads
+/// then run on the caller's thread, which is still correct outside rayon pools.
+pub fn load_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: OnceLock<Option<rayon::ThreadPool>> = OnceLock::new();
+    POOL.get_or_init(|| {
+        let threads = std::thread::available_parallelism().map_or(1, std::num::NonZeroUsize::get);
+        rayon::ThreadPoolBuilder::new().num_threads(threads).thread_name(|i| format!("mpiflow-scene-{i}")).build().ok()
+    })
+    .as_ref()
+}
+
 /// Locks, ignoring poisoning (the cache's invariants are restored by the guards below, and a
 /// panic in a loader never happens under the lock).
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -154,7 +172,11 @@ impl SceneCache {
 
     /// The scene of `key`: from the cache, from a concurrent load of the same key, or by running
     /// `load` (see the module documentation). Errors of `load` are returned and not cached.
-    pub fn get_or_load<E>(&self, key: SceneKey, load: impl FnOnce() -> Result<Scene, E>) -> Result<Arc<Scene>, E> {
+    pub fn get_or_load<E: Send>(
+        &self,
+        key: SceneKey,
+        load: impl FnOnce() -> Result<Scene, E> + Send,
+    ) -> Result<Arc<Scene>, E> {
         let mut load = Some(load);
         loop {
             let pending = {
@@ -168,26 +190,19 @@ impl SceneCache {
                         inner.stats.hits += 1;
                         return Ok(scene);
                     }
-                    Some(Slot::Loading(_)) if rayon::current_thread_index().is_some() => {
-                        // On a rayon worker, never block on another load: the loader may be this
-                        // very thread further down its stack (a job stolen while the loading job
-                        // waits in a parallel loop) or a worker waiting on us, and waiting would
-                        // deadlock the pool. Load it here instead (same content; the first load
-                        // to finish is the one cached).
-                        inner.stats.misses += 1;
-                        drop(inner);
-                        let f = load.take().expect("the loader runs at most once per call");
-                        return f().map(Arc::new);
-                    }
                     Some(Slot::Loading(p)) => {
                         let p = p.clone();
+                        inner.stats.waiting += 1;
                         drop(inner);
-                        if let Some(scene) = p.wait() {
-                            let mut inner = lock(&self.inner);
+                        let got = p.wait();
+                        let mut inner = lock(&self.inner);
+                        inner.stats.waiting -= 1;
+                        if let Some(scene) = got {
                             inner.stats.hits += 1;
                             inner.stats.waits += 1;
                             return Ok(scene);
                         }
+                        drop(inner);
                         // the load failed: try again (possibly loading it ourselves)
                         continue;
                     }
@@ -199,23 +214,28 @@ impl SceneCache {
                     }
                 }
             };
-            let mut guard = LoadGuard { cache: self, key, pending: pending.clone(), armed: true };
             let f = load.take().expect("the loader runs at most once per call");
-            let result = f();
-            match result {
-                Ok(scene) => {
-                    guard.armed = false;
-                    let scene = Arc::new(scene);
-                    self.insert(key, &pending, scene.clone());
-                    pending.finish(Some(scene.clone()));
-                    return Ok(scene);
-                }
-                Err(e) => {
+            // The load, its insertion and the wake-up of the waiters all run on the load pool:
+            // this thread may, while it waits for the pool, run a job of its own pool that waits
+            // for this very key, and that wait must end without this thread's help.
+            let run = move || {
+                let mut guard = LoadGuard { cache: self, key, pending: pending.clone(), armed: true };
+                match f() {
+                    Ok(scene) => {
+                        guard.armed = false;
+                        let scene = Arc::new(scene);
+                        self.insert(key, &pending, scene.clone());
+                        pending.finish(Some(scene.clone()));
+                        Ok(scene)
+                    }
                     // the guard removes the slot, counts the error and wakes the waiters
-                    drop(guard);
-                    return Err(e);
+                    Err(e) => Err(e),
                 }
-            }
+            };
+            return match load_pool() {
+                Some(pool) if pool.current_thread_index().is_none() => pool.install(run),
+                _ => run(),
+            };
         }
     }
 

@@ -9,6 +9,7 @@
 pub mod builtin;
 pub mod cache;
 pub mod masks;
+pub mod models;
 pub mod onnx;
 pub mod scale;
 pub mod stage;
@@ -53,18 +54,31 @@ pub enum SceneError {
 pub trait DepthEstimator: Send + Sync {
     /// A short name for logs and sample metadata (e.g. `onnx:midas_small.onnx`).
     fn name(&self) -> String;
+    /// Everything that makes this estimator's output what it is, for fingerprints (for a model:
+    /// the content hash of its file and its contract). Default: [`Self::name`].
+    fn identity(&self) -> String {
+        self.name()
+    }
     fn estimate(&self, image: &RgbImage) -> Result<Disparity, SceneError>;
 }
 
 /// Lifts an image with its disparity into an MPI (planes near to far).
 pub trait MpiBuilder: Send + Sync {
     fn name(&self) -> String;
+    /// What makes the output what it is, for fingerprints (see [`DepthEstimator::identity`]).
+    fn identity(&self) -> String {
+        self.name()
+    }
     fn build(&self, image: &RgbImage, disparity: &Disparity, k: &Intrinsics) -> Result<Mpi, SceneError>;
 }
 
 /// Finds object instances in an image.
 pub trait Segmenter: Send + Sync {
     fn name(&self) -> String;
+    /// What makes the output what it is, for fingerprints (see [`DepthEstimator::identity`]).
+    fn identity(&self) -> String {
+        self.name()
+    }
     fn segment(&self, image: &RgbImage) -> Result<InstanceMasks, SceneError>;
 }
 

@@ -1,6 +1,6 @@
 //! The scene models through ONNX Runtime (`ort` with `load-dynamic`): [`OnnxDepth`],
 //! [`OnnxMpi`] and [`OnnxSegmenter`], implementing the scene traits with the default contracts
-//! of DESIGN section 5 (tensor names, normalisation and input size configurable).
+//! of `docs/models.md` (tensor names, normalisation and input size configurable).
 //!
 //! # Life cycle
 //! * The ONNX Runtime library is loaded once per process by the first constructor (or

@@ -93,14 +93,15 @@ impl SceneStage {
         )
     }
 
-    /// A fingerprint of everything in the configuration that changes scenes (the models' names,
-    /// which include the MPI builder's planes and layering).
+    /// A fingerprint of everything in the configuration that changes scenes: each part's
+    /// [`identity`](DepthEstimator::identity) (for an ONNX model the content hash of its file
+    /// and its contract, never its file name; for the built-in layering its planes and layering).
     pub fn config_fingerprint(&self) -> u64 {
         let mut h = Fnv64::new();
         h.str("mpiflow scene stage v1");
-        h.str(&self.depth.as_ref().map_or("none".into(), |d| d.name()));
-        h.str(&self.mpi.name());
-        h.str(&self.segmenter.as_ref().map_or("none".into(), |s| s.name()));
+        h.str(&self.depth.as_ref().map_or("none".into(), |d| d.identity()));
+        h.str(&self.mpi.identity());
+        h.str(&self.segmenter.as_ref().map_or("none".into(), |s| s.identity()));
         h.finish()
     }
 

@@ -3,17 +3,12 @@
 //! one before.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
 use crate::io::image::ImageLimits;
-use crate::mpi::layering::{Layering, MAX_PLANES};
 use crate::sample::recipe::SampleConfig;
-use crate::scene::builtin::BuiltinMpi;
-use crate::scene::onnx::{OnnxDepth, OnnxDepthConfig, OnnxMpi, OnnxMpiConfig, OnnxSegmenter, OnnxSegmenterConfig};
-use crate::scene::stage::SceneStage;
-use crate::scene::MpiBuilder;
+pub use crate::scene::models::ModelConfig;
 
 use super::error::ServiceError;
 
@@ -41,54 +36,6 @@ impl std::str::FromStr for LogFormat {
             "json" => Ok(LogFormat::Json),
             _ => Err(format!("unknown log format {s:?} (expected text or json)")),
         }
-    }
-}
-
-/// The scene models shared by every dataset (ONNX files; none = the built-in layering, with depth
-/// and masks coming with the sources).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ModelConfig {
-    /// Planes of the built-in layering (when there is no MPI model). Default 32.
-    pub planes: usize,
-    /// Depth model (ONNX) for sources without depth.
-    pub depth_model: Option<PathBuf>,
-    /// MPI network (ONNX, AdaMPI-style) instead of the built-in layering.
-    pub mpi_model: Option<PathBuf>,
-    /// Instance segmentation model (ONNX) for sources without masks.
-    pub segment_model: Option<PathBuf>,
-}
-
-impl Default for ModelConfig {
-    fn default() -> Self {
-        Self { planes: 32, depth_model: None, mpi_model: None, segment_model: None }
-    }
-}
-
-impl ModelConfig {
-    /// Loads the models (ONNX sessions are created and warmed here) into a scene stage.
-    pub fn build_stage(&self) -> Result<SceneStage, String> {
-        let mpi: Arc<dyn MpiBuilder> = match &self.mpi_model {
-            Some(p) => Arc::new(OnnxMpi::new(OnnxMpiConfig::new(p)).map_err(|e| format!("mpi model: {e}"))?),
-            None => {
-                if !(1..=MAX_PLANES).contains(&self.planes) {
-                    return Err(format!("planes = {}: expected 1 to {MAX_PLANES}", self.planes));
-                }
-                let b = BuiltinMpi::new(self.planes, Layering::Soft);
-                b.validate().map_err(|e| e.to_string())?;
-                Arc::new(b)
-            }
-        };
-        let mut stage = SceneStage::new(mpi);
-        if let Some(p) = &self.depth_model {
-            let m = OnnxDepth::new(OnnxDepthConfig::new(p)).map_err(|e| format!("depth model: {e}"))?;
-            stage = stage.with_depth(Arc::new(m));
-        }
-        if let Some(p) = &self.segment_model {
-            let m = OnnxSegmenter::new(OnnxSegmenterConfig::new(p)).map_err(|e| format!("segment model: {e}"))?;
-            stage = stage.with_segmenter(Arc::new(m));
-        }
-        Ok(stage)
     }
 }
 
@@ -141,6 +88,16 @@ impl DatasetConfig {
 
     pub fn is_builtin(&self) -> bool {
         self.path == "builtin"
+    }
+
+    /// Where the dataset's items come from.
+    pub fn source_spec(&self) -> crate::sample::pipeline::SourceSpec {
+        use crate::sample::pipeline::SourceSpec;
+        if self.is_builtin() {
+            SourceSpec::Builtin
+        } else {
+            SourceSpec::Path(PathBuf::from(&self.path))
+        }
     }
 }
 
@@ -240,18 +197,7 @@ impl Default for ServiceConfig {
     }
 }
 
-/// `WxH`, both sides 16 to 16384 pixels.
-pub fn parse_size(s: &str) -> Result<(usize, usize), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH (e.g. 640x480), got `{s}`"))?;
-    let side = |v: &str| -> Result<usize, String> {
-        let n: usize = v.trim().parse().map_err(|_| format!("`{v}` is not a whole number of pixels"))?;
-        if !(16..=16384).contains(&n) {
-            return Err(format!("{n} pixels is outside 16 to 16384"));
-        }
-        Ok(n)
-    };
-    Ok((side(w)?, side(h)?))
-}
+pub use crate::sample::pipeline::parse_size;
 
 fn env_parse<T: std::str::FromStr>(key: &str, value: &str) -> Result<T, String>
 where

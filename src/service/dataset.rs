@@ -7,30 +7,23 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, RwLock};
 
 use crate::sample::motion::{MotionPreset, MotionRanges};
+use crate::sample::pipeline::{open_source, OpenOptions, Pipeline};
 use crate::sample::recipe::{Generator, MotionSpec, SampleConfig, SampleError};
 use crate::scene::cache::SceneCache;
 use crate::scene::stage::{SceneStage, SourceScenes};
-use crate::scene::SceneLoader;
-use crate::source::builtin::{BuiltinOptions, BuiltinSource};
 use crate::source::dir::SourceOptions;
 use crate::source::upload::{UploadLimits, UploadStore, UploadSummary};
-use crate::source::{open_source, Fnv64, Source};
+use crate::source::Source;
 
 use super::config::{DatasetConfig, ServiceConfig};
 use super::error::ServiceError;
 
-/// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
-/// (sources + scene stage) and the configuration's JSON.
-pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
-    // serialising a plain struct of numbers and strings cannot fail
-    let json = serde_json::to_string(config).unwrap_or_default();
-    Fnv64::new().str("mpiflow dataset v1").u64(loader_fingerprint).str(&json).finish()
-}
+pub use crate::sample::pipeline::dataset_fingerprint;
 
 /// Most generators with overridden configurations kept per dataset.
 const MAX_GENERATORS: usize = 16;
 
-/// One named dataset.
+/// One named dataset: a [`Pipeline`] and the generators of request overrides.
 pub struct Dataset {
     pub name: String,
     pub description: String,
@@ -72,22 +65,22 @@ impl Dataset {
         cache: Arc<SceneCache>,
         config: SampleConfig,
     ) -> Result<Self, ServiceError> {
-        let loader = Arc::new(SourceScenes::new(source.clone(), stage));
-        let description = loader.describe();
-        let generator = Arc::new(
-            Self::make_generator(&loader, &cache, config)
-                .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?,
-        );
-        Ok(Self { name, description, source, loader, cache, generator, overrides: Mutex::new(Vec::new()) })
+        let pipeline = Pipeline::new(source, stage, cache.clone(), config)
+            .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
+        Ok(Self {
+            name,
+            description: pipeline.describe(),
+            source: pipeline.source().clone(),
+            loader: pipeline.loader().clone(),
+            cache,
+            generator: pipeline.generator().clone(),
+            overrides: Mutex::new(Vec::new()),
+        })
     }
 
-    fn make_generator(
-        loader: &Arc<SourceScenes>,
-        cache: &Arc<SceneCache>,
-        config: SampleConfig,
-    ) -> Result<Generator, SampleError> {
-        let fingerprint = dataset_fingerprint(loader.fingerprint(), &config);
-        Generator::with_fingerprint(loader.clone() as Arc<dyn SceneLoader>, cache.clone(), config, fingerprint)
+    /// Scenes built for this dataset so far (all its configurations together).
+    pub fn scene_builds(&self) -> u64 {
+        self.generator.scene_builds()
     }
 
     /// The fingerprint of the default configuration.
@@ -148,7 +141,8 @@ impl Dataset {
             return Ok(g);
         }
         let g = Arc::new(
-            Self::make_generator(&self.loader, &self.cache, config)
+            self.generator
+                .with_config(config)
                 .map_err(|e| ServiceError::invalid("motion_ranges_json", e.to_string()))?,
         );
         if list.len() >= MAX_GENERATORS {
@@ -181,23 +175,14 @@ impl Datasets {
         let cache_bytes = usize::try_from(config.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX);
         let cache = Arc::new(SceneCache::new(cache_bytes));
         let resize = config.resize()?;
+        let open = OpenOptions { resize, limits: config.image_limits(), ..OpenOptions::default() };
         let builtin = [DatasetConfig { name: None, path: "builtin".into(), sample: None }];
         let specs: &[DatasetConfig] = if config.datasets.is_empty() { &builtin } else { &config.datasets };
         let mut list = Vec::with_capacity(specs.len());
         for spec in specs {
             let name = spec.name();
-            let source: Arc<dyn Source> = if spec.is_builtin() {
-                let mut o = BuiltinOptions { limits: config.image_limits(), ..BuiltinOptions::default() };
-                if let Some((w, h)) = resize {
-                    o.width = w;
-                    o.height = h;
-                }
-                Arc::new(BuiltinSource::open(&o).map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?)
-            } else {
-                let o = SourceOptions { resize, limits: config.image_limits(), ..SourceOptions::default() };
-                open_source(std::path::Path::new(&spec.path), &o)
-                    .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?
-            };
+            let source = open_source(&spec.source_spec(), &open)
+                .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
             for s in source.skipped() {
                 tracing::warn!(dataset = %name, item = %s.item, class = %s.class, reason = %s.reason, "source item left out");
             }

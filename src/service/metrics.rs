@@ -18,6 +18,8 @@ use crate::sample::recipe::SampleError;
 use crate::sample::StageTimings;
 use crate::scene::cache::SceneCache;
 
+use super::dataset::Datasets;
+
 type Labels = Vec<(String, String)>;
 
 fn label(k: &str, v: impl Into<String>) -> Labels {
@@ -64,6 +66,12 @@ pub struct Metrics {
     cache_bytes: Gauge,
     cache_seen: Mutex<(u64, u64, u64)>,
     cache: Mutex<Option<Arc<SceneCache>>>,
+    /// Scenes actually built, by dataset (`mpiflow_scene_builds_total`), read from the datasets'
+    /// generators at every scrape.
+    pub scene_builds: Family<Labels, Counter>,
+    datasets: Mutex<Option<Arc<Datasets>>>,
+    /// Per dataset name: the generator counted (its address) and the builds counted so far.
+    builds_seen: Mutex<BTreeMap<String, (usize, u64)>>,
     skipped_by_dataset: Mutex<BTreeMap<(String, String), u64>>,
 }
 
@@ -104,6 +112,9 @@ impl Metrics {
             cache_bytes: Gauge::default(),
             cache_seen: Mutex::new((0, 0, 0)),
             cache: Mutex::new(None),
+            scene_builds: Family::default(),
+            datasets: Mutex::new(None),
+            builds_seen: Mutex::new(BTreeMap::new()),
             skipped_by_dataset: Mutex::new(BTreeMap::new()),
         };
         r.register("samples_generated", "Samples made by the workers", m.samples_generated.clone());
@@ -128,12 +139,37 @@ impl Metrics {
         r.register("scene_cache_misses", "Scene cache lookups that loaded the scene", m.cache_misses.clone());
         r.register("scene_cache_evictions", "Scenes evicted from the cache", m.cache_evictions.clone());
         r.register("scene_cache_bytes", "Bytes held by the scene cache", m.cache_bytes.clone());
+        r.register("scene_builds", "Scenes actually built (models run), by dataset", m.scene_builds.clone());
         Metrics { registry: r, ..m }
     }
 
     /// Reports this cache's statistics at every scrape.
     pub fn watch_cache(&self, cache: Arc<SceneCache>) {
         *self.cache.lock().unwrap_or_else(|e| e.into_inner()) = Some(cache);
+    }
+
+    /// Reports these datasets' scene builds at every scrape.
+    pub fn watch_datasets(&self, datasets: Arc<Datasets>) {
+        *self.datasets.lock().unwrap_or_else(|e| e.into_inner()) = Some(datasets);
+    }
+
+    fn update_builds(&self) {
+        let datasets = self.datasets.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let Some(datasets) = datasets else { return };
+        let mut seen = self.builds_seen.lock().unwrap_or_else(|e| e.into_inner());
+        for d in datasets.all() {
+            let id = Arc::as_ptr(&d.generator) as usize;
+            let total = d.scene_builds();
+            let slot = seen.entry(d.name.clone()).or_insert((id, 0));
+            if slot.0 != id {
+                // an uploaded dataset was made anew: its generator counts from 0
+                *slot = (id, 0);
+            }
+            if total > slot.1 {
+                self.scene_builds.get_or_create(&label("dataset", d.name.clone())).inc_by(total - slot.1);
+                slot.1 = total;
+            }
+        }
     }
 
     /// Records the stage timings of a made sample and its encoding time.
@@ -226,6 +262,7 @@ impl Metrics {
     /// The OpenMetrics text of every metric.
     pub fn render(&self) -> String {
         self.update_cache();
+        self.update_builds();
         let mut out = String::new();
         // writing into a String cannot fail
         let _ = encode(&mut out, &self.registry);

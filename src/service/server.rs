@@ -400,7 +400,9 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let datasets = tokio::task::spawn_blocking(move || Datasets::open(&cfg))
         .await
         .map_err(|e| ServiceError::Internal(format!("dataset start-up: {e}")))??;
+    let datasets = Arc::new(datasets);
     metrics.watch_cache(datasets.cache.clone());
+    metrics.watch_datasets(datasets.clone());
     for d in datasets.all() {
         metrics.record_skips(&d.name, &d.opened_skips());
     }
@@ -408,7 +410,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let (health, health_service) = tonic_health::server::health_reporter();
     let state = Arc::new(State {
         config: config.clone(),
-        datasets: Arc::new(datasets),
+        datasets,
         scheduler,
         metrics: metrics.clone(),
         health,

@@ -34,7 +34,7 @@ use super::dir::resize_rgb;
 use super::{Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits, RgbImage};
-use crate::sample::rng::{Purpose, SampleRng};
+use crate::rng::{Purpose, SampleRng};
 use crate::scene::masks::InstanceMasks;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};

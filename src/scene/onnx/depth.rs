@@ -35,7 +35,7 @@ pub struct OnnxDepthConfig {
 }
 
 impl OnnxDepthConfig {
-    /// The default contract (DESIGN section 5) for `model`.
+    /// The default contract (docs/models.md) for `model`.
     pub fn new(model: impl Into<PathBuf>) -> Self {
         OnnxDepthConfig {
             model: model.into(),
@@ -150,6 +150,18 @@ pub(crate) fn normalize_disparity(raw: &[f32], floor: f32) -> Vec<f32> {
 impl DepthEstimator for OnnxDepth {
     fn name(&self) -> String {
         self.model.short_name()
+    }
+
+    /// The file's content hash and the contract (tensor names, normalisation, sizes,
+    /// thresholds); not the path, threads or runtime library, which change no output.
+    fn identity(&self) -> String {
+        let contract = OnnxDepthConfig {
+            model: std::path::PathBuf::new(),
+            runtime_library: None,
+            intra_threads: 0,
+            ..self.config.clone()
+        };
+        self.model.identity(&format!("{contract:?}"))
     }
 
     fn estimate(&self, image: &RgbImage) -> Result<Disparity, SceneError> {

@@ -17,6 +17,7 @@ use super::runtime;
 use crate::io::image::RgbImage;
 use crate::scene::masks::resize_bilinear;
 use crate::scene::SceneError;
+use crate::source::Fnv64;
 
 /// How the image is sized for the network (the result is always resized back to the image).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -200,6 +201,9 @@ pub(crate) struct OnnxModel {
     session: Mutex<Session>,
     pub inputs: Vec<TensorInfo>,
     pub outputs: Vec<TensorInfo>,
+    /// FNV-1a 64 of the model file's bytes: the bytes ONNX Runtime loaded (the session is made
+    /// from this very buffer), so two files with the same name but other weights differ here.
+    content_hash: u64,
     runs: AtomicU64,
     nanos: AtomicU64,
     warmup_nanos: AtomicU64,
@@ -232,8 +236,12 @@ impl OnnxModel {
                 .with_intra_threads(intra_threads)
                 .map_err(|e| err(format!("cannot set {intra_threads} threads: {e}")))?;
         }
+        // read once: the hash covers exactly the bytes the session is made from
+        let bytes = std::fs::read(path).map_err(|e| err(format!("cannot read the model file: {e}")))?;
+        let content_hash = Fnv64::new().bytes(&bytes).finish();
         let session =
-            builder.commit_from_file(path).map_err(|e| err(format!("ONNX Runtime cannot load the model: {e}")))?;
+            builder.commit_from_memory(&bytes).map_err(|e| err(format!("ONNX Runtime cannot load the model: {e}")))?;
+        drop(bytes);
         let inputs = session.inputs().iter().map(TensorInfo::from_outlet).collect();
         let outputs = session.outputs().iter().map(TensorInfo::from_outlet).collect();
         Ok(OnnxModel {
@@ -242,6 +250,7 @@ impl OnnxModel {
             session: Mutex::new(session),
             inputs,
             outputs,
+            content_hash,
             runs: AtomicU64::new(0),
             nanos: AtomicU64::new(0),
             warmup_nanos: AtomicU64::new(0),
@@ -258,6 +267,14 @@ impl OnnxModel {
             "onnx:{}",
             self.path.file_name().map_or_else(|| self.path.display().to_string(), |n| n.to_string_lossy().into())
         )
+    }
+
+    /// What makes this model's outputs what they are, for fingerprints: the kind, the content
+    /// hash of the file and the contract (`contract`: the configuration without paths, thread
+    /// counts or the runtime library, which change no output). The file's name and folder are
+    /// not part of it: the same weights anywhere give the same identity.
+    pub fn identity(&self, contract: &str) -> String {
+        format!("onnx {} content {:016x} contract {contract}", self.kind, self.content_hash)
     }
 
     pub fn err(&self, message: impl Into<String>) -> SceneError {

@@ -38,7 +38,7 @@ pub struct OnnxMpiConfig {
 }
 
 impl OnnxMpiConfig {
-    /// The default contract (DESIGN section 5) for `model`.
+    /// The default contract (docs/models.md) for `model`.
     pub fn new(model: impl Into<PathBuf>) -> Self {
         OnnxMpiConfig {
             model: model.into(),
@@ -212,6 +212,18 @@ impl OnnxMpi {
 impl MpiBuilder for OnnxMpi {
     fn name(&self) -> String {
         self.model.short_name()
+    }
+
+    /// The file's content hash and the contract (tensor names, normalisation, sizes,
+    /// thresholds); not the path, threads or runtime library, which change no output.
+    fn identity(&self) -> String {
+        let contract = OnnxMpiConfig {
+            model: std::path::PathBuf::new(),
+            runtime_library: None,
+            intra_threads: 0,
+            ..self.config.clone()
+        };
+        self.model.identity(&format!("{contract:?}"))
     }
 
     fn build(&self, image: &RgbImage, disparity: &Disparity, _k: &Intrinsics) -> Result<Mpi, SceneError> {

@@ -40,7 +40,7 @@ pub struct OnnxSegmenterConfig {
 }
 
 impl OnnxSegmenterConfig {
-    /// The default contract (DESIGN section 5) for `model`.
+    /// The default contract (docs/models.md) for `model`.
     pub fn new(model: impl Into<PathBuf>) -> Self {
         OnnxSegmenterConfig {
             model: model.into(),
@@ -193,6 +193,18 @@ impl OnnxSegmenter {
 impl Segmenter for OnnxSegmenter {
     fn name(&self) -> String {
         self.model.short_name()
+    }
+
+    /// The file's content hash and the contract (tensor names, normalisation, sizes,
+    /// thresholds); not the path, threads or runtime library, which change no output.
+    fn identity(&self) -> String {
+        let contract = OnnxSegmenterConfig {
+            model: std::path::PathBuf::new(),
+            runtime_library: None,
+            intra_threads: 0,
+            ..self.config.clone()
+        };
+        self.model.identity(&format!("{contract:?}"))
     }
 
     fn segment(&self, image: &RgbImage) -> Result<InstanceMasks, SceneError> {

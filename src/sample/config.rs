@@ -1,0 +1,171 @@
+//! The sample configuration: everything that defines how a sample is made from its address
+//! (motion laws, objects, merge and inpainting, render mode and work skipping). Serialisable; its
+//! JSON is part of the dataset fingerprint, so every option that changes a sample changes it.
+
+use serde::{Deserialize, Serialize};
+
+use super::merge::MergeRule;
+use super::motion::{MotionPreset, MotionRanges};
+use super::object::ObjectChoice;
+use super::recipe::SampleError;
+use crate::render::{Mode, Skip};
+
+/// The motion laws: a preset name or explicit ranges. In JSON: `"paper-kitti"` or a
+/// [`MotionRanges`] object.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum MotionSpec {
+    Preset(MotionPreset),
+    Ranges(Box<MotionRanges>),
+}
+
+impl Default for MotionSpec {
+    fn default() -> Self {
+        MotionSpec::Preset(MotionPreset::Reference)
+    }
+}
+
+impl MotionSpec {
+    pub fn ranges(&self) -> MotionRanges {
+        match self {
+            MotionSpec::Preset(p) => p.ranges(),
+            MotionSpec::Ranges(r) => (**r).clone(),
+        }
+    }
+}
+
+/// Which Telea variant fills the holes (all in [`super::inpaint`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum InpaintMethod {
+    /// The paper's first-order method with propagated gradients (exact on linear images).
+    Telea,
+    /// First order from known pixels only (less overshoot on textured photos with large holes,
+    /// which disocclusions are; see the measurements in [`super::inpaint`]).
+    #[default]
+    TeleaKnownOnly,
+    /// No gradient term (a convex combination of the available values).
+    TeleaZeroOrder,
+    /// OpenCV's `cv2.inpaint(..., INPAINT_TELEA)`, bit-compatible.
+    TeleaOpencv,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "Mode", rename_all = "kebab-case")]
+enum ModeDef {
+    Reference,
+    Exact,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(remote = "Skip", deny_unknown_fields)]
+struct SkipDef {
+    transmittance_eps: f32,
+    tiles: bool,
+    tile_sigma_eps: f32,
+}
+
+/// Everything that defines how a sample is made from its address. Serialisable (every field
+/// optional in JSON, defaults below).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SampleConfig {
+    /// Camera and object motion laws. Default: the `reference` preset.
+    pub motion: MotionSpec,
+    /// Most objects moved per sample (0 = none). Default 1 (the reference moves one).
+    pub max_objects: usize,
+    /// How objects are picked among the eligible ones. Default `random`.
+    pub object_choice: ObjectChoice,
+    /// Smallest object area (mask >= 0.5) as a fraction of the image. Default 0.002.
+    pub min_object_area_fraction: f64,
+    /// Compose each object's motion with the camera's. Default false (the reference's law).
+    pub objects_follow_camera: bool,
+    /// Default `depth-aware`.
+    pub merge: MergeRule,
+    /// The mask threshold of the merge (the reference's 0.99).
+    pub mask_threshold: f32,
+    /// Telea neighbourhood radius in pixels. Default 3 (the reference's inpainting radius).
+    pub inpaint_radius: f32,
+    /// Default `telea-known-only`.
+    pub inpaint_method: InpaintMethod,
+    /// Consecutive sample indices per source item (see the module documentation). Default 1.
+    pub motions_per_image: u64,
+    /// Render mode. Default `exact`.
+    #[serde(with = "ModeDef")]
+    pub mode: Mode,
+    /// Work skipping of the exact mode. Default [`Skip::DEFAULT`].
+    #[serde(with = "SkipDef")]
+    pub skip: Skip,
+    /// Render mask channels and objects over windows (exact mode). Default true.
+    pub windowed: bool,
+    /// Pre-blend the MPI with the source photo when the scene is loaded (for network MPIs;
+    /// [`super::preblend`]). Default false.
+    pub preblend: bool,
+}
+
+impl Default for SampleConfig {
+    fn default() -> Self {
+        Self {
+            motion: MotionSpec::default(),
+            max_objects: 1,
+            object_choice: ObjectChoice::Random,
+            min_object_area_fraction: 0.002,
+            objects_follow_camera: false,
+            merge: MergeRule::DepthAware,
+            mask_threshold: 0.99,
+            inpaint_radius: 3.0,
+            inpaint_method: InpaintMethod::TeleaKnownOnly,
+            motions_per_image: 1,
+            mode: Mode::Exact,
+            skip: Skip::DEFAULT,
+            windowed: true,
+            preblend: false,
+        }
+    }
+}
+
+impl SampleConfig {
+    /// The default configuration with the motion laws of `preset`.
+    pub fn with_preset(preset: MotionPreset) -> Self {
+        Self { motion: MotionSpec::Preset(preset), ..Self::default() }
+    }
+
+    /// Checks every field; the error names the field.
+    pub fn validate(&self) -> Result<(), SampleError> {
+        self.motion.ranges().validate()?;
+        let bad = |m: String| Err(SampleError::Config(m));
+        if self.max_objects > 255 {
+            return bad(format!("max_objects = {} (at most 255 objects fit the u8 label masks)", self.max_objects));
+        }
+        if !(0.0..=1.0).contains(&self.min_object_area_fraction) {
+            return bad(format!("min_object_area_fraction = {} (expected 0 to 1)", self.min_object_area_fraction));
+        }
+        if !(self.mask_threshold > 0.0 && self.mask_threshold <= 1.0) {
+            return bad(format!("mask_threshold = {} (expected in (0, 1])", self.mask_threshold));
+        }
+        if !(self.inpaint_radius.is_finite() && self.inpaint_radius > 0.0) {
+            return bad(format!("inpaint_radius = {} (expected a positive number of pixels)", self.inpaint_radius));
+        }
+        if self.motions_per_image == 0 {
+            return bad("motions_per_image = 0 (expected at least 1)".into());
+        }
+        let s = self.skip;
+        if !(s.transmittance_eps.is_finite() && (0.0..1.0).contains(&s.transmittance_eps)) {
+            return bad(format!("skip.transmittance_eps = {} (expected in [0, 1))", s.transmittance_eps));
+        }
+        if !(s.tile_sigma_eps.is_finite() && s.tile_sigma_eps >= 0.0) {
+            return bad(format!("skip.tile_sigma_eps = {} (expected >= 0)", s.tile_sigma_eps));
+        }
+        Ok(())
+    }
+
+    /// The word of the cache key for what [`prepare_scene`] changes.
+    pub fn scene_variant(&self) -> u64 {
+        u64::from(self.preblend)
+    }
+
+    /// The source item of sample `index` in a collection of `len` items.
+    pub fn source_item(&self, index: u64, len: usize) -> Option<usize> {
+        (len > 0).then(|| ((index / self.motions_per_image.max(1)) % len as u64) as usize)
+    }
+}

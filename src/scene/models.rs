@@ -1,0 +1,63 @@
+//! Which scene models a pipeline uses (ONNX files, or the built-in layering with the given
+//! plane count) and loading them into a [`SceneStage`]: the one place models are opened, for the
+//! server, `mpiflow generate` and the benches alike.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use serde::{Deserialize, Serialize};
+
+use super::builtin::BuiltinMpi;
+use super::onnx::{OnnxDepth, OnnxDepthConfig, OnnxMpi, OnnxMpiConfig, OnnxSegmenter, OnnxSegmenterConfig};
+use super::stage::SceneStage;
+use super::MpiBuilder;
+use crate::mpi::layering::{Layering, MAX_PLANES};
+
+/// The scene models shared by every dataset (ONNX files; none = the built-in layering, with depth
+/// and masks coming with the sources).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelConfig {
+    /// Planes of the built-in layering (when there is no MPI model). Default 32.
+    pub planes: usize,
+    /// Depth model (ONNX) for sources without depth.
+    pub depth_model: Option<PathBuf>,
+    /// MPI network (ONNX, AdaMPI-style) instead of the built-in layering.
+    pub mpi_model: Option<PathBuf>,
+    /// Instance segmentation model (ONNX) for sources without masks.
+    pub segment_model: Option<PathBuf>,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        Self { planes: 32, depth_model: None, mpi_model: None, segment_model: None }
+    }
+}
+
+impl ModelConfig {
+    /// Loads the models (ONNX sessions are created and warmed here, each file read and hashed
+    /// once) into a scene stage. Errors name the key (`planes`, `depth model`, ...).
+    pub fn build_stage(&self) -> Result<SceneStage, String> {
+        let mpi: Arc<dyn MpiBuilder> = match &self.mpi_model {
+            Some(p) => Arc::new(OnnxMpi::new(OnnxMpiConfig::new(p)).map_err(|e| format!("mpi model: {e}"))?),
+            None => {
+                if !(1..=MAX_PLANES).contains(&self.planes) {
+                    return Err(format!("planes = {}: expected 1 to {MAX_PLANES}", self.planes));
+                }
+                let b = BuiltinMpi::new(self.planes, Layering::Soft);
+                b.validate().map_err(|e| e.to_string())?;
+                Arc::new(b)
+            }
+        };
+        let mut stage = SceneStage::new(mpi);
+        if let Some(p) = &self.depth_model {
+            let m = OnnxDepth::new(OnnxDepthConfig::new(p)).map_err(|e| format!("depth model: {e}"))?;
+            stage = stage.with_depth(Arc::new(m));
+        }
+        if let Some(p) = &self.segment_model {
+            let m = OnnxSegmenter::new(OnnxSegmenterConfig::new(p)).map_err(|e| format!("segment model: {e}"))?;
+            stage = stage.with_segmenter(Arc::new(m));
+        }
+        Ok(stage)
+    }
+}
