@@ -37,7 +37,7 @@
 //! **Bad sources** ([`Generator::sample`]): when the address's source item fails to load because
 //! of its data (corrupt, truncated or too large image, bad depth, masks or MPI), the next items
 //! (mod the collection's length) are tried in order and the first good one is used with the
-//! address's own motions; failed items are remembered and counted by reason class
+//! address's own motions; failed items are remembered and counted by their [`FailureKind`]
 //! ([`Generator::skip_counts`]), [`Sample::skipped_sources`] says how many were passed over. The
 //! result depends only on which items are bad, not on what was asked before. Runtime, model,
 //! configuration and render errors are not the item's and are returned.
@@ -68,10 +68,10 @@ use super::object::{
 use super::preblend::{preblend, PreblendError};
 use super::rng::{Purpose, SampleRng};
 use super::{ObjectRecord, Sample, SampleAddress, StageTimings};
-use crate::geometry::Pose;
 use crate::render::{render, Fields, Mode, Occupancy, RenderError, RenderOutput, RenderParams, Skip};
 use crate::scene::cache::{SceneCache, SceneKey};
 use crate::scene::{Scene, SceneError, SceneLoader};
+use crate::source::FailureKind;
 
 /// The motion laws: a preset name or explicit ranges. In JSON: `"paper-kitti"` or a
 /// [`MotionRanges`] object.
@@ -196,28 +196,28 @@ impl SampleConfig {
     /// Checks every field; the error names the field.
     pub fn validate(&self) -> Result<(), SampleError> {
         self.motion.ranges().validate()?;
-        let bad = |m: String| Err(SampleError::Config(m));
+        let bad = |field: &'static str, message: String| Err(SampleError::Config { field, message });
         if self.max_objects > 255 {
-            return bad(format!("max_objects = {} (at most 255 objects fit the u8 label masks)", self.max_objects));
+            return bad("max_objects", format!("{} (at most 255 objects fit the u8 label masks)", self.max_objects));
         }
         if !(0.0..=1.0).contains(&self.min_object_area_fraction) {
-            return bad(format!("min_object_area_fraction = {} (expected 0 to 1)", self.min_object_area_fraction));
+            return bad("min_object_area_fraction", format!("{} (expected 0 to 1)", self.min_object_area_fraction));
         }
         if !(self.mask_threshold > 0.0 && self.mask_threshold <= 1.0) {
-            return bad(format!("mask_threshold = {} (expected in (0, 1])", self.mask_threshold));
+            return bad("mask_threshold", format!("{} (expected in (0, 1])", self.mask_threshold));
         }
         if !(self.inpaint_radius.is_finite() && self.inpaint_radius > 0.0) {
-            return bad(format!("inpaint_radius = {} (expected a positive number of pixels)", self.inpaint_radius));
+            return bad("inpaint_radius", format!("{} (expected a positive number of pixels)", self.inpaint_radius));
         }
         if self.motions_per_image == 0 {
-            return bad("motions_per_image = 0 (expected at least 1)".into());
+            return bad("motions_per_image", "0 (expected at least 1)".into());
         }
         let s = self.skip;
         if !(s.transmittance_eps.is_finite() && (0.0..1.0).contains(&s.transmittance_eps)) {
-            return bad(format!("skip.transmittance_eps = {} (expected in [0, 1))", s.transmittance_eps));
+            return bad("skip.transmittance_eps", format!("{} (expected in [0, 1))", s.transmittance_eps));
         }
         if !(s.tile_sigma_eps.is_finite() && s.tile_sigma_eps >= 0.0) {
-            return bad(format!("skip.tile_sigma_eps = {} (expected >= 0)", s.tile_sigma_eps));
+            return bad("skip.tile_sigma_eps", format!("{} (expected >= 0)", s.tile_sigma_eps));
         }
         Ok(())
     }
@@ -236,8 +236,10 @@ impl SampleConfig {
 /// Errors of sample generation; each names the source it concerns.
 #[derive(Debug, thiserror::Error)]
 pub enum SampleError {
-    #[error("invalid sample configuration: {0}")]
-    Config(String),
+    /// A configuration field out of range: `field` names it (`max_objects`,
+    /// `skip.tile_sigma_eps`, ...), `message` gives the value and what was expected.
+    #[error("invalid sample configuration: {field} = {message}")]
+    Config { field: &'static str, message: String },
     #[error("invalid sample configuration: {0}")]
     Motion(#[from] MotionError),
     #[error("the source collection is empty: there is nothing to make samples from")]
@@ -267,6 +269,20 @@ pub enum SampleError {
     /// Every source item failed to load (see [`Generator::sample`]).
     #[error("all {items} source items failed to load (first: {first})")]
     NoGoodSource { items: usize, first: String },
+}
+
+impl SampleError {
+    /// The failure kind when the error makes its source item bad (skipped: the item's data is
+    /// corrupt, truncated, too large, or its depth, masks, MPI or scene are unusable), or `None`
+    /// for failures that are not the item's (the runtime, a model, the configuration, a render):
+    /// those are returned to the caller.
+    pub fn bad_source_kind(&self) -> Option<FailureKind> {
+        match self {
+            SampleError::Scene { source, .. } => source.failure_kind(),
+            SampleError::InvalidScene { .. } => Some(FailureKind::Scene),
+            _ => None,
+        }
+    }
 }
 
 /// Applies what the configuration does to a freshly loaded scene (the pre-blend), once, before
@@ -324,6 +340,27 @@ pub fn assemble_with_occupancy(
     occupancy: Option<&Occupancy>,
 ) -> Result<Sample, SampleError> {
     let start = Instant::now();
+    let (mut sample, hole) = assemble_merged(scene, address, config, occupancy)?;
+    let t = Instant::now();
+    if sample.inpainted_pixels > 0 {
+        let (w, h) = (sample.width, sample.height);
+        inpaint_holes(&mut sample.image2, w, h, &hole, config.inpaint_method, config.inpaint_radius, true);
+    }
+    sample.timings.inpaint_ms = ms(t);
+    sample.timings.total_ms = ms(start);
+    Ok(sample)
+}
+
+/// [`assemble_with_occupancy`] up to the merge: the sample with `image2` as merged, its holes not
+/// yet inpainted, and the hole mask (H x W, 1 = hole; [`Sample::inpainted_pixels`] counts them).
+/// [`assemble`] is this followed by [`inpaint_holes`] over the mask (windowed).
+pub fn assemble_merged(
+    scene: &Scene,
+    address: SampleAddress,
+    config: &SampleConfig,
+    occupancy: Option<&Occupancy>,
+) -> Result<(Sample, Vec<u8>), SampleError> {
+    let start = Instant::now();
     config.validate()?;
     check_scene(scene)?;
     let ranges = config.motion.ranges();
@@ -358,7 +395,7 @@ pub fn assemble_with_occupancy(
         let inst = &scene.masks.masks[idx];
         let motion = ranges.sample_object_motion(&mut rng(Purpose::ObjectMotion(slot as u32)));
         let own = motion.to_pose();
-        poses.push(if config.objects_follow_camera { compose(&cam_pose, &own) } else { own });
+        poses.push(if config.objects_follow_camera { cam_pose.compose(&own) } else { own });
         records.push(ObjectRecord {
             label: (slot + 1) as u8,
             instance: inst.id,
@@ -471,7 +508,7 @@ pub fn assemble_with_occupancy(
             render: r,
         })
         .collect();
-    let mut merged = merge(view, &views, config.merge, config.mask_threshold);
+    let merged = merge(view, &views, config.merge, config.mask_threshold);
     let image1: Vec<u8> = scene.image.data.iter().map(|&v| unit_to_u8(v)).collect();
     // depth1 = 1 / disparity, written over the scene render's coverage (no longer needed; a
     // buffer already in memory costs no page faults)
@@ -489,15 +526,9 @@ pub fn assemble_with_occupancy(
     }
     timings.merge_ms = ms(t);
 
-    // ---- inpainting
-    let t = Instant::now();
-    if merged.holes > 0 {
-        inpaint_holes(&mut merged.image2, w, h, &merged.hole, config.inpaint_method, config.inpaint_radius, true);
-    }
-    timings.inpaint_ms = ms(t);
     timings.total_ms = ms(start);
 
-    Ok(Sample {
+    let sample = Sample {
         address,
         source_id: scene.id.clone(),
         width: w,
@@ -518,7 +549,8 @@ pub fn assemble_with_occupancy(
         provenance: scene.provenance.clone(),
         intrinsics: scene.intrinsics,
         timings,
-    })
+    };
+    Ok((sample, merged.hole))
 }
 
 /// Fills the pixels where `hole` is non-zero in the u8 RGB image (`w` x `h` x 3) with `method`.
@@ -661,11 +693,6 @@ fn hole_groups(hole: &[u8], w: usize, h: usize, margin: usize) -> Vec<Rect> {
     rects
 }
 
-/// `a` after `b`: X -> a(b(X)).
-fn compose(a: &Pose, b: &Pose) -> Pose {
-    Pose { rotation: a.rotation * b.rotation, translation: a.rotation * b.translation + a.translation }
-}
-
 /// Most scene occupancies the generator keeps (those of scenes no longer alive are dropped
 /// first).
 const MAX_OCCUPANCIES: usize = 256;
@@ -685,40 +712,16 @@ pub struct Generator {
     /// Tile occupancy of each cached scene's MPI (small: N x (W/8) x (H/8) counts), keyed by the
     /// scene's cache key and checked against the scene itself.
     occupancies: Mutex<Vec<OccupancyEntry>>,
-    /// Source items known to fail, by item: (id, reason class, reason).
+    /// Source items known to fail, by item: (id, failure kind, reason).
     bad: Mutex<BTreeMap<usize, BadItem>>,
 }
 
-/// A source item that failed to load: its id, reason class and reason.
+/// A source item that failed to load: its id, failure kind and reason.
 #[derive(Clone, Debug)]
 struct BadItem {
     id: String,
-    class: &'static str,
+    kind: FailureKind,
     reason: String,
-}
-
-/// The reason class of a failure that makes a source item bad (skipped), or `None` for failures
-/// that are not the item's (the runtime, a model, the configuration, a render): those are
-/// returned to the caller.
-fn bad_source_class(e: &SampleError) -> Option<&'static str> {
-    use crate::source::failure_class;
-    match e {
-        SampleError::Scene { source, .. } => match &**source {
-            SceneError::Given { path, message } => Some(failure_class(path, message)),
-            SceneError::Invalid(m) => Some(failure_class("", m)),
-            SceneError::Mask(m) => Some(match failure_class("", &m.to_string()) {
-                "decode" | "depth" => "mask",
-                other => other,
-            }),
-            SceneError::Mpi(m) => Some(match failure_class("", &m.to_string()) {
-                "decode" | "depth" => "mpi",
-                other => other,
-            }),
-            SceneError::Runtime(_) | SceneError::Model { .. } => None,
-        },
-        SampleError::InvalidScene { .. } => Some("scene"),
-        _ => None,
-    }
 }
 
 impl std::fmt::Debug for Generator {
@@ -828,9 +831,9 @@ impl Generator {
     }
 
     /// Records a bad item (once).
-    fn mark_bad(&self, item: usize, class: &'static str, error: &SampleError) {
+    fn mark_bad(&self, item: usize, kind: FailureKind, error: &SampleError) {
         let mut bad = self.bad_items();
-        bad.entry(item).or_insert_with(|| BadItem { id: self.loader.id(item), class, reason: error.to_string() });
+        bad.entry(item).or_insert_with(|| BadItem { id: self.loader.id(item), kind, reason: error.to_string() });
     }
 
     /// The scene of a source item that loads and fits the recipe, or the error.
@@ -865,9 +868,9 @@ impl Generator {
             }
             let scene = match self.good_scene(item) {
                 Ok(scene) => scene,
-                Err(e) => match bad_source_class(&e) {
-                    Some(class) => {
-                        self.mark_bad(item, class, &e);
+                Err(e) => match e.bad_source_kind() {
+                    Some(kind) => {
+                        self.mark_bad(item, kind, &e);
                         passed += 1;
                         continue;
                     }
@@ -893,12 +896,13 @@ impl Generator {
         self.bad_items().iter().map(|(&i, b)| (i, b.id.clone(), b.reason.clone())).collect()
     }
 
-    /// How many source items were found bad so far, by reason class (`decode`, `truncated`,
-    /// `too-large`, `depth`, `mask`, `mpi`, `scene`; see [`crate::source::failure_class`]).
-    pub fn skip_counts(&self) -> BTreeMap<String, u64> {
+    /// How many source items were found bad so far, by failure kind (`decode`, `truncated`,
+    /// `too-large`, `depth`, `mask`, `mpi`, `scene`: [`FailureKind::as_str`]), as set where each
+    /// failure happened ([`SampleError::bad_source_kind`]).
+    pub fn skip_counts(&self) -> BTreeMap<FailureKind, u64> {
         let mut out = BTreeMap::new();
         for b in self.bad_items().values() {
-            *out.entry(b.class.to_string()).or_insert(0) += 1;
+            *out.entry(b.kind).or_insert(0) += 1;
         }
         out
     }

@@ -14,7 +14,7 @@ use crate::scene::SceneLoader;
 use crate::source::builtin::{BuiltinOptions, BuiltinSource};
 use crate::source::dir::SourceOptions;
 use crate::source::upload::{UploadLimits, UploadStore, UploadSummary};
-use crate::source::{open_source, Fnv64, Source};
+use crate::source::{open_source, FailureKind, Fnv64, Source};
 
 use super::config::{DatasetConfig, ServiceConfig};
 use super::error::ServiceError;
@@ -100,11 +100,11 @@ impl Dataset {
     }
 
     /// What the source left out when it was opened (e.g. a truncated shard's last sample), counted
-    /// by reason class.
-    pub fn opened_skips(&self) -> BTreeMap<String, u64> {
+    /// by failure kind.
+    pub fn opened_skips(&self) -> BTreeMap<FailureKind, u64> {
         let mut out = BTreeMap::new();
         for s in self.source.skipped() {
-            *out.entry(s.class).or_insert(0) += 1;
+            *out.entry(s.kind).or_insert(0) += 1;
         }
         out
     }
@@ -131,9 +131,7 @@ impl Dataset {
         }
         if let Err(e) = config.validate() {
             let field = match &e {
-                SampleError::Motion(_) => "motion_ranges_json",
-                SampleError::Config(m) if m.starts_with("max_objects") => "max_objects",
-                SampleError::Config(m) if m.starts_with("motions_per_image") => "motions_per_image",
+                SampleError::Config { field: f @ ("max_objects" | "motions_per_image"), .. } => *f,
                 _ => "motion_ranges_json",
             };
             return Err(ServiceError::invalid(field, e.to_string()));
@@ -199,7 +197,7 @@ impl Datasets {
                     .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?
             };
             for s in source.skipped() {
-                tracing::warn!(dataset = %name, item = %s.item, class = %s.class, reason = %s.reason, "source item left out");
+                tracing::warn!(dataset = %name, item = %s.item, kind = %s.kind, reason = %s.reason, "source item left out");
             }
             if source.is_empty() {
                 return Err(ServiceError::Config(format!("dataset {name}: {} has no images", source.describe())));

@@ -5,6 +5,7 @@ use tonic::metadata::MetadataValue;
 use tonic::{Code, Status};
 
 use crate::sample::recipe::SampleError;
+use crate::source::SourceError;
 
 /// Trailer key of the next index an interrupted stream would have sent.
 pub const NEXT_INDEX_TRAILER: &str = "mpiflow-next-index";
@@ -81,6 +82,18 @@ pub fn with_cursor(status: &mut Status, next_index: u64, resume_start_index: u64
 pub fn cursor_of(status: &Status) -> Option<(u64, u64)> {
     let get = |k: &str| status.metadata().get(k)?.to_str().ok()?.parse::<u64>().ok();
     Some((get(NEXT_INDEX_TRAILER)?, get(RESUME_START_TRAILER)?))
+}
+
+/// An upload store error as the service's: limits are RESOURCE_EXHAUSTED, a malformed stream
+/// names its chunk field (`dataset`, `name`), the rest are the `chunks`' fault.
+impl From<SourceError> for ServiceError {
+    fn from(e: SourceError) -> Self {
+        match e {
+            SourceError::Limit(m) => ServiceError::LimitExceeded(m),
+            SourceError::Upload { field, message } => ServiceError::InvalidArgument { field, message },
+            other => ServiceError::invalid("chunks", other.to_string()),
+        }
+    }
 }
 
 impl From<ServiceError> for Status {
