@@ -234,7 +234,7 @@ fn corrupt_or_missing_file_fails_only_its_item() {
         other => panic!("item {i}: expected a file error, got {other:?}"),
     };
     expect(0, "depths/a.npy", "npy", FailureKind::Depth);
-    expect(1, "disps/b.png", "", FailureKind::Truncated);
+    expect(1, "disps/b.png", "corrupt", FailureKind::Depth);
     expect(3, "depths/d.pfm", "truncated", FailureKind::Truncated);
     expect(4, "images/e.png", "", FailureKind::Decode);
     assert!(src.load(2).is_ok());
