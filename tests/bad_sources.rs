@@ -1,7 +1,8 @@
 //! Bad sources are skipped deterministically: a directory with a corrupt PNG, a truncated JPEG, a
 //! truncated PNG, an image over the limits and an unreadable depth file among good photos gives a
 //! sample for every index, byte-identical across fresh generators, request orders and thread
-//! counts, with each bad item skipped once and counted by reason.
+//! counts, with each bad item skipped once and counted by reason; and each kind of bad file (corrupt,
+//! truncated, over the limits, bad depth, disparity, mask or MPI) is counted as its kind.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;

@@ -130,8 +130,10 @@ impl Dataset {
             config.motions_per_image = m;
         }
         if let Err(e) = config.validate() {
+            // the default configuration was valid, so the field at fault is an overridden one,
+            // and the request's overrides are named as the configuration's fields
             let field = match &e {
-                SampleError::Config { field: f @ ("max_objects" | "motions_per_image"), .. } => *f,
+                SampleError::Config { field, .. } => *field,
                 _ => "motion_ranges_json",
             };
             return Err(ServiceError::invalid(field, e.to_string()));

@@ -101,3 +101,27 @@ impl From<ServiceError> for Status {
         Status::new(e.code(), e.to_string())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::FailureKind;
+
+    #[test]
+    fn source_errors_map_to_their_field_and_code() {
+        let cases = [
+            (
+                SourceError::Upload { field: "dataset", message: "empty name".into() },
+                Code::InvalidArgument,
+                "dataset: empty name",
+            ),
+            (SourceError::Upload { field: "name", message: "unnamed".into() }, Code::InvalidArgument, "name: unnamed"),
+            (SourceError::Limit("upload: too big".into()), Code::ResourceExhausted, "upload: too big"),
+            (SourceError::file("x.png", FailureKind::Decode, "bad"), Code::InvalidArgument, "chunks: x.png: bad"),
+        ];
+        for (e, code, message) in cases {
+            let status: Status = ServiceError::from(e).into();
+            assert_eq!((status.code(), status.message()), (code, message));
+        }
+    }
+}
