@@ -1,7 +1,8 @@
 //! Bad sources are skipped deterministically: a directory with a corrupt PNG, a truncated JPEG, a
 //! truncated PNG, an image over the limits and an unreadable depth file among good photos gives a
 //! sample for every index, byte-identical across fresh generators, request orders and thread
-//! counts, with each bad item skipped once and counted by reason.
+//! counts, with each bad item skipped once and counted by reason; and each kind of bad file (corrupt,
+//! truncated, over the limits, bad depth, disparity, mask or MPI) is counted as its kind.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -11,7 +12,7 @@ use mpiflow::sample::recipe::{Generator, SampleConfig, SampleError};
 use mpiflow::sample::{Sample, StageTimings};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::stage::{SceneStage, SourceScenes};
-use mpiflow::source::{failure_class, open_source, SourceOptions};
+use mpiflow::source::{open_source, FailureKind, SourceOptions};
 
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("mpiflow-bad-sources-{}-{name}", std::process::id()));
@@ -112,16 +113,15 @@ fn every_index_gets_a_sample_from_the_next_good_source_deterministically() {
     assert_ne!(samples[1].camera, samples[3].camera);
     assert_ne!(samples[1].image2, samples[3].image2);
 
-    // each bad item recorded once, with its reason class
+    // each bad item recorded once, with its failure kind
     let skipped = g.skipped();
     let ids: Vec<(usize, &str)> = skipped.iter().map(|(i, id, _)| (*i, id.as_str())).collect();
     assert_eq!(ids, [(1, "b"), (2, "c"), (4, "e"), (5, "f"), (7, "h")]);
     for (_, id, reason) in &skipped {
         assert!(reason.contains(&format!("({id})")), "{reason}");
     }
-    let counts: Vec<(String, u64)> = g.skip_counts().into_iter().collect();
-    let expect = [("decode", 1u64), ("depth", 1), ("too-large", 1), ("truncated", 2)];
-    assert_eq!(counts, expect.map(|(k, v)| (k.to_string(), v)), "{skipped:#?}");
+    let counts: Vec<(&str, u64)> = g.skip_counts().into_iter().map(|(k, n)| (k.as_str(), n)).collect();
+    assert_eq!(counts, [("decode", 1u64), ("truncated", 2), ("too-large", 1), ("depth", 1)], "{skipped:#?}");
     // a bad item is loaded once: 5 failures in the cache's counters, however many samples
     assert_eq!(g.cache().stats().load_errors, 5);
 
@@ -165,32 +165,88 @@ fn plain_images_without_depth_or_model_are_depth_skips() {
     let g = generator(&root);
     let e = g.sample(0, 0).unwrap_err();
     assert!(e.to_string().contains("no depth"), "{e}");
-    assert_eq!(g.skip_counts().get("depth"), Some(&1));
+    assert_eq!(g.skip_counts().into_iter().collect::<Vec<_>>(), [(FailureKind::Depth, 1)]);
+}
+
+/// One kind of bad file: what to write next to a good image (`images/a.png` with its disparity)
+/// for the bad item `b`, and the kind its failure must be counted as.
+struct BadCase {
+    what: &'static str,
+    files: Vec<(&'static str, Vec<u8>)>,
+    kind: FailureKind,
+}
+
+fn bad_cases() -> Vec<BadCase> {
+    let (w, h) = (48, 32);
+    let png = encode(&photo(w, h, 2), image::ImageFormat::Png);
+    let jpg = encode(&photo(w, h, 3), image::ImageFormat::Jpeg);
+    let mut corrupt = png.clone();
+    for (i, v) in corrupt.iter_mut().enumerate().skip(40) {
+        *v = (i * 17 % 251) as u8;
+    }
+    let with_disp = |image: (&'static str, Vec<u8>)| vec![image, ("disps/b.png", disparity(w, h))];
+    let good_b = || ("images/b.png", png.clone());
+    let case = |what, files, kind| BadCase { what, files, kind };
+    vec![
+        case("corrupt PNG", with_disp(("images/b.png", corrupt.clone())), FailureKind::Decode),
+        case("truncated JPEG", with_disp(("images/b.jpg", jpg[..jpg.len() * 2 / 3].to_vec())), FailureKind::Truncated),
+        case("truncated PNG", with_disp(("images/b.png", png[..png.len() / 2].to_vec())), FailureKind::Truncated),
+        case(
+            "image over the limits",
+            with_disp(("images/b.png", encode(&photo(80, 20, 5), image::ImageFormat::Png))),
+            FailureKind::TooLarge,
+        ),
+        case("unreadable depth", vec![good_b(), ("depths/b.npy", b"\x93NUMPY garbage".to_vec())], FailureKind::Depth),
+        case(
+            "truncated PFM depth",
+            vec![good_b(), ("depths/b.pfm", b"Pf\n48 32\n-1\n\0\0\0\0".to_vec())],
+            FailureKind::Truncated,
+        ),
+        case("no depth at all", vec![good_b()], FailureKind::Depth),
+        case("corrupt disparity PNG", vec![good_b(), ("disps/b.png", corrupt.clone())], FailureKind::Depth),
+        case(
+            "corrupt mask",
+            vec![good_b(), ("disps/b.png", disparity(w, h)), ("masks/b.png", corrupt.clone())],
+            FailureKind::Mask,
+        ),
+        case(
+            "broken MPI archive",
+            vec![good_b(), ("disps/b.png", disparity(w, h)), ("mpis/b.npz", b"PK not really".to_vec())],
+            FailureKind::Mpi,
+        ),
+    ]
 }
 
 #[test]
-fn failure_classes() {
-    let cases = [
-        ("/d/images/a.png", "corrupt or truncated image: invalid checksum", "decode"),
-        ("/d/images/a.png", "corrupt or truncated image: unexpected end of data (eof)", "truncated"),
-        ("/d/images/a.jpg", "corrupt or truncated image: truncated JPEG: the data ends inside", "truncated"),
-        ("/d/images/a.png", "image of 9000 x 10 pixels is too large (at most ...)", "too-large"),
-        ("/d/images/a.png", "300 bytes is larger than the limit of 200 bytes", "too-large"),
-        ("/d/depths/a.npy", "not a valid .npy depth: bad header", "depth"),
-        ("/d/disps/a.png", "a Rgb8 image is not a grey disparity map", "depth"),
-        ("s.tar:k1.depth.npy", "not a valid .npy depth", "depth"),
-        ("s.tar:k1.disp.png", "corrupt or truncated image: bad", "depth"),
-        ("s.tar:k1.mask.png", "corrupt or truncated image: bad", "mask"),
-        ("upload:ds/depth/a.b", "corrupt or truncated image: bad", "depth"),
-        ("upload:ds/mask/a", "not a PNG file", "mask"),
-        ("upload:ds/image/depthy", "corrupt or truncated image: bad", "decode"),
-        ("/d/mpis/a.npz", "not a valid .npz archive", "mpi"),
-        ("/d/photos/depth_photo.jpg", "not found", "decode"),
-        ("s.tar:k1.jpg", "truncated member: the shard ends inside its data", "truncated"),
-        ("", "source a has no depth and no depth model is configured", "depth"),
-    ];
-    for (path, message, class) in cases {
-        assert_eq!(failure_class(path, message), class, "{path}: {message}");
+fn each_kind_of_bad_file_is_counted_as_its_kind() {
+    for (n, case) in bad_cases().into_iter().enumerate() {
+        let root = tmp(&format!("kind-{n}"));
+        for d in ["images", "disps", "depths", "masks", "mpis"] {
+            std::fs::create_dir_all(root.join(d)).unwrap();
+        }
+        std::fs::write(root.join("images/a.png"), encode(&photo(48, 32, 1), image::ImageFormat::Png)).unwrap();
+        std::fs::write(root.join("disps/a.png"), disparity(48, 32)).unwrap();
+        for (name, bytes) in &case.files {
+            std::fs::write(root.join(name), bytes).unwrap();
+        }
+        let what = case.what;
+        // the source says so where it fails (the no-depth case fails later, in the scene stage)
+        let src = open_source(&root, &options()).unwrap();
+        assert_eq!(src.len(), 2, "{what}");
+        let loaded = src.load(1);
+        match &loaded {
+            Err(e) => assert_eq!(e.failure_kind(), Some(case.kind), "{what}: {e}"),
+            Ok(_) => assert_eq!(what, "no depth at all", "{what}: the bad item loaded"),
+        }
+        // and the generator passes the item over and counts it as that kind, and only it
+        let g = generator(&root);
+        let s = g.sample(3, 1).unwrap();
+        assert_eq!((s.source_id.as_str(), s.skipped_sources), ("a", 1), "{what}");
+        assert_eq!(g.skip_counts().into_iter().collect::<Vec<_>>(), [(case.kind, 1)], "{what}: {:?}", g.skipped());
+        let (item, id, reason) = &g.skipped()[0];
+        assert_eq!((*item, id.as_str()), (1, "b"), "{what}");
+        assert!(reason.contains("(b)"), "{what}: {reason}");
+        assert_eq!(g.sample(3, 0).unwrap().skipped_sources, 0, "{what}: the good item is its own");
     }
 }
 

@@ -13,12 +13,12 @@ use mpiflow::sample::merge::MergeRule;
 use mpiflow::sample::motion::{Component, Motion, MotionPreset, RigidLaw, RotationKind};
 use mpiflow::sample::object::ObjectChoice;
 use mpiflow::sample::recipe::Generator;
-use mpiflow::sample::recipe::{InpaintMethod, MotionSpec, SampleConfig, SampleError};
+use mpiflow::sample::recipe::{assemble_merged, inpaint_holes, InpaintMethod, MotionSpec, SampleConfig, SampleError};
 use mpiflow::sample::{Sample, StageTimings};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::masks::InstanceMasks;
 use mpiflow::scene::{Disparity, Scene, SceneError, SceneLoader};
-use mpiflow::source::Fnv64;
+use mpiflow::source::{FailureKind, Fnv64};
 
 const W: usize = 96;
 const H: usize = 64;
@@ -57,7 +57,11 @@ impl SceneLoader for Procedural {
     fn load_scene(&self, i: usize) -> Result<Scene, SceneError> {
         self.loads.fetch_add(1, Ordering::SeqCst);
         if Some(i) == self.failing {
-            return Err(SceneError::Given { path: format!("procedural/{i}.npy"), message: "unreadable".into() });
+            return Err(SceneError::Given {
+                path: format!("procedural/{i}.npy"),
+                kind: FailureKind::Depth,
+                message: "unreadable".into(),
+            });
         }
         let k = Intrinsics::reference_default(W, H);
         let mut rgb = vec![0.0f32; W * H * 3];
@@ -284,13 +288,33 @@ fn object_choice_is_keyed_and_top_picks_the_best_score() {
 }
 
 #[test]
-fn every_inpainting_method_and_option_runs() {
+fn every_inpainting_method_fills_the_holes_as_the_whole_frame_call_does() {
     for method in
         [InpaintMethod::Telea, InpaintMethod::TeleaKnownOnly, InpaintMethod::TeleaZeroOrder, InpaintMethod::TeleaOpencv]
     {
         let config = SampleConfig { inpaint_method: method, inpaint_radius: 5.0, ..SampleConfig::default() };
-        let s = generator(Procedural::new(2), config).sample(0, 1).unwrap();
-        assert!(s.inpainted_pixels > 0);
+        let g = generator(Procedural::new(2), config.clone());
+        let s = g.sample(0, 1).unwrap();
+        // the same address up to the merge: image2 before inpainting, and its holes
+        let scene = g.scene(g.source_item(1).unwrap()).unwrap();
+        let (merged, hole) = assemble_merged(&scene, s.address, &config, None).unwrap();
+        let (w, h) = (s.width, s.height);
+        let holes: Vec<usize> = (0..w * h).filter(|&i| hole[i] != 0).collect();
+        assert!(!holes.is_empty(), "{method:?}: the camera motion opens holes");
+        assert_eq!((s.inpainted_pixels, merged.inpainted_pixels), (holes.len() as u64, holes.len() as u64));
+        // inpainting changes image2 in the holes only...
+        assert_eq!(bytes(&Sample { image2: s.image2.clone(), ..merged.clone() }), bytes(&s), "{method:?}");
+        let px = |img: &[u8], i: usize| [img[3 * i], img[3 * i + 1], img[3 * i + 2]];
+        for i in (0..w * h).filter(|&i| hole[i] == 0) {
+            assert_eq!(px(&s.image2, i), px(&merged.image2, i), "{method:?}: pixel {i} is not a hole");
+        }
+        // ... where it changed the merge's pixels ...
+        let changed = holes.iter().filter(|&&i| px(&s.image2, i) != px(&merged.image2, i)).count();
+        assert!(changed * 2 > holes.len(), "{method:?}: only {changed} of {} hole pixels changed", holes.len());
+        // ... to what the inpainting function gives on the merged image over the whole frame
+        let mut direct = merged.image2.clone();
+        inpaint_holes(&mut direct, w, h, &hole, method, config.inpaint_radius, false);
+        assert!(direct == s.image2, "{method:?}: the sample's holes differ from the whole-frame inpainting");
     }
     let follow = SampleConfig { objects_follow_camera: true, preblend: true, ..SampleConfig::default() };
     let g = generator(Procedural::new(2), follow);
@@ -320,7 +344,7 @@ fn errors_name_the_source() {
     let (item, id, reason) = &skipped[0];
     assert_eq!((*item, id.as_str()), (1, "procedural-1"));
     assert!(reason.contains("procedural-1") && reason.contains("procedural/1.npy"), "{reason}");
-    assert_eq!(g.skip_counts().into_iter().collect::<Vec<_>>(), [("decode".to_string(), 1)]);
+    assert_eq!(g.skip_counts().into_iter().collect::<Vec<_>>(), [(FailureKind::Depth, 1)], "the kind the loader gave");
     assert_eq!(bytes(&g.sample(0, 1).unwrap()), bytes(&s));
     assert_eq!(g.cache().stats().load_errors, 1, "a known-bad item is not loaded again");
     assert_eq!(g.cache().stats().entries, 2);

@@ -13,7 +13,7 @@ use mpiflow::geometry::Intrinsics;
 use mpiflow::io::image::{load_rgb_from_bytes, ImageLimits};
 use mpiflow::io::npy::write_f32_to;
 use mpiflow::source::shard::{index_shard, split_key, ShardSource};
-use mpiflow::source::{failure_class, open_source, GivenDepth, IntrinsicsSpec, Source, SourceError, SourceOptions};
+use mpiflow::source::{open_source, FailureKind, GivenDepth, IntrinsicsSpec, Source, SourceError, SourceOptions};
 
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("mpiflow-shards-{}-{name}", std::process::id()));
@@ -156,7 +156,7 @@ fn a_shard_with_every_field_loads_like_a_directory() {
     let src = ShardSource::open(&path, &SourceOptions::default()).unwrap();
     assert_eq!(src.len(), 3);
     assert_eq!((0..3).map(|i| src.id(i)).collect::<Vec<_>>(), ["s0", "s1", "sub/s2"]);
-    let classes: Vec<(&str, &str)> = src.skipped().iter().map(|s| (s.item.as_str(), s.class.as_str())).collect();
+    let classes: Vec<(&str, &str)> = src.skipped().iter().map(|s| (s.item.as_str(), s.kind.as_str())).collect();
     assert_eq!(classes, [("train-000.tar:README", "unnamed"), ("train-000.tar:s3", "no-image")]);
     assert!(src.describe().contains("3 samples, 2 skipped"), "{}", src.describe());
 
@@ -216,7 +216,7 @@ fn truncated_shards_keep_their_complete_samples_at_every_cut() {
             Ok(src) => {
                 let ids: Vec<String> = (0..src.len()).map(|i| src.id(i)).collect();
                 assert_eq!(ids[..], full_ids[..ids.len()], "cut {cut}: a prefix of the samples");
-                let truncated = src.skipped().iter().any(|s| s.class == "truncated");
+                let truncated = src.skipped().iter().any(|s| s.kind == FailureKind::Truncated);
                 assert_eq!(truncated, !complete, "cut {cut}: {:?}", src.skipped());
                 for i in 0..src.len() {
                     src.load(i).unwrap_or_else(|e| panic!("cut {cut}, item {i}: {e}"));
@@ -243,7 +243,7 @@ fn directories_duplicates_limits_and_dispatch() {
     let src = ShardSource::open(&dir, &SourceOptions::default()).unwrap();
     assert_eq!((0..src.len()).map(|i| src.id(i)).collect::<Vec<_>>(), ["a/k", "b/k", "b/other"]);
     assert_eq!(src.skipped().len(), 1);
-    assert_eq!((src.skipped()[0].item.as_str(), src.skipped()[0].class.as_str()), ("b.tar:k", "duplicate"));
+    assert_eq!((src.skipped()[0].item.as_str(), src.skipped()[0].kind), ("b.tar:k", FailureKind::Duplicate));
     assert!(src.describe().starts_with("shards:") && src.describe().contains("2 shards, 3 samples"));
     // a colour PNG as instance ids: each colour one instance
     assert!(src.load(0).unwrap().masks.is_some());
@@ -266,16 +266,18 @@ fn directories_duplicates_limits_and_dispatch() {
         SourceOptions { limits: ImageLimits { max_bytes: 60, ..ImageLimits::default() }, ..SourceOptions::default() };
     let src = ShardSource::open(&dir, &small).unwrap();
     match src.load(1).unwrap_err() {
-        SourceError::File { path, message } => {
+        SourceError::File { path, kind, message } => {
             assert_eq!(path, "b.tar:k.png");
-            assert_eq!(failure_class(&path, &message), "too-large", "{message}");
+            assert_eq!(kind, FailureKind::TooLarge, "{message}");
         }
         other => panic!("{other}"),
     }
     // a corrupt member fails its item only
     write_tar(&dir.join("c.tar"), &[("bad.jpg", b"\xff\xd8\xff\xe0\x00\x10JFIF".to_vec()), ("good.png", png(6))]);
     let src = ShardSource::open(&dir.join("c.tar"), &SourceOptions::default()).unwrap();
-    let e = src.load(0).unwrap_err().to_string();
+    let e = src.load(0).unwrap_err();
+    assert_eq!(e.failure_kind(), Some(FailureKind::Truncated), "{e}");
+    let e = e.to_string();
     assert!(e.starts_with("c.tar:bad.jpg: ") && e.contains("truncated JPEG"), "{e}");
     src.load(1).unwrap();
 }

@@ -12,7 +12,9 @@ use mpiflow::scene::scale::{
 use mpiflow::source::builtin::{BuiltinOptions, BuiltinSource, Shape};
 use mpiflow::source::dir::{DepthFile, Layout, MaskFile};
 use mpiflow::source::pfm::{encode_pfm, parse_pfm, read_pfm, write_pfm};
-use mpiflow::source::{fnv1a64, DirSource, GivenDepth, IntrinsicsSpec, Source, SourceError, SourceOptions};
+use mpiflow::source::{
+    fnv1a64, DirSource, FailureKind, GivenDepth, IntrinsicsSpec, Source, SourceError, SourceOptions,
+};
 use std::path::{Path, PathBuf};
 
 /// A fresh, empty temporary folder for one test.
@@ -222,24 +224,26 @@ fn corrupt_or_missing_file_fails_only_its_item() {
     std::fs::write(root.join("depths/d.pfm"), b"Pf\n6 4\n-1\n\0\0\0\0").unwrap();
     std::fs::write(root.join("images/e.png"), b"").unwrap();
     let src = DirSource::open(&root, &SourceOptions::default()).unwrap();
-    let expect = |i: usize, file: &str, what: &str| match src.load(i) {
-        Err(SourceError::File { path, message }) => {
+    let expect = |i: usize, file: &str, what: &str, want: FailureKind| match src.load(i) {
+        Err(SourceError::File { path, kind, message }) => {
+            assert_eq!(kind, want, "item {i}: {message}");
             assert!(path.ends_with(file), "item {i}: path {path}");
             assert!(message.contains(what), "item {i}: {message}");
             assert!(!message.contains(&path), "item {i}: the path is repeated in {message}");
         }
         other => panic!("item {i}: expected a file error, got {other:?}"),
     };
-    expect(0, "depths/a.npy", "npy");
-    expect(1, "disps/b.png", "");
-    expect(3, "depths/d.pfm", "truncated");
-    expect(4, "images/e.png", "");
+    expect(0, "depths/a.npy", "npy", FailureKind::Depth);
+    expect(1, "disps/b.png", "corrupt", FailureKind::Depth);
+    expect(3, "depths/d.pfm", "truncated", FailureKind::Truncated);
+    expect(4, "images/e.png", "", FailureKind::Decode);
     assert!(src.load(2).is_ok());
     assert!(src.load(5).is_ok());
     // a file removed after listing
     std::fs::remove_file(root.join("images/c.png")).unwrap();
     match src.load(2) {
-        Err(SourceError::File { path, message }) => {
+        Err(SourceError::File { path, kind, message }) => {
+            assert_eq!(kind, FailureKind::Decode);
             assert!(path.ends_with("images/c.png"));
             assert!(message.contains("not found"), "{message}");
         }
@@ -261,6 +265,7 @@ fn limits_refuse_large_companions() {
     // the 6-pixel-wide image itself is refused, naming the image
     let e = src.load(0).unwrap_err();
     assert!(e.to_string().contains("images/a.png") && e.to_string().contains("too large"), "{e}");
+    assert_eq!(e.failure_kind(), Some(FailureKind::TooLarge));
     // a depth larger than the limits is refused before it is used, naming the depth file
     write_f32(&root.join("depths/a.npy"), &[40, 60], &[1.0; 2400]).unwrap();
     let opts =
@@ -268,6 +273,7 @@ fn limits_refuse_large_companions() {
     let src = DirSource::open(&root, &opts).unwrap();
     let e = src.load(0).unwrap_err();
     assert!(e.to_string().contains("depths/a.npy") && e.to_string().contains("too large"), "{e}");
+    assert_eq!(e.failure_kind(), Some(FailureKind::TooLarge));
     assert!(src.load(1).is_ok());
 }
 
@@ -413,7 +419,7 @@ fn pfm_reader_handles_both_byte_orders_and_row_order() {
     write_pfm(&rootd.join("depths/x.pfm"), 2, 2, 3, &[1.0; 12], true).unwrap();
     let e = DirSource::open(&rootd, &SourceOptions::default()).unwrap().load(0).unwrap_err();
     assert!(e.to_string().contains("Pf"), "{e}");
-    assert!(read_pfm(&root.join("missing.pfm"), &ImageLimits::default()).unwrap_err().contains("not found"));
+    assert!(read_pfm(&root.join("missing.pfm"), &ImageLimits::default()).unwrap_err().message.contains("not found"));
 }
 
 // ---------------------------------------------------------------------------------------------

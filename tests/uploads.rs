@@ -137,12 +137,17 @@ fn limits_and_malformed_streams_fail_the_whole_upload() {
     let limits = UploadLimits { max_upload_bytes: 3000, max_total_bytes: 5000, max_datasets: 2, max_items: 2 };
     let st = UploadStore::new(SourceOptions::default(), limits);
     let mut up = st.session();
-    assert!(matches!(up.push("", "a", "image", b"x"), Err(SourceError::Invalid(m)) if m.starts_with("dataset:")));
+    let e = up.push("", "a", "image", b"x").unwrap_err();
+    assert!(matches!(&e, SourceError::Upload { field: "dataset", .. }), "{e}");
+    assert!(e.to_string().starts_with("dataset: "), "{e}");
     let mut up = st.session();
-    assert!(matches!(up.push("bad/name", "a", "image", b"x"), Err(SourceError::Invalid(_))));
+    let e = up.push("bad/name", "a", "image", b"x").unwrap_err();
+    assert!(matches!(&e, SourceError::Upload { field: "dataset", message } if message.contains("no paths")), "{e}");
     let mut up = st.session();
-    assert!(matches!(up.push("ds", "", "", b"x"), Err(SourceError::Invalid(m)) if m.starts_with("name:")));
-    assert!(matches!(st.session().finish(), Err(SourceError::Invalid(m)) if m.contains("no chunks")));
+    let e = up.push("ds", "", "", b"x").unwrap_err();
+    assert!(matches!(&e, SourceError::Upload { field: "name", message } if message.contains("must name it")), "{e}");
+    let e = st.session().finish().unwrap_err();
+    assert!(matches!(&e, SourceError::Upload { field: "dataset", message } if message.contains("no chunks")), "{e}");
 
     let img = png(16, 8, 1);
     assert!(img.len() < 1000, "{}", img.len());

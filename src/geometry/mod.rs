@@ -98,6 +98,15 @@ impl Pose {
         self.rotation.is_finite() && self.translation.is_finite()
     }
 
+    /// `self` after `first`: X -> self(first(X)), the rotation `R_self R_first` and the translation
+    /// `R_self t_first + t_self`.
+    pub fn compose(&self, first: &Pose) -> Pose {
+        Pose {
+            rotation: self.rotation * first.rotation,
+            translation: self.rotation * first.translation + self.translation,
+        }
+    }
+
     /// Inverse motion: X_src = R^T X_tgt - R^T t.
     pub fn inverse(&self) -> Self {
         let rt = self.rotation.transpose();

@@ -11,6 +11,8 @@ use std::fs::File;
 use std::io::{self, BufRead, BufReader, BufWriter, Cursor, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
+use crate::source::FailureKind;
+
 /// An RGB image, H x W x 3 values in [0, 1], row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RgbImage {
@@ -84,12 +86,27 @@ pub enum ImageError {
     Unsupported { path: PathBuf, reason: String },
     #[error("{}: corrupt or truncated image: {reason}", .path.display())]
     Corrupt { path: PathBuf, reason: String },
+    /// The data ends early (a truncated JPEG or PNG).
+    #[error("{}: corrupt or truncated image: {reason}", .path.display())]
+    Truncated { path: PathBuf, reason: String },
     #[error("{}: image of {width} x {height} pixels is too large ({limits})", .path.display())]
     TooLarge { path: PathBuf, width: u64, height: u64, limits: ImageLimits },
     #[error("{}: {bytes} bytes is larger than the limit of {max_bytes} bytes", .path.display())]
     FileTooLarge { path: PathBuf, bytes: u64, max_bytes: u64 },
     #[error("{}: invalid image buffer: {reason}", .path.display())]
     InvalidInput { path: PathBuf, reason: String },
+}
+
+impl ImageError {
+    /// What kind of source failure this is: [`FailureKind::TooLarge`] over a limit,
+    /// [`FailureKind::Truncated`] for data that ends early, [`FailureKind::Decode`] otherwise.
+    pub fn failure_kind(&self) -> FailureKind {
+        match self {
+            ImageError::TooLarge { .. } | ImageError::FileTooLarge { .. } => FailureKind::TooLarge,
+            ImageError::Truncated { .. } => FailureKind::Truncated,
+            _ => FailureKind::Decode,
+        }
+    }
 }
 
 impl From<ImageError> for io::Error {
@@ -112,7 +129,7 @@ fn map_decode_error(path: &Path, e: ::image::ImageError) -> ImageError {
         E::Decoding(d) => ImageError::Corrupt { path, reason: d.to_string() },
         E::Parameter(p) => ImageError::Corrupt { path, reason: p.to_string() },
         E::IoError(io) if io.kind() == io::ErrorKind::UnexpectedEof => {
-            ImageError::Corrupt { path, reason: format!("unexpected end of data ({io})") }
+            ImageError::Truncated { path, reason: format!("unexpected end of data ({io})") }
         }
         E::IoError(io) => ImageError::Io { path, source: io },
         // a header within our limits whose decoding still needs more memory than budgeted
@@ -204,7 +221,7 @@ pub(crate) fn decode_bytes(bytes: &[u8], path: &Path, limits: &ImageLimits) -> R
         });
     }
     if let Some(reason) = jpeg_truncation(bytes) {
-        return Err(ImageError::Corrupt { path: path.to_path_buf(), reason });
+        return Err(ImageError::Truncated { path: path.to_path_buf(), reason });
     }
     decode_reader(Cursor::new(bytes), path, limits)
 }
@@ -513,12 +530,14 @@ mod tests {
         let good = png_bytes(8, 8, &[50u8; 8 * 8 * 3], ExtendedColorType::Rgb8);
 
         let e = load_rgb_from_bytes(&good[..good.len() / 2], &lim).unwrap_err();
-        assert!(matches!(e, ImageError::Corrupt { .. }), "{e}");
+        assert!(matches!(e, ImageError::Truncated { .. }), "{e}");
+        assert_eq!(e.failure_kind(), FailureKind::Truncated);
 
         let mut garbage_png = good[..8].to_vec();
         garbage_png.extend((0..200u32).map(|i| (i * 37 % 251) as u8));
         let e = load_rgb_from_bytes(&garbage_png, &lim).unwrap_err();
         assert!(matches!(e, ImageError::Corrupt { .. }), "{e}");
+        assert_eq!(e.failure_kind(), FailureKind::Decode);
 
         let garbage: Vec<u8> = (0..300u32).map(|i| (i * 91 % 253) as u8).collect();
         let e = load_rgb_from_bytes(&garbage, &lim).unwrap_err();
@@ -531,6 +550,7 @@ mod tests {
 
         let e = load_rgb_from_bytes(&bomb_png(100_000, 100_000), &lim).unwrap_err();
         assert!(matches!(e, ImageError::TooLarge { width: 100_000, height: 100_000, .. }), "{e}");
+        assert_eq!(e.failure_kind(), FailureKind::TooLarge);
         assert!(e.to_string().contains("100000 x 100000"), "{e}");
 
         // within the width and height limits but over the pixel budget
@@ -539,7 +559,7 @@ mod tests {
 
         // a small header but no data for it: corrupt, not a panic or a huge allocation
         let e = load_rgb_from_bytes(&bomb_png(4000, 4000), &lim).unwrap_err();
-        assert!(matches!(e, ImageError::Corrupt { .. }), "{e}");
+        assert!(matches!(e, ImageError::Corrupt { .. } | ImageError::Truncated { .. }), "{e}");
 
         let small = ImageLimits { max_pixels: 63, ..lim };
         let e = load_rgb_from_bytes(&good, &small).unwrap_err();

@@ -133,28 +133,28 @@ impl SampleConfig {
     /// Checks every field; the error names the field.
     pub fn validate(&self) -> Result<(), SampleError> {
         self.motion.ranges().validate()?;
-        let bad = |m: String| Err(SampleError::Config(m));
+        let bad = |field: &'static str, message: String| Err(SampleError::Config { field, message });
         if self.max_objects > 255 {
-            return bad(format!("max_objects = {} (at most 255 objects fit the u8 label masks)", self.max_objects));
+            return bad("max_objects", format!("{} (at most 255 objects fit the u8 label masks)", self.max_objects));
         }
         if !(0.0..=1.0).contains(&self.min_object_area_fraction) {
-            return bad(format!("min_object_area_fraction = {} (expected 0 to 1)", self.min_object_area_fraction));
+            return bad("min_object_area_fraction", format!("{} (expected 0 to 1)", self.min_object_area_fraction));
         }
         if !(self.mask_threshold > 0.0 && self.mask_threshold <= 1.0) {
-            return bad(format!("mask_threshold = {} (expected in (0, 1])", self.mask_threshold));
+            return bad("mask_threshold", format!("{} (expected in (0, 1])", self.mask_threshold));
         }
         if !(self.inpaint_radius.is_finite() && self.inpaint_radius > 0.0) {
-            return bad(format!("inpaint_radius = {} (expected a positive number of pixels)", self.inpaint_radius));
+            return bad("inpaint_radius", format!("{} (expected a positive number of pixels)", self.inpaint_radius));
         }
         if self.motions_per_image == 0 {
-            return bad("motions_per_image = 0 (expected at least 1)".into());
+            return bad("motions_per_image", "0 (expected at least 1)".into());
         }
         let s = self.skip;
         if !(s.transmittance_eps.is_finite() && (0.0..1.0).contains(&s.transmittance_eps)) {
-            return bad(format!("skip.transmittance_eps = {} (expected in [0, 1))", s.transmittance_eps));
+            return bad("skip.transmittance_eps", format!("{} (expected in [0, 1))", s.transmittance_eps));
         }
         if !(s.tile_sigma_eps.is_finite() && s.tile_sigma_eps >= 0.0) {
-            return bad(format!("skip.tile_sigma_eps = {} (expected >= 0)", s.tile_sigma_eps));
+            return bad("skip.tile_sigma_eps", format!("{} (expected >= 0)", s.tile_sigma_eps));
         }
         Ok(())
     }

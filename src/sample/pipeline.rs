@@ -30,10 +30,10 @@ use crate::io::image::ImageLimits;
 use crate::render::{Mode, Occupancy};
 use crate::scene::cache::{SceneCache, SceneKey};
 use crate::scene::stage::{SceneStage, SourceScenes};
-use crate::scene::{Scene, SceneError, SceneLoader};
+use crate::scene::{Scene, SceneLoader};
 use crate::source::builtin::{BuiltinOptions, BuiltinSource};
 use crate::source::dir::{IntrinsicsSpec, SourceOptions};
-use crate::source::{Fnv64, Source, SourceError};
+use crate::source::{FailureKind, Fnv64, Source, SourceError};
 
 /// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
 /// (sources + scene stage) and the configuration's JSON. Never change the formula without a
@@ -179,40 +179,16 @@ pub struct Generator {
     /// Tile occupancy of each cached scene's MPI (small: N x (W/8) x (H/8) counts), keyed by the
     /// scene's cache key and checked against the scene itself.
     occupancies: Mutex<Vec<OccupancyEntry>>,
-    /// Source items known to fail, by item: (id, reason class, reason).
+    /// Source items known to fail, by item: (id, failure kind, reason).
     bad: Mutex<BTreeMap<usize, BadItem>>,
 }
 
-/// A source item that failed to load: its id, reason class and reason.
+/// A source item that failed to load: its id, failure kind and reason.
 #[derive(Clone, Debug)]
 struct BadItem {
     id: String,
-    class: &'static str,
+    kind: FailureKind,
     reason: String,
-}
-
-/// The reason class of a failure that makes a source item bad (skipped), or `None` for failures
-/// that are not the item's (the runtime, a model, the configuration, a render): those are
-/// returned to the caller.
-fn bad_source_class(e: &SampleError) -> Option<&'static str> {
-    use crate::source::failure_class;
-    match e {
-        SampleError::Scene { source, .. } => match &**source {
-            SceneError::Given { path, message } => Some(failure_class(path, message)),
-            SceneError::Invalid(m) => Some(failure_class("", m)),
-            SceneError::Mask(m) => Some(match failure_class("", &m.to_string()) {
-                "decode" | "depth" => "mask",
-                other => other,
-            }),
-            SceneError::Mpi(m) => Some(match failure_class("", &m.to_string()) {
-                "decode" | "depth" => "mpi",
-                other => other,
-            }),
-            SceneError::Runtime(_) | SceneError::Model { .. } => None,
-        },
-        SampleError::InvalidScene { .. } => Some("scene"),
-        _ => None,
-    }
 }
 
 impl std::fmt::Debug for Generator {
@@ -335,9 +311,9 @@ impl Generator {
     }
 
     /// Records a bad item (once).
-    fn mark_bad(&self, item: usize, class: &'static str, error: &SampleError) {
+    fn mark_bad(&self, item: usize, kind: FailureKind, error: &SampleError) {
         let mut bad = self.bad_items();
-        bad.entry(item).or_insert_with(|| BadItem { id: self.loader.id(item), class, reason: error.to_string() });
+        bad.entry(item).or_insert_with(|| BadItem { id: self.loader.id(item), kind, reason: error.to_string() });
     }
 
     /// The scene of a source item that loads and fits the recipe, or the error.
@@ -372,9 +348,9 @@ impl Generator {
             }
             let scene = match self.good_scene(item) {
                 Ok(scene) => scene,
-                Err(e) => match bad_source_class(&e) {
-                    Some(class) => {
-                        self.mark_bad(item, class, &e);
+                Err(e) => match e.bad_source_kind() {
+                    Some(kind) => {
+                        self.mark_bad(item, kind, &e);
                         passed += 1;
                         continue;
                     }
@@ -400,12 +376,13 @@ impl Generator {
         self.bad_items().iter().map(|(&i, b)| (i, b.id.clone(), b.reason.clone())).collect()
     }
 
-    /// How many source items were found bad so far, by reason class (`decode`, `truncated`,
-    /// `too-large`, `depth`, `mask`, `mpi`, `scene`; see [`crate::source::failure_class`]).
-    pub fn skip_counts(&self) -> BTreeMap<String, u64> {
+    /// How many source items were found bad so far, by failure kind (`decode`, `truncated`,
+    /// `too-large`, `depth`, `mask`, `mpi`, `scene`: [`FailureKind::as_str`]), as set where each
+    /// failure happened ([`SampleError::bad_source_kind`]).
+    pub fn skip_counts(&self) -> BTreeMap<FailureKind, u64> {
         let mut out = BTreeMap::new();
         for b in self.bad_items().values() {
-            *out.entry(b.class.to_string()).or_insert(0) += 1;
+            *out.entry(b.kind).or_insert(0) += 1;
         }
         out
     }

@@ -37,7 +37,7 @@
 //! **Bad sources** ([`Generator::sample`]): when the address's source item fails to load because
 //! of its data (corrupt, truncated or too large image, bad depth, masks or MPI), the next items
 //! (mod the collection's length) are tried in order and the first good one is used with the
-//! address's own motions; failed items are remembered and counted by reason class
+//! address's own motions; failed items are remembered and counted by their [`FailureKind`]
 //! ([`Generator::skip_counts`]), [`Sample::skipped_sources`] says how many were passed over. The
 //! result depends only on which items are bad, not on what was asked before. Runtime, model,
 //! configuration and render errors are not the item's and are returned.
@@ -67,15 +67,17 @@ pub use super::pipeline::Generator;
 use super::preblend::{preblend, PreblendError};
 use super::rng::{Purpose, SampleRng};
 use super::{ObjectRecord, Sample, SampleAddress, StageTimings};
-use crate::geometry::Pose;
 use crate::render::{render, Fields, Mode, Occupancy, RenderError, RenderOutput, RenderParams};
 use crate::scene::{Scene, SceneError};
+use crate::source::FailureKind;
 
 /// Errors of sample generation; each names the source it concerns.
 #[derive(Debug, thiserror::Error)]
 pub enum SampleError {
-    #[error("invalid sample configuration: {0}")]
-    Config(String),
+    /// A configuration field out of range: `field` names it (`max_objects`,
+    /// `skip.tile_sigma_eps`, ...), `message` gives the value and what was expected.
+    #[error("invalid sample configuration: {field} = {message}")]
+    Config { field: &'static str, message: String },
     #[error("invalid sample configuration: {0}")]
     Motion(#[from] MotionError),
     #[error("the source collection is empty: there is nothing to make samples from")]
@@ -105,6 +107,20 @@ pub enum SampleError {
     /// Every source item failed to load (see [`Generator::sample`]).
     #[error("all {items} source items failed to load (first: {first})")]
     NoGoodSource { items: usize, first: String },
+}
+
+impl SampleError {
+    /// The failure kind when the error makes its source item bad (skipped: the item's data is
+    /// corrupt, truncated, too large, or its depth, masks, MPI or scene are unusable), or `None`
+    /// for failures that are not the item's (the runtime, a model, the configuration, a render):
+    /// those are returned to the caller.
+    pub fn bad_source_kind(&self) -> Option<FailureKind> {
+        match self {
+            SampleError::Scene { source, .. } => source.failure_kind(),
+            SampleError::InvalidScene { .. } => Some(FailureKind::Scene),
+            _ => None,
+        }
+    }
 }
 
 /// Applies what the configuration does to a freshly loaded scene (the pre-blend), once, before
@@ -162,6 +178,27 @@ pub fn assemble_with_occupancy(
     occupancy: Option<&Occupancy>,
 ) -> Result<Sample, SampleError> {
     let start = Instant::now();
+    let (mut sample, hole) = assemble_merged(scene, address, config, occupancy)?;
+    let t = Instant::now();
+    if sample.inpainted_pixels > 0 {
+        let (w, h) = (sample.width, sample.height);
+        inpaint_holes(&mut sample.image2, w, h, &hole, config.inpaint_method, config.inpaint_radius, true);
+    }
+    sample.timings.inpaint_ms = ms(t);
+    sample.timings.total_ms = ms(start);
+    Ok(sample)
+}
+
+/// [`assemble_with_occupancy`] up to the merge: the sample with `image2` as merged, its holes not
+/// yet inpainted, and the hole mask (H x W, 1 = hole; [`Sample::inpainted_pixels`] counts them).
+/// [`assemble`] is this followed by [`inpaint_holes`] over the mask (windowed).
+pub fn assemble_merged(
+    scene: &Scene,
+    address: SampleAddress,
+    config: &SampleConfig,
+    occupancy: Option<&Occupancy>,
+) -> Result<(Sample, Vec<u8>), SampleError> {
+    let start = Instant::now();
     config.validate()?;
     check_scene(scene)?;
     let ranges = config.motion.ranges();
@@ -196,7 +233,7 @@ pub fn assemble_with_occupancy(
         let inst = &scene.masks.masks[idx];
         let motion = ranges.sample_object_motion(&mut rng(Purpose::ObjectMotion(slot as u32)));
         let own = motion.to_pose();
-        poses.push(if config.objects_follow_camera { compose(&cam_pose, &own) } else { own });
+        poses.push(if config.objects_follow_camera { cam_pose.compose(&own) } else { own });
         records.push(ObjectRecord {
             label: (slot + 1) as u8,
             instance: inst.id,
@@ -309,7 +346,7 @@ pub fn assemble_with_occupancy(
             render: r,
         })
         .collect();
-    let mut merged = merge(view, &views, config.merge, config.mask_threshold);
+    let merged = merge(view, &views, config.merge, config.mask_threshold);
     let image1: Vec<u8> = scene.image.data.iter().map(|&v| unit_to_u8(v)).collect();
     // depth1 = 1 / disparity, written over the scene render's coverage (no longer needed; a
     // buffer already in memory costs no page faults)
@@ -327,15 +364,9 @@ pub fn assemble_with_occupancy(
     }
     timings.merge_ms = ms(t);
 
-    // ---- inpainting
-    let t = Instant::now();
-    if merged.holes > 0 {
-        inpaint_holes(&mut merged.image2, w, h, &merged.hole, config.inpaint_method, config.inpaint_radius, true);
-    }
-    timings.inpaint_ms = ms(t);
     timings.total_ms = ms(start);
 
-    Ok(Sample {
+    let sample = Sample {
         address,
         source_id: scene.id.clone(),
         width: w,
@@ -356,10 +387,6 @@ pub fn assemble_with_occupancy(
         provenance: scene.provenance.clone(),
         intrinsics: scene.intrinsics,
         timings,
-    })
-}
-
-/// `a` after `b`: X -> a(b(X)).
-fn compose(a: &Pose, b: &Pose) -> Pose {
-    Pose { rotation: a.rotation * b.rotation, translation: a.rotation * b.translation + a.translation }
+    };
+    Ok((sample, merged.hole))
 }

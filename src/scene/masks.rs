@@ -25,6 +25,7 @@
 //! [`Instance::area`] is the number of pixels with mask value >= 0.5.
 
 use crate::io::image::{decode_file, save_gray16_png, save_gray_png, ImageError, ImageLimits};
+use crate::source::FailureKind;
 use ::image::DynamicImage;
 use serde_json::Value;
 use std::collections::BTreeMap;
@@ -63,6 +64,15 @@ pub enum MaskError {
 }
 
 impl MaskError {
+    /// The kind of source failure: a mask image over the limits or cut short is
+    /// [`FailureKind::TooLarge`] or [`FailureKind::Truncated`], anything else [`FailureKind::Mask`].
+    pub fn failure_kind(&self) -> FailureKind {
+        match self {
+            MaskError::Image(e) => e.failure_kind().in_part(FailureKind::Mask),
+            _ => FailureKind::Mask,
+        }
+    }
+
     /// The error with `what` replaced by `field` (the low-level functions do not know it).
     fn in_field(self, field: &str) -> Self {
         match self {

@@ -19,6 +19,7 @@ use std::sync::Arc;
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
 use crate::mpi::Mpi;
+use crate::source::FailureKind;
 use masks::InstanceMasks;
 
 /// A disparity map in the scene scale: H x W values in [0, 1], 1 = nearest (depth 1), every
@@ -39,15 +40,34 @@ pub enum SceneError {
     /// A model file or its tensors do not fit the contract, or inference failed / gave NaN.
     #[error("{kind} model {model}: {message}")]
     Model { kind: &'static str, model: String, message: String },
-    /// A given file (depth, masks, MPI) is missing or malformed.
+    /// A source file (image, depth, masks, MPI) is missing or malformed; `kind` says how.
     #[error("{path}: {message}")]
-    Given { path: String, message: String },
+    Given { path: String, kind: FailureKind, message: String },
+    /// The item's data does not make a scene (no depth and no depth model, depth or disparity
+    /// without a usable value, a given MPI of the wrong size); `kind` says which part.
+    #[error("{message}")]
+    Data { kind: FailureKind, message: String },
     #[error(transparent)]
     Mask(#[from] masks::MaskError),
     #[error(transparent)]
     Mpi(#[from] crate::mpi::MpiError),
+    /// Anything else that makes this item's scene unusable (reported as [`FailureKind::Scene`]).
     #[error("{0}")]
     Invalid(String),
+}
+
+impl SceneError {
+    /// The failure kind when the error is the item's (its data is bad: the item is skipped), or
+    /// `None` when it is not (the runtime, a model).
+    pub fn failure_kind(&self) -> Option<FailureKind> {
+        match self {
+            SceneError::Runtime(_) | SceneError::Model { .. } => None,
+            SceneError::Given { kind, .. } | SceneError::Data { kind, .. } => Some(*kind),
+            SceneError::Mask(m) => Some(m.failure_kind()),
+            SceneError::Mpi(_) => Some(FailureKind::Mpi),
+            SceneError::Invalid(_) => Some(FailureKind::Scene),
+        }
+    }
 }
 
 /// Estimates disparity (scene scale, see the module docs) from an image.

@@ -35,7 +35,12 @@
 //! more than 1000 times the nearest depth are pulled in to that distance.
 
 use super::{Disparity, SceneError};
-use crate::source::GivenDepth;
+use crate::source::{FailureKind, GivenDepth};
+
+/// A depth problem of the item's data.
+fn depth_err(message: String) -> SceneError {
+    SceneError::Data { kind: FailureKind::Depth, message }
+}
 use std::collections::VecDeque;
 
 /// The smallest disparity of a scene (depth 1000 times the nearest content), the reference's
@@ -58,7 +63,7 @@ pub fn disparity_from_depth(depth: &[f32], width: usize, height: usize) -> Resul
     let known: Vec<bool> = depth.iter().map(|&d| d.is_finite() && d > 0.0).collect();
     let d_min = depth.iter().zip(&known).filter(|(_, &k)| k).map(|(&d, _)| d).fold(f32::INFINITY, f32::min);
     if !d_min.is_finite() {
-        return Err(SceneError::Invalid(format!(
+        return Err(depth_err(format!(
             "depth map of {width} x {height} has no known pixel (every value is non-finite or <= 0)"
         )));
     }
@@ -76,7 +81,7 @@ pub fn disparity_from_unit(disp: &[f32], width: usize, height: usize) -> Result<
     check_len(disp.len(), width, height, "disparity")?;
     let known: Vec<bool> = disp.iter().map(|d| d.is_finite()).collect();
     if !known.iter().any(|&k| k) {
-        return Err(SceneError::Invalid(format!("disparity map of {width} x {height} has no finite value")));
+        return Err(depth_err(format!("disparity map of {width} x {height} has no finite value")));
     }
     let mut data: Vec<f32> = disp.iter().map(|&d| if d.is_finite() { d } else { 0.0 }).collect();
     fill_nearest(&mut data, &known, width, height);
@@ -97,7 +102,7 @@ pub fn normalise_relative(values: &[f32], width: usize, height: usize) -> Result
         hi = hi.max(f64::from(v));
     }
     if lo > hi {
-        return Err(SceneError::Invalid(format!("relative depth of {width} x {height} has no finite value")));
+        return Err(depth_err(format!("relative depth of {width} x {height} has no finite value")));
     }
     let range = hi - lo;
     let mut data: Vec<f32> = values
@@ -160,7 +165,7 @@ fn sanitize(d: f32) -> f32 {
 
 fn check_len(len: usize, width: usize, height: usize, what: &str) -> Result<(), SceneError> {
     if width == 0 || height == 0 || Some(len) != width.checked_mul(height) {
-        return Err(SceneError::Invalid(format!(
+        return Err(depth_err(format!(
             "{what} map holds {len} values, its size {width} x {height} needs {}",
             width.saturating_mul(height)
         )));

@@ -32,14 +32,16 @@ use super::{DepthEstimator, Disparity, MpiBuilder, Scene, SceneError, SceneLoade
 use crate::geometry::Intrinsics;
 use crate::mpi::Mpi;
 use crate::render::{DELTA_LAST, DEPTH_MAX};
-use crate::source::{Fnv64, GivenDepth, Source, SourceError, SourceItem};
+use crate::source::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use std::sync::Arc;
 
 impl From<SourceError> for SceneError {
     fn from(e: SourceError) -> Self {
         match e {
-            SourceError::File { path, message } => SceneError::Given { path, message },
-            SourceError::Invalid(m) | SourceError::Limit(m) => SceneError::Invalid(m),
+            SourceError::File { path, kind, message } => SceneError::Given { path, kind, message },
+            other @ (SourceError::Invalid(_) | SourceError::Limit(_) | SourceError::Upload { .. }) => {
+                SceneError::Invalid(other.to_string())
+            }
         }
     }
 }
@@ -152,9 +154,10 @@ impl SceneStage {
                         disp
                     }
                     None => {
-                        return Err(SceneError::Invalid(format!(
-                            "source {id} has no depth and no depth model is configured"
-                        )))
+                        return Err(SceneError::Data {
+                            kind: FailureKind::Depth,
+                            message: format!("source {id} has no depth and no depth model is configured"),
+                        })
                     }
                 },
             };
@@ -208,6 +211,7 @@ impl SceneStage {
 fn in_source(id: &str, e: SceneError) -> SceneError {
     match e {
         SceneError::Invalid(m) => SceneError::Invalid(format!("source {id}: {m}")),
+        SceneError::Data { kind, message } => SceneError::Data { kind, message: format!("source {id}: {message}") },
         other => other,
     }
 }
@@ -215,10 +219,10 @@ fn in_source(id: &str, e: SceneError) -> SceneError {
 /// Sanitises, validates and (if needed) rescales a given MPI; returns it and a provenance note.
 fn prepare_given_mpi(id: &str, mut mpi: Mpi, w: usize, h: usize) -> Result<(Mpi, String), SceneError> {
     if (mpi.width, mpi.height) != (w, h) {
-        return Err(SceneError::Invalid(format!(
-            "source {id}: the given MPI is {} x {} but the image is {w} x {h}",
-            mpi.width, mpi.height
-        )));
+        return Err(SceneError::Data {
+            kind: FailureKind::Mpi,
+            message: format!("source {id}: the given MPI is {} x {} but the image is {w} x {h}", mpi.width, mpi.height),
+        });
     }
     let report = mpi.sanitize();
     mpi.validate()?;

@@ -13,7 +13,7 @@ use crate::scene::cache::SceneCache;
 use crate::scene::stage::{SceneStage, SourceScenes};
 use crate::source::dir::SourceOptions;
 use crate::source::upload::{UploadLimits, UploadStore, UploadSummary};
-use crate::source::Source;
+use crate::source::{FailureKind, Source};
 
 use super::config::{DatasetConfig, ServiceConfig};
 use super::error::ServiceError;
@@ -93,11 +93,11 @@ impl Dataset {
     }
 
     /// What the source left out when it was opened (e.g. a truncated shard's last sample), counted
-    /// by reason class.
-    pub fn opened_skips(&self) -> BTreeMap<String, u64> {
+    /// by failure kind.
+    pub fn opened_skips(&self) -> BTreeMap<FailureKind, u64> {
         let mut out = BTreeMap::new();
         for s in self.source.skipped() {
-            *out.entry(s.class).or_insert(0) += 1;
+            *out.entry(s.kind).or_insert(0) += 1;
         }
         out
     }
@@ -123,10 +123,10 @@ impl Dataset {
             config.motions_per_image = m;
         }
         if let Err(e) = config.validate() {
+            // the default configuration was valid, so the field at fault is an overridden one,
+            // and the request's overrides are named as the configuration's fields
             let field = match &e {
-                SampleError::Motion(_) => "motion_ranges_json",
-                SampleError::Config(m) if m.starts_with("max_objects") => "max_objects",
-                SampleError::Config(m) if m.starts_with("motions_per_image") => "motions_per_image",
+                SampleError::Config { field, .. } => *field,
                 _ => "motion_ranges_json",
             };
             return Err(ServiceError::invalid(field, e.to_string()));
@@ -184,7 +184,7 @@ impl Datasets {
             let source = open_source(&spec.source_spec(), &open)
                 .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
             for s in source.skipped() {
-                tracing::warn!(dataset = %name, item = %s.item, class = %s.class, reason = %s.reason, "source item left out");
+                tracing::warn!(dataset = %name, item = %s.item, kind = %s.kind, reason = %s.reason, "source item left out");
             }
             if source.is_empty() {
                 return Err(ServiceError::Config(format!("dataset {name}: {} has no images", source.describe())));

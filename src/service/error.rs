@@ -5,6 +5,7 @@ use tonic::metadata::MetadataValue;
 use tonic::{Code, Status};
 
 use crate::sample::recipe::SampleError;
+use crate::source::SourceError;
 
 /// Trailer key of the next index an interrupted stream would have sent.
 pub const NEXT_INDEX_TRAILER: &str = "mpiflow-next-index";
@@ -83,8 +84,44 @@ pub fn cursor_of(status: &Status) -> Option<(u64, u64)> {
     Some((get(NEXT_INDEX_TRAILER)?, get(RESUME_START_TRAILER)?))
 }
 
+/// An upload store error as the service's: limits are RESOURCE_EXHAUSTED, a malformed stream
+/// names its chunk field (`dataset`, `name`), the rest are the `chunks`' fault.
+impl From<SourceError> for ServiceError {
+    fn from(e: SourceError) -> Self {
+        match e {
+            SourceError::Limit(m) => ServiceError::LimitExceeded(m),
+            SourceError::Upload { field, message } => ServiceError::InvalidArgument { field, message },
+            other => ServiceError::invalid("chunks", other.to_string()),
+        }
+    }
+}
+
 impl From<ServiceError> for Status {
     fn from(e: ServiceError) -> Self {
         Status::new(e.code(), e.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::FailureKind;
+
+    #[test]
+    fn source_errors_map_to_their_field_and_code() {
+        let cases = [
+            (
+                SourceError::Upload { field: "dataset", message: "empty name".into() },
+                Code::InvalidArgument,
+                "dataset: empty name",
+            ),
+            (SourceError::Upload { field: "name", message: "unnamed".into() }, Code::InvalidArgument, "name: unnamed"),
+            (SourceError::Limit("upload: too big".into()), Code::ResourceExhausted, "upload: too big"),
+            (SourceError::file("x.png", FailureKind::Decode, "bad"), Code::InvalidArgument, "chunks: x.png: bad"),
+        ];
+        for (e, code, message) in cases {
+            let status: Status = ServiceError::from(e).into();
+            assert_eq!((status.code(), status.message()), (code, message));
+        }
     }
 }

@@ -17,6 +17,7 @@ use tokio::net::TcpListener;
 use crate::sample::recipe::SampleError;
 use crate::sample::StageTimings;
 use crate::scene::cache::SceneCache;
+use crate::source::FailureKind;
 
 use super::dataset::Datasets;
 
@@ -198,23 +199,25 @@ impl Metrics {
             SampleError::Render { .. } => "render",
             SampleError::Preblend { .. } => "preblend",
             SampleError::EmptySource => "empty",
-            SampleError::Config(_) | SampleError::Motion(_) => "config",
+            SampleError::Config { .. } | SampleError::Motion(_) => "config",
         };
         self.generation_errors.get_or_create(&label("reason", reason)).inc();
     }
 
-    /// Records the bad source items of `dataset` known so far, by reason class (a generator's
+    /// Records the bad source items of `dataset` known so far, by failure kind (a generator's
     /// [`skip_counts`](crate::sample::recipe::Generator::skip_counts), or what a source left out
-    /// when opened); counts only grow. True when a count grew (something new was skipped).
-    pub fn record_skips(&self, dataset: &str, counts: &BTreeMap<String, u64>) -> bool {
+    /// when opened); the `reason` label is [`FailureKind::as_str`]. Counts only grow. True when a
+    /// count grew (something new was skipped).
+    pub fn record_skips(&self, dataset: &str, counts: &BTreeMap<FailureKind, u64>) -> bool {
         let mut grew = false;
         let mut m = self.skipped_by_dataset.lock().unwrap_or_else(|e| e.into_inner());
-        for (reason, &n) in counts {
+        for (&kind, &n) in counts {
+            let reason = kind.as_str().to_string();
             let slot = m.entry((dataset.to_string(), reason.clone())).or_default();
             if n > *slot {
                 *slot = n;
                 grew = true;
-                let labels = vec![("dataset".to_string(), dataset.to_string()), ("reason".to_string(), reason.clone())];
+                let labels = vec![("dataset".to_string(), dataset.to_string()), ("reason".to_string(), reason)];
                 self.skipped_sources.get_or_create(&labels).set(n as i64);
             }
         }

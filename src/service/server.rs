@@ -212,11 +212,11 @@ impl State {
                     ));
                 }
             }
-            session.push(&dataset, &chunk.name, &chunk.kind, &chunk.data).map_err(upload_error)?;
+            session.push(&dataset, &chunk.name, &chunk.kind, &chunk.data)?;
         }
         let datasets = self.datasets.clone();
         let summary = tokio::task::spawn_blocking(move || -> Result<_, ServiceError> {
-            let summary = session.finish().map_err(upload_error)?;
+            let summary = session.finish()?;
             if summary.sources > 0 {
                 datasets.refresh_upload(&summary)?;
             }
@@ -367,20 +367,6 @@ pub struct RunningServer {
 impl std::fmt::Debug for RunningServer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("RunningServer").field("addr", &self.addr).finish()
-    }
-}
-
-/// An upload store error as the service's: limits are RESOURCE_EXHAUSTED, the rest name the
-/// request's fields.
-fn upload_error(e: crate::source::SourceError) -> ServiceError {
-    use crate::source::SourceError;
-    match e {
-        SourceError::Limit(m) => ServiceError::LimitExceeded(m),
-        SourceError::Invalid(m) => match m.split_once(": ") {
-            Some(("dataset", rest)) => ServiceError::invalid("dataset", rest.to_string()),
-            _ => ServiceError::invalid("chunks", m),
-        },
-        other => ServiceError::invalid("chunks", other.to_string()),
     }
 }
 

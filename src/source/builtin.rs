@@ -31,7 +31,7 @@
 //! scene stage brings the depth to the scene scale (`disparity = d_min / d`, nearest content at 1).
 
 use super::dir::resize_rgb;
-use super::{Fnv64, GivenDepth, Source, SourceError, SourceItem};
+use super::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits, RgbImage};
 use crate::rng::{Purpose, SampleRng};
@@ -150,7 +150,7 @@ pub struct Composition {
     pub objects: Vec<PlacedObject>,
 }
 
-type PhotoSlot = OnceLock<Result<Arc<RgbImage>, (String, String)>>;
+type PhotoSlot = OnceLock<Result<Arc<RgbImage>, (String, FailureKind, String)>>;
 
 /// The bundled default source (see the module documentation).
 #[derive(Debug)]
@@ -179,10 +179,11 @@ impl BuiltinSource {
             )));
         }
         let not_found = |m: String| {
-            SourceError::File {
-            path: dir.display().to_string(),
-            message: format!("{m} (the bundled photos live in examples/photos of the repository; set {PHOTOS_ENV} to another folder)"),
-        }
+            SourceError::file(
+                dir.display().to_string(),
+                FailureKind::Decode,
+                format!("{m} (the bundled photos live in examples/photos of the repository; set {PHOTOS_ENV} to another folder)"),
+            )
         };
         let rd = std::fs::read_dir(dir).map_err(|e| not_found(format!("cannot list the photo folder: {e}")))?;
         let mut photos = Vec::new();
@@ -231,10 +232,10 @@ impl BuiltinSource {
                 let ps = p.display().to_string();
                 let m = e.to_string();
                 let m = m.strip_prefix(&format!("{ps}: ")).map(str::to_string).unwrap_or(m);
-                (ps, m)
+                (ps, e.failure_kind(), m)
             })
         });
-        slot.clone().map_err(|(path, message)| SourceError::File { path, message })
+        slot.clone().map_err(|(path, kind, message)| SourceError::File { path, kind, message })
     }
 
     fn stem(&self, k: usize) -> String {

@@ -26,8 +26,9 @@
 //!
 //! Ids are file stems (the whole file name where two images share a stem). Listing reads file
 //! names and sizes only; [`Source::load`] decodes an item's files under [`ImageLimits`], and a
-//! missing or corrupt file is a [`SourceError::File`] naming the file and the problem, for that
-//! item only.
+//! missing or corrupt file is a [`SourceError::File`] naming the file, the problem and its
+//! [`FailureKind`] (too large, truncated, else the file's role: `decode` for the image, `depth`,
+//! `mask`, `mpi` for companions), for that item only.
 //!
 //! # Sizes and camera
 //!
@@ -47,7 +48,7 @@
 //! edited in place to the same size keeps it unless [`SourceOptions::hash_contents`] is set
 //! (which reads every file once at open and hashes its bytes too).
 
-use super::{Fnv64, GivenDepth, Source, SourceError, SourceItem};
+use super::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{decode_file, load_depth_png16_with_limits, load_rgb, ImageLimits, RgbImage};
 use crate::io::npy::read_npy_file;
@@ -198,27 +199,34 @@ fn lower_ext(name: &str) -> Option<(String, String)> {
     Some((stem, ext))
 }
 
-fn io_err(path: &Path, e: &std::io::Error) -> SourceError {
+/// A file that cannot be opened or read; `part` is the kind of failure of the file's role
+/// ([`FailureKind::Decode`] for images, `Depth`, `Mask`, `Mpi` for companions).
+fn io_err(path: &Path, e: &std::io::Error, part: FailureKind) -> SourceError {
     let message = if e.kind() == std::io::ErrorKind::NotFound { "not found".to_string() } else { e.to_string() };
-    SourceError::File { path: path.display().to_string(), message }
+    SourceError::file(path.display().to_string(), part, message)
 }
 
-/// A file error whose message does not repeat the path when the underlying error already starts
-/// with it.
-fn file_err(path: &Path, e: impl std::fmt::Display) -> SourceError {
+/// A file error of `kind` whose message does not repeat the path when the underlying error
+/// already starts with it.
+fn file_err(path: &Path, kind: FailureKind, e: impl std::fmt::Display) -> SourceError {
     let p = path.display().to_string();
     let m = e.to_string();
     let message = m.strip_prefix(&format!("{p}: ")).map(str::to_string).unwrap_or(m);
-    SourceError::File { path: p, message }
+    SourceError::file(p, kind, message)
+}
+
+/// The message of a file over the byte limit.
+fn over_limit(size: u64, limits: &ImageLimits) -> String {
+    format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes)
 }
 
 /// Regular files of a directory as (name, size), sorted by name; names that are not UTF-8 are
 /// skipped (they cannot be ids).
 fn list_files(dir: &Path) -> Result<Vec<(String, u64)>, SourceError> {
-    let rd = std::fs::read_dir(dir).map_err(|e| io_err(dir, &e))?;
+    let rd = std::fs::read_dir(dir).map_err(|e| io_err(dir, &e, FailureKind::Decode))?;
     let mut out = Vec::new();
     for ent in rd {
-        let ent = ent.map_err(|e| io_err(dir, &e))?;
+        let ent = ent.map_err(|e| io_err(dir, &e, FailureKind::Decode))?;
         let Ok(name) = ent.file_name().into_string() else { continue };
         // follow symlinks: a linked photo is a photo
         let Ok(meta) = std::fs::metadata(ent.path()) else { continue };
@@ -290,15 +298,16 @@ impl DirSource {
     /// sizes only (and contents with [`SourceOptions::hash_contents`]). A path that does not
     /// exist, or a directory without images, is an error.
     pub fn open(path: &Path, options: &SourceOptions) -> Result<Self, SourceError> {
-        let meta = std::fs::metadata(path).map_err(|e| io_err(path, &e))?;
+        let meta = std::fs::metadata(path).map_err(|e| io_err(path, &e, FailureKind::Decode))?;
         let (root, layout, entries) = if meta.is_file() {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
             let entries = image_entries(&[(name.clone(), meta.len())], "");
             if entries.is_empty() {
-                return Err(SourceError::File {
-                    path: path.display().to_string(),
-                    message: "not a .png, .jpg or .jpeg image".into(),
-                });
+                return Err(SourceError::file(
+                    path.display().to_string(),
+                    FailureKind::Decode,
+                    "not a .png, .jpg or .jpeg image",
+                ));
             }
             let root = path.parent().map(Path::to_path_buf).unwrap_or_default();
             (root, Layout::File, entries)
@@ -330,7 +339,7 @@ impl DirSource {
             } else {
                 "no .png, .jpg or .jpeg images (and no images/ folder)"
             };
-            return Err(SourceError::File { path: path.display().to_string(), message: message.into() });
+            return Err(SourceError::file(path.display().to_string(), FailureKind::Decode, message));
         }
         let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0 };
         src.fingerprint = src.compute_fingerprint()?;
@@ -402,7 +411,7 @@ impl DirSource {
     fn load_entry(&self, e: &Entry) -> Result<SourceItem, SourceError> {
         let limits = &self.options.limits;
         let ipath = self.root.join(&e.image.rel);
-        let mut image = load_rgb(&ipath, limits).map_err(|err| file_err(&ipath, err))?;
+        let mut image = load_rgb(&ipath, limits).map_err(|err| file_err(&ipath, err.failure_kind(), err))?;
         let (w0, h0) = (image.width, image.height);
 
         let mut depth = match &e.depth {
@@ -427,17 +436,14 @@ impl DirSource {
                 let m = match kind {
                     MaskFile::IndexPng => InstanceMasks::from_index_png_with_limits(&p, limits),
                     MaskFile::CocoJson => {
-                        let size = std::fs::metadata(&p).map_err(|err| io_err(&p, &err))?.len();
+                        let size = std::fs::metadata(&p).map_err(|err| io_err(&p, &err, FailureKind::Mask))?.len();
                         if size > limits.max_bytes {
-                            return Err(file_err(
-                                &p,
-                                format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes),
-                            ));
+                            return Err(file_err(&p, FailureKind::TooLarge, over_limit(size, limits)));
                         }
                         InstanceMasks::from_coco_json_file(&p, h0, w0)
                     }
                 }
-                .map_err(|err| file_err(&p, err))?;
+                .map_err(|err| file_err(&p, err.failure_kind(), err))?;
                 Some(if (m.width, m.height) != (w0, h0) { m.resize_nearest(w0, h0) } else { m })
             }
             None => None,
@@ -465,6 +471,7 @@ impl DirSource {
             if (m.width, m.height) != (image.width, image.height) {
                 return Err(file_err(
                     &self.root.join(&f.rel),
+                    FailureKind::Mpi,
                     format!(
                         "the MPI is {} x {} but its image is {} x {}{}; MPIs are not resized",
                         m.width,
@@ -481,15 +488,16 @@ impl DirSource {
     }
 
     fn read_mpi(&self, p: &Path) -> Result<Mpi, SourceError> {
-        let size = std::fs::metadata(p).map_err(|e| io_err(p, &e))?.len();
+        let size = std::fs::metadata(p).map_err(|e| io_err(p, &e, FailureKind::Mpi))?.len();
         if size > self.options.max_mpi_bytes {
             return Err(file_err(
                 p,
+                FailureKind::TooLarge,
                 format!("{size} bytes is larger than the MPI limit of {} bytes", self.options.max_mpi_bytes),
             ));
         }
-        let mpi = crate::mpi::npz::load_npz(p).map_err(|e| file_err(p, mpi_message(e)))?;
-        mpi.validate().map_err(|e| file_err(p, mpi_message(e)))?;
+        let mpi = crate::mpi::npz::load_npz(p).map_err(|e| file_err(p, FailureKind::Mpi, mpi_message(e)))?;
+        mpi.validate().map_err(|e| file_err(p, FailureKind::Mpi, mpi_message(e)))?;
         Ok(mpi)
     }
 }
@@ -521,56 +529,66 @@ pub fn read_depth(p: &Path, kind: DepthFile, limits: &ImageLimits) -> Result<(us
     match kind {
         DepthFile::Npy => read_depth_npy(p, limits),
         DepthFile::Pfm => {
-            let pfm = super::pfm::read_pfm(p, limits).map_err(|m| file_err(p, m))?;
+            let pfm =
+                super::pfm::read_pfm(p, limits).map_err(|e| file_err(p, e.kind.in_part(FailureKind::Depth), e))?;
             if pfm.channels != 1 {
-                return Err(file_err(p, "a colour PFM (PF) cannot be read as depth; expected a one-channel Pf"));
+                let m = "a colour PFM (PF) cannot be read as depth; expected a one-channel Pf";
+                return Err(file_err(p, FailureKind::Depth, m));
             }
             Ok((pfm.width, pfm.height, pfm.data))
         }
-        DepthFile::Png16 => load_depth_png16_with_limits(p, limits).map_err(|e| file_err(p, e)),
+        DepthFile::Png16 => load_depth_png16_with_limits(p, limits)
+            .map_err(|e| file_err(p, e.failure_kind().in_part(FailureKind::Depth), e)),
     }
 }
 
 /// Reads a float (or integer) `.npy` depth of shape `[H, W]`, `[1, H, W]`, `[H, W, 1]` or
 /// `[1, 1, H, W]`, under the limits (file size, then dimensions).
 pub fn read_depth_npy(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
-    let size = std::fs::metadata(p).map_err(|e| io_err(p, &e))?.len();
+    let size = std::fs::metadata(p).map_err(|e| io_err(p, &e, FailureKind::Depth))?.len();
     if size > limits.max_bytes {
-        return Err(file_err(p, format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes)));
+        return Err(file_err(p, FailureKind::TooLarge, over_limit(size, limits)));
     }
     let a = read_npy_file(p).map_err(|e| {
         if e.kind() == std::io::ErrorKind::NotFound {
-            io_err(p, &e)
+            io_err(p, &e, FailureKind::Depth)
         } else {
-            file_err(p, format!("not a valid .npy depth: {e}"))
+            file_err(p, FailureKind::Depth, format!("not a valid .npy depth: {e}"))
         }
     })?;
-    depth_from_array(a, limits).map_err(|m| file_err(p, m))
+    depth_from_array(a, limits).map_err(|(kind, m)| file_err(p, kind, m))
 }
 
-/// [`read_depth_npy`] for an `.npy` held in memory (errors without a name).
-pub fn depth_npy_from_bytes(bytes: &[u8], limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), String> {
+/// [`read_depth_npy`] for an `.npy` held in memory (errors without a name, with their kind).
+pub fn depth_npy_from_bytes(
+    bytes: &[u8],
+    limits: &ImageLimits,
+) -> Result<(usize, usize, Vec<f32>), (FailureKind, String)> {
     if bytes.len() as u64 > limits.max_bytes {
-        return Err(format!("{} bytes is larger than the limit of {} bytes", bytes.len(), limits.max_bytes));
+        return Err((FailureKind::TooLarge, over_limit(bytes.len() as u64, limits)));
     }
     let a = npyz::NpyFile::new(bytes)
         .and_then(crate::io::npy::read_array)
-        .map_err(|e| format!("not a valid .npy depth: {e}"))?;
+        .map_err(|e| (FailureKind::Depth, format!("not a valid .npy depth: {e}")))?;
     depth_from_array(a, limits)
 }
 
 /// A depth array's shape checked (`[H, W]`, `[1, H, W]`, `[H, W, 1]`, `[1, 1, H, W]`) against the
 /// limits, as (width, height, values).
-fn depth_from_array(a: crate::io::npy::Array, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), String> {
+fn depth_from_array(
+    a: crate::io::npy::Array,
+    limits: &ImageLimits,
+) -> Result<(usize, usize, Vec<f32>), (FailureKind, String)> {
     let (h, w) = match a.shape.as_slice() {
         [h, w] | [1, h, w] | [h, w, 1] | [1, 1, h, w] => (*h, *w),
         s => {
-            return Err(format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])"))
+            let m = format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])");
+            return Err((FailureKind::Depth, m));
         }
     };
     let dims_ok = matches!((u32::try_from(w), u32::try_from(h)), (Ok(w), Ok(h)) if w > 0 && h > 0 && limits.check_dimensions(w, h));
     if !dims_ok {
-        return Err(format!("depth of {w} x {h} pixels is empty or too large ({limits})"));
+        return Err((FailureKind::TooLarge, format!("depth of {w} x {h} pixels is empty or too large ({limits})")));
     }
     Ok((w as usize, h as usize, a.data.into_iter().map(|v| v as f32).collect()))
 }
@@ -578,8 +596,8 @@ fn depth_from_array(a: crate::io::npy::Array, limits: &ImageLimits) -> Result<(u
 /// Reads a grey disparity PNG as values in [0, 1]: 8-bit / 255, 16-bit / 65535 (alpha ignored;
 /// an RGB PNG is accepted when it is grey, R = G = B).
 pub fn read_disparity_png(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
-    let img = decode_file(p, limits).map_err(|e| file_err(p, e))?;
-    disparity_from_image(&img).map_err(|m| file_err(p, m))
+    let img = decode_file(p, limits).map_err(|e| file_err(p, e.failure_kind().in_part(FailureKind::Depth), e))?;
+    disparity_from_image(&img).map_err(|m| file_err(p, FailureKind::Depth, m))
 }
 
 /// [`read_disparity_png`] for a PNG held in memory, named `name` in errors.
@@ -589,8 +607,9 @@ pub fn disparity_png_from_bytes(
     limits: &ImageLimits,
 ) -> Result<(usize, usize, Vec<f32>), SourceError> {
     let p = Path::new(name);
-    let img = crate::io::image::decode_bytes(bytes, p, limits).map_err(|e| file_err(p, e))?;
-    disparity_from_image(&img).map_err(|m| file_err(p, m))
+    let img = crate::io::image::decode_bytes(bytes, p, limits)
+        .map_err(|e| file_err(p, e.failure_kind().in_part(FailureKind::Depth), e))?;
+    disparity_from_image(&img).map_err(|m| file_err(p, FailureKind::Depth, m))
 }
 
 fn disparity_from_image(img: &DynamicImage) -> Result<(usize, usize, Vec<f32>), String> {
@@ -634,12 +653,12 @@ pub fn resize_rgb(img: &RgbImage, width: usize, height: usize) -> RgbImage {
 }
 
 fn hash_file(p: &Path) -> Result<u64, SourceError> {
-    let f = std::fs::File::open(p).map_err(|e| io_err(p, &e))?;
+    let f = std::fs::File::open(p).map_err(|e| io_err(p, &e, FailureKind::Decode))?;
     let mut r = std::io::BufReader::with_capacity(1 << 16, f);
     let mut h = Fnv64::new();
     let mut buf = vec![0u8; 1 << 16];
     loop {
-        let n = r.read(&mut buf).map_err(|e| io_err(p, &e))?;
+        let n = r.read(&mut buf).map_err(|e| io_err(p, &e, FailureKind::Decode))?;
         if n == 0 {
             break;
         }

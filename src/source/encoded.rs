@@ -2,7 +2,7 @@
 //! under the same limits, and with the same sizing and camera rules, as [`super::DirSource`].
 
 use super::dir::{depth_npy_from_bytes, disparity_png_from_bytes, resize_rgb, SourceOptions};
-use super::{GivenDepth, SourceError, SourceItem};
+use super::{FailureKind, GivenDepth, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::load_rgb_from_bytes_named;
 use crate::scene::masks::{resize_nearest, InstanceMasks};
@@ -43,10 +43,10 @@ pub struct EncodedItem<'a> {
     pub intrinsics: Option<Intrinsics>,
 }
 
-fn err(name: &str, message: impl std::fmt::Display) -> SourceError {
+fn err(name: &str, kind: FailureKind, message: impl std::fmt::Display) -> SourceError {
     let m = message.to_string();
     let message = m.strip_prefix(&format!("{name}: ")).map(str::to_string).unwrap_or(m);
-    SourceError::File { path: name.to_string(), message }
+    SourceError::file(name, kind, message)
 }
 
 /// Decodes an item: image, depth or disparity and masks resized to the image (nearest
@@ -54,13 +54,13 @@ fn err(name: &str, message: impl std::fmt::Display) -> SourceError {
 /// ([`SourceOptions::intrinsics`] wins over the item's own, which are scaled with a resize).
 pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<SourceItem, SourceError> {
     let limits = &options.limits;
-    let mut image =
-        load_rgb_from_bytes_named(item.image.bytes, &item.image.name, limits).map_err(|e| err(&item.image.name, e))?;
+    let mut image = load_rgb_from_bytes_named(item.image.bytes, &item.image.name, limits)
+        .map_err(|e| err(&item.image.name, e.failure_kind(), e))?;
     let (w0, h0) = (image.width, image.height);
     let fit = |d: Vec<f32>, w: usize, h: usize| if (w, h) == (w0, h0) { d } else { resize_nearest(&d, w, h, w0, h0) };
     let mut depth = match &item.depth {
         Some((DepthEncoding::Npy, f)) => {
-            let (w, h, d) = depth_npy_from_bytes(f.bytes, limits).map_err(|m| err(&f.name, m))?;
+            let (w, h, d) = depth_npy_from_bytes(f.bytes, limits).map_err(|(kind, m)| err(&f.name, kind, m))?;
             Some(GivenDepth::Depth(fit(d, w, h)))
         }
         Some((DepthEncoding::DisparityPng, f)) => {
@@ -71,7 +71,8 @@ pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<Sou
     };
     let mut masks = match &item.masks {
         Some(f) => {
-            let m = InstanceMasks::from_index_png_bytes(f.bytes, &f.name, limits).map_err(|e| err(&f.name, e))?;
+            let m = InstanceMasks::from_index_png_bytes(f.bytes, &f.name, limits)
+                .map_err(|e| err(&f.name, e.failure_kind(), e))?;
             Some(if (m.width, m.height) != (w0, h0) { m.resize_nearest(w0, h0) } else { m })
         }
         None => None,

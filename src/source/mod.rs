@@ -30,15 +30,99 @@ pub struct SourceItem {
     pub intrinsics: Option<Intrinsics>,
 }
 
+/// Why a source item is bad (or was left out of its collection): the reason class of a skip, set
+/// where the failure happens. [`as_str`](Self::as_str) is the `reason` of the skip counts in
+/// `GetInfo` and of the `mpiflow_skipped_sources{dataset,reason}` metric.
+#[non_exhaustive]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum FailureKind {
+    /// `decode`: a corrupt or unsupported image, a missing or unreadable file, bad JSON.
+    Decode,
+    /// `truncated`: the data ends early (a truncated JPEG, PNG or PFM, a shard member or a shard
+    /// cut short).
+    Truncated,
+    /// `too-large`: over a byte or dimension limit.
+    TooLarge,
+    /// `depth`: a depth or disparity file that is malformed, or depth that is missing (no depth
+    /// and no depth model) or cannot be brought to the scene scale.
+    Depth,
+    /// `mask`: a malformed instance-mask file.
+    Mask,
+    /// `mpi`: a malformed given MPI (or one of the wrong size).
+    Mpi,
+    /// `scene`: a scene that does not fit the recipe (sizes, intrinsics).
+    Scene,
+    /// `no-image`: a shard sample without an image field (left out when opened).
+    NoImage,
+    /// `duplicate`: a shard key whose members are not adjacent (the later run is left out).
+    Duplicate,
+    /// `unnamed`: a shard member without a key or field.
+    Unnamed,
+}
+
+impl FailureKind {
+    /// The reason string (`decode`, `truncated`, `too-large`, `depth`, `mask`, `mpi`, `scene`,
+    /// `no-image`, `duplicate`, `unnamed`).
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            FailureKind::Decode => "decode",
+            FailureKind::Truncated => "truncated",
+            FailureKind::TooLarge => "too-large",
+            FailureKind::Depth => "depth",
+            FailureKind::Mask => "mask",
+            FailureKind::Mpi => "mpi",
+            FailureKind::Scene => "scene",
+            FailureKind::NoImage => "no-image",
+            FailureKind::Duplicate => "duplicate",
+            FailureKind::Unnamed => "unnamed",
+        }
+    }
+
+    /// The kind of this failure in a file that plays `part` ([`Depth`](Self::Depth),
+    /// [`Mask`](Self::Mask), [`Mpi`](Self::Mpi)): a file that does not decode is the part's
+    /// failure; too large and truncated stay what they are.
+    pub fn in_part(self, part: FailureKind) -> FailureKind {
+        match self {
+            FailureKind::Decode => part,
+            other => other,
+        }
+    }
+}
+
+impl std::fmt::Display for FailureKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
+    /// A file (a shard member, an upload part) that cannot be read or decoded; `kind` says why.
     #[error("{path}: {message}")]
-    File { path: String, message: String },
+    File { path: String, kind: FailureKind, message: String },
     #[error("{0}")]
     Invalid(String),
     /// Over a size or count limit (an upload too large for the store, too many datasets).
     #[error("{0}")]
     Limit(String),
+    /// A malformed upload stream; `field` is the `SourceChunk` field at fault (`dataset`, `name`).
+    #[error("{field}: {message}")]
+    Upload { field: &'static str, message: String },
+}
+
+impl SourceError {
+    /// A [`SourceError::File`].
+    pub fn file(path: impl Into<String>, kind: FailureKind, message: impl Into<String>) -> Self {
+        SourceError::File { path: path.into(), kind, message: message.into() }
+    }
+
+    /// The failure kind of a file error (`None` for the others).
+    pub fn failure_kind(&self) -> Option<FailureKind> {
+        match self {
+            SourceError::File { kind, .. } => Some(*kind),
+            _ => None,
+        }
+    }
 }
 
 /// An indexed, immutable collection of sources.
@@ -68,52 +152,11 @@ pub trait Source: Send + Sync {
 pub struct SkippedItem {
     /// What it is (`shard.tar:key`, a file name, ...).
     pub item: String,
-    /// A short reason class (`truncated`, `no-image`, `duplicate`, ...).
-    pub class: String,
+    /// The reason class ([`FailureKind::Truncated`], [`FailureKind::NoImage`],
+    /// [`FailureKind::Duplicate`], ...).
+    pub kind: FailureKind,
     /// The full reason.
     pub reason: String,
-}
-
-/// The reason class of a source item's load failure, from the failing file (`path`, empty when
-/// none) and the message:
-///
-/// - `too-large`: over a byte or dimension limit (`... is larger than the limit ...`, `... is
-///   too large ...`);
-/// - `truncated`: the data ends early (a truncated JPEG, PNG or PFM, a shard member cut short);
-/// - `depth`: a depth or disparity file (in `depths/` or `disps/`, a `depth.*` / `disp.*`
-///   shard field, an upload's `DATASET/depth/NAME`) that is malformed, or a message about depth or disparity (no
-///   depth, depth that cannot be brought to the scene scale);
-/// - `mask`: an instance-mask file (`masks/`, a `mask.*` field, `DATASET/mask/NAME`);
-/// - `mpi`: a given MPI (`mpis/`);
-/// - `decode`: anything else (a corrupt or unsupported image, a missing file, bad JSON).
-///
-/// The checks run in that order, so a truncated depth file is `truncated`.
-pub fn failure_class(path: &str, message: &str) -> &'static str {
-    let m = message.to_ascii_lowercase();
-    if m.contains("larger than the limit") || m.contains("is too large") || m.contains("empty or too large") {
-        return "too-large";
-    }
-    // the image decoder's category name mentions truncation for every corrupt image
-    let m2 = m.replace("corrupt or truncated image", "corrupt image");
-    if m2.contains("truncated") || m2.contains("unexpected end of") {
-        return "truncated";
-    }
-    let p = path.to_ascii_lowercase();
-    let mut parts = p.rsplit(['/', ':']);
-    let base = parts.next().unwrap_or("");
-    let parent = parts.next().unwrap_or("");
-    let field = base.split_once('.').map(|(_, f)| f).unwrap_or("");
-    let is = |dirs: &[&str], fields: &[&str]| dirs.contains(&parent) || fields.iter().any(|f| field.starts_with(f));
-    if is(&["depths", "disps", "depth"], &["depth", "disp"]) || m.contains("depth") || m.contains("disparity") {
-        return "depth";
-    }
-    if is(&["masks", "mask"], &["mask"]) {
-        return "mask";
-    }
-    if is(&["mpis"], &[]) {
-        return "mpi";
-    }
-    "decode"
 }
 
 /// The 64-bit FNV-1a hash, written out so that fingerprints are the same on every machine, build
@@ -191,9 +234,9 @@ pub use upload::{UploadLimits, UploadSession, UploadStore, UploadSummary};
 /// [`DirSource::open`] or [`ShardSource::open`] to choose).
 pub fn open_source(path: &std::path::Path, options: &SourceOptions) -> Result<std::sync::Arc<dyn Source>, SourceError> {
     use std::sync::Arc;
-    let meta = std::fs::metadata(path).map_err(|e| SourceError::File {
-        path: path.display().to_string(),
-        message: if e.kind() == std::io::ErrorKind::NotFound { "not found".into() } else { e.to_string() },
+    let meta = std::fs::metadata(path).map_err(|e| {
+        let message = if e.kind() == std::io::ErrorKind::NotFound { "not found".into() } else { e.to_string() };
+        SourceError::file(path.display().to_string(), FailureKind::Decode, message)
     })?;
     let ext_is = |p: &std::path::Path, exts: &[&str]| {
         p.extension().and_then(|e| e.to_str()).is_some_and(|e| exts.iter().any(|x| e.eq_ignore_ascii_case(x)))
@@ -210,7 +253,7 @@ pub fn open_source(path: &std::path::Path, options: &SourceOptions) -> Result<st
     }
     let (mut images, mut tars) = (false, false);
     let rd = std::fs::read_dir(path)
-        .map_err(|e| SourceError::File { path: path.display().to_string(), message: e.to_string() })?;
+        .map_err(|e| SourceError::file(path.display().to_string(), FailureKind::Decode, e.to_string()))?;
     for ent in rd.flatten() {
         let p = ent.path();
         if !std::fs::metadata(&p).is_ok_and(|m| m.is_file()) {
@@ -220,10 +263,11 @@ pub fn open_source(path: &std::path::Path, options: &SourceOptions) -> Result<st
         tars |= ext_is(&p, &["tar"]);
     }
     match (images, tars) {
-        (true, true) => Err(SourceError::File {
-            path: path.display().to_string(),
-            message: "holds both images and .tar shards; give the images or the shards a folder of their own".into(),
-        }),
+        (true, true) => Err(SourceError::file(
+            path.display().to_string(),
+            FailureKind::Decode,
+            "holds both images and .tar shards; give the images or the shards a folder of their own",
+        )),
         (false, true) => Ok(Arc::new(ShardSource::open(path, options)?)),
         _ => Ok(Arc::new(DirSource::open(path, options)?)),
     }

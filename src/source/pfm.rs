@@ -16,9 +16,23 @@
 //! row), like every other image in this crate. Non-finite samples (Middlebury's `inf` for unknown
 //! disparity) are kept as they are; callers decide what they mean.
 
+use super::FailureKind;
 use crate::io::image::ImageLimits;
 use std::io::Write;
 use std::path::Path;
+
+/// Why a PFM could not be read: a message without the path (callers add it) and its kind
+/// ([`FailureKind::TooLarge`], [`FailureKind::Truncated`] or [`FailureKind::Decode`]).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{message}")]
+pub struct PfmError {
+    pub kind: FailureKind,
+    pub message: String,
+}
+
+fn pfm_err(kind: FailureKind, message: impl Into<String>) -> PfmError {
+    PfmError { kind, message: message.into() }
+}
 
 /// A decoded float map.
 #[derive(Clone, Debug, PartialEq)]
@@ -37,9 +51,10 @@ pub struct Pfm {
 const MAX_HEADER: usize = 256;
 
 /// Decodes a PFM held in memory. Errors say what is wrong (without naming a file).
-pub fn parse_pfm(bytes: &[u8], limits: &ImageLimits) -> Result<Pfm, String> {
+pub fn parse_pfm(bytes: &[u8], limits: &ImageLimits) -> Result<Pfm, PfmError> {
     if bytes.len() as u64 > limits.max_bytes {
-        return Err(format!("{} bytes is larger than the limit of {} bytes", bytes.len(), limits.max_bytes));
+        let m = format!("{} bytes is larger than the limit of {} bytes", bytes.len(), limits.max_bytes);
+        return Err(pfm_err(FailureKind::TooLarge, m));
     }
     // three whitespace-separated tokens, then exactly one whitespace byte
     let mut pos = 0usize;
@@ -53,9 +68,13 @@ pub fn parse_pfm(bytes: &[u8], limits: &ImageLimits) -> Result<Pfm, String> {
             pos += 1;
         }
         if start == pos || pos >= bytes.len() || pos > MAX_HEADER {
-            return Err(
-                "not a PFM file: truncated or malformed header (expected `Pf` or `PF`, width height, scale)".into()
-            );
+            // the data ends inside the header, or the header is not one
+            let kind =
+                if pos >= bytes.len() && !tokens.is_empty() { FailureKind::Truncated } else { FailureKind::Decode };
+            return Err(pfm_err(
+                kind,
+                "not a PFM file: truncated or malformed header (expected `Pf` or `PF`, width height, scale)",
+            ));
         }
         tokens.push(&bytes[start..pos]);
     }
@@ -63,26 +82,33 @@ pub fn parse_pfm(bytes: &[u8], limits: &ImageLimits) -> Result<Pfm, String> {
         b"Pf" => 1,
         b"PF" => 3,
         other => {
-            return Err(format!(
-                "not a PFM file: magic {:?}, expected \"Pf\" (grey) or \"PF\" (colour)",
-                String::from_utf8_lossy(&other[..other.len().min(8)])
+            return Err(pfm_err(
+                FailureKind::Decode,
+                format!(
+                    "not a PFM file: magic {:?}, expected \"Pf\" (grey) or \"PF\" (colour)",
+                    String::from_utf8_lossy(&other[..other.len().min(8)])
+                ),
             ))
         }
     };
     let text = |t: &[u8]| String::from_utf8_lossy(t).into_owned();
-    let width: u64 = text(tokens[1]).parse().map_err(|_| format!("bad PFM width {:?}", text(tokens[1])))?;
-    let height: u64 = text(tokens[2]).parse().map_err(|_| format!("bad PFM height {:?}", text(tokens[2])))?;
-    let scale: f32 = text(tokens[3]).parse().map_err(|_| format!("bad PFM scale {:?}", text(tokens[3])))?;
+    let bad = |m: String| pfm_err(FailureKind::Decode, m);
+    let width: u64 = text(tokens[1]).parse().map_err(|_| bad(format!("bad PFM width {:?}", text(tokens[1]))))?;
+    let height: u64 = text(tokens[2]).parse().map_err(|_| bad(format!("bad PFM height {:?}", text(tokens[2]))))?;
+    let scale: f32 = text(tokens[3]).parse().map_err(|_| bad(format!("bad PFM scale {:?}", text(tokens[3]))))?;
     if !scale.is_finite() || scale == 0.0 {
-        return Err(format!("bad PFM scale {scale}: must be finite and non-zero (its sign gives the byte order)"));
+        return Err(bad(format!("bad PFM scale {scale}: must be finite and non-zero (its sign gives the byte order)")));
     }
     if width == 0 || height == 0 {
-        return Err(format!("empty PFM image ({width} x {height})"));
+        return Err(bad(format!("empty PFM image ({width} x {height})")));
     }
     let (w32, h32) = (u32::try_from(width), u32::try_from(height));
     match (w32, h32) {
         (Ok(w), Ok(h)) if limits.check_dimensions(w, h) => {}
-        _ => return Err(format!("image of {width} x {height} pixels is too large ({limits})")),
+        _ => {
+            let m = format!("image of {width} x {height} pixels is too large ({limits})");
+            return Err(pfm_err(FailureKind::TooLarge, m));
+        }
     }
     // `pos` is at the whitespace byte that ends the scale field
     let data_start = pos + 1;
@@ -91,8 +117,9 @@ pub fn parse_pfm(bytes: &[u8], limits: &ImageLimits) -> Result<Pfm, String> {
     let need = n * 4;
     let have = bytes.len().saturating_sub(data_start);
     if have < need {
-        return Err(format!(
-            "truncated PFM: {w} x {h} x {channels} samples need {need} bytes of data, the file holds {have}"
+        return Err(pfm_err(
+            FailureKind::Truncated,
+            format!("truncated PFM: {w} x {h} x {channels} samples need {need} bytes of data, the file holds {have}"),
         ));
     }
     let little = scale < 0.0;
@@ -112,15 +139,17 @@ pub fn parse_pfm(bytes: &[u8], limits: &ImageLimits) -> Result<Pfm, String> {
 
 /// Reads a PFM file, refusing files over `limits.max_bytes` before reading them and images over
 /// the dimension limits before allocating. Errors are messages without the path (callers add it).
-pub fn read_pfm(path: &Path, limits: &ImageLimits) -> Result<Pfm, String> {
-    let meta = std::fs::metadata(path).map_err(|e| io_message(&e))?;
+pub fn read_pfm(path: &Path, limits: &ImageLimits) -> Result<Pfm, PfmError> {
+    let io = |e: std::io::Error| pfm_err(FailureKind::Decode, io_message(&e));
+    let meta = std::fs::metadata(path).map_err(io)?;
     if !meta.is_file() {
-        return Err("not a regular file".into());
+        return Err(pfm_err(FailureKind::Decode, "not a regular file"));
     }
     if meta.len() > limits.max_bytes {
-        return Err(format!("{} bytes is larger than the limit of {} bytes", meta.len(), limits.max_bytes));
+        let m = format!("{} bytes is larger than the limit of {} bytes", meta.len(), limits.max_bytes);
+        return Err(pfm_err(FailureKind::TooLarge, m));
     }
-    let bytes = std::fs::read(path).map_err(|e| io_message(&e))?;
+    let bytes = std::fs::read(path).map_err(io)?;
     parse_pfm(&bytes, limits)
 }
 
@@ -199,11 +228,15 @@ mod tests {
     #[test]
     fn errors() {
         let l = ImageLimits::default();
-        assert!(parse_pfm(b"P6\n1 1\n255\n", &l).unwrap_err().contains("magic"));
-        assert!(parse_pfm(b"Pf\n2 2\n-1\n\0\0\0\0", &l).unwrap_err().contains("truncated"));
-        assert!(parse_pfm(b"Pf\nx 2\n-1\n", &l).unwrap_err().contains("width"));
-        assert!(parse_pfm(b"Pf\n1 1\n0\n\0\0\0\0", &l).unwrap_err().contains("scale"));
-        assert!(parse_pfm(b"Pf\n100000 100000\n-1\n", &l).unwrap_err().contains("too large"));
+        let err = |b: &[u8]| parse_pfm(b, &l).unwrap_err();
+        let (magic, cut, width) = (err(b"P6\n1 1\n255\n"), err(b"Pf\n2 2\n-1\n\0\0\0\0"), err(b"Pf\nx 2\n-1\n"));
+        assert!(magic.message.contains("magic") && magic.kind == FailureKind::Decode, "{magic}");
+        assert!(cut.message.contains("truncated") && cut.kind == FailureKind::Truncated, "{cut}");
+        assert!(width.message.contains("width") && width.kind == FailureKind::Decode, "{width}");
+        assert!(err(b"Pf\n1 1\n0\n\0\0\0\0").message.contains("scale"));
+        let big = err(b"Pf\n100000 100000\n-1\n");
+        assert!(big.message.contains("too large") && big.kind == FailureKind::TooLarge, "{big}");
+        assert_eq!(err(b"Pf\n2 2").kind, FailureKind::Truncated);
         assert!(parse_pfm(b"Pf", &l).is_err());
     }
 }

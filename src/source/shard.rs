@@ -47,7 +47,7 @@
 
 use super::dir::SourceOptions;
 use super::encoded::{decode_item, intrinsics_from_json, DepthEncoding, Encoded, EncodedItem};
-use super::{Fnv64, SkippedItem, Source, SourceError, SourceItem};
+use super::{FailureKind, Fnv64, SkippedItem, Source, SourceError, SourceItem};
 use std::collections::HashSet;
 use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
@@ -111,7 +111,7 @@ fn io_msg(e: &std::io::Error) -> String {
 /// Indexes one shard by its headers (see the module documentation). Only an unreadable file is an
 /// error; damage inside the shard is reported in the index.
 pub fn index_shard(path: &Path) -> Result<ShardIndex, SourceError> {
-    let file_err = |message: String| SourceError::File { path: path.display().to_string(), message };
+    let file_err = |message: String| SourceError::file(path.display().to_string(), FailureKind::Decode, message);
     let file = File::open(path).map_err(|e| file_err(io_msg(&e)))?;
     let len = file.metadata().map_err(|e| file_err(io_msg(&e)))?.len();
     let mut archive = tar::Archive::new(BufReader::new(file));
@@ -250,7 +250,7 @@ impl ShardSource {
     /// recursive). Reads the headers only (and every member with
     /// [`SourceOptions::hash_contents`]). No shard, or no usable sample in any, is an error.
     pub fn open(path: &Path, options: &SourceOptions) -> Result<Self, SourceError> {
-        let file_err = |message: String| SourceError::File { path: path.display().to_string(), message };
+        let file_err = |message: String| SourceError::file(path.display().to_string(), FailureKind::Decode, message);
         let meta = std::fs::metadata(path).map_err(|e| file_err(io_msg(&e)))?;
         let (paths, prefixed) = if meta.is_dir() {
             let mut v = Vec::new();
@@ -284,25 +284,29 @@ impl ShardSource {
             let shard = shards.len();
             let index = index_shard(&p)?;
             let id_of = |key: &str| if prefixed { format!("{stem}/{key}") } else { key.to_string() };
-            let mut skip = |item: String, class: &str, reason: String| {
-                skipped.push(SkippedItem { item, class: class.into(), reason });
+            let mut skip = |item: String, kind: FailureKind, reason: String| {
+                skipped.push(SkippedItem { item, kind, reason });
             };
             if let Some(reason) = &index.truncated {
                 let item = match &index.incomplete_key {
                     Some(k) => format!("{name}:{k}"),
                     None => name.clone(),
                 };
-                skip(item, "truncated", format!("truncated shard: {reason}"));
+                skip(item, FailureKind::Truncated, format!("truncated shard: {reason}"));
             }
             for k in &index.duplicate_keys {
                 skip(
                     format!("{name}:{k}"),
-                    "duplicate",
+                    FailureKind::Duplicate,
                     "duplicate key: its members are not adjacent (the later run is left out)".into(),
                 );
             }
             for m in &index.unnamed {
-                skip(format!("{name}:{m}"), "unnamed", "member without a key or field (KEY.FIELD expected)".into());
+                skip(
+                    format!("{name}:{m}"),
+                    FailureKind::Unnamed,
+                    "member without a key or field (KEY.FIELD expected)".into(),
+                );
             }
             for s in index.samples {
                 let find = |f: &str| s.members.iter().find(|m| field_is(m, f)).cloned();
@@ -311,7 +315,7 @@ impl ShardSource {
                     let fields: Vec<&str> = s.members.iter().map(|m| m.field.as_str()).collect();
                     skip(
                         format!("{name}:{}", s.key),
-                        "no-image",
+                        FailureKind::NoImage,
                         format!("no image (jpg, jpeg or png field); fields: {}", fields.join(", ")),
                     );
                     continue;
@@ -369,24 +373,23 @@ impl ShardSource {
         format!("{}:{}.{}", self.shards[e.shard].name, e.key, m.field)
     }
 
-    fn read_member(&self, file: &mut File, e: &Entry, m: &Member) -> Result<Vec<u8>, SourceError> {
+    /// Reads a member's bytes; `part` is the kind of a read failure of the member's role
+    /// ([`FailureKind::Decode`] for the image and JSON, `Depth`, `Mask`).
+    fn read_member(&self, file: &mut File, e: &Entry, m: &Member, part: FailureKind) -> Result<Vec<u8>, SourceError> {
         let name = self.member_name(e, m);
         let max = self.options.limits.max_bytes;
         if m.size > max {
-            return Err(SourceError::File {
-                path: name,
-                message: format!("{} bytes is larger than the limit of {max} bytes", m.size),
-            });
+            let message = format!("{} bytes is larger than the limit of {max} bytes", m.size);
+            return Err(SourceError::file(name, FailureKind::TooLarge, message));
         }
         let mut buf = vec![0u8; m.size as usize];
         file.seek(SeekFrom::Start(m.offset)).and_then(|_| file.read_exact(&mut buf)).map_err(|err| {
-            SourceError::File {
-                path: name,
-                message: if err.kind() == std::io::ErrorKind::UnexpectedEof {
-                    "truncated member: the shard ends inside its data (the shard changed after it was indexed?)".into()
-                } else {
-                    io_msg(&err)
-                },
+            if err.kind() == std::io::ErrorKind::UnexpectedEof {
+                let message =
+                    "truncated member: the shard ends inside its data (the shard changed after it was indexed?)";
+                SourceError::file(name, FailureKind::Truncated, message)
+            } else {
+                SourceError::file(name, part, io_msg(&err))
             }
         })?;
         Ok(buf)
@@ -409,14 +412,13 @@ impl ShardSource {
                 if self.options.hash_contents {
                     if open.as_ref().map(|(i, _)| *i) != Some(e.shard) {
                         let p = &self.shards[e.shard].path;
-                        let f = File::open(p).map_err(|err| SourceError::File {
-                            path: p.display().to_string(),
-                            message: io_msg(&err),
+                        let f = File::open(p).map_err(|err| {
+                            SourceError::file(p.display().to_string(), FailureKind::Decode, io_msg(&err))
                         })?;
                         open = Some((e.shard, f));
                     }
                     let (_, f) = open.as_mut().expect("opened above");
-                    let bytes = self.read_member(f, e, m)?;
+                    let bytes = self.read_member(f, e, m, FailureKind::Decode)?;
                     h.bytes(&bytes);
                 }
             }
@@ -441,20 +443,22 @@ impl Source for ShardSource {
         })?;
         let shard = &self.shards[e.shard];
         let mut file = File::open(&shard.path)
-            .map_err(|err| SourceError::File { path: shard.path.display().to_string(), message: io_msg(&err) })?;
-        let image = self.read_member(&mut file, e, &e.image)?;
+            .map_err(|err| SourceError::file(shard.path.display().to_string(), FailureKind::Decode, io_msg(&err)))?;
+        let image = self.read_member(&mut file, e, &e.image, FailureKind::Decode)?;
         let depth = match &e.depth {
-            Some((enc, m)) => Some((*enc, self.member_name(e, m), self.read_member(&mut file, e, m)?)),
+            Some((enc, m)) => {
+                Some((*enc, self.member_name(e, m), self.read_member(&mut file, e, m, FailureKind::Depth)?))
+            }
             None => None,
         };
         let masks = match &e.masks {
-            Some(m) => Some((self.member_name(e, m), self.read_member(&mut file, e, m)?)),
+            Some(m) => Some((self.member_name(e, m), self.read_member(&mut file, e, m, FailureKind::Mask)?)),
             None => None,
         };
         let intrinsics = match &e.json {
             Some(m) => {
-                let bytes = self.read_member(&mut file, e, m)?;
-                let bad = |message: String| SourceError::File { path: self.member_name(e, m), message };
+                let bytes = self.read_member(&mut file, e, m, FailureKind::Decode)?;
+                let bad = |message: String| SourceError::file(self.member_name(e, m), FailureKind::Decode, message);
                 let v: serde_json::Value =
                     serde_json::from_slice(&bytes).map_err(|err| bad(format!("not valid JSON: {err}")))?;
                 intrinsics_from_json(&v).map_err(bad)?

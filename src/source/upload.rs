@@ -23,7 +23,8 @@
 //! they arrive), or, at the commit, [`UploadLimits::max_total_bytes`] (everything stored, items
 //! replaced by the upload no longer counted) or the dataset and item counts, the upload fails
 //! with [`SourceError::Limit`] and nothing of it is stored; a malformed stream
-//! (no dataset, a file without a name) fails with [`SourceError::Invalid`].
+//! (no dataset, a file without a name) fails with [`SourceError::Upload`] naming the chunk field
+//! at fault.
 //!
 //! # Datasets
 //!
@@ -377,7 +378,7 @@ impl UploadSession {
     /// stored); rejected files are reported by [`finish`](Self::finish).
     pub fn push(&mut self, dataset: &str, name: &str, kind: &str, data: &[u8]) -> Result<(), SourceError> {
         if self.dataset.is_none() {
-            validate_name(dataset).map_err(|m| SourceError::Invalid(format!("dataset: {m}")))?;
+            validate_name(dataset).map_err(|message| SourceError::Upload { field: "dataset", message })?;
             self.dataset = Some(dataset.to_string());
         }
         let limits = self.store.limits;
@@ -417,7 +418,10 @@ impl UploadSession {
             self.current = Some(c);
         }
         let Some(c) = self.current.as_mut() else {
-            return Err(SourceError::Invalid("name: the first chunk of a file must name it".into()));
+            return Err(SourceError::Upload {
+                field: "name",
+                message: "the first chunk of a file must name it".into(),
+            });
         };
         if c.rejected {
             return Ok(());
@@ -446,10 +450,13 @@ impl UploadSession {
 
     /// Ends the upload: checks every file by decoding it, commits what is accepted to the
     /// dataset atomically, and reports. Errors (nothing stored): no chunk at all
-    /// ([`SourceError::Invalid`]), a limit of the store ([`SourceError::Limit`]).
+    /// ([`SourceError::Upload`]), a limit of the store ([`SourceError::Limit`]).
     pub fn finish(mut self) -> Result<UploadSummary, SourceError> {
         self.close_current();
-        let dataset = self.dataset.clone().ok_or_else(|| SourceError::Invalid("dataset: no chunks received".into()))?;
+        let dataset = self
+            .dataset
+            .clone()
+            .ok_or_else(|| SourceError::Upload { field: "dataset", message: "no chunks received".into() })?;
         let store = self.store.clone();
         let options = store.options;
         let mut rejected = std::mem::take(&mut self.rejected);
