@@ -4,9 +4,12 @@
 
 pub mod bench;
 pub mod export;
+pub mod failure;
 pub mod geometry;
+pub mod hash;
 pub mod io;
 pub mod mpi;
+pub mod raster;
 pub mod render;
 pub mod rng;
 pub mod sample;

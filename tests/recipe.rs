@@ -13,7 +13,9 @@ use mpiflow::sample::merge::MergeRule;
 use mpiflow::sample::motion::{Component, Motion, MotionPreset, RigidLaw, RotationKind};
 use mpiflow::sample::object::ObjectChoice;
 use mpiflow::sample::recipe::Generator;
-use mpiflow::sample::recipe::{assemble_merged, inpaint_holes, InpaintMethod, MotionSpec, SampleConfig, SampleError};
+use mpiflow::sample::recipe::{
+    assemble, assemble_merged, inpaint_holes, InpaintMethod, MotionSpec, SampleConfig, SampleError,
+};
 use mpiflow::sample::{Sample, StageTimings};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::masks::InstanceMasks;
@@ -316,14 +318,18 @@ fn every_inpainting_method_fills_the_holes_as_the_whole_frame_call_does() {
         inpaint_holes(&mut direct, w, h, &hole, method, config.inpaint_radius, false);
         assert!(direct == s.image2, "{method:?}: the sample's holes differ from the whole-frame inpainting");
     }
-    let follow = SampleConfig { objects_follow_camera: true, preblend: true, ..SampleConfig::default() };
-    let g = generator(Procedural::new(2), follow);
-    let a = g.sample(0, 1).unwrap();
-    let b = generator(Procedural::new(2), SampleConfig::default()).sample(0, 1).unwrap();
+    // the same address under objects_follow_camera (the option is part of the fingerprint, so
+    // the address is given explicitly)
+    let g = generator(Procedural::new(2), SampleConfig::default());
+    let b = g.sample(0, 1).unwrap();
+    let scene = g.scene(g.source_item(1).unwrap()).unwrap();
+    let follow = SampleConfig { objects_follow_camera: true, ..SampleConfig::default() };
+    let a = assemble(&scene, b.address, &follow).unwrap();
     assert_eq!(a.camera, b.camera);
     assert_eq!(a.objects[0].motion, b.objects[0].motion, "the drawn motion is recorded, not the composed one");
     assert_ne!(a.flow, b.flow, "objects that follow the camera move differently");
-    assert!(a.provenance.iter().any(|p| p.starts_with("preblend")));
+    let pre = generator(Procedural::new(2), SampleConfig { preblend: true, ..SampleConfig::default() });
+    assert!(pre.sample(0, 1).unwrap().provenance.iter().any(|p| p.starts_with("preblend")));
 }
 
 #[test]

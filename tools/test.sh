@@ -8,6 +8,6 @@ cd "$(dirname "$0")/.."
 eval "$(bash tools/setup_python.sh)"
 cargo test --release --all-targets --all-features
 # The Python client against the real `mpiflow serve` (built by cargo test above).
-MPIFLOW_BIN="$PWD/target/release/mpiflow" "$MPIFLOW_PYTHON" -m pytest -q clients/python/tests
+MPIFLOW_BIN="${CARGO_TARGET_DIR:-$PWD/target}/release/mpiflow" "$MPIFLOW_PYTHON" -m pytest -q clients/python/tests
 # The Kubernetes manifests against the Kubernetes JSON schemas, offline (deploy/validate.sh).
 bash deploy/validate.sh

@@ -17,6 +17,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
 use mpiflow::export::{sample_key, EncodedSample, ExportFormat, ExportOptions, Exporter, PreviewOptions};
 use mpiflow::geometry::Intrinsics;
+use mpiflow::mpi::layering::MAX_PLANES;
 use mpiflow::sample::merge::MergeRule;
 use mpiflow::sample::motion::MotionPreset;
 use mpiflow::sample::pipeline::{open_source, parse_size, OpenOptions, Pipeline, SourceSpec};
@@ -182,6 +183,9 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     let source = source(&a)?;
     if source.is_empty() {
         return Err(CliError(format!("{}: no images to make samples from", source.describe())));
+    }
+    if !(1..=MAX_PLANES).contains(&a.planes) {
+        return Err(CliError(format!("--planes {}: expected 1 to {MAX_PLANES}", a.planes)));
     }
     let stage = Arc::new(model_config(&a).build_stage().map_err(CliError)?);
     let config = SampleConfig {

@@ -11,7 +11,7 @@ use std::fs::File;
 use std::io::{self, BufRead, BufReader, BufWriter, Cursor, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
-use crate::source::FailureKind;
+use crate::failure::FailureKind;
 
 /// An RGB image, H x W x 3 values in [0, 1], row-major.
 #[derive(Clone, Debug, PartialEq)]

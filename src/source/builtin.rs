@@ -34,8 +34,8 @@ use super::dir::resize_rgb;
 use super::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits, RgbImage};
+use crate::raster::InstanceMasks;
 use crate::rng::{Purpose, SampleRng};
-use crate::scene::masks::InstanceMasks;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 

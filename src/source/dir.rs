@@ -14,7 +14,7 @@
 //!   - `disps/NAME.png`: disparity in `[0, 1]`: an 8-bit grey PNG read as value / 255 (as the
 //!     reference reads it) or a 16-bit one read as value / 65535;
 //!   - `masks/NAME.png`: instance ids (0 = background; see
-//!     [`InstanceMasks::from_index_png`](crate::scene::masks::InstanceMasks::from_index_png)),
+//!     [`InstanceMasks::from_index_png`](crate::raster::InstanceMasks::from_index_png)),
 //!     or `masks/NAME.json`: COCO annotations (RLE or polygons);
 //!   - `mpis/NAME.npz`: a whole MPI in the reference's npz layout (see [`crate::mpi::npz`]).
 //!
@@ -53,7 +53,7 @@ use crate::geometry::Intrinsics;
 use crate::io::image::{decode_file, load_depth_png16_with_limits, load_rgb, ImageLimits, RgbImage};
 use crate::io::npy::read_npy_file;
 use crate::mpi::{Mpi, MpiError};
-use crate::scene::masks::{resize_nearest, InstanceMasks};
+use crate::raster::{resize_nearest, InstanceMasks};
 use ::image::DynamicImage;
 use std::collections::HashMap;
 use std::io::Read;

@@ -5,7 +5,7 @@ use super::dir::{depth_npy_from_bytes, disparity_png_from_bytes, resize_rgb, Sou
 use super::{FailureKind, GivenDepth, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::load_rgb_from_bytes_named;
-use crate::scene::masks::{resize_nearest, InstanceMasks};
+use crate::raster::{resize_nearest, InstanceMasks};
 
 /// How an encoded depth companion is read.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -6,7 +6,7 @@
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
 use crate::mpi::Mpi;
-use crate::scene::masks::InstanceMasks;
+use crate::raster::InstanceMasks;
 
 /// Depth information shipped with a source, as read from disk (not yet in the scene scale).
 #[derive(Clone, Debug, PartialEq)]
@@ -30,70 +30,7 @@ pub struct SourceItem {
     pub intrinsics: Option<Intrinsics>,
 }
 
-/// Why a source item is bad (or was left out of its collection): the reason class of a skip, set
-/// where the failure happens. [`as_str`](Self::as_str) is the `reason` of the skip counts in
-/// `GetInfo` and of the `mpiflow_skipped_sources{dataset,reason}` metric.
-#[non_exhaustive]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum FailureKind {
-    /// `decode`: a corrupt or unsupported image, a missing or unreadable file, bad JSON.
-    Decode,
-    /// `truncated`: the data ends early (a truncated JPEG, PNG or PFM, a shard member or a shard
-    /// cut short).
-    Truncated,
-    /// `too-large`: over a byte or dimension limit.
-    TooLarge,
-    /// `depth`: a depth or disparity file that is malformed, or depth that is missing (no depth
-    /// and no depth model) or cannot be brought to the scene scale.
-    Depth,
-    /// `mask`: a malformed instance-mask file.
-    Mask,
-    /// `mpi`: a malformed given MPI (or one of the wrong size).
-    Mpi,
-    /// `scene`: a scene that does not fit the recipe (sizes, intrinsics).
-    Scene,
-    /// `no-image`: a shard sample without an image field (left out when opened).
-    NoImage,
-    /// `duplicate`: a shard key whose members are not adjacent (the later run is left out).
-    Duplicate,
-    /// `unnamed`: a shard member without a key or field.
-    Unnamed,
-}
-
-impl FailureKind {
-    /// The reason string (`decode`, `truncated`, `too-large`, `depth`, `mask`, `mpi`, `scene`,
-    /// `no-image`, `duplicate`, `unnamed`).
-    pub const fn as_str(self) -> &'static str {
-        match self {
-            FailureKind::Decode => "decode",
-            FailureKind::Truncated => "truncated",
-            FailureKind::TooLarge => "too-large",
-            FailureKind::Depth => "depth",
-            FailureKind::Mask => "mask",
-            FailureKind::Mpi => "mpi",
-            FailureKind::Scene => "scene",
-            FailureKind::NoImage => "no-image",
-            FailureKind::Duplicate => "duplicate",
-            FailureKind::Unnamed => "unnamed",
-        }
-    }
-
-    /// The kind of this failure in a file that plays `part` ([`Depth`](Self::Depth),
-    /// [`Mask`](Self::Mask), [`Mpi`](Self::Mpi)): a file that does not decode is the part's
-    /// failure; too large and truncated stay what they are.
-    pub fn in_part(self, part: FailureKind) -> FailureKind {
-        match self {
-            FailureKind::Decode => part,
-            other => other,
-        }
-    }
-}
-
-impl std::fmt::Display for FailureKind {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
+pub use crate::failure::FailureKind;
 
 #[derive(Debug, thiserror::Error)]
 pub enum SourceError {
@@ -159,51 +96,7 @@ pub struct SkippedItem {
     pub reason: String,
 }
 
-/// The 64-bit FNV-1a hash, written out so that fingerprints are the same on every machine, build
-/// and Rust version (std's `DefaultHasher` promises none of that). Multi-byte values are fed
-/// little-endian; strings are fed with their length first, so `("ab", "c")` and `("a", "bc")`
-/// differ.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Fnv64(u64);
-
-impl Default for Fnv64 {
-    fn default() -> Self {
-        Self::new()
-    }
-}
-
-impl Fnv64 {
-    const OFFSET: u64 = 0xcbf2_9ce4_8422_2325;
-    const PRIME: u64 = 0x0000_0100_0000_01b3;
-
-    pub fn new() -> Self {
-        Fnv64(Self::OFFSET)
-    }
-
-    pub fn bytes(&mut self, bytes: &[u8]) -> &mut Self {
-        for &b in bytes {
-            self.0 ^= u64::from(b);
-            self.0 = self.0.wrapping_mul(Self::PRIME);
-        }
-        self
-    }
-
-    pub fn u64(&mut self, v: u64) -> &mut Self {
-        self.bytes(&v.to_le_bytes())
-    }
-
-    pub fn f64(&mut self, v: f64) -> &mut Self {
-        self.u64(v.to_bits())
-    }
-
-    pub fn str(&mut self, s: &str) -> &mut Self {
-        self.u64(s.len() as u64).bytes(s.as_bytes())
-    }
-
-    pub fn finish(&self) -> u64 {
-        self.0
-    }
-}
+pub use crate::hash::Fnv64;
 
 /// The FNV-1a hash of a byte string ([`Fnv64`]).
 pub fn fnv1a64(bytes: &[u8]) -> u64 {
