@@ -133,6 +133,8 @@ pub(super) fn target_view<T: Real>(
                     let s = v[2];
                     let (mut tr, mut sum_w, mut sum_z) = (T::one(), T::zero(), T::zero());
                     let mut rgb = [T::zero(); 3];
+                    // one channel (a broadcast mask) in a register, more in acc_ex
+                    let mut acc1 = T::zero();
                     acc_ex.iter_mut().for_each(|a| *a = T::zero());
                     if s.abs() > T::of(1e-12) {
                         let inv_s = T::one() / s;
@@ -191,7 +193,9 @@ pub(super) fn target_view<T: Real>(
                             }
                             sum_w += wgt;
                             sum_z += wgt * lambda;
-                            if c > 0 {
+                            if c == 1 {
+                                acc1 += wgt * tap.sample1(ex_planes[i]);
+                            } else if c > 0 {
                                 tap.sample_c(ex_planes[i], c, &mut ex);
                                 for (a, e) in acc_ex.iter_mut().zip(&ex) {
                                     *a += wgt * *e;
@@ -205,8 +209,12 @@ pub(super) fn target_view<T: Real>(
                     }
                     b[1][o] = if sum_w > T::of(1e-6) { (sum_z / sum_w).f32() } else { 0.0 };
                     b[2][o] = sum_w.f32();
-                    for k in 0..c {
-                        b[3][c * o + k] = acc_ex[k].f32();
+                    if c == 1 {
+                        b[3][o] = acc1.f32();
+                    } else {
+                        for k in 0..c {
+                            b[3][c * o + k] = acc_ex[k].f32();
+                        }
                     }
                 }
             }

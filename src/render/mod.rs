@@ -460,6 +460,15 @@ impl<T: Real> Tap<T> {
         o
     }
 
+    /// Samples a single-channel plane (`sample_c` with `c = 1`, the same arithmetic).
+    #[inline(always)]
+    pub(crate) fn sample1(&self, plane: &[f32]) -> T {
+        let at = |i: usize| T::of32(plane[i]);
+        let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
+        let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
+        top + self.wy * (bot - top)
+    }
+
     /// Samples `c` interleaved channels into `out`.
     #[inline(always)]
     pub(crate) fn sample_c(&self, plane: &[f32], c: usize, out: &mut [T]) {
