@@ -345,11 +345,12 @@ fn compare_inside_object(a: &Sample, b: &Sample, mask: &[f32]) -> (f32, i32, usi
 }
 
 /// Windowed object and mask renders (no copy, only the footprints) against full-frame renders of
-/// MPI copies with the mask channel (the reference's construction). Stated tolerances: inside
-/// the object (source mask >= 0.99) the flow agrees within 1e-4 px; where both draw the object,
-/// image2 agrees within 1 level; the set of pixels where the object is drawn differs on at most
-/// 0.5% of them (threshold ties); elsewhere image2 differs by more than 1 level on at most 0.1%
-/// of the pixels and the flow agrees within 1e-4 px.
+/// MPI copies with the mask channel (the reference's construction). Stated tolerances, which
+/// hold in general (the scene mask's rounding can tip a threshold tie): inside the object
+/// (source mask >= 0.99) the flow agrees within 1e-4 px; where both draw the object, image2
+/// agrees within 1 level; the set of pixels where the object is drawn differs on at most 0.5% of
+/// them; elsewhere image2 differs by more than 1 level on at most 0.1% of the pixels and the
+/// flow agrees within 1e-4 px. In these scenes no tie tips, and the samples are identical.
 #[test]
 fn windowed_renders_match_full_frame_renders_inside_the_object() {
     let (w, h) = (128, 96);
@@ -387,11 +388,19 @@ fn windowed_renders_match_full_frame_renders_inside_the_object() {
             println!("{rule:?}: {differ} background pixels differ by more than 1 level");
             assert!(differ as f64 <= 0.001 * (w * h) as f64, "{differ} background pixels differ");
             assert_eq!(windowed.inpainted_pixels, full.inpainted_pixels);
-            let same =
-                windowed.image2 == full.image2 && windowed.flow == full.flow && windowed.occlusion == full.occlusion;
-            println!("{rule:?}: windowed and full-frame samples identical: {same}");
-            assert_eq!(windowed.mask1, full.mask1);
-            assert_eq!(windowed.valid, full.valid);
+            // the object renders are the same renderer's values, bit for bit; the scene mask is
+            // coverage - render(U) instead of render(1 - U), which differs by f32 rounding only
+            // and flips no merge decision in this scene: the samples are identical
+            assert_eq!(windowed.image2, full.image2, "{rule:?}: image2");
+            assert_eq!(windowed.flow, full.flow, "{rule:?}: flow");
+            assert_eq!(windowed.occlusion, full.occlusion, "{rule:?}: occlusion");
+            assert_eq!(windowed.mask1, full.mask1, "{rule:?}: mask1");
+            assert_eq!(windowed.mask2, full.mask2, "{rule:?}: mask2");
+            assert_eq!(windowed.valid, full.valid, "{rule:?}: valid");
+            assert_eq!(windowed.depth2, full.depth2, "{rule:?}: depth2");
+            let mut windowed = windowed;
+            windowed.timings = full.timings;
+            assert_eq!(windowed, full, "{rule:?}: the whole sample");
         }
     }
 }

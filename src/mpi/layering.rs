@@ -35,7 +35,8 @@
 //!    is opaque everywhere.
 //! 5. **Alpha to density.** The renderer composites `alpha_i = 1 - exp(-sigma_i delta_i |K^-1 p|)`
 //!    with `delta_i = depth_{i+1} - depth_i` (capped at [`DELTA_LAST`], the last plane
-//!    [`DELTA_LAST`], depths capped at [`DEPTH_MAX`], exactly as in `render::exact`). We store
+//!    [`DELTA_LAST`], depths capped at [`DEPTH_MAX`](crate::mpi::planes::DEPTH_MAX): the one
+//!    rule of [`crate::mpi::planes`], which the renderer uses too). We store
 //!    `sigma_i = -ln(1 - alpha_i) / delta_i` with alpha clamped to at most [`ALPHA_MAX`] (so
 //!    sigma stays finite; the 1e-6 of light that passes an "opaque" plane is below any 8-bit
 //!    colour step) and sigma capped at [`SIGMA_MAX`]; alpha 0 gives sigma exactly 0 (the renderer
@@ -78,7 +79,7 @@
 
 use super::{Mpi, MpiError, SIGMA_MAX};
 use crate::geometry::Intrinsics;
-use crate::render::{DELTA_LAST, DEPTH_MAX};
+use crate::mpi::planes::{plane_gaps, DELTA_LAST};
 use rayon::prelude::*;
 use std::collections::VecDeque;
 
@@ -307,9 +308,7 @@ fn build(
     drop(disp);
 
     // 5. per-plane gaps exactly as the renderer computes them, per-pixel ray lengths
-    let pdepth: Vec<f64> = planes.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
-    let gap: Vec<f64> =
-        (0..n).map(|i| if i + 1 < n { (pdepth[i + 1] - pdepth[i]).min(DELTA_LAST) } else { DELTA_LAST }).collect();
+    let gap: Vec<f64> = plane_gaps(&planes);
     let ray_len: Option<Vec<f32>> =
         k.map(|k| (0..len).map(|p| k.unproject((p % width) as f64, (p / width) as f64).length() as f32).collect());
     let opaque_last: Vec<f32> = match &ray_len {

@@ -1,9 +1,12 @@
 //! The multiplane image: N fronto-parallel planes of (r, g, b, sigma) plus optional extra
 //! channels (object masks), plane disparities near to far, and the checks and sanitising that
-//! every MPI passes before it reaches the renderer.
+//! every MPI passes before it reaches the renderer. The plane spacing rule (depths, gaps,
+//! [`planes::DELTA_LAST`], [`planes::DEPTH_MAX`]) lives in [`planes`]; `mpi` depends on nothing
+//! above it (not on `render`).
 
 pub mod layering;
 pub mod npz;
+pub mod planes;
 pub mod synthetic;
 
 use crate::geometry::{Intrinsics, Pose};

@@ -15,9 +15,22 @@
 //! The source view uses H_i p = K_t R K_s^-1 p + K_t t disp_i (homogeneous): planes whose point
 //! is behind the target camera (third coordinate <= 0) carry no flow; flow is the weight-
 //! normalised mean over the planes in front.
+//!
+//! This is the only implementation of these loops (the tile width [`TILE`], the per-plane
+//! constants, [`tile_activity`]); every exact render goes through it: the full frame, and
+//! windows of it ([`crate::render::render_window`]). Both passes take a window `win` of the
+//! frame and write window-sized buffers (pixel (x, y) of them is frame pixel
+//! (win.x0 + x, win.y0 + y)); rays, sampling and the "leaves the source image" test always use
+//! the whole frame, so a pixel's value does not depend on the window it is rendered in. Tiles
+//! start at `win.x0` and bands at `win.y0`; tile skipping only drops planes whose density is
+//! at most the occupancy's `sigma_eps` over the tile's footprint, which with `sigma_eps = 0`
+//! (the default) contribute nothing, so tile alignment does not change values either. Extra
+//! channels are sampled per plane from the MPI or from one H x W mask shared by every plane
+//! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
 
 use super::occupancy::Occupancy;
-use super::{for_each_band, mark_valid, RenderOutput, RenderParams, RenderStats, Tap, DELTA_LAST, DEPTH_MAX};
+use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap};
+use crate::mpi::planes::{plane_depth, plane_gaps, DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
 use crate::render::real::Real;
 
@@ -41,13 +54,23 @@ fn cap<T: Real>(v: T, max: f64) -> T {
     }
 }
 
+/// The target view over the (non-empty) window `win`: image, depth, coverage and the extra
+/// channels given by `channels` (`out`'s buffers are window-sized, allocated by the caller).
 pub(super) fn target_view<T: Real>(
     mpi: &Mpi,
     p: &RenderParams,
     occ: Option<&Occupancy>,
+    win: &Rect,
+    channels: Channels<'_>,
     out: &mut RenderOutput,
 ) -> RenderStats {
-    let (w, h, n, c) = (mpi.width, mpi.height, mpi.planes(), mpi.extra_channels);
+    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let ww = win.width();
+    // the extra channels' source on every plane: the MPI's own, or one mask for all
+    let (c, ex_planes): (usize, Vec<&[f32]>) = match channels {
+        Channels::PerPlane => (mpi.extra_channels, (0..n).map(|i| mpi.plane_extras(i)).collect()),
+        Channels::Broadcast(mask) => (1, vec![mask; n]),
+    };
     let (ks, kt) = (p.k_src, p.k_tgt);
     let rt = p.pose.rotation.transpose();
     let centre = p.pose.target_centre_in_source();
@@ -57,7 +80,7 @@ pub(super) fn target_view<T: Real>(
         .iter()
         .map(|&disp| PlaneConst {
             a: T::of(1.0 + k * disp),
-            depth: T::of((1.0 / disp).min(DEPTH_MAX)),
+            depth: T::of(plane_depth(disp)),
             ox: T::of(ks.fx * centre.x * disp + ks.cx),
             oy: T::of(ks.fy * centre.y * disp + ks.cy),
         })
@@ -69,8 +92,8 @@ pub(super) fn target_view<T: Real>(
     let (wm, hm) = (T::of((w - 1) as f64), T::of((h - 1) as f64));
     let t_eps = T::of32(p.skip.transmittance_eps);
     let delta_last = T::of(DELTA_LAST);
-    let ux: Vec<T> = (0..w).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect();
-    let uy: Vec<T> = (0..h).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect();
+    let ux: Vec<T> = (win.x0..win.x1).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect();
+    let uy: Vec<T> = (win.y0..win.y1).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect();
     let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
         let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
         (v, (ux * ux + uy * uy + T::one()).sqrt())
@@ -80,7 +103,9 @@ pub(super) fn target_view<T: Real>(
     let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
 
     let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
-    for_each_band(w, h, [image, depth, coverage, extras], [3, 1, 1, c], |y0, rows, b| {
+    // y0 is the band's first row in the window, fy0 in the frame
+    for_each_band(ww, win.height(), [image, depth, coverage, extras], [3, 1, 1, c], |y0, rows, b| {
+        let fy0 = win.y0 + y0;
         let mut stats = RenderStats::default();
         let mut active = vec![true; n];
         // planes that may contribute in this tile, in the order a ray with s > 0 (fwd) or
@@ -89,11 +114,11 @@ pub(super) fn target_view<T: Real>(
         let mut rev: Vec<usize> = Vec::with_capacity(n);
         let mut acc_ex = vec![T::zero(); c];
         let mut ex = vec![T::zero(); c];
-        for tx0 in (0..w).step_by(TILE) {
-            let tx1 = (tx0 + TILE).min(w) - 1;
-            let ty1 = y0 + rows - 1;
+        for tx0 in (win.x0..win.x1).step_by(TILE) {
+            let tx1 = (tx0 + TILE).min(win.x1) - 1;
+            let ty1 = fy0 + rows - 1;
             match occ {
-                Some(o) => tile_activity(o, &planes, &ray, &source_px, [tx0, y0, tx1, ty1], &mut active),
+                Some(o) => tile_activity(o, &planes, &ray, &source_px, [tx0, fy0, tx1, ty1], &mut active),
                 None => active.iter_mut().for_each(|a| *a = true),
             }
             fwd.clear();
@@ -102,12 +127,14 @@ pub(super) fn target_view<T: Real>(
             rev.extend(fwd.iter().rev());
             stats.skipped_tile += ((n - fwd.len()) * rows * (tx1 + 1 - tx0)) as u64;
             for ry in 0..rows {
-                let yy = y0 + ry;
-                for (x, &ux_x) in ux.iter().enumerate().take(tx1 + 1).skip(tx0) {
-                    let (v, norm_u) = ray_u(ux_x, uy[yy]);
+                let uy_y = uy[y0 + ry];
+                for (x, &ux_x) in (tx0..=tx1).zip(&ux[tx0 - win.x0..=tx1 - win.x0]) {
+                    let (v, norm_u) = ray_u(ux_x, uy_y);
                     let s = v[2];
                     let (mut tr, mut sum_w, mut sum_z) = (T::one(), T::zero(), T::zero());
                     let mut rgb = [T::zero(); 3];
+                    // one channel (a broadcast mask) in a register, more in acc_ex
+                    let mut acc1 = T::zero();
                     acc_ex.iter_mut().for_each(|a| *a = T::zero());
                     if s.abs() > T::of(1e-12) {
                         let inv_s = T::one() / s;
@@ -166,22 +193,28 @@ pub(super) fn target_view<T: Real>(
                             }
                             sum_w += wgt;
                             sum_z += wgt * lambda;
-                            if c > 0 {
-                                tap.sample_c(mpi.plane_extras(i), c, &mut ex);
+                            if c == 1 {
+                                acc1 += wgt * tap.sample1(ex_planes[i]);
+                            } else if c > 0 {
+                                tap.sample_c(ex_planes[i], c, &mut ex);
                                 for (a, e) in acc_ex.iter_mut().zip(&ex) {
                                     *a += wgt * *e;
                                 }
                             }
                         }
                     }
-                    let o = ry * w + x;
+                    let o = ry * ww + (x - win.x0);
                     for k in 0..3 {
                         b[0][3 * o + k] = rgb[k].f32();
                     }
                     b[1][o] = if sum_w > T::of(1e-6) { (sum_z / sum_w).f32() } else { 0.0 };
                     b[2][o] = sum_w.f32();
-                    for k in 0..c {
-                        b[3][c * o + k] = acc_ex[k].f32();
+                    if c == 1 {
+                        b[3][o] = acc1.f32();
+                    } else {
+                        for k in 0..c {
+                            b[3][c * o + k] = acc_ex[k].f32();
+                        }
                     }
                 }
             }
@@ -234,8 +267,19 @@ fn tile_activity<T: Real>(
     }
 }
 
-pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occupancy>, out: &mut RenderOutput) {
+/// The source view over the (non-empty) window `win`: flow, expected target depth and `valid`
+/// (window-sized buffers allocated by the caller). With `flow_where` (H x W) only the pixels
+/// where it is > 0 are computed; the others keep flow 0, depth 0 and `valid` 0.
+pub(super) fn source_view<T: Real>(
+    mpi: &Mpi,
+    p: &RenderParams,
+    occ: Option<&Occupancy>,
+    win: &Rect,
+    flow_where: Option<&[f32]>,
+    out: &mut RenderOutput,
+) {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let ww = win.width();
     let (ks, kt) = (p.k_src, p.k_tgt);
     let m = kt.matrix() * p.pose.rotation * ks.inverse_matrix();
     let bt = kt.matrix() * p.pose.translation;
@@ -243,33 +287,38 @@ pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occ
     let m_t = [mr(0), mr(1), mr(2)];
     let b_t = [T::of(bt.x), T::of(bt.y), T::of(bt.z)];
     let disp: Vec<T> = mpi.disparity.iter().map(|&d| T::of(d)).collect();
-    let depth: Vec<f64> = mpi.disparity.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
-    let depth_t: Vec<T> = depth.iter().map(|&d| T::of(d)).collect();
+    let depth_t: Vec<T> = mpi.disparity.iter().map(|&d| T::of(plane_depth(d))).collect();
     // gap to the next plane along a source ray of unit-z direction, before the |u| factor
-    let gap: Vec<T> = (0..n)
-        .map(|i| if i + 1 < n { T::of((depth[i + 1] - depth[i]).min(DELTA_LAST)) } else { T::of(DELTA_LAST) })
-        .collect();
+    let gap: Vec<T> = plane_gaps(&mpi.disparity).into_iter().map(T::of).collect();
     let t_eps = T::of32(p.skip.transmittance_eps);
     let z_min = T::of(1e-9);
     let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
     let mut flow = std::mem::take(&mut out.flow);
     let mut zexp = std::mem::take(&mut out.source_depth_in_target);
-    let mut front = vec![0.0f32; w * h];
-    for_each_band(w, h, [&mut flow, &mut zexp, &mut front], [2, 1, 1], |y0, rows, b| {
+    let mut front = vec![0.0f32; ww * win.height()];
+    for_each_band(ww, win.height(), [&mut flow, &mut zexp, &mut front], [2, 1, 1], |y0, rows, b| {
+        let fy0 = win.y0 + y0;
         let mut active: Vec<usize> = Vec::with_capacity(n);
-        for tx0 in (0..w).step_by(TILE) {
-            let tx1 = (tx0 + TILE).min(w) - 1;
+        for tx0 in (win.x0..win.x1).step_by(TILE) {
+            let tx1 = (tx0 + TILE).min(win.x1) - 1;
             active.clear();
             match occ {
-                Some(o) => active
-                    .extend((0..n).filter(|&i| o.any_in(i, tx0 as f64, y0 as f64, tx1 as f64, (y0 + rows - 1) as f64))),
+                Some(o) => active.extend(
+                    (0..n).filter(|&i| o.any_in(i, tx0 as f64, fy0 as f64, tx1 as f64, (fy0 + rows - 1) as f64)),
+                ),
                 None => active.extend(0..n),
             }
             for ry in 0..rows {
-                let yy = y0 + ry;
+                let yy = fy0 + ry;
                 let y = T::of(yy as f64);
                 let uy = T::of((yy as f64 - ks.cy) / ks.fy);
                 for x in tx0..=tx1 {
+                    if let Some(m) = flow_where {
+                        let mv = m[yy * w + x];
+                        if mv.is_nan() || mv <= 0.0 {
+                            continue;
+                        }
+                    }
                     let xf = T::of(x as f64);
                     let ux = T::of((x as f64 - ks.cx) / ks.fx);
                     let norm_u = (ux * ux + uy * uy + T::one()).sqrt();
@@ -299,7 +348,7 @@ pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occ
                             sz += wgt * cap(hz * depth_t[i], DEPTH_MAX);
                         }
                     }
-                    let o = ry * w + x;
+                    let o = ry * ww + (x - win.x0);
                     if sw > T::of(1e-6) {
                         b[0][2 * o] = (fu / sw).f32();
                         b[0][2 * o + 1] = (fv / sw).f32();
@@ -311,7 +360,7 @@ pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, occ: Option<&Occ
         }
         RenderStats::default()
     });
-    out.valid = mark_valid(w, h, &flow, &front);
+    out.valid = mark_valid(win, w, h, &flow, &front);
     out.flow = flow;
     out.source_depth_in_target = zexp;
 }

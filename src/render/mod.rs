@@ -14,22 +14,35 @@
 //! Geometry is set up in f64; the per-pixel loops run in the generic [`Real`] type (f32 in
 //! production, f64 for references). Rows are distributed over the current rayon pool; each pixel
 //! is computed independently, so the parallel output is bit-identical to a serial one.
+//!
+//! # One renderer, any window
+//!
+//! [`render_window`] is the renderer; [`render`] is its full-frame case. In exact mode it renders
+//! any window ([`Rect`]) of the frame into window-sized buffers, with the extra channels taken
+//! per plane from the MPI ([`Channels::PerPlane`]) or from one H x W mask broadcast on every
+//! plane ([`Channels::Broadcast`], which equals an MPI copy holding that mask on every plane,
+//! without the copy), and optionally computes the source view only where a mask is positive
+//! (`flow_where`). Every value equals the full-frame render's at the same pixel, bit for bit
+//! (`tests/render_window.rs`). Occlusion needs the whole target frame, so it is computed only
+//! when the window is the full frame. The reference mode renders full frames with per-plane
+//! channels only. Every output, full frame or window, passes the non-finite guard (a NaN or Inf
+//! is replaced by 0 and counted in [`RenderStats::repaired`]).
+//!
+//! The plane spacing rule ([`DELTA_LAST`], [`DEPTH_MAX`], the gaps) belongs to
+//! [`crate::mpi::planes`] and is re-exported here.
 
 mod exact;
 pub mod occupancy;
 pub mod real;
 mod reference;
+pub mod window;
 
 use crate::geometry::{Intrinsics, Pose};
+pub use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
 pub use occupancy::Occupancy;
 pub use real::Real;
-
-/// Distance given to the last plane along a ray (the reference's 1e3), and the cap on any
-/// plane gap so that infinite depths never reach the exponent.
-pub const DELTA_LAST: f64 = 1e3;
-/// Depths written to outputs are capped here (a plane at disparity 0 is infinitely far).
-pub const DEPTH_MAX: f64 = 1e12;
+pub use window::{Rect, WindowRender};
 /// Rows rendered per parallel task.
 pub const BAND_ROWS: usize = 16;
 
@@ -111,6 +124,18 @@ pub enum RenderError {
     Intrinsics { which: &'static str, k: Intrinsics },
     #[error("invalid pose: rotation and translation must be finite")]
     Pose,
+    #[error("invalid render request: {0}")]
+    Request(String),
+}
+
+/// Where a render's extra channels come from.
+#[derive(Clone, Copy, Debug, Default)]
+pub enum Channels<'a> {
+    /// The MPI's own extra channels (`mpi.extra_channels` of them, one set per plane).
+    #[default]
+    PerPlane,
+    /// One channel: this H x W mask, the same on every plane (the MPI's own extras are ignored).
+    Broadcast(&'a [f32]),
 }
 
 /// Counters describing the work done.
@@ -136,7 +161,8 @@ impl std::ops::AddAssign for RenderStats {
 }
 
 /// What a render produces. The target-view fields live on the target grid, the flow fields on
-/// the source grid; both are `width` x `height` (the MPI's size). Empty when not requested.
+/// the source grid; both are `width` x `height`: the MPI's size for [`render`], the window's for
+/// [`render_window`]. Empty when not requested.
 #[derive(Clone, Debug, Default)]
 pub struct RenderOutput {
     pub width: usize,
@@ -156,17 +182,44 @@ pub struct RenderOutput {
     pub source_depth_in_target: Vec<f32>,
     /// 1 where the flow target lies inside the image and the point is in front of the camera.
     pub valid: Vec<u8>,
-    /// 1 where the source point is hidden in the target view.
+    /// 1 where the source point is hidden in the target view (full-frame renders only).
     pub occlusion: Vec<u8>,
     pub stats: RenderStats,
 }
 
-/// Renders `mpi` with scalar type `T` (f32 in production).
+/// Renders the whole frame of `mpi` with scalar type `T` (f32 in production), the MPI's own
+/// extra channels: [`render_window`] over the full frame.
 pub fn render<T: Real>(
     mpi: &Mpi,
     params: &RenderParams,
     occupancy: Option<&Occupancy>,
 ) -> Result<RenderOutput, RenderError> {
+    let full = Rect::full(mpi.width, mpi.height);
+    render_window::<T>(mpi, params, occupancy, &full, Channels::PerPlane, None).map(|r| r.out)
+}
+
+/// Renders the pixels of `window` (target view and source view alike) with scalar type `T`.
+///
+/// - `channels`: the extra channels, per plane from the MPI or one broadcast mask (H x W).
+/// - `flow_where` (H x W): compute the source view only at pixels where it is > 0; the others
+///   keep flow 0, source depth 0 and `valid` 0.
+/// - `occupancy`: the MPI's tile occupancy for tile skipping (built here when skipping is on and
+///   none with `params.skip.tile_sigma_eps` is given).
+///
+/// The output buffers are window-sized ([`WindowRender`]); each value equals the full-frame
+/// render's at the same pixel, bit for bit. The occlusion field needs the whole target frame:
+/// it is computed only when `window` is the full frame (with `params.fields.occlusion`), and
+/// stays empty otherwise. An empty window gives empty buffers. Errors: an invalid MPI,
+/// intrinsics or pose; a window outside the frame; a mask of the wrong size; a partial window,
+/// a broadcast channel or `flow_where` in [`Mode::Reference`] (which renders full frames only).
+pub fn render_window<T: Real>(
+    mpi: &Mpi,
+    params: &RenderParams,
+    occupancy: Option<&Occupancy>,
+    window: &Rect,
+    channels: Channels<'_>,
+    flow_where: Option<&[f32]>,
+) -> Result<WindowRender, RenderError> {
     mpi.validate()?;
     if !params.k_src.is_valid() {
         return Err(RenderError::Intrinsics { which: "source", k: params.k_src });
@@ -177,13 +230,32 @@ pub fn render<T: Real>(
     if !params.pose.is_finite() {
         return Err(RenderError::Pose);
     }
+    let (w, h) = (mpi.width, mpi.height);
+    let bad = |m: String| Err(RenderError::Request(m));
+    for (what, mask) in [("broadcast channel", broadcast(channels)), ("flow_where mask", flow_where)] {
+        if let Some(m) = mask.filter(|m| m.len() != w * h) {
+            return bad(format!("{what} has {} values, the MPI is {w} x {h}", m.len()));
+        }
+    }
+    if params.mode == Mode::Reference
+        && (!window.is_full(w, h) || broadcast(channels).is_some() || flow_where.is_some())
+    {
+        return bad("the reference mode renders full frames with the MPI's own channels only".into());
+    }
     let mut fields = params.fields;
     if fields.occlusion {
         fields.target = true;
         fields.flow = true;
     }
-    let (w, h) = (mpi.width, mpi.height);
-    let mut out = RenderOutput { width: w, height: h, extra_channels: mpi.extra_channels, ..Default::default() };
+    let (ww, wh) = (window.width(), window.height());
+    let c = if broadcast(channels).is_some() { 1 } else { mpi.extra_channels };
+    let mut out = RenderOutput { width: ww, height: wh, extra_channels: c, ..Default::default() };
+    if window.is_empty() {
+        return Ok(WindowRender { win: *window, out });
+    }
+    if window.x1 > w || window.y1 > h {
+        return bad(format!("window {window:?} is not inside the {w} x {h} frame"));
+    }
     let built;
     let occ = match (params.mode, params.skip.tiles, occupancy) {
         (Mode::Exact, true, Some(o)) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
@@ -194,30 +266,37 @@ pub fn render<T: Real>(
         _ => None,
     };
     if fields.target {
-        out.image = vec![0.0; w * h * 3];
-        out.depth = vec![0.0; w * h];
-        out.coverage = vec![0.0; w * h];
-        out.extras = vec![0.0; w * h * mpi.extra_channels];
+        out.image = vec![0.0; ww * wh * 3];
+        out.depth = vec![0.0; ww * wh];
+        out.coverage = vec![0.0; ww * wh];
+        out.extras = vec![0.0; ww * wh * c];
         let stats = match params.mode {
             Mode::Reference => reference::target_view::<T>(mpi, params, &mut out),
-            Mode::Exact => exact::target_view::<T>(mpi, params, occ, &mut out),
+            Mode::Exact => exact::target_view::<T>(mpi, params, occ, window, channels, &mut out),
         };
         out.stats += stats;
     }
     if fields.flow {
-        out.flow = vec![0.0; w * h * 2];
-        out.source_depth_in_target = vec![0.0; w * h];
-        out.valid = vec![0; w * h];
+        out.flow = vec![0.0; ww * wh * 2];
+        out.source_depth_in_target = vec![0.0; ww * wh];
+        out.valid = vec![0; ww * wh];
         match params.mode {
             Mode::Reference => reference::source_view::<T>(mpi, params, &mut out),
-            Mode::Exact => exact::source_view::<T>(mpi, params, occ, &mut out),
+            Mode::Exact => exact::source_view::<T>(mpi, params, occ, window, flow_where, &mut out),
         }
     }
-    if fields.occlusion {
+    if fields.occlusion && window.is_full(w, h) {
         out.occlusion = occlusion_mask(&out);
     }
     out.stats.repaired += repair_nonfinite(&mut out);
-    Ok(out)
+    Ok(WindowRender { win: *window, out })
+}
+
+fn broadcast(channels: Channels<'_>) -> Option<&[f32]> {
+    match channels {
+        Channels::PerPlane => None,
+        Channels::Broadcast(m) => Some(m),
+    }
 }
 
 /// Relative depth margin of the occlusion test.
@@ -256,7 +335,8 @@ fn occlusion_mask(out: &RenderOutput) -> Vec<u8> {
     occ
 }
 
-/// The last line of defence of the numerics rule (docs/design.md): no NaN or Inf leaves the renderer. Returns how many
+/// The last line of defence of the numerics rule (docs/design.md §4): no NaN or Inf leaves the
+/// renderer (full frame or window). Returns how many
 /// values had to be replaced (0 in every tested case; the count is reported, not hidden).
 fn repair_nonfinite(out: &mut RenderOutput) -> u64 {
     use rayon::prelude::*;
@@ -319,13 +399,16 @@ where
 }
 
 /// `valid` = the point is (by rendered weight, mostly) in front of the target camera and its
-/// flow target lies inside the image [0, W-1] x [0, H-1].
-pub(crate) fn mark_valid(w: usize, h: usize, flow: &[f32], front_fraction: &[f32]) -> Vec<u8> {
+/// flow target lies inside the image [0, W-1] x [0, H-1] (`w` x `h` is the frame; `flow` and
+/// `front_fraction` cover the window `win`).
+pub(crate) fn mark_valid(win: &Rect, w: usize, h: usize, flow: &[f32], front_fraction: &[f32]) -> Vec<u8> {
     use rayon::prelude::*;
-    let mut valid = vec![0u8; w * h];
-    valid.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, v) in row.iter_mut().enumerate() {
-            let i = y * w + x;
+    let ww = win.width();
+    let mut valid = vec![0u8; ww * win.height()];
+    valid.par_chunks_mut(ww.max(1)).enumerate().for_each(|(ry, row)| {
+        let y = win.y0 + ry;
+        for (rx, v) in row.iter_mut().enumerate() {
+            let (x, i) = (win.x0 + rx, ry * ww + rx);
             let tx = x as f32 + flow[2 * i];
             let ty = y as f32 + flow[2 * i + 1];
             let inside = tx >= 0.0 && tx <= (w - 1) as f32 && ty >= 0.0 && ty <= (h - 1) as f32;
@@ -375,6 +458,15 @@ impl<T: Real> Tap<T> {
             o[k] = top + wy * (bot - top);
         }
         o
+    }
+
+    /// Samples a single-channel plane (`sample_c` with `c = 1`, the same arithmetic).
+    #[inline(always)]
+    pub(crate) fn sample1(&self, plane: &[f32]) -> T {
+        let at = |i: usize| T::of32(plane[i]);
+        let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
+        let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
+        top + self.wy * (bot - top)
     }
 
     /// Samples `c` interleaved channels into `out`.

@@ -4,15 +4,16 @@
 //! border, sigma zeroed where the warped Z < 0, T_i = prod_{j<i}(exp(-sigma_j delta_j) + 1e-6),
 //! last delta 1e3, depth = sum w Z / (sum w + 1e-5), flow = clip(sum w_src flow_i, -200, 200).
 //! One addition keeps it finite where the reference is not: plane depths are capped at
-//! [`DEPTH_MAX`], so a plane at disparity 0 sits very far away instead of at infinity.
+//! [`DEPTH_MAX`](super::DEPTH_MAX), so a plane at disparity 0 sits very far away instead of at infinity.
 
 /// Plane depth as the reference uses it, capped so that disparity 0 stays finite.
 fn plane_depth(mpi: &Mpi, i: usize) -> f64 {
-    mpi.depth(i).min(DEPTH_MAX)
+    planes::plane_depth(mpi.disparity[i])
 }
 
-use super::{for_each_band, RenderOutput, RenderParams, RenderStats, DELTA_LAST, DEPTH_MAX};
+use super::{for_each_band, Rect, RenderOutput, RenderParams, RenderStats, DELTA_LAST};
 use crate::geometry::plane_homography;
+use crate::mpi::planes;
 use crate::mpi::Mpi;
 use crate::render::real::Real;
 use crate::render::{mark_valid, Tap};
@@ -176,7 +177,7 @@ pub(super) fn source_view<T: Real>(mpi: &Mpi, p: &RenderParams, out: &mut Render
         }
         RenderStats::default()
     });
-    out.valid = mark_valid(w, h, &flow, &front);
+    out.valid = mark_valid(&Rect::full(w, h), w, h, &flow, &front);
     out.flow = flow;
     out.source_depth_in_target = zexp;
 }

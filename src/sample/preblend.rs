@@ -7,7 +7,8 @@
 //! reference computes it (its `blend_weights`): `T_0 = 1`,
 //! `T_i = prod_{j<i} (exp(-sigma_j delta_j) + 1e-6)`, with the ray distance between planes
 //! `delta_j = (d_{j+1} - d_j) |K^-1 p|` for the source pixel `p` (`d = 1 / disparity`, capped at
-//! [`DEPTH_MAX`]; a gap is capped at [`DELTA_LAST`]) and `delta_{N-1} = 1e3` ([`DELTA_LAST`]).
+//! [`DEPTH_MAX`](planes::DEPTH_MAX); a gap is capped at [`DELTA_LAST`](planes::DELTA_LAST)) and
+//! `delta_{N-1} = 1e3` (`DELTA_LAST`): the shared plane-spacing rule of [`crate::mpi::planes`].
 //! The `+1e-6` is the reference's (it keeps a plane behind an opaque one from being fully
 //! replaced by its own colour: `T` never reaches 0).
 //!
@@ -17,12 +18,14 @@
 //! edge mixes in the colour of an empty plane pixel. It is applied once per scene, when the
 //! scene is prepared for the cache ([`crate::sample::recipe::SampleConfig::preblend`]); the
 //! cache key carries the option. Cost: one pass over the planes, in parallel over row bands.
+//! The `+1e-6` and the in-place colour update make this a pass of its own rather than a call of
+//! the renderer (whose source view has neither); only the gap rule is shared.
 
 use rayon::prelude::*;
 
 use crate::geometry::Intrinsics;
+use crate::mpi::planes;
 use crate::mpi::Mpi;
-use crate::render::{DELTA_LAST, DEPTH_MAX};
 
 /// The reference's `+1e-6` in every transmittance factor.
 pub const TRANSMITTANCE_EPS: f32 = 1e-6;
@@ -38,11 +41,10 @@ pub enum PreblendError {
     Intrinsics(Intrinsics),
 }
 
-/// The per-pixel source-view gap to the next plane before the `|K^-1 p|` factor (f64 setup).
-fn plane_gaps(mpi: &Mpi) -> Vec<f64> {
-    let n = mpi.planes();
-    let depth: Vec<f64> = mpi.disparity.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
-    (0..n).map(|i| if i + 1 < n { (depth[i + 1] - depth[i]).min(DELTA_LAST) } else { DELTA_LAST }).collect()
+/// The per-pixel source-view gap to the next plane before the `|K^-1 p|` factor, in f32 (the
+/// shared rule of [`crate::mpi::planes`], set up in f64).
+fn plane_gaps(mpi: &Mpi) -> Vec<f32> {
+    planes::plane_gaps(&mpi.disparity).iter().map(|&g| g as f32).collect()
 }
 
 /// Pre-blends `mpi` with the source photo `image` (H x W x 3, the MPI's size) seen through
@@ -61,7 +63,7 @@ pub fn preblend(mpi: &mut Mpi, image: &[f32], k: &Intrinsics) -> Result<(), Preb
         return Ok(());
     }
     let last = n - 1;
-    let gaps: Vec<f32> = plane_gaps(mpi).iter().map(|&g| g as f32).collect();
+    let gaps: Vec<f32> = plane_gaps(mpi);
     // |K^-1 p| per pixel, separable: sqrt(ux^2 + uy^2 + 1)
     let ux: Vec<f64> = (0..w).map(|x| (x as f64 - k.cx) / k.fx).collect();
     let uy: Vec<f64> = (0..h).map(|y| (y as f64 - k.cy) / k.fy).collect();
@@ -103,7 +105,7 @@ pub fn preblend(mpi: &mut Mpi, image: &[f32], k: &Intrinsics) -> Result<(), Preb
 /// [`preblend`] uses it (for tests and diagnostics).
 pub fn source_transmittance(mpi: &Mpi, k: &Intrinsics) -> Vec<f32> {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
-    let gaps: Vec<f32> = plane_gaps(mpi).iter().map(|&g| g as f32).collect();
+    let gaps: Vec<f32> = plane_gaps(mpi);
     let mut out = vec![0.0f32; n * w * h];
     for y in 0..h {
         for x in 0..w {

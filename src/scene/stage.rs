@@ -30,8 +30,8 @@ use super::masks::InstanceMasks;
 use super::scale::{self, DISPARITY_FLOOR};
 use super::{DepthEstimator, Disparity, MpiBuilder, Scene, SceneError, SceneLoader, Segmenter};
 use crate::geometry::Intrinsics;
+use crate::mpi::planes::plane_gaps;
 use crate::mpi::Mpi;
-use crate::render::{DELTA_LAST, DEPTH_MAX};
 use crate::source::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use std::sync::Arc;
 
@@ -249,15 +249,13 @@ fn prepare_given_mpi(id: &str, mut mpi: Mpi, w: usize, h: usize) -> Result<(Mpi,
 
 /// The MPI's own disparity as seen from the source camera: per pixel, front-to-back compositing
 /// with `alpha_i = 1 - exp(-sigma_i delta_i)`, `delta_i` the gap to the next plane's depth (capped
-/// at `DELTA_LAST`, the last plane `DELTA_LAST`, depths capped at `DEPTH_MAX`, as the renderer
-/// does at unit ray length), the light left after the last plane given the farthest plane's
+/// at `DELTA_LAST`, the last plane `DELTA_LAST`, depths capped at `DEPTH_MAX`, the shared rule of
+/// [`crate::mpi::planes`], as the renderer does at unit ray length), the light left after the last plane given the farthest plane's
 /// disparity; clamped to the scene scale.
 pub fn composite_disparity(mpi: &Mpi) -> Disparity {
     let n = mpi.planes();
     let hw = mpi.plane_len();
-    let depth: Vec<f64> = mpi.disparity.iter().map(|&d| (1.0 / d).min(DEPTH_MAX)).collect();
-    let delta: Vec<f64> =
-        (0..n).map(|i| if i + 1 < n { (depth[i + 1] - depth[i]).min(DELTA_LAST) } else { DELTA_LAST }).collect();
+    let delta: Vec<f64> = plane_gaps(&mpi.disparity);
     let mut acc = vec![0f64; hw];
     let mut trans = vec![1f64; hw];
     for (i, (&delta_i, &disp)) in delta.iter().zip(&mpi.disparity).enumerate() {
