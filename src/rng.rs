@@ -180,7 +180,7 @@ impl RngCore for SampleRng {
 
     #[inline]
     fn fill_bytes(&mut self, dst: &mut [u8]) {
-        self.inner.fill_bytes(dst)
+        self.inner.fill_bytes(dst);
     }
 }
 

@@ -36,8 +36,8 @@ fn tilted_plane_depth_is_the_plane_and_smooth() {
         let p = s.k.unproject(x, y) * s.depth_at(x, y);
         assert!((normal.dot(p) - offset).abs() < 1e-12);
     }
-    let dmin = s.depth.iter().cloned().fold(f32::MAX, f32::min);
-    let dmax = s.depth.iter().cloned().fold(f32::MIN, f32::max);
+    let dmin = s.depth.iter().copied().fold(f32::MAX, f32::min);
+    let dmax = s.depth.iter().copied().fold(f32::MIN, f32::max);
     assert!((dmin - 1.5).abs() < 1e-5 && dmax > 3.0 && dmax < 5.0, "{dmin} .. {dmax}");
     assert!(discontinuity_band(&s.depth, 64, 48).iter().all(|&b| !b));
     let e = exact_flow(&s, &bench_pose());

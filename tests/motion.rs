@@ -352,7 +352,10 @@ fn preset_names_parse_and_print() {
         assert_eq!(p.to_string().parse::<MotionPreset>().unwrap(), p);
         assert_eq!(p.ranges().name, p.to_string());
     }
-    assert_eq!(["reference", "paper-kitti", "depthstillation"], MotionPreset::ALL.map(|p| p.name()));
+    assert_eq!(
+        ["reference", "paper-kitti", "depthstillation"],
+        MotionPreset::ALL.map(mpiflow::sample::motion::MotionPreset::name)
+    );
     assert_eq!("Paper-KITTI".parse::<MotionPreset>().unwrap(), MotionPreset::PaperKitti);
     let err = "kitti".parse::<MotionPreset>().unwrap_err();
     assert_eq!(err, MotionError::UnknownPreset("kitti".into()));

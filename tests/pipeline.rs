@@ -246,7 +246,9 @@ fn concurrent_first_requests_for_one_scene_build_it_once() {
             .map(|_| {
                 let mut c = mpiflow::service::client::client_for(channel.clone());
                 tokio::spawn(async move {
-                    c.get_sample(pb::SampleRequest { index: 5, ..Default::default() }).await.map(|r| r.into_inner())
+                    c.get_sample(pb::SampleRequest { index: 5, ..Default::default() })
+                        .await
+                        .map(tonic::Response::into_inner)
                 })
             })
             .collect();

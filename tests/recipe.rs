@@ -97,7 +97,7 @@ impl SceneLoader for Procedural {
         for m in &mut masks.masks {
             m.score = [0.0, 0.7, 0.9, 0.5][m.id as usize];
         }
-        let near = depth.iter().cloned().fold(f32::MAX, f32::min);
+        let near = depth.iter().copied().fold(f32::MAX, f32::min);
         Ok(Scene {
             id: self.id(i),
             image: RgbImage { width: W, height: H, data: rgb },

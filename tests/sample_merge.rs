@@ -309,7 +309,7 @@ fn textured_scene(w: usize, h: usize, planes: usize) -> Scene {
     let opts = LayeringOptions { planes, layering: Layering::Soft, disparity_range: None };
     let mpi = build_mpi_for_camera(&rgb, &depth, w, h, &opts, &k).unwrap();
     let mut disp: Vec<f32> = depth.iter().map(|d| 1.0 / d).collect();
-    let max = disp.iter().cloned().fold(0.0, f32::max);
+    let max = disp.iter().copied().fold(0.0, f32::max);
     disp.iter_mut().for_each(|v| *v /= max);
     Scene {
         id: "textured".into(),

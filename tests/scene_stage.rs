@@ -319,13 +319,13 @@ fn builtin_scenes_through_the_stage() {
         s.mpi.validate().unwrap();
         assert_eq!(s.mpi.planes(), 16);
         // the scene disparity is exactly the composition's depth brought to the scene scale
-        let d_min = c.depth.iter().cloned().fold(f32::INFINITY, f32::min);
+        let d_min = c.depth.iter().copied().fold(f32::INFINITY, f32::min);
         let (expect, _) = disparity_from_depth(&c.depth, w, h).unwrap();
         assert_eq!(s.disparity, expect);
         for (j, &v) in s.disparity.data.iter().enumerate().step_by(97) {
             assert!((v - d_min / c.depth[j]).abs() <= 1e-6);
         }
-        assert_eq!(s.disparity.data.iter().cloned().fold(0.0, f32::max), 1.0);
+        assert_eq!(s.disparity.data.iter().copied().fold(0.0, f32::max), 1.0);
         assert!(s.disparity.data.iter().all(|v| (DISPARITY_FLOOR..=1.0).contains(v)));
         // masks: one instance per visible object
         let visible = c.objects.iter().filter(|o| o.visible_pixels > 0).count();

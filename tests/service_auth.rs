@@ -296,7 +296,7 @@ async fn tls_and_token_together_through_the_cli() {
     let token_file = path(&pki.path("token")).to_string();
     let pull = |extra: &[&str]| {
         let mut args: Vec<String> = ["pull", "--addr", &addr, "--count", "2", "--tls-ca", &ca].map(String::from).into();
-        args.extend(extra.iter().map(|s| s.to_string()));
+        args.extend(extra.iter().map(std::string::ToString::to_string));
         tokio::task::spawn_blocking(move || run(args))
     };
     let (ok, out) = pull(&["--token", TOKEN]).await.unwrap();

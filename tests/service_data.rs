@@ -137,7 +137,7 @@ async fn bad_sources_are_passed_over_deterministically_and_reported() {
         let d1 = decode_f32(d1).unwrap();
         let d2 = decode_f32(d2).unwrap();
         assert!(d1.iter().chain(&d2).all(|v| v.is_finite() && *v >= 0.0));
-        let min = d1.iter().cloned().fold(f32::INFINITY, f32::min);
+        let min = d1.iter().copied().fold(f32::INFINITY, f32::min);
         assert!((min - 1.0).abs() < 0.05, "nearest depth {min}");
         assert!(d2.iter().any(|v| *v > 0.5));
     }

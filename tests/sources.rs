@@ -431,7 +431,7 @@ fn metric_depth_scaled_by_any_factor_gives_the_same_disparity() {
     let depth: Vec<f32> = (0..w * h).map(|i| 1.5 + ((i * 37) % 11) as f32 * 0.7).collect();
     let (base, d_min) = disparity_from_depth(&depth, w, h).unwrap();
     assert_eq!(d_min, 1.5);
-    assert_eq!(base.data.iter().cloned().fold(0.0, f32::max), 1.0);
+    assert_eq!(base.data.iter().copied().fold(0.0, f32::max), 1.0);
     for (i, &v) in base.data.iter().enumerate() {
         assert!((v - 1.5 / depth[i]).abs() <= 1e-7, "pixel {i}");
     }

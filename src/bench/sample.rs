@@ -52,7 +52,7 @@ pub fn synthetic_scene(width: usize, height: usize, planes: usize, object: bool)
     }
     let opts = LayeringOptions { planes, layering: Layering::Soft, disparity_range: None };
     let mpi = build_mpi_for_camera(&rgb, &depth, w, h, &opts, &k)?;
-    let near = depth.iter().cloned().fold(f32::MAX, f32::min);
+    let near = depth.iter().copied().fold(f32::MAX, f32::min);
     let masks = if object {
         InstanceMasks { width: w, height: h, masks: vec![Instance::new(1, 1.0, mask)] }
     } else {

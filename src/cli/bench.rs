@@ -140,7 +140,7 @@ fn render(b: RenderBench) -> Result<(), CliError> {
     if b.width == 0 || b.height == 0 || b.planes == 0 || b.width * b.height > 64 << 20 || b.planes > 256 {
         return Err(CliError("bench sizes must be positive, at most 64 Mpx and 256 planes".into()));
     }
-    let threads = b.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let threads = b.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, std::num::NonZero::get));
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     let skip = if b.mode == Mode::Exact { Skip::DEFAULT } else { Skip::NONE };
     let mut variants = vec![("default", skip)];
@@ -179,7 +179,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
     if b.samples == 0 || b.samples > 10_000 {
         return Err(CliError("--samples must be 1 to 10000".into()));
     }
-    let threads = b.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let threads = b.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, std::num::NonZero::get));
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
     for object in [true, false] {
         let sample = SampleConfig {

@@ -93,7 +93,7 @@ fn request(b: &ServeBench, seed: u64, count: u64) -> pb::StreamRequest {
 }
 
 pub fn run(b: ServeBench) -> Result<(), CliError> {
-    let workers = b.workers.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let workers = b.workers.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, std::num::NonZero::get));
     let mut config = ServiceConfig { workers, size: Some(b.size.clone()), ..ServiceConfig::default() };
     if let Some(s) = &b.source {
         config.datasets = vec![DatasetConfig::parse(s).map_err(CliError)?];

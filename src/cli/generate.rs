@@ -201,7 +201,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
 
     let threads = match a.threads {
         Some(n) => n as usize,
-        None => std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+        None => std::thread::available_parallelism().map(std::num::NonZero::get).unwrap_or(1),
     };
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)

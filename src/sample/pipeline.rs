@@ -288,7 +288,7 @@ impl Generator {
             return None;
         }
         let found = {
-            let list = self.occupancies.lock().unwrap_or_else(|e| e.into_inner());
+            let list = self.occupancies.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             list.iter()
                 .find(|(k, s, _)| *k == key && s.upgrade().is_some_and(|s| Arc::ptr_eq(&s, scene)))
                 .map(|(_, _, o)| o.clone())
@@ -297,7 +297,7 @@ impl Generator {
             return found;
         }
         let occ = Arc::new(Occupancy::build(&scene.mpi, self.config.skip.tile_sigma_eps));
-        let mut list = self.occupancies.lock().unwrap_or_else(|e| e.into_inner());
+        let mut list = self.occupancies.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         list.retain(|(k, s, _)| s.strong_count() > 0 && *k != key);
         if list.len() >= MAX_OCCUPANCIES {
             list.remove(0);
@@ -307,7 +307,7 @@ impl Generator {
     }
 
     fn bad_items(&self) -> std::sync::MutexGuard<'_, BTreeMap<usize, BadItem>> {
-        self.bad.lock().unwrap_or_else(|e| e.into_inner())
+        self.bad.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     /// Records a bad item (once).

@@ -90,7 +90,7 @@ impl Pending {
             if let Some(r) = g.as_ref() {
                 return r.clone();
             }
-            g = self.cv.wait(g).unwrap_or_else(|e| e.into_inner());
+            g = self.cv.wait(g).unwrap_or_else(std::sync::PoisonError::into_inner);
         }
     }
 }
@@ -135,7 +135,7 @@ pub fn load_pool() -> Option<&'static rayon::ThreadPool> {
 /// Locks, ignoring poisoning (the cache's invariants are restored by the guards below, and a
 /// panic in a loader never happens under the lock).
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Removes the `Loading` slot and wakes the waiters if the loader unwinds.

@@ -372,7 +372,7 @@ impl ServiceConfig {
     /// The worker count (0 resolved to the number of cores).
     pub fn worker_count(&self) -> usize {
         match self.workers {
-            0 => std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            0 => std::thread::available_parallelism().map(std::num::NonZero::get).unwrap_or(1),
             n => n,
         }
     }
@@ -450,7 +450,7 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(c.workers, 5);
-        assert_eq!(c.datasets.iter().map(|d| d.name()).collect::<Vec<_>>(), ["a", "z"]);
+        assert_eq!(c.datasets.iter().map(super::DatasetConfig::name).collect::<Vec<_>>(), ["a", "z"]);
         c.validate().unwrap();
         let e = c.apply_env_vars([("MPIFLOW_WORKERS".to_string(), "many".to_string())]).unwrap_err();
         assert!(e.contains("MPIFLOW_WORKERS"), "{e}");

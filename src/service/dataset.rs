@@ -134,7 +134,7 @@ impl Dataset {
         if config == *self.generator.config() {
             return Ok(self.generator.clone());
         }
-        let mut list = self.overrides.lock().unwrap_or_else(|e| e.into_inner());
+        let mut list = self.overrides.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         if let Some(pos) = list.iter().position(|g| *g.config() == config) {
             let g = list.remove(pos);
             list.push(g.clone());
@@ -215,14 +215,14 @@ impl Datasets {
         if let Some(d) = self.list.iter().find(|d| d.name == name) {
             return Ok(d.clone());
         }
-        let up = self.uploaded.read().unwrap_or_else(|e| e.into_inner());
+        let up = self.uploaded.read().unwrap_or_else(std::sync::PoisonError::into_inner);
         up.get(name).cloned().ok_or_else(|| ServiceError::UnknownDataset(name.into()))
     }
 
     /// Every dataset: the configured ones (the default first), then the uploaded ones by name.
     pub fn all(&self) -> Vec<Arc<Dataset>> {
         let mut out = self.list.clone();
-        out.extend(self.uploaded.read().unwrap_or_else(|e| e.into_inner()).values().cloned());
+        out.extend(self.uploaded.read().unwrap_or_else(std::sync::PoisonError::into_inner).values().cloned());
         out
     }
 
@@ -241,7 +241,7 @@ impl Datasets {
             self.cache.clone(),
             self.upload_sample.clone(),
         )?);
-        self.uploaded.write().unwrap_or_else(|e| e.into_inner()).insert(name.clone(), ds.clone());
+        self.uploaded.write().unwrap_or_else(std::sync::PoisonError::into_inner).insert(name.clone(), ds.clone());
         Ok(ds)
     }
 

@@ -146,18 +146,18 @@ impl Metrics {
 
     /// Reports this cache's statistics at every scrape.
     pub fn watch_cache(&self, cache: Arc<SceneCache>) {
-        *self.cache.lock().unwrap_or_else(|e| e.into_inner()) = Some(cache);
+        *self.cache.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Some(cache);
     }
 
     /// Reports these datasets' scene builds at every scrape.
     pub fn watch_datasets(&self, datasets: Arc<Datasets>) {
-        *self.datasets.lock().unwrap_or_else(|e| e.into_inner()) = Some(datasets);
+        *self.datasets.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Some(datasets);
     }
 
     fn update_builds(&self) {
-        let datasets = self.datasets.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let datasets = self.datasets.lock().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
         let Some(datasets) = datasets else { return };
-        let mut seen = self.builds_seen.lock().unwrap_or_else(|e| e.into_inner());
+        let mut seen = self.builds_seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         for d in datasets.all() {
             let id = Arc::as_ptr(&d.generator) as usize;
             let total = d.scene_builds();
@@ -210,7 +210,7 @@ impl Metrics {
     /// count grew (something new was skipped).
     pub fn record_skips(&self, dataset: &str, counts: &BTreeMap<FailureKind, u64>) -> bool {
         let mut grew = false;
-        let mut m = self.skipped_by_dataset.lock().unwrap_or_else(|e| e.into_inner());
+        let mut m = self.skipped_by_dataset.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         for (&kind, &n) in counts {
             let reason = kind.as_str().to_string();
             let slot = m.entry((dataset.to_string(), reason.clone())).or_default();
@@ -226,7 +226,7 @@ impl Metrics {
 
     /// Skipped sources of a dataset by reason (for GetInfo).
     pub fn skipped_of(&self, dataset: &str) -> std::collections::HashMap<String, u64> {
-        let m = self.skipped_by_dataset.lock().unwrap_or_else(|e| e.into_inner());
+        let m = self.skipped_by_dataset.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         m.iter().filter(|((d, _), _)| d == dataset).map(|((_, r), n)| (r.clone(), *n)).collect()
     }
 
@@ -250,10 +250,10 @@ impl Metrics {
     }
 
     fn update_cache(&self) {
-        let cache = self.cache.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        let cache = self.cache.lock().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
         if let Some(c) = cache {
             let s = c.stats();
-            let mut seen = self.cache_seen.lock().unwrap_or_else(|e| e.into_inner());
+            let mut seen = self.cache_seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             self.cache_hits.inc_by(s.hits.saturating_sub(seen.0));
             self.cache_misses.inc_by(s.misses.saturating_sub(seen.1));
             self.cache_evictions.inc_by(s.evictions.saturating_sub(seen.2));

@@ -32,7 +32,7 @@ use super::metrics::Metrics;
 use super::pb;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Makes the sample of one index (runs on a worker).

@@ -106,6 +106,7 @@ pub fn fnv1a64(bytes: &[u8]) -> u64 {
 pub mod builtin;
 pub mod dir;
 pub mod encoded;
+pub mod given;
 pub mod pfm;
 pub mod shard;
 pub mod upload;

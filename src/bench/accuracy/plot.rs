@@ -144,13 +144,13 @@ fn n_list(report: &AccuracyReport) -> String {
     let mut ns: Vec<usize> = report.rows.iter().map(|r| r.planes).collect();
     ns.sort_unstable();
     ns.dedup();
-    ns.iter().map(|n| n.to_string()).collect::<Vec<_>>().join(", ")
+    ns.iter().map(std::string::ToString::to_string).collect::<Vec<_>>().join(", ")
 }
 
 /// A log axis range covering `v` with some room (a decade around 1 when empty).
 fn bounds(v: &[f64]) -> (f64, f64) {
-    let lo = v.iter().cloned().fold(f64::INFINITY, f64::min);
-    let hi = v.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+    let lo = v.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     if !(lo.is_finite() && hi.is_finite()) {
         return (0.1, 10.0);
     }

@@ -21,7 +21,7 @@ pub struct ReportMeta {
 
 /// "N cores (nproc), CPU model" from `/proc/cpuinfo` where available.
 pub fn machine_description() -> String {
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let cores = std::thread::available_parallelism().map_or(1, std::num::NonZero::get);
     let model = std::fs::read_to_string("/proc/cpuinfo").ok().and_then(|s| {
         s.lines().find(|l| l.starts_with("model name")).and_then(|l| l.split(':').nth(1)).map(|m| m.trim().to_string())
     });
@@ -403,8 +403,8 @@ fn observations(report: &AccuracyReport, orders: &[Order]) -> Option<String> {
         (!v.is_empty()).then(|| {
             (
                 v.iter().sum::<f64>() / v.len() as f64,
-                v.iter().cloned().fold(f64::MAX, f64::min),
-                v.iter().cloned().fold(f64::MIN, f64::max),
+                v.iter().copied().fold(f64::MAX, f64::min),
+                v.iter().copied().fold(f64::MIN, f64::max),
             )
         })
     };

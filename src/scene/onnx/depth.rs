@@ -108,7 +108,7 @@ impl OnnxDepth {
     }
 
     pub fn reset_stats(&self) {
-        self.model.reset_stats()
+        self.model.reset_stats();
     }
 
     /// The network output resized to the image, not normalised.

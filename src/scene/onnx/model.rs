@@ -344,7 +344,7 @@ impl OnnxModel {
                 .map_err(|e| self.err(format!("cannot make input tensor `{}`: {e}", input.name)))?;
             values.push((Cow::Borrowed(input.name), tensor.into()));
         }
-        let mut session = self.session.lock().unwrap_or_else(|e| e.into_inner());
+        let mut session = self.session.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         let start = Instant::now();
         let result = session.run(values);
         let elapsed = start.elapsed();

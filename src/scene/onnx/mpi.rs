@@ -123,7 +123,7 @@ impl OnnxMpi {
     }
 
     pub fn reset_stats(&self) {
-        self.model.reset_stats()
+        self.model.reset_stats();
     }
 
     fn infer(&self, image: &RgbImage, disparity: &Disparity, warmup: bool) -> Result<Mpi, SceneError> {

@@ -77,7 +77,7 @@ pub(crate) fn environment(library: Option<&Path>) -> Result<&'static Environment
 }
 
 fn runtime(library: Option<&Path>) -> Result<&'static Runtime, SceneError> {
-    let _guard = INIT.lock().unwrap_or_else(|e| e.into_inner());
+    let _guard = INIT.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     if let Some(rt) = RUNTIME.get() {
         // Already loaded: any request without an explicit path, or for the same file, is fine.
         let Some(requested) = library.filter(|p| !p.as_os_str().is_empty()) else {

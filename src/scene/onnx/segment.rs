@@ -118,7 +118,7 @@ impl OnnxSegmenter {
     }
 
     pub fn reset_stats(&self) {
-        self.model.reset_stats()
+        self.model.reset_stats();
     }
 
     fn infer(&self, image: &RgbImage, warmup: bool) -> Result<InstanceMasks, SceneError> {

@@ -1,0 +1,149 @@
+//! Readers of the files that come with a source image: depth (`.npy`, PFM, 16-bit PNG),
+//! 8-bit disparity PNGs, from a path or from bytes (shards, uploads), and resizing them (and the
+//! image) to the run's size. Each failure carries its [`FailureKind`] (`depth`, `too-large`, ...).
+
+use super::dir::{file_err, io_err, over_limit, DepthFile};
+use super::{FailureKind, SourceError};
+use crate::io::image::{decode_file, load_depth_png16_with_limits, ImageLimits, RgbImage};
+use crate::io::npy::read_npy_file;
+use crate::raster::resize_nearest;
+use ::image::DynamicImage;
+use std::path::Path;
+
+/// Resizes `data` (w x h) to (w0 x h0) by nearest neighbour when the sizes differ.
+pub(crate) fn fit(data: Vec<f32>, w: usize, h: usize, w0: usize, h0: usize) -> Vec<f32> {
+    if (w, h) == (w0, h0) {
+        data
+    } else {
+        resize_nearest(&data, w, h, w0, h0)
+    }
+}
+
+/// Reads a depth file as (width, height, values).
+pub fn read_depth(p: &Path, kind: DepthFile, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    match kind {
+        DepthFile::Npy => read_depth_npy(p, limits),
+        DepthFile::Pfm => {
+            let pfm =
+                super::pfm::read_pfm(p, limits).map_err(|e| file_err(p, e.kind.in_part(FailureKind::Depth), e))?;
+            if pfm.channels != 1 {
+                let m = "a colour PFM (PF) cannot be read as depth; expected a one-channel Pf";
+                return Err(file_err(p, FailureKind::Depth, m));
+            }
+            Ok((pfm.width, pfm.height, pfm.data))
+        }
+        DepthFile::Png16 => load_depth_png16_with_limits(p, limits)
+            .map_err(|e| file_err(p, e.failure_kind().in_part(FailureKind::Depth), e)),
+    }
+}
+
+/// Reads a float (or integer) `.npy` depth of shape `[H, W]`, `[1, H, W]`, `[H, W, 1]` or
+/// `[1, 1, H, W]`, under the limits (file size, then dimensions).
+pub fn read_depth_npy(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    let size = std::fs::metadata(p).map_err(|e| io_err(p, &e, FailureKind::Depth))?.len();
+    if size > limits.max_bytes {
+        return Err(file_err(p, FailureKind::TooLarge, over_limit(size, limits)));
+    }
+    let a = read_npy_file(p).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::NotFound {
+            io_err(p, &e, FailureKind::Depth)
+        } else {
+            file_err(p, FailureKind::Depth, format!("not a valid .npy depth: {e}"))
+        }
+    })?;
+    depth_from_array(a, limits).map_err(|(kind, m)| file_err(p, kind, m))
+}
+
+/// [`read_depth_npy`] for an `.npy` held in memory (errors without a name, with their kind).
+pub fn depth_npy_from_bytes(
+    bytes: &[u8],
+    limits: &ImageLimits,
+) -> Result<(usize, usize, Vec<f32>), (FailureKind, String)> {
+    if bytes.len() as u64 > limits.max_bytes {
+        return Err((FailureKind::TooLarge, over_limit(bytes.len() as u64, limits)));
+    }
+    let a = npyz::NpyFile::new(bytes)
+        .and_then(crate::io::npy::read_array)
+        .map_err(|e| (FailureKind::Depth, format!("not a valid .npy depth: {e}")))?;
+    depth_from_array(a, limits)
+}
+
+/// A depth array's shape checked (`[H, W]`, `[1, H, W]`, `[H, W, 1]`, `[1, 1, H, W]`) against the
+/// limits, as (width, height, values).
+fn depth_from_array(
+    a: crate::io::npy::Array,
+    limits: &ImageLimits,
+) -> Result<(usize, usize, Vec<f32>), (FailureKind, String)> {
+    let (h, w) = match a.shape.as_slice() {
+        [h, w] | [1, h, w] | [h, w, 1] | [1, 1, h, w] => (*h, *w),
+        s => {
+            let m = format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])");
+            return Err((FailureKind::Depth, m));
+        }
+    };
+    let dims_ok = matches!((u32::try_from(w), u32::try_from(h)), (Ok(w), Ok(h)) if w > 0 && h > 0 && limits.check_dimensions(w, h));
+    if !dims_ok {
+        return Err((FailureKind::TooLarge, format!("depth of {w} x {h} pixels is empty or too large ({limits})")));
+    }
+    Ok((w as usize, h as usize, a.data.into_iter().map(|v| v as f32).collect()))
+}
+
+/// Reads a grey disparity PNG as values in [0, 1]: 8-bit / 255, 16-bit / 65535 (alpha ignored;
+/// an RGB PNG is accepted when it is grey, R = G = B).
+pub fn read_disparity_png(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    let img = decode_file(p, limits).map_err(|e| file_err(p, e.failure_kind().in_part(FailureKind::Depth), e))?;
+    disparity_from_image(&img).map_err(|m| file_err(p, FailureKind::Depth, m))
+}
+
+/// [`read_disparity_png`] for a PNG held in memory, named `name` in errors.
+pub fn disparity_png_from_bytes(
+    bytes: &[u8],
+    name: &str,
+    limits: &ImageLimits,
+) -> Result<(usize, usize, Vec<f32>), SourceError> {
+    let p = Path::new(name);
+    let img = crate::io::image::decode_bytes(bytes, p, limits)
+        .map_err(|e| file_err(p, e.failure_kind().in_part(FailureKind::Depth), e))?;
+    disparity_from_image(&img).map_err(|m| file_err(p, FailureKind::Depth, m))
+}
+
+fn disparity_from_image(img: &DynamicImage) -> Result<(usize, usize, Vec<f32>), String> {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    fn grey<T: Copy + Into<f32> + PartialEq>(raw: &[T], ch: usize, max: f32) -> Option<Vec<f32>> {
+        let mut out = Vec::with_capacity(raw.len() / ch);
+        for px in raw.chunks_exact(ch) {
+            if ch >= 3 && (px[0] != px[1] || px[1] != px[2]) {
+                return None;
+            }
+            out.push(px[0].into() / max);
+        }
+        Some(out)
+    }
+    let data = match img {
+        DynamicImage::ImageLuma8(b) => grey(b.as_raw(), 1, 255.0),
+        DynamicImage::ImageLumaA8(b) => grey(b.as_raw(), 2, 255.0),
+        DynamicImage::ImageRgb8(b) => grey(b.as_raw(), 3, 255.0),
+        DynamicImage::ImageRgba8(b) => grey(b.as_raw(), 4, 255.0),
+        DynamicImage::ImageLuma16(b) => grey(b.as_raw(), 1, 65535.0),
+        DynamicImage::ImageLumaA16(b) => grey(b.as_raw(), 2, 65535.0),
+        DynamicImage::ImageRgb16(b) => grey(b.as_raw(), 3, 65535.0),
+        DynamicImage::ImageRgba16(b) => grey(b.as_raw(), 4, 65535.0),
+        _ => None,
+    };
+    data.map(|d| (w, h, d)).ok_or_else(|| {
+        format!("a {:?} image is not a grey disparity map (expected an 8- or 16-bit grey PNG)", img.color())
+    })
+}
+
+/// Resizes an RGB image with the `image` crate's triangle filter (bilinear when enlarging,
+/// antialiased when shrinking).
+pub fn resize_rgb(img: &RgbImage, width: usize, height: usize) -> RgbImage {
+    if (img.width, img.height) == (width, height) {
+        return img.clone();
+    }
+    let buf = ::image::Rgb32FImage::from_raw(img.width as u32, img.height as u32, img.data.clone())
+        .expect("RgbImage holds width * height * 3 values");
+    let out = ::image::imageops::resize(&buf, width as u32, height as u32, ::image::imageops::FilterType::Triangle);
+    RgbImage { width, height, data: out.into_raw().into_iter().map(|v| v.clamp(0.0, 1.0)).collect() }
+}
+
