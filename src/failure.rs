@@ -66,3 +66,61 @@ impl std::fmt::Display for FailureKind {
         f.write_str(self.as_str())
     }
 }
+
+/// Most characters of user input repeated in an error message ([`echo`]).
+pub const ECHO_CHARS: usize = 200;
+
+/// User input as an error message repeats it: quoted, escaped (control characters and
+/// non-printable bytes as `\n`, `\u{1b}`, ...) and cut to [`ECHO_CHARS`] characters with the
+/// number of characters left out, so an error never grows with the input or prints raw bytes.
+pub fn echo(input: &str) -> String {
+    let n = input.chars().count();
+    let shown: String = input.chars().take(ECHO_CHARS).collect();
+    if n > ECHO_CHARS {
+        format!("{:?}... ({} more characters)", shown, n - ECHO_CHARS)
+    } else {
+        format!("{shown:?}")
+    }
+}
+
+/// A whole message made safe to print or send: control characters escaped (newlines and tabs
+/// too: one line), cut to `max_chars` characters with the number left out.
+pub fn printable(message: &str, max_chars: usize) -> String {
+    let mut out = String::with_capacity(message.len().min(max_chars + 32));
+    let mut chars = message.chars();
+    for c in chars.by_ref().take(max_chars) {
+        if c.is_control() {
+            out.extend(c.escape_debug());
+        } else {
+            out.push(c);
+        }
+    }
+    let rest = chars.count();
+    if rest > 0 {
+        out.push_str(&format!("... ({rest} more characters)"));
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn echo_is_short_quoted_and_escaped() {
+        assert_eq!(echo("ab"), "\"ab\"");
+        assert_eq!(echo("a\nb\u{1b}"), "\"a\\nb\\u{1b}\"");
+        let long = "x".repeat(15_000);
+        let e = echo(&long);
+        assert!(e.len() < 260 && e.ends_with("(14800 more characters)"), "{e}");
+    }
+
+    #[test]
+    fn printable_escapes_controls_and_cuts() {
+        assert_eq!(printable("one\ntwo\u{0}", 100), "one\\ntwo\\0");
+        assert_eq!(printable("abcdef", 3), "abc... (3 more characters)");
+        let raw = String::from_utf8_lossy(&[0x7f, 0x1b, b'[', b'2', b'J', 0xff, 0xfe]).into_owned();
+        let p = printable(&raw, 100);
+        assert!(!p.chars().any(char::is_control), "{p:?}");
+    }
+}

@@ -130,6 +130,19 @@ proptest! {
         for k in 0..n {
             prop_assert_eq!(s.index(k), Some(start + rank + k * world));
         }
-        prop_assert_eq!(s.index(n), None, "position {} of {} is past u64::MAX", n, n);
+        prop_assert_eq!(s.index(n), None, "position {} of {} is past the end", n, n);
+        // every index is below 2^64 - 1, and the cursor after the last one is the end: a
+        // request resuming from it gets nothing (no repeat, no skip)
+        if n > 0 {
+            prop_assert!(s.index(n - 1).unwrap() < u64::MAX);
+        }
+        let (next, resume) = s.cursor(n);
+        prop_assert_eq!(next, u64::MAX);
+        let again = StreamSpec { start_index: resume, ..s };
+        prop_assert_eq!(again.len(), 0);
+        // the cursor inside the stream is the next index, never one already sent
+        for k in 0..n {
+            prop_assert_eq!(s.cursor(k).0, s.index(k).unwrap());
+        }
     }
 }

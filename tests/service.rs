@@ -362,13 +362,20 @@ async fn refusals_have_the_right_code_and_name_the_field() {
         (pb::StreamRequest { motions_per_image: Some(0), ..d() }, inv, "motions_per_image"),
         (pb::StreamRequest { start_index: u64::MAX, rank: 1, world_size: 2, ..d() }, inv, "start_index"),
         (pb::StreamRequest { count: 3, start_index: u64::MAX - 1, ..d() }, inv, "count"),
+        // 2^64 - 1 is the end cursor, never a sample: the same rule for every count
+        (pb::StreamRequest { count: 1, start_index: u64::MAX, ..d() }, inv, "count"),
+        (pb::StreamRequest { count: 2, start_index: u64::MAX - 1, ..d() }, inv, "count"),
         (pb::StreamRequest { dataset: "nope".into(), ..d() }, Code::NotFound, "nope"),
+        // a huge name is echoed short: the client sees NOT_FOUND, not a metadata-size error
+        (pb::StreamRequest { dataset: "n".repeat(15_000), ..d() }, Code::NotFound, "(14800 more characters)"),
         (pb::StreamRequest { fingerprint: 0x1234, ..d() }, Code::FailedPrecondition, "fingerprint"),
     ];
     for (r, code, needle) in cases {
         expect_refused(&mut c, r, code, needle).await;
     }
     // GetSample refuses alike
+    let e = c.get_sample(pb::SampleRequest { index: u64::MAX, ..Default::default() }).await.unwrap_err();
+    assert_eq!((e.code(), e.message().starts_with("index")), (inv, true), "{e:?}");
     let e = c.get_sample(pb::SampleRequest { crop: crop(9000, 0, 0), ..Default::default() }).await.unwrap_err();
     assert_eq!((e.code(), e.message().starts_with("crop.width")), (inv, true), "{e:?}");
     let e = c.get_sample(pb::SampleRequest { fingerprint: 7, ..Default::default() }).await.unwrap_err();
@@ -606,4 +613,45 @@ fn pull_saves_the_flo_layout_and_health_exits_by_status() {
     drop(server);
     let h = Command::new(bin).args(["health", "--addr", "127.0.0.1:1", "--timeout-s", "2"]).output().unwrap();
     assert!(!h.status.success());
+}
+
+/// The end of the index space: an endless stream near 2^64 sends every index below 2^64 - 1
+/// once and ends with the end cursor; resuming from that cursor repeats nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_at_the_end_of_the_index_space_ends_without_repeating() {
+    let s = server(config()).await;
+    let mut c = client(s.addr).await;
+    let p = pull_all(&mut c, req(3, u64::MAX - 2, 0)).await;
+    assert!(p.end.is_none(), "{:?}", p.end);
+    assert_eq!(p.indices(), [u64::MAX - 2, u64::MAX - 1]);
+    assert_eq!(*p.cursors.last().unwrap(), (u64::MAX, u64::MAX));
+    let again = pull_all(&mut c, req(3, u64::MAX, 0)).await;
+    assert!(again.end.is_none() && again.samples.is_empty(), "resuming at the end gives nothing");
+    // two ranks: rank 1 of 2 from 2^64 - 4 gets 2^64 - 3 only, its cursor says the end
+    let r = pb::StreamRequest { rank: 1, world_size: 2, ..req(3, u64::MAX - 3, 0) };
+    let p = pull_all(&mut c, r).await;
+    assert_eq!(p.indices(), [u64::MAX - 2]);
+    assert_eq!(*p.cursors.last().unwrap(), (u64::MAX, u64::MAX - 1));
+}
+
+/// A start-up error never prints raw bytes: a `--source` that is a `.tar` of random bytes
+/// (control characters, escape sequences) gives one printable line and exit code 2.
+#[test]
+fn a_binary_garbage_source_gives_one_printable_error_line() {
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("garbage-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let tar = dir.join("noise.tar");
+    // a deterministic byte soup with every byte value, escape sequences included
+    let bytes: Vec<u8> = (0..20_000u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
+    std::fs::write(&tar, bytes).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+        .args(["serve", "--addr", "127.0.0.1:0", "--size", SIZE, "--log-level", "warn", "--source"])
+        .arg(&tar)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).expect("stderr is UTF-8, not raw bytes");
+    assert_eq!(err.lines().count(), 1, "{err:?}");
+    assert!(err.starts_with("error: ") && err.contains("noise.tar"), "{err:?}");
+    assert!(!err.trim_end().chars().any(char::is_control), "{err:?}");
 }

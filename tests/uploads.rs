@@ -193,3 +193,38 @@ fn limits_and_malformed_streams_fail_the_whole_upload() {
     up.push("", "", "", &img[10..]).unwrap();
     assert_eq!(up.finish().unwrap().sources, 2);
 }
+
+/// A file sent twice back to back (same name and kind) is not appended to the first: the name is
+/// rejected whole, as anywhere else in the upload; bytes after a complete PNG, JPEG or `.npy`
+/// are rejected, never silently dropped.
+#[test]
+fn a_file_sent_twice_or_with_trailing_bytes_is_rejected() {
+    let st = store();
+    let mut up = st.session();
+    let mut jpeg = std::io::Cursor::new(Vec::new());
+    image::RgbImage::from_fn(16, 8, |x, y| image::Rgb([(x * 13) as u8, (y * 29) as u8, 40]))
+        .write_to(&mut jpeg, image::ImageFormat::Jpeg)
+        .unwrap();
+    let jpeg = jpeg.into_inner();
+    up.push("twice", "a", "image", &png(16, 8, 1)).unwrap();
+    up.push("", "a", "image", &jpeg).unwrap(); // back to back: the same file again
+    let mut junk_png = png(16, 8, 2);
+    junk_png.extend_from_slice(b"junk");
+    up.push("", "b", "image", &junk_png).unwrap();
+    let mut junk_jpeg = jpeg.clone();
+    junk_jpeg.extend_from_slice(&[0u8; 7]);
+    up.push("", "c", "image", &junk_jpeg).unwrap();
+    up.push("", "d", "image", &png(16, 8, 3)).unwrap();
+    let mut junk_npy = npy(8, 16, 2.0);
+    junk_npy.push(1);
+    up.push("", "d", "depth", &junk_npy).unwrap();
+    up.push("", "e", "image", &jpeg).unwrap(); // a clean JPEG is accepted
+    let sum = up.finish().unwrap();
+    let has = |prefix: &str, needle: &str| sum.rejected.iter().any(|r| r.starts_with(prefix) && r.contains(needle));
+    assert!(has("a:", "sent twice"), "{:?}", sum.rejected);
+    assert!(has("b:", "4 bytes after the end"), "{:?}", sum.rejected);
+    assert!(has("c:", "7 bytes after the end"), "{:?}", sum.rejected);
+    assert!(has("d:", "1 bytes after the end"), "{:?}", sum.rejected);
+    let src = st.source("twice").unwrap();
+    assert_eq!((src.len(), src.id(0)), (1, "e".to_string()), "only the clean file is stored: {:?}", sum.rejected);
+}

@@ -74,7 +74,8 @@ pub fn run() -> i32 {
     match result {
         Ok(()) => 0,
         Err(CliError(msg)) => {
-            eprintln!("error: {}", msg.replace('\n', " "));
+            // one printable line: never raw bytes from a file or a request
+            eprintln!("error: {}", mpiflow::failure::printable(&msg, 4096));
             2
         }
     }

@@ -4,6 +4,7 @@
 use tonic::metadata::MetadataValue;
 use tonic::{Code, Status};
 
+use crate::failure::{echo, printable};
 use crate::sample::recipe::SampleError;
 use crate::source::SourceError;
 
@@ -17,11 +18,13 @@ pub enum ServiceError {
     /// A request field is out of range or malformed; the message starts with the field's name.
     #[error("{field}: {message}")]
     InvalidArgument { field: &'static str, message: String },
-    #[error("unknown dataset {0:?} (GetInfo lists the datasets)")]
+    /// The name is echoed short and escaped ([`echo`]).
+    #[error("unknown dataset {} (GetInfo lists the datasets)", echo(.0))]
     UnknownDataset(String),
     #[error(
-        "fingerprint: the request expects dataset {dataset:?} to have fingerprint {requested:016x}, but it has \
-         {actual:016x} (different sources or sample configuration)"
+        "fingerprint: the request expects dataset {} to have fingerprint {requested:016x}, but it has \
+         {actual:016x} (different sources or sample configuration)",
+        echo(dataset)
     )]
     FingerprintMismatch { dataset: String, requested: u64, actual: u64 },
     #[error("too many streams: {limit} are open (max_streams)")]
@@ -96,9 +99,13 @@ impl From<SourceError> for ServiceError {
     }
 }
 
+/// Most characters of a status message: a message never grows with what a client sent (a
+/// gRPC client refuses metadata over its limit, which would hide the real error).
+pub const MAX_STATUS_CHARS: usize = 2048;
+
 impl From<ServiceError> for Status {
     fn from(e: ServiceError) -> Self {
-        Status::new(e.code(), e.to_string())
+        Status::new(e.code(), printable(&e.to_string(), MAX_STATUS_CHARS))
     }
 }
 

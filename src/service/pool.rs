@@ -53,19 +53,23 @@ pub struct StreamSpec {
     pub max_message_bytes: usize,
 }
 
+/// The end of the index space: sample indices are `0 .. END_INDEX` (2^64 - 1 itself is never a
+/// sample), so a cursor can always say "after the last index" without repeating it.
+pub const END_INDEX: u64 = u64::MAX;
+
 impl StreamSpec {
-    /// The index of position `k`, or None past the end of the index space.
+    /// The index of position `k`, or None at or past [`END_INDEX`].
     pub fn index(&self, k: u64) -> Option<u64> {
-        k.checked_mul(self.world_size)?.checked_add(self.start_index)?.checked_add(self.rank)
+        k.checked_mul(self.world_size)?.checked_add(self.start_index)?.checked_add(self.rank).filter(|&i| i < END_INDEX)
     }
 
-    /// The number of positions this stream has (count, or as many as fit in u64).
+    /// The number of positions this stream has (count, or as many as fit below [`END_INDEX`]).
     pub fn len(&self) -> u64 {
         let first = match self.start_index.checked_add(self.rank) {
-            Some(f) => f,
-            None => return 0,
+            Some(f) if f < END_INDEX => f,
+            _ => return 0,
         };
-        let fit = ((u64::MAX - first) / self.world_size.max(1)).saturating_add(1);
+        let fit = (END_INDEX - 1 - first) / self.world_size.max(1) + 1;
         if self.count == 0 {
             fit
         } else {
@@ -77,9 +81,11 @@ impl StreamSpec {
         self.len() == 0
     }
 
-    /// The cursor (next_index, resume_start_index) after `k` positions were delivered.
+    /// The cursor (next_index, resume_start_index) after `k` positions were delivered; past the
+    /// last index it is [`END_INDEX`] (and `END_INDEX - rank`): a request resuming from it gets
+    /// nothing, so nothing is repeated or skipped.
     pub fn cursor(&self, k: u64) -> (u64, u64) {
-        let next = self.index(k).unwrap_or(u64::MAX);
+        let next = self.index(k).unwrap_or(END_INDEX);
         (next, next.saturating_sub(self.rank))
     }
 }

@@ -174,6 +174,9 @@ impl State {
 
     /// One sample through the worker pool (GetSample and the warm-up).
     pub async fn one_sample(self: &Arc<Self>, r: &pb::SampleRequest) -> Result<pb::Sample, Status> {
+        if r.index == super::pool::END_INDEX {
+            return Err(ServiceError::invalid("index", "2^64 - 1 is the end of the index space, not a sample").into());
+        }
         let out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;

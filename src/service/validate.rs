@@ -126,8 +126,14 @@ pub fn stream_shape(r: &pb::StreamRequest, config: &ServiceConfig) -> Result<(u3
         .start_index
         .checked_add(u64::from(r.rank))
         .ok_or_else(|| invalid("start_index", format!("{} + rank {} overflows u64", r.start_index, r.rank)))?;
-    if r.count > 0 && (r.count - 1).checked_mul(u64::from(world)).and_then(|d| d.checked_add(first)).is_none() {
-        return Err(invalid("count", format!("{} samples from index {first} step {world} overflow u64", r.count)));
+    // indices are 0 .. 2^64 - 1 (END_INDEX, the "after the last" cursor, is never a sample); a
+    // counted request must fit as a whole
+    let last = (r.count.max(1) - 1).checked_mul(u64::from(world)).and_then(|d| d.checked_add(first));
+    if r.count > 0 && last.is_none_or(|l| l == super::pool::END_INDEX) {
+        return Err(invalid(
+            "count",
+            format!("{} samples from index {first} step {world} reach the end of the index space (2^64 - 1)", r.count),
+        ));
     }
     let batch = if r.batch_size == 0 { 1 } else { r.batch_size };
     if batch > config.max_batch_size {

@@ -7,16 +7,17 @@
 //!
 //! A chunk carries `(dataset, name, kind, data)` as the proto's `SourceChunk`: `dataset` is read
 //! from the first chunk of the upload (later values are ignored); a chunk with a non-empty `name`
-//! (and `kind`) different from the current file's starts a new file, an empty `name` continues the
-//! current one. `kind` is `image` (PNG or JPEG), `depth` (a `.npy` float depth in any linear unit,
+//! starts a new file (even with the current file's name: that is the same file sent twice), an
+//! empty `name` continues the current one. `kind` is `image` (PNG or JPEG), `depth` (a `.npy` float depth in any linear unit,
 //! or an 8/16-bit grey PNG disparity in [0, 1], told apart by their first bytes) or `mask` (an
 //! instance-id PNG). Depth and mask attach to the image of the same name, sent in the same upload
 //! or already in the dataset.
 //!
 //! Names are **stems only**: 1 to 128 of `A-Z a-z 0-9 - _ .`, not starting with `.`, without
 //! `..` (so no paths, ever). A file with a bad name or kind, over the per-file limit
-//! ([`ImageLimits::max_bytes`](crate::io::image::ImageLimits::max_bytes)), sent twice, or that
-//! does not decode (checked at [`finish`](UploadSession::finish) by decoding it fully under the
+//! ([`ImageLimits::max_bytes`](crate::io::image::ImageLimits::max_bytes)), sent twice (the same
+//! name and kind anywhere in one upload: the name is rejected whole), with bytes after the end of
+//! a complete PNG, JPEG or `.npy` ([`crate::io::extent`]), or that does not decode (checked at [`finish`](UploadSession::finish) by decoding it fully under the
 //! image limits) is **rejected** as `name: reason` and the upload goes on; an item with a
 //! rejected part is rejected whole (an image without the depth that was meant for it would make
 //! other samples). Over [`UploadLimits::max_upload_bytes`] (all chunks of one upload, checked as
@@ -390,11 +391,9 @@ impl UploadSession {
             )));
         }
         let kind_parsed = if kind.is_empty() { None } else { Some(Kind::parse(kind)) };
-        let starts_new = !name.is_empty()
-            && match &self.current {
-                Some(c) => c.name != name || (!kind.is_empty() && c.kind != kind_parsed.flatten()),
-                None => true,
-            };
+        // a named chunk always starts a file (the proto: the first chunk of each file names it,
+        // the following ones do not), so the same name and kind twice is a second file: rejected
+        let starts_new = !name.is_empty();
         if starts_new {
             self.close_current();
             let mut c =
@@ -440,10 +439,17 @@ impl UploadSession {
 
     fn close_current(&mut self) {
         if let Some(c) = self.current.take() {
-            if !c.rejected {
-                if let Some(k) = c.kind {
-                    self.files.push((c.name, k, c.data));
-                }
+            if c.rejected {
+                return;
+            }
+            // bytes after a complete PNG, JPEG or .npy are refused, never silently dropped
+            if let Some(extra) = crate::io::extent::trailing_bytes(&c.data).filter(|&n| n > 0) {
+                self.rejected.push(format!("{}: {extra} bytes after the end of the file", c.name));
+                self.rejected_names.insert(c.name);
+                return;
+            }
+            if let Some(k) = c.kind {
+                self.files.push((c.name, k, c.data));
             }
         }
     }
