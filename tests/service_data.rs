@@ -224,3 +224,53 @@ async fn shards_serve_and_uploads_make_datasets() {
     assert!(info.datasets.iter().all(|d| d.name != "big"));
     s.shutdown(Duration::from_secs(5)).await;
 }
+
+/// Uploads are checked at the door against what the server can make of them: on a server
+/// without a depth model an image without depth, and depth that is all NaN, zero or negative,
+/// are rejected with their reason when uploaded (before, they were accepted and every stream on
+/// the dataset then failed); the good item is stored and streams.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_that_could_never_make_a_scene_are_rejected_at_the_door() {
+    let s = start(config(vec![])).await.unwrap();
+    let mut c = client(s.addr).await;
+    let (w, h) = (W as usize, H as usize);
+    let npy = |v: f32| {
+        let mut out = Vec::new();
+        write_f32_to(&mut out, &[h as u64, w as u64], &vec![v; w * h]).unwrap();
+        out
+    };
+    let chunk = |dataset: &str, name: &str, kind: &str, data: Vec<u8>| pb::SourceChunk {
+        dataset: dataset.into(),
+        name: name.into(),
+        kind: kind.into(),
+        data,
+    };
+    let chunks = vec![
+        chunk("door", "nodepth", "image", png(W, H, 1)),
+        chunk("", "nan", "image", png(W, H, 2)),
+        chunk("", "nan", "depth", npy(f32::NAN)),
+        chunk("", "zero", "image", png(W, H, 3)),
+        chunk("", "zero", "depth", npy(0.0)),
+        chunk("", "negative", "image", png(W, H, 4)),
+        chunk("", "negative", "depth", npy(-2.0)),
+        chunk("", "good", "image", png(W, H, 5)),
+        chunk("", "good", "depth", depth_npy(w, h)),
+    ];
+    let summary = c.upload_sources(tokio_stream::iter(chunks)).await.unwrap().into_inner();
+    assert_eq!(summary.sources, 1, "{summary:?}");
+    for (name, needle) in [
+        ("nodepth", "no depth model"),
+        ("nan", "no known pixel"),
+        ("zero", "no known pixel"),
+        ("negative", "no known pixel"),
+    ] {
+        assert!(
+            summary.rejected.iter().any(|r| r.starts_with(&format!("{name}:")) && r.contains(needle)),
+            "{name}: {:?}",
+            summary.rejected
+        );
+    }
+    let got = pull(&mut c, pb::StreamRequest { dataset: "door".into(), count: 2, ..Default::default() }).await;
+    assert!(got.iter().all(|s| s.source_id == "good"), "the stored item streams");
+    s.shutdown(Duration::from_secs(5)).await;
+}

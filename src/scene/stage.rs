@@ -107,6 +107,30 @@ impl SceneStage {
         h.finish()
     }
 
+    /// Whether `item` can make a scene with this stage, checked without running any model or
+    /// building the MPI: it has depth (or an MPI), or a depth model is configured, and its given
+    /// depth can be brought to the scene scale (some finite positive value). Uploads run it at
+    /// the door so that an item that would fail every sample is rejected, not accepted.
+    pub fn check_item(&self, item: &SourceItem) -> Result<(), SceneError> {
+        let (w, h) = (item.image.width, item.image.height);
+        if item.mpi.is_some() {
+            return Ok(());
+        }
+        match &item.depth {
+            Some(GivenDepth::Depth(d)) => {
+                scale::disparity_from_depth(d, w, h).map(|_| ()).map_err(|e| in_source(&item.id, e))
+            }
+            Some(GivenDepth::Disparity(d)) => {
+                scale::disparity_from_unit(d, w, h).map(|_| ()).map_err(|e| in_source(&item.id, e))
+            }
+            None if self.depth.is_some() => Ok(()),
+            None => Err(SceneError::Data {
+                kind: FailureKind::Depth,
+                message: format!("source {} has no depth and no depth model is configured", item.id),
+            }),
+        }
+    }
+
     /// Builds the scene of one item (see the module documentation for which parts are computed).
     pub fn scene(&self, item: SourceItem) -> Result<Scene, SceneError> {
         let SourceItem { id, image, depth, masks, mpi, intrinsics } = item;

@@ -196,7 +196,13 @@ impl Datasets {
         }
         let upload_options = SourceOptions { resize, limits: config.image_limits(), ..SourceOptions::default() };
         let upload_limits = UploadLimits { max_upload_bytes: config.max_upload_bytes, ..UploadLimits::default() };
-        let uploads = UploadStore::new(upload_options, upload_limits);
+        // items that could never make a scene with these models are rejected at the door
+        let check_stage = stage.clone();
+        let uploads = UploadStore::with_check(
+            upload_options,
+            upload_limits,
+            Arc::new(move |item| check_stage.check_item(item).map_err(|e| e.to_string())),
+        );
         Ok(Self {
             list,
             cache,

@@ -256,10 +256,16 @@ struct Inner {
     bytes: u64,
 }
 
+/// A check of a decoded item against what the server can make of it (the server passes its
+/// scene stage's `check_item`): `Err(reason)` rejects the item at the door.
+pub type ItemCheck = dyn Fn(&SourceItem) -> Result<(), String> + Send + Sync;
+
 /// Named upload datasets held in memory; see the module documentation.
 pub struct UploadStore {
     options: SourceOptions,
     limits: UploadLimits,
+    /// Run on every decoded item before it is accepted (none = decoding is the only check).
+    check: Option<Arc<ItemCheck>>,
     inner: Mutex<Inner>,
 }
 
@@ -272,7 +278,14 @@ impl std::fmt::Debug for UploadStore {
 impl UploadStore {
     /// An empty store; `options` decode the items (image limits, resize, intrinsics).
     pub fn new(options: SourceOptions, limits: UploadLimits) -> Arc<Self> {
-        Arc::new(UploadStore { options, limits, inner: Mutex::new(Inner::default()) })
+        Arc::new(UploadStore { options, limits, check: None, inner: Mutex::new(Inner::default()) })
+    }
+
+    /// A store that also runs `check` on every decoded item and rejects, with its reason, an
+    /// item that would decode but never make a sample (the server passes its scene stage's
+    /// check: no depth and no depth model, unusable depth).
+    pub fn with_check(options: SourceOptions, limits: UploadLimits, check: Arc<ItemCheck>) -> Arc<Self> {
+        Arc::new(UploadStore { options, limits, check: Some(check), inner: Mutex::new(Inner::default()) })
     }
 
     fn lock(&self) -> MutexGuard<'_, Inner> {
@@ -509,10 +522,18 @@ impl UploadSession {
             if let Some(bytes) = parts.remove(&Kind::Mask) {
                 item.mask = Some(Part::new(bytes));
             }
-            // decode everything once, as a sample would
-            if let Err(e) = decode(&dataset, &name, &item, &options) {
-                rejected.push(format!("{name}: {e}"));
-                continue;
+            // decode everything once, as a sample would, and check it can make a scene
+            match decode(&dataset, &name, &item, &options) {
+                Err(e) => {
+                    rejected.push(format!("{name}: {e}"));
+                    continue;
+                }
+                Ok(decoded) => {
+                    if let Some(Err(reason)) = store.check.as_ref().map(|c| c(&decoded)) {
+                        rejected.push(format!("{name}: {reason}"));
+                        continue;
+                    }
+                }
             }
             accepted_files += count;
             accepted_items.insert(name, item);
