@@ -30,11 +30,18 @@ pub enum FailureKind {
     Duplicate,
     /// `unnamed`: a shard member without a key or field.
     Unnamed,
+    /// `not-a-file`: a folder entry with a source file's name that is not a regular file (a
+    /// FIFO, a device, a directory named `x.png`), left out when the folder is listed.
+    NotAFile,
+    /// `dangling-link`: a symbolic link whose target does not exist.
+    DanglingLink,
+    /// `outside-root`: a symbolic link that leads out of the source folder (not followed).
+    OutsideRoot,
 }
 
 impl FailureKind {
     /// The reason string (`decode`, `truncated`, `too-large`, `depth`, `mask`, `mpi`, `scene`,
-    /// `no-image`, `duplicate`, `unnamed`).
+    /// `no-image`, `duplicate`, `unnamed`, `not-a-file`, `dangling-link`, `outside-root`).
     pub const fn as_str(self) -> &'static str {
         match self {
             FailureKind::Decode => "decode",
@@ -47,6 +54,9 @@ impl FailureKind {
             FailureKind::NoImage => "no-image",
             FailureKind::Duplicate => "duplicate",
             FailureKind::Unnamed => "unnamed",
+            FailureKind::NotAFile => "not-a-file",
+            FailureKind::DanglingLink => "dangling-link",
+            FailureKind::OutsideRoot => "outside-root",
         }
     }
 

@@ -618,3 +618,44 @@ fn dump_builtin_scenes() {
         assert_eq!(distinct.len(), visible + 1, "{}: background + visible objects", c.id);
     }
 }
+
+/// A folder's entries that are not photos it can read are left out with a reason, never
+/// silently: a FIFO, a dangling symbolic link, a directory named `x.png` and links out of the
+/// source folder (to `/dev/zero`, to a photo elsewhere: not followed). A link to a photo inside
+/// the folder is a photo.
+#[cfg(unix)]
+#[test]
+fn folder_entries_left_out_are_reported_and_links_stay_inside() {
+    let root = std::env::temp_dir().join(format!("mpiflow-sources-{}-entries", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    let dir = root.join("photos");
+    std::fs::create_dir_all(&dir).unwrap();
+    let photo = |p: &Path| {
+        image::RgbImage::from_fn(20, 10, |x, y| image::Rgb([(x * 9) as u8, (y * 20) as u8, 3])).save(p).unwrap();
+    };
+    photo(&dir.join("a.png"));
+    photo(&dir.join("b.png"));
+    photo(&root.join("outside.png"));
+    std::os::unix::fs::symlink(dir.join("a.png"), dir.join("c.png")).unwrap();
+    std::os::unix::fs::symlink(root.join("outside.png"), dir.join("d.png")).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", dir.join("e.png")).unwrap();
+    std::os::unix::fs::symlink(dir.join("missing.png"), dir.join("f.png")).unwrap();
+    std::fs::create_dir_all(dir.join("g.png")).unwrap();
+    std::fs::create_dir_all(dir.join("subfolder")).unwrap();
+    assert!(std::process::Command::new("mkfifo").arg(dir.join("h.png")).status().unwrap().success());
+    let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+    let ids: Vec<String> = (0..src.len()).map(|i| src.id(i)).collect();
+    assert_eq!(ids, ["a", "b", "c"], "the link inside the folder is a photo");
+    let skipped: Vec<(String, FailureKind)> = src.skipped().into_iter().map(|s| (s.item, s.kind)).collect();
+    assert_eq!(
+        skipped,
+        [
+            ("d.png".to_string(), FailureKind::OutsideRoot),
+            ("e.png".to_string(), FailureKind::OutsideRoot),
+            ("f.png".to_string(), FailureKind::DanglingLink),
+            ("g.png".to_string(), FailureKind::NotAFile),
+            ("h.png".to_string(), FailureKind::NotAFile),
+        ]
+    );
+    std::fs::remove_dir_all(&root).unwrap();
+}

@@ -40,6 +40,15 @@
 //! default (`0.58 W, 0.58 H`, centre; left to the scene stage) unless
 //! [`SourceOptions::intrinsics`] sets them for the run.
 //!
+//! # Entries left out
+//!
+//! Listing a folder leaves out, each with its [`FailureKind`] in [`Source::skipped`] (so in
+//! `GetInfo` and `mpiflow_skipped_sources`): names that are not UTF-8, unreadable entries,
+//! dangling symbolic links (`dangling-link`), links that lead out of the source folder, which are
+//! not followed (`outside-root`), and entries with a source file's extension that are not regular
+//! files (`not-a-file`: FIFOs, devices, a directory named `x.png`). Links inside the folder are
+//! followed.
+//!
 //! # Fingerprint
 //!
 //! FNV-1a 64 ([`Fnv64`]) over the layout, each item's relative file paths (`/`-separated) and
@@ -52,7 +61,7 @@ use super::given::fit;
 pub use super::given::{
     depth_npy_from_bytes, disparity_png_from_bytes, read_depth, read_depth_npy, read_disparity_png, resize_rgb,
 };
-use super::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
+use super::{FailureKind, Fnv64, GivenDepth, SkippedItem, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits};
 use crate::mpi::{Mpi, MpiError};
@@ -190,6 +199,9 @@ pub struct DirSource {
     entries: Vec<Entry>,
     options: SourceOptions,
     fingerprint: u64,
+    /// Folder entries left out when listed (not regular files, dangling links, links out of the
+    /// folder), with their reasons.
+    skipped: Vec<SkippedItem>,
 }
 
 const IMAGE_EXTS: [&str; 3] = ["png", "jpg", "jpeg"];
@@ -222,22 +234,69 @@ pub(crate) fn over_limit(size: u64, limits: &ImageLimits) -> String {
     format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes)
 }
 
-/// Regular files of a directory as (name, size), sorted by name; names that are not UTF-8 are
-/// skipped (they cannot be ids).
-fn list_files(dir: &Path) -> Result<Vec<(String, u64)>, SourceError> {
-    let rd = std::fs::read_dir(dir).map_err(|e| io_err(dir, &e, FailureKind::Decode))?;
-    let mut out = Vec::new();
-    for ent in rd {
-        let ent = ent.map_err(|e| io_err(dir, &e, FailureKind::Decode))?;
-        let Ok(name) = ent.file_name().into_string() else { continue };
-        // follow symlinks: a linked photo is a photo
-        let Ok(meta) = std::fs::metadata(ent.path()) else { continue };
-        if meta.is_file() {
-            out.push((name, meta.len()));
+/// Extensions of the files a folder source reads (entries with them are reported when left out).
+const SOURCE_EXTENSIONS: [&str; 8] = ["png", "jpg", "jpeg", "npy", "pfm", "npz", "json", "tar"];
+
+/// A folder listing: regular files as (name, size), sorted by name, and what was left out.
+struct Listing<'a> {
+    /// The canonical source root: symbolic links that lead out of it are not followed.
+    root: &'a Path,
+    /// Entries left out, with their reason (in listing order, sorted at the end).
+    skipped: Vec<SkippedItem>,
+}
+
+impl Listing<'_> {
+    /// Regular files of `dir` (`rel` is its path below the root, `""` or `"images/"`, ...) as
+    /// (name, size), sorted by name. Left out, with a reason: names that are not UTF-8 (they
+    /// cannot be ids), dangling links, links out of the root, and entries with a source file's
+    /// extension that are not regular files (FIFOs, devices, directories named `x.png`);
+    /// unreadable entries. Directories without such an extension are subfolders, not reported.
+    fn files(&mut self, dir: &Path, rel: &str) -> Result<Vec<(String, u64)>, SourceError> {
+        let rd = std::fs::read_dir(dir).map_err(|e| io_err(dir, &e, FailureKind::Decode))?;
+        let mut out = Vec::new();
+        for ent in rd {
+            let ent = ent.map_err(|e| io_err(dir, &e, FailureKind::Decode))?;
+            let path = ent.path();
+            let shown = format!("{rel}{}", ent.file_name().to_string_lossy());
+            let mut skip = |kind: FailureKind, reason: &str| {
+                self.skipped.push(SkippedItem { item: shown.clone(), kind, reason: reason.to_string() });
+            };
+            let Ok(name) = ent.file_name().into_string() else {
+                skip(FailureKind::Decode, "the name is not UTF-8");
+                continue;
+            };
+            let relevant = lower_ext(&name).is_some_and(|(_, e)| SOURCE_EXTENSIONS.contains(&e.as_str()));
+            let Ok(link) = std::fs::symlink_metadata(&path) else {
+                skip(FailureKind::Decode, "cannot be read");
+                continue;
+            };
+            if link.file_type().is_symlink() {
+                // a linked photo is a photo, as long as it stays inside the source folder
+                match std::fs::canonicalize(&path) {
+                    Err(_) => {
+                        skip(FailureKind::DanglingLink, "a symbolic link to nothing");
+                        continue;
+                    }
+                    Ok(target) if !target.starts_with(self.root) => {
+                        skip(FailureKind::OutsideRoot, "a symbolic link out of the source folder (not followed)");
+                        continue;
+                    }
+                    Ok(_) => {}
+                }
+            }
+            let Ok(meta) = std::fs::metadata(&path) else {
+                skip(FailureKind::Decode, "cannot be read");
+                continue;
+            };
+            if meta.is_file() {
+                out.push((name, meta.len()));
+            } else if !meta.is_dir() || relevant {
+                skip(FailureKind::NotAFile, "not a regular file");
+            }
         }
+        out.sort();
+        Ok(out)
     }
-    out.sort();
-    Ok(out)
 }
 
 /// Images of a listing as (stem, name, size), with ids made unique.
@@ -269,13 +328,13 @@ fn image_entries(files: &[(String, u64)], prefix: &str) -> Vec<Entry> {
 /// Companion files of a reference-layout subfolder by stem: (lower-case extension, name, size).
 type Companions = HashMap<String, Vec<(String, String, u64)>>;
 
-fn companions(root: &Path, sub: &str) -> Result<Companions, SourceError> {
+fn companions(listing: &mut Listing<'_>, root: &Path, sub: &str) -> Result<Companions, SourceError> {
     let dir = root.join(sub);
     let mut map: Companions = HashMap::new();
     if !dir.is_dir() {
         return Ok(map);
     }
-    for (name, size) in list_files(&dir)? {
+    for (name, size) in listing.files(&dir, &format!("{sub}/"))? {
         if let Some((stem, ext)) = lower_ext(&name) {
             map.entry(stem).or_default().push((ext, name, size));
         }
@@ -301,6 +360,8 @@ impl DirSource {
     /// exist, or a directory without images, is an error.
     pub fn open(path: &Path, options: &SourceOptions) -> Result<Self, SourceError> {
         let meta = std::fs::metadata(path).map_err(|e| io_err(path, &e, FailureKind::Decode))?;
+        let canonical = std::fs::canonicalize(path).map_err(|e| io_err(path, &e, FailureKind::Decode))?;
+        let mut listing = Listing { root: &canonical, skipped: Vec::new() };
         let (root, layout, entries) = if meta.is_file() {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
             let entries = image_entries(&[(name.clone(), meta.len())], "");
@@ -314,11 +375,11 @@ impl DirSource {
             let root = path.parent().map(Path::to_path_buf).unwrap_or_default();
             (root, Layout::File, entries)
         } else if path.join("images").is_dir() {
-            let mut entries = image_entries(&list_files(&path.join("images"))?, "images/");
-            let depths = companions(path, "depths")?;
-            let disps = companions(path, "disps")?;
-            let masks = companions(path, "masks")?;
-            let mpis = companions(path, "mpis")?;
+            let mut entries = image_entries(&listing.files(&path.join("images"), "images/")?, "images/");
+            let depths = companions(&mut listing, path, "depths")?;
+            let disps = companions(&mut listing, path, "disps")?;
+            let masks = companions(&mut listing, path, "masks")?;
+            let mpis = companions(&mut listing, path, "mpis")?;
             for e in &mut entries {
                 let stem = stem_of(e);
                 e.depth = pick(&depths, "depths", &stem, "npy")
@@ -333,7 +394,7 @@ impl DirSource {
             }
             (path.to_path_buf(), Layout::Reference, entries)
         } else {
-            (path.to_path_buf(), Layout::Plain, image_entries(&list_files(path)?, ""))
+            (path.to_path_buf(), Layout::Plain, image_entries(&listing.files(path, "")?, ""))
         };
         if entries.is_empty() {
             let message = if layout == Layout::Reference {
@@ -343,7 +404,9 @@ impl DirSource {
             };
             return Err(SourceError::file(path.display().to_string(), FailureKind::Decode, message));
         }
-        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0 };
+        let mut skipped = listing.skipped;
+        skipped.sort_by(|a, b| a.item.cmp(&b.item));
+        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
     }
@@ -550,6 +613,10 @@ impl Source for DirSource {
 
     fn fingerprint(&self) -> u64 {
         self.fingerprint
+    }
+
+    fn skipped(&self) -> Vec<SkippedItem> {
+        self.skipped.clone()
     }
 
     fn describe(&self) -> String {
