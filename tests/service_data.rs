@@ -274,3 +274,49 @@ async fn uploads_that_could_never_make_a_scene_are_rejected_at_the_door() {
     assert!(got.iter().all(|s| s.source_id == "good"), "the stored item streams");
     s.shutdown(Duration::from_secs(5)).await;
 }
+
+/// An upload that starts and never finishes holds one of `max_concurrent_uploads` slots (and
+/// its bytes); a further upload is RESOURCE_EXHAUSTED with nothing kept; when the stalled client
+/// goes away its slot comes back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_in_progress_are_bounded() {
+    let s = start(ServiceConfig { max_concurrent_uploads: 1, ..config(vec![]) }).await.unwrap();
+    let mut c = client(s.addr).await;
+    let chunk = |dataset: &str, name: &str, data: Vec<u8>| pb::SourceChunk {
+        dataset: dataset.into(),
+        name: name.into(),
+        kind: "image".into(),
+        data,
+    };
+    // a stalled upload: one chunk sent, the stream kept open
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tx.send(chunk("stalled", "a", png(W, H, 1))).await.unwrap();
+    let depth = pb::SourceChunk {
+        name: "a".into(),
+        kind: "depth".into(),
+        data: depth_npy(W as usize, H as usize),
+        ..Default::default()
+    };
+    let held = (png(W, H, 1).len() + depth.data.len()) as u64;
+    tx.send(depth).await.unwrap();
+    let mut c2 = c.clone();
+    let stalled = tokio::spawn(async move { c2.upload_sources(tokio_stream::wrappers::ReceiverStream::new(rx)).await });
+    let uploads = s.state.datasets.uploads.clone();
+    let t = std::time::Instant::now();
+    while uploads.in_progress() != (1, held) {
+        assert!(t.elapsed() < Duration::from_secs(30), "the stalled upload never arrived: {:?}", uploads.in_progress());
+        tokio::task::yield_now().await;
+    }
+    let one = vec![chunk("second", "b", png(W, H, 2))];
+    let e = c.upload_sources(tokio_stream::iter(one.clone())).await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(e.message().contains("max_concurrent_uploads"), "{e:?}");
+    let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    assert!(info.datasets.iter().all(|d| d.name != "second"), "nothing of the refused upload is kept");
+    // the stalled client finishes (closes its stream): its upload commits and the slot is free
+    drop(tx);
+    assert_eq!(stalled.await.unwrap().unwrap().into_inner().sources, 1);
+    assert_eq!(uploads.in_progress(), (0, 0));
+    assert_eq!(c.upload_sources(tokio_stream::iter(one)).await.unwrap().into_inner().sources, 0);
+    s.shutdown(Duration::from_secs(5)).await;
+}

@@ -43,7 +43,7 @@ fn names_are_stems_only() {
 #[test]
 fn chunked_files_make_a_sorted_snapshot_whose_fingerprint_follows_content() {
     let st = store();
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     // b's image in three chunks, then its depth; a's image and mask; order of arrival is not the order
     let b = png(16, 8, 2);
     up.push("photos", "b", "image", &b[..10]).unwrap();
@@ -64,7 +64,7 @@ fn chunked_files_make_a_sorted_snapshot_whose_fingerprint_follows_content() {
     assert!(st.dyn_source("photos").unwrap().describe().contains("upload:photos (2 images)"));
 
     // the same content uploaded in another order to another dataset: same fingerprint
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     up.push("copy", "a", "image", &png(16, 8, 1)).unwrap();
     up.push("", "a", "mask", &gray_png(16, 8, 5)).unwrap();
     up.push("", "b", "depth", &npy(8, 16, 3.0)).unwrap();
@@ -73,7 +73,7 @@ fn chunked_files_make_a_sorted_snapshot_whose_fingerprint_follows_content() {
 
     // new content changes it; the old snapshot stays as it was
     let old = st.source("photos").unwrap();
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     up.push("photos", "b", "depth", &npy(8, 16, 4.0)).unwrap();
     let s2 = up.finish().unwrap();
     assert_eq!((s2.accepted, s2.sources), (1, 2));
@@ -92,7 +92,7 @@ fn chunked_files_make_a_sorted_snapshot_whose_fingerprint_follows_content() {
 fn bad_files_are_rejected_by_name_and_the_rest_is_kept() {
     let limits = ImageLimits { max_width: 64, max_bytes: 4000, ..ImageLimits::default() };
     let st = UploadStore::new(SourceOptions { limits, ..SourceOptions::default() }, UploadLimits::default());
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     let good = png(16, 8, 1);
     up.push("ds", "good", "image", &good).unwrap();
     up.push("", "../etc/passwd", "image", &good).unwrap();
@@ -134,31 +134,41 @@ fn bad_files_are_rejected_by_name_and_the_rest_is_kept() {
 
 #[test]
 fn limits_and_malformed_streams_fail_the_whole_upload() {
-    let limits = UploadLimits { max_upload_bytes: 3000, max_total_bytes: 5000, max_datasets: 2, max_items: 2 };
+    let limits = UploadLimits {
+        max_upload_bytes: 3000,
+        max_total_bytes: 5000,
+        max_datasets: 2,
+        max_items: 2,
+        ..UploadLimits::default()
+    };
     let st = UploadStore::new(SourceOptions::default(), limits);
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     let e = up.push("", "a", "image", b"x").unwrap_err();
     assert!(matches!(&e, SourceError::Upload { field: "dataset", .. }), "{e}");
     assert!(e.to_string().starts_with("dataset: "), "{e}");
-    let mut up = st.session();
+    drop(up);
+    let mut up = st.session().unwrap();
     let e = up.push("bad/name", "a", "image", b"x").unwrap_err();
     assert!(matches!(&e, SourceError::Upload { field: "dataset", message } if message.contains("no paths")), "{e}");
-    let mut up = st.session();
+    drop(up);
+    let mut up = st.session().unwrap();
     let e = up.push("ds", "", "", b"x").unwrap_err();
     assert!(matches!(&e, SourceError::Upload { field: "name", message } if message.contains("must name it")), "{e}");
-    let e = st.session().finish().unwrap_err();
+    drop(up);
+    let e = st.session().unwrap().finish().unwrap_err();
     assert!(matches!(&e, SourceError::Upload { field: "dataset", message } if message.contains("no chunks")), "{e}");
 
     let img = png(16, 8, 1);
     assert!(img.len() < 1000, "{}", img.len());
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     up.push("ds", "a", "image", &img).unwrap();
     let e = up.push("", "b", "image", &vec![0u8; 3000]).unwrap_err();
     assert!(matches!(&e, SourceError::Limit(m) if m.contains("per-upload")), "{e}");
     assert!(st.source("ds").is_none(), "nothing of a failed upload is stored");
 
     // items per dataset
-    let mut up = st.session();
+    drop(up);
+    let mut up = st.session().unwrap();
     for name in ["a", "b", "c"] {
         up.push("ds", name, "image", &img).unwrap();
     }
@@ -166,29 +176,29 @@ fn limits_and_malformed_streams_fail_the_whole_upload() {
     assert!(st.source("ds").is_none());
     // datasets
     for ds in ["d1", "d2"] {
-        let mut up = st.session();
+        let mut up = st.session().unwrap();
         up.push(ds, "a", "image", &img).unwrap();
         up.finish().unwrap();
     }
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     up.push("d3", "a", "image", &img).unwrap();
     assert!(matches!(up.finish(), Err(SourceError::Limit(m)) if m.contains("datasets")));
     // the total: checked at the commit, items replaced by the upload not counted twice
     let limits = UploadLimits { max_total_bytes: 2 * img.len() as u64 + 10, ..UploadLimits::default() };
     let st = UploadStore::new(SourceOptions::default(), limits);
     for name in ["a", "b"] {
-        let mut up = st.session();
+        let mut up = st.session().unwrap();
         up.push("ds", name, "image", &img).unwrap();
         up.finish().unwrap();
     }
     assert_eq!(st.total_bytes(), 2 * img.len() as u64);
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     up.push("ds", "c", "image", &img).unwrap();
     let e = up.finish().unwrap_err();
     assert!(matches!(&e, SourceError::Limit(m) if m.contains("store")), "{e}");
     assert_eq!(st.source("ds").unwrap().len(), 2);
     // replacing an item by one of the same size fits
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     up.push("ds", "a", "image", &img[..10]).unwrap();
     up.push("", "", "", &img[10..]).unwrap();
     assert_eq!(up.finish().unwrap().sources, 2);
@@ -200,7 +210,7 @@ fn limits_and_malformed_streams_fail_the_whole_upload() {
 #[test]
 fn a_file_sent_twice_or_with_trailing_bytes_is_rejected() {
     let st = store();
-    let mut up = st.session();
+    let mut up = st.session().unwrap();
     let mut jpeg = std::io::Cursor::new(Vec::new());
     image::RgbImage::from_fn(16, 8, |x, y| image::Rgb([(x * 13) as u8, (y * 29) as u8, 40]))
         .write_to(&mut jpeg, image::ImageFormat::Jpeg)
@@ -227,4 +237,37 @@ fn a_file_sent_twice_or_with_trailing_bytes_is_rejected() {
     assert!(has("d:", "1 bytes after the end"), "{:?}", sum.rejected);
     let src = st.source("twice").unwrap();
     assert_eq!((src.len(), src.id(0)), (1, "e".to_string()), "only the clean file is stored: {:?}", sum.rejected);
+}
+
+/// The budgets of uploads in progress: at most `max_concurrent` sessions at once and at most
+/// `max_buffer_bytes` held by all of them together; over either the upload fails with a limit
+/// (RESOURCE_EXHAUSTED on the wire) and nothing of it is kept; a finished or dropped session
+/// gives its slot and bytes back.
+#[test]
+fn uploads_in_progress_are_bounded_in_number_and_bytes() {
+    let limits = UploadLimits { max_concurrent: 2, max_buffer_bytes: 3000, ..UploadLimits::default() };
+    let st = UploadStore::new(SourceOptions::default(), limits);
+    let a = st.session().unwrap();
+    let mut b = st.session().unwrap();
+    let e = st.session().unwrap_err();
+    assert!(matches!(e, SourceError::Limit(ref m) if m.contains("max_concurrent_uploads")), "{e}");
+    assert_eq!(st.in_progress(), (2, 0));
+    drop(a);
+    let mut c = st.session().unwrap();
+    // bytes: b holds 2000, c may add 1000 but not 1001
+    b.push("one", "x", "image", &vec![7u8; 2000]).unwrap();
+    c.push("two", "y", "image", &vec![7u8; 1000]).unwrap();
+    assert_eq!(st.in_progress(), (2, 3000));
+    let e = c.push("", "", "", &[1]).unwrap_err();
+    assert!(matches!(e, SourceError::Limit(ref m) if m.contains("max_upload_buffer_mb")), "{e}");
+    drop(c);
+    assert_eq!(st.in_progress(), (1, 2000), "a dropped session gives its bytes back");
+    // b's file is not an image: rejected, and finishing gives everything back
+    let sum = b.finish().unwrap();
+    assert_eq!(sum.sources, 0);
+    assert_eq!(st.in_progress(), (0, 0));
+    assert!(st.source("two").is_none(), "nothing of the refused upload is kept");
+    let mut d = st.session().unwrap();
+    d.push("three", "z", "image", &png(16, 8, 1)).unwrap();
+    assert_eq!(d.finish().unwrap().sources, 1);
 }

@@ -195,7 +195,12 @@ impl Datasets {
             list.push(Arc::new(ds));
         }
         let upload_options = SourceOptions { resize, limits: config.image_limits(), ..SourceOptions::default() };
-        let upload_limits = UploadLimits { max_upload_bytes: config.max_upload_bytes, ..UploadLimits::default() };
+        let upload_limits = UploadLimits {
+            max_upload_bytes: config.max_upload_bytes,
+            max_concurrent: config.max_concurrent_uploads,
+            max_buffer_bytes: config.max_upload_buffer_mb.saturating_mul(1 << 20),
+            ..UploadLimits::default()
+        };
         // items that could never make a scene with these models are rejected at the door
         let check_stage = stage.clone();
         let uploads = UploadStore::with_check(

@@ -203,7 +203,8 @@ impl State {
         if self.draining.load(Ordering::SeqCst) {
             return Err(ServiceError::Draining);
         }
-        let mut session = self.datasets.uploads.session();
+        // the in-progress budgets: a slot now, bytes as they arrive (RESOURCE_EXHAUSTED over them)
+        let mut session = self.datasets.uploads.session()?;
         let mut dataset = String::new();
         while let Some(chunk) = chunks.message().await.map_err(|e| ServiceError::invalid("chunks", e.message()))? {
             if dataset.is_empty() {

@@ -42,6 +42,7 @@ use super::dir::SourceOptions;
 use super::encoded::{decode_item, sniff_depth, DepthEncoding, Encoded, EncodedItem};
 use super::{fnv1a64, Fnv64, Source, SourceError, SourceItem};
 use std::collections::{BTreeMap, BTreeSet};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 /// Byte and count limits of a [`UploadStore`] (per-file and image limits are the
@@ -56,12 +57,24 @@ pub struct UploadLimits {
     pub max_datasets: usize,
     /// Most items in one dataset.
     pub max_items: usize,
+    /// Most uploads in progress at once (sessions not yet finished or dropped).
+    pub max_concurrent: usize,
+    /// Most bytes held by all uploads in progress together (received, not yet committed).
+    pub max_buffer_bytes: u64,
 }
 
 impl Default for UploadLimits {
-    /// 256 MiB per upload, 1 GiB stored, 64 datasets of at most 100 000 items.
+    /// 256 MiB per upload, 1 GiB stored, 64 datasets of at most 100 000 items; 4 uploads in
+    /// progress holding at most 512 MiB together.
     fn default() -> Self {
-        UploadLimits { max_upload_bytes: 256 << 20, max_total_bytes: 1 << 30, max_datasets: 64, max_items: 100_000 }
+        UploadLimits {
+            max_upload_bytes: 256 << 20,
+            max_total_bytes: 1 << 30,
+            max_datasets: 64,
+            max_items: 100_000,
+            max_concurrent: 4,
+            max_buffer_bytes: 512 << 20,
+        }
     }
 }
 
@@ -266,6 +279,9 @@ pub struct UploadStore {
     limits: UploadLimits,
     /// Run on every decoded item before it is accepted (none = decoding is the only check).
     check: Option<Arc<ItemCheck>>,
+    /// Uploads in progress, and the bytes they hold together (the in-progress budgets).
+    active: AtomicUsize,
+    buffered: AtomicU64,
     inner: Mutex<Inner>,
 }
 
@@ -278,14 +294,30 @@ impl std::fmt::Debug for UploadStore {
 impl UploadStore {
     /// An empty store; `options` decode the items (image limits, resize, intrinsics).
     pub fn new(options: SourceOptions, limits: UploadLimits) -> Arc<Self> {
-        Arc::new(UploadStore { options, limits, check: None, inner: Mutex::new(Inner::default()) })
+        Self::make(options, limits, None)
     }
 
     /// A store that also runs `check` on every decoded item and rejects, with its reason, an
     /// item that would decode but never make a sample (the server passes its scene stage's
     /// check: no depth and no depth model, unusable depth).
     pub fn with_check(options: SourceOptions, limits: UploadLimits, check: Arc<ItemCheck>) -> Arc<Self> {
-        Arc::new(UploadStore { options, limits, check: Some(check), inner: Mutex::new(Inner::default()) })
+        Self::make(options, limits, Some(check))
+    }
+
+    fn make(options: SourceOptions, limits: UploadLimits, check: Option<Arc<ItemCheck>>) -> Arc<Self> {
+        Arc::new(UploadStore {
+            options,
+            limits,
+            check,
+            active: AtomicUsize::new(0),
+            buffered: AtomicU64::new(0),
+            inner: Mutex::new(Inner::default()),
+        })
+    }
+
+    /// Uploads in progress now, and the bytes they hold together.
+    pub fn in_progress(&self) -> (usize, u64) {
+        (self.active.load(Ordering::SeqCst), self.buffered.load(Ordering::SeqCst))
     }
 
     fn lock(&self) -> MutexGuard<'_, Inner> {
@@ -300,9 +332,16 @@ impl UploadStore {
         &self.options
     }
 
-    /// Starts an upload.
-    pub fn session(self: &Arc<Self>) -> UploadSession {
-        UploadSession {
+    /// Starts an upload, or [`SourceError::Limit`] when [`UploadLimits::max_concurrent`]
+    /// uploads are in progress already. The session counts until it is finished or dropped.
+    pub fn session(self: &Arc<Self>) -> Result<UploadSession, SourceError> {
+        let max = self.limits.max_concurrent;
+        if self.active.fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| (n < max).then_some(n + 1)).is_err() {
+            return Err(SourceError::Limit(format!(
+                "upload: {max} uploads are in progress already (max_concurrent_uploads); try again later"
+            )));
+        }
+        Ok(UploadSession {
             store: self.clone(),
             dataset: None,
             current: None,
@@ -310,7 +349,8 @@ impl UploadStore {
             rejected: Vec::new(),
             rejected_names: BTreeSet::new(),
             bytes: 0,
-        }
+            held: 0,
+        })
     }
 
     /// The dataset's current snapshot (`None` if there is no such dataset).
@@ -375,6 +415,16 @@ pub struct UploadSession {
     /// Names with a part rejected while receiving.
     rejected_names: BTreeSet<String>,
     bytes: u64,
+    /// Bytes of this session counted in the store's in-progress budget.
+    held: u64,
+}
+
+impl Drop for UploadSession {
+    /// Gives the session's slot and bytes back to the store's in-progress budgets.
+    fn drop(&mut self) {
+        self.store.buffered.fetch_sub(self.held, Ordering::SeqCst);
+        self.store.active.fetch_sub(1, Ordering::SeqCst);
+    }
 }
 
 impl std::fmt::Debug for UploadSession {
@@ -396,6 +446,20 @@ impl UploadSession {
             self.dataset = Some(dataset.to_string());
         }
         let limits = self.store.limits;
+        // the budget of all uploads in progress, reserved before the bytes are kept
+        let n = data.len() as u64;
+        let cap = limits.max_buffer_bytes;
+        if self
+            .store
+            .buffered
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |b| (b + n <= cap).then_some(b + n))
+            .is_err()
+        {
+            return Err(SourceError::Limit(format!(
+                "upload: uploads in progress hold {cap} bytes together already (max_upload_buffer_mb); try again later"
+            )));
+        }
+        self.held += n;
         self.bytes += data.len() as u64;
         if self.bytes > limits.max_upload_bytes {
             return Err(SourceError::Limit(format!(
