@@ -618,3 +618,17 @@ fn dump_builtin_scenes() {
         assert_eq!(distinct.len(), visible + 1, "{}: background + visible objects", c.id);
     }
 }
+
+#[test]
+fn the_bundled_example_data_is_a_reference_layout_source() {
+    // `mpiflow serve --source examples/data` (README): the photo with its depth
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data");
+    let src = DirSource::open(&root, &SourceOptions::default()).unwrap();
+    assert_eq!(src.layout(), Layout::Reference);
+    assert_eq!((src.len(), src.id(0)), (1, "chelsea".to_string()));
+    let item = src.load(0).unwrap();
+    assert_eq!((item.image.width, item.image.height), (451, 300));
+    let depth = depth_of(&item);
+    assert_eq!(depth.len(), 451 * 300);
+    assert!(depth.iter().all(|d| d.is_finite() && *d > 0.0));
+}

@@ -48,10 +48,10 @@
 //! edited in place to the same size keeps it unless [`SourceOptions::hash_contents`] is set
 //! (which reads every file once at open and hashes its bytes too).
 
+use super::given::fit;
 pub use super::given::{
     depth_npy_from_bytes, disparity_png_from_bytes, read_depth, read_depth_npy, read_disparity_png, resize_rgb,
 };
-use super::given::fit;
 use super::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits};

@@ -146,4 +146,3 @@ pub fn resize_rgb(img: &RgbImage, width: usize, height: usize) -> RgbImage {
     let out = ::image::imageops::resize(&buf, width as u32, height as u32, ::image::imageops::FilterType::Triangle);
     RgbImage { width, height, data: out.into_raw().into_iter().map(|v| v.clamp(0.0, 1.0)).collect() }
 }
-

@@ -152,11 +152,23 @@ class Service(pb_grpc.MpiFlowServicer):
         return make_sample(req.seed, req.index, req.fields, req.flow_dtype, req.compression,
                            req.crop if req.HasField("crop") else None)
 
+    def GetSamples(self, req, context):
+        self._check(req, context)
+        if not 1 <= len(req.indices) <= 256:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"indices: {len(req.indices)} (1 to 256)")
+        for i in req.indices:
+            if self.draining.is_set():
+                context.abort(grpc.StatusCode.UNAVAILABLE, "server draining")
+            if self.delay:
+                time.sleep(self.delay)
+            yield make_sample(req.seed, i, req.fields, req.flow_dtype, req.compression,
+                              req.crop if req.HasField("crop") else None)
+
     def GetInfo(self, req, context):
         return pb.InfoResponse(
             version="fake-0",
             datasets=[pb.DatasetInfo(name=DATASET, fingerprint=FINGERPRINT, sources=4, is_default=True)],
-            limits=pb.Limits(max_message_bytes=64 << 20, max_streams=64, max_batch_size=16),
+            limits=pb.Limits(max_message_bytes=64 << 20, max_streams=64, max_batch_size=16, max_indices=256),
             workers=1,
             serving=not self.draining.is_set(),
         )
