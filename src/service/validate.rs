@@ -147,7 +147,7 @@ pub fn stream_shape(r: &pb::StreamRequest, config: &ServiceConfig) -> Result<(u3
 /// allowed.
 pub fn indices(indices: &[u64]) -> Result<Vec<u64>, ServiceError> {
     if indices.is_empty() {
-        return Err(invalid("indices", "empty (expected 1 to 256 indices)"));
+        return Err(invalid("indices", format!("empty (expected 1 to {MAX_INDICES} indices)")));
     }
     if indices.len() > MAX_INDICES {
         return Err(invalid("indices", format!("{} indices (at most {MAX_INDICES} per request)", indices.len())));

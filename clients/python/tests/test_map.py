@@ -16,8 +16,11 @@ import pytest
 import mpiflow
 
 FIELDS = ["image1", "image2", "flow", "valid", "occlusion", "motions"]
-# small servers for the multi-replica tests (the rendered frame is the whole sample)
-SMALL = ["--size", "96x64", "--workers", "1"]
+
+
+def small(kind):
+    """Flags of small servers for the multi-replica tests (the rendered frame is the sample)."""
+    return ["--size", "96x64", "--workers", "1"] if kind == "real" else []
 
 
 def content(s):
@@ -84,8 +87,8 @@ def distributed_sampler(n, rank, world, seed, epoch):
     return order[rank:total:world]
 
 
-def test_a_distributed_partition_over_two_replicas_and_two_workers_covers_an_epoch_once(spawn):
-    a, b = spawn(extra=SMALL), spawn(extra=SMALL)
+def test_a_distributed_partition_over_two_replicas_and_two_workers_covers_an_epoch_once(kind, spawn):
+    a, b = spawn(extra=small(kind)), spawn(extra=small(kind))
     n, world, workers, batch = 16, 2, 2, 2
     base = mpiflow.MPIFlowMapDataset(f"{a.address},{b.address}", n, seed=9, fields=["flow"], timeout=120)
     got = []
@@ -120,8 +123,8 @@ def test_a_distributed_partition_over_two_replicas_and_two_workers_covers_an_epo
     assert Counter(got) == Counter(range(n)), sorted(got)
 
 
-def test_a_killed_replica_fails_over_to_the_next(spawn):
-    a, b = spawn(extra=SMALL), spawn(extra=SMALL)
+def test_a_killed_replica_fails_over_to_the_next(kind, spawn):
+    a, b = spawn(extra=small(kind)), spawn(extra=small(kind))
     ds = mpiflow.MPIFlowMapDataset([a.address, b.address], 10, seed=2, fields=["image1", "flow"],
                                    timeout=120, retry_timeout=120)
     first = ds.__getitems__([0, 1, 2])
