@@ -167,7 +167,7 @@ impl State {
             prefetch,
             "stream opened"
         );
-        Ok(CountedStream { inner, state: self.clone() })
+        Ok(CountedStream { inner, state: self.clone(), random_access: false })
     }
 
     /// Counts a new stream against `max_streams` (undone by the returned stream's drop).
@@ -216,7 +216,7 @@ impl State {
             prefetch,
             "samples opened"
         );
-        Ok(CountedStream { inner, state: self.clone() })
+        Ok(CountedStream { inner, state: self.clone(), random_access: true })
     }
 
     /// One sample through the worker pool (GetSample and the warm-up).
@@ -329,6 +329,8 @@ impl State {
 pub struct CountedStream {
     inner: SampleStream,
     state: Arc<State>,
+    /// A GetSamples call (one per trainer batch): its close is logged at debug level only.
+    random_access: bool,
 }
 
 impl Stream for CountedStream {
@@ -342,7 +344,11 @@ impl Drop for CountedStream {
     fn drop(&mut self) {
         self.state.active_streams.fetch_sub(1, Ordering::SeqCst);
         self.state.metrics.active_streams.dec();
-        tracing::info!(stream = self.inner.id(), "stream closed");
+        if self.random_access {
+            tracing::debug!(stream = self.inner.id(), "samples closed");
+        } else {
+            tracing::info!(stream = self.inner.id(), "stream closed");
+        }
     }
 }
 
