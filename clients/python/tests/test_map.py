@@ -4,6 +4,8 @@ two workers, and failover when a replica is killed. Also the crop rule (refused,
 one field-name table for every entry point, and a log without colour codes in a file."""
 from __future__ import annotations
 
+import multiprocessing
+import os
 import pickle
 import random
 import threading
@@ -121,6 +123,28 @@ def test_a_distributed_partition_over_two_replicas_and_two_workers_covers_an_epo
         t.join()
     assert not errors, errors
     assert Counter(got) == Counter(range(n)), sorted(got)
+
+
+def _fetch_in_a_process(ds, positions):
+    """A worker process's share: the dataset arrives pickled, opens its own channel."""
+    assert ds._client is None
+    items = ds.__getitems__(positions)
+    return os.getpid(), [(d["index"], d["flow"].tobytes()) for d in items]
+
+
+def test_worker_processes_open_their_own_channels(server):
+    ds = mpiflow.MPIFlowMapDataset(server.address, 8, seed=4, crop=server.crop, fields=["flow"], timeout=120)
+    shares = [[5, 0, 3], [6, 1]]
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(2) as pool:
+        results = pool.starmap(_fetch_in_a_process, [(ds, p) for p in shares])
+    assert all(pid != os.getpid() for pid, _ in results)
+    got = dict(x for _, r in results for x in r)
+    assert sorted(got) == [0, 1, 3, 5, 6]
+    assert ds._client is None, "the parent opened no channel"
+    for d in ds.__getitems__([6, 0]):
+        assert got[d["index"]] == d["flow"].tobytes()
+    ds.close()
 
 
 def test_a_killed_replica_fails_over_to_the_next(kind, spawn):
