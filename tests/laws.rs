@@ -82,17 +82,25 @@ proptest! {
         index in any::<u64>(),
     ) {
         let spec = CropSpec { width: cw, height: ch, random };
-        let (x0, y0, ww, hh) = crop_window(&spec, w, h, SampleAddress { dataset, seed, index });
+        let address = SampleAddress { dataset, seed, index };
+        let side = |asked: u32, side: usize| if asked == 0 { side } else { asked as usize };
+        let (want_w, want_h) = (side(cw, w), side(ch, h));
+        if want_w > w || want_h > h {
+            // larger than the image: refused with both sizes, never shrunk
+            let e = crop_window(&spec, w, h, address).unwrap_err();
+            prop_assert_eq!((e.want_w, e.want_h, e.w, e.h), (want_w, want_h, w, h));
+            return Ok(());
+        }
+        let (x0, y0, ww, hh) = crop_window(&spec, w, h, address).unwrap();
         prop_assert!(ww >= 1 && hh >= 1);
         prop_assert!(x0 + ww <= w && y0 + hh <= h, "({x0}, {y0}, {ww}, {hh}) in {w} x {h}");
-        // the asked size, or the image's where it asks for more (0 = the image's)
-        let want = |asked: u32, side: usize| if asked == 0 { side } else { (asked as usize).min(side) };
-        prop_assert_eq!((ww, hh), (want(cw, w), want(ch, h)));
+        // the asked size (0 = the image's)
+        prop_assert_eq!((ww, hh), (want_w, want_h));
         if !random {
             prop_assert_eq!((x0, y0), ((w - ww) / 2, (h - hh) / 2));
         }
         // the same address, the same window
-        prop_assert_eq!(crop_window(&spec, w, h, SampleAddress { dataset, seed, index }), (x0, y0, ww, hh));
+        prop_assert_eq!(crop_window(&spec, w, h, address), Ok((x0, y0, ww, hh)));
     }
 
     #[test]

@@ -659,3 +659,17 @@ fn folder_entries_left_out_are_reported_and_links_stay_inside() {
     );
     std::fs::remove_dir_all(&root).unwrap();
 }
+
+#[test]
+fn the_bundled_example_data_is_a_reference_layout_source() {
+    // `mpiflow serve --source examples/data` (README): the photo with its depth
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/data");
+    let src = DirSource::open(&root, &SourceOptions::default()).unwrap();
+    assert_eq!(src.layout(), Layout::Reference);
+    assert_eq!((src.len(), src.id(0)), (1, "chelsea".to_string()));
+    let item = src.load(0).unwrap();
+    assert_eq!((item.image.width, item.image.height), (451, 300));
+    let depth = depth_of(&item);
+    assert_eq!(depth.len(), 451 * 300);
+    assert!(depth.iter().all(|d| d.is_finite() && *d > 0.0));
+}

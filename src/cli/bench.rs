@@ -65,7 +65,7 @@ pub struct AccuracyBench {
     #[arg(long, default_value_t = 7)]
     runs: usize,
     /// The photo of the third scene (resized to the bench size).
-    #[arg(long, default_value = "examples/data/chelsea.png")]
+    #[arg(long, default_value = "examples/data/images/chelsea.png")]
     photo: PathBuf,
 }
 

@@ -164,12 +164,15 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
     Ok(c)
 }
 
-/// Logs to stderr as text or JSON lines.
+/// Logs to stderr as text or JSON lines; text is coloured only when stderr is a terminal (a log
+/// redirected to a file or a pipe carries no ANSI codes).
 pub fn init_tracing(format: LogFormat, level: &str) -> Result<(), CliError> {
     let level: tracing::Level = level
         .parse()
         .map_err(|_| CliError(format!("log level {level:?}: expected error, warn, info, debug or trace")))?;
-    let builder = tracing_subscriber::fmt().with_writer(std::io::stderr).with_max_level(level).with_target(false);
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let builder =
+        tracing_subscriber::fmt().with_writer(std::io::stderr).with_max_level(level).with_target(false).with_ansi(ansi);
     let result = match format {
         LogFormat::Json => builder.json().try_init(),
         LogFormat::Text => builder.try_init(),

@@ -45,16 +45,36 @@ impl Default for OutputSpec {
 /// The crop window `(x0, y0, width, height)` of a `w` x `h` sample at `address`. A requested side
 /// larger than the sample is clamped to the sample's side. Centre: `(w - cw) / 2`; random:
 /// `x0 = below(w - cw + 1)`, then `y0 = below(h - ch + 1)`, from the address's crop stream.
-pub fn crop_window(spec: &CropSpec, w: usize, h: usize, address: SampleAddress) -> (usize, usize, usize, usize) {
-    let cw = if spec.width == 0 { w } else { (spec.width as usize).min(w) };
-    let ch = if spec.height == 0 { h } else { (spec.height as usize).min(h) };
+/// A crop that does not fit the rendered frame (never shrunk to fit).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{want_w}x{want_h} is larger than the rendered frame {w}x{h}")]
+pub struct CropTooLarge {
+    pub want_w: usize,
+    pub want_h: usize,
+    pub w: usize,
+    pub h: usize,
+}
+
+/// The crop window `(x0, y0, width, height)` of a `w` x `h` frame; a crop larger than the frame
+/// in either side is an error (0 = the rendered side).
+pub fn crop_window(
+    spec: &CropSpec,
+    w: usize,
+    h: usize,
+    address: SampleAddress,
+) -> Result<(usize, usize, usize, usize), CropTooLarge> {
+    let cw = if spec.width == 0 { w } else { spec.width as usize };
+    let ch = if spec.height == 0 { h } else { spec.height as usize };
+    if cw > w || ch > h {
+        return Err(CropTooLarge { want_w: cw, want_h: ch, w, h });
+    }
     if spec.random {
         let mut rng = SampleRng::new(address.dataset, address.seed, address.index, Purpose::Other(CROP_PURPOSE));
         let x0 = rng.below((w - cw + 1) as u64) as usize;
         let y0 = rng.below((h - ch + 1) as u64) as usize;
-        (x0, y0, cw, ch)
+        Ok((x0, y0, cw, ch))
     } else {
-        ((w - cw) / 2, (h - ch) / 2, cw, ch)
+        Ok(((w - cw) / 2, (h - ch) / 2, cw, ch))
     }
 }
 
@@ -473,9 +493,14 @@ mod tests {
         // crop columns 0..3 are frame columns 1..4; target x + 1.5 <= 2 only for x = 0
         assert_eq!(c.valid, vec![1, 0, 0, 1, 0, 0]);
         let spec = CropSpec { width: 3, height: 2, random: true };
-        let a = crop_window(&spec, w, h, s.address);
-        assert_eq!(a, crop_window(&spec, w, h, s.address));
+        let a = crop_window(&spec, w, h, s.address).unwrap();
+        assert_eq!(Ok(a), crop_window(&spec, w, h, s.address));
         assert!(a.0 + 3 <= w && a.1 + 2 <= h);
-        assert_eq!(crop_window(&CropSpec { width: 4, height: 0, random: false }, w, h, s.address), (1, 0, 4, 4));
+        assert_eq!(crop_window(&CropSpec { width: 4, height: 0, random: false }, w, h, s.address), Ok((1, 0, 4, 4)));
+        // larger than the frame in one side: refused with both sizes, never shrunk
+        let big = crop_window(&CropSpec { width: w as u32 + 1, height: 2, random: false }, w, h, s.address);
+        let e = big.unwrap_err();
+        assert_eq!(e, CropTooLarge { want_w: w + 1, want_h: 2, w, h });
+        assert_eq!(e.to_string(), format!("{}x2 is larger than the rendered frame {w}x{h}", w + 1));
     }
 }

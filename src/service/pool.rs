@@ -14,6 +14,10 @@
 //! opened or closed) re-runs the dispatch ([`Scheduler::pump`]), which walks the streams from
 //! where it stopped last time, one job per stream per turn.
 //!
+//! A stream may also carry an explicit index list (GetSamples, [`Scheduler::open_indices`]):
+//! position `k` is then the list's `k`-th entry, in the list's order; everything else (prefetch
+//! window, in-flight bound, round-robin, back-pressure, drain) is the same.
+//!
 //! While draining, no new job starts; each stream sends what is finished and then ends with
 //! UNAVAILABLE and its resume cursor.
 
@@ -112,12 +116,32 @@ struct StreamState {
 pub struct StreamShared {
     pub id: u64,
     pub spec: StreamSpec,
+    /// An explicit index list (position k = `indices[k]`) instead of the spec's sequence.
+    indices: Option<Arc<[u64]>>,
     len: u64,
     produce: Produce,
     state: Mutex<StreamState>,
 }
 
 impl StreamShared {
+    /// The index of position `k` (`k < len`).
+    fn index(&self, k: u64) -> u64 {
+        match &self.indices {
+            Some(list) => list[k as usize],
+            None => self.spec.index(k).unwrap_or(u64::MAX),
+        }
+    }
+
+    /// The cursor after `k` positions: the spec's for a sequence; for an index list the
+    /// position itself (as `(k, k)`), which has no meaning as a start_index.
+    fn cursor(&self, k: u64) -> (u64, u64) {
+        if self.indices.is_some() {
+            (k, k)
+        } else {
+            self.spec.cursor(k)
+        }
+    }
+
     fn eligible(&self, s: &StreamState) -> bool {
         !s.closed && !s.draining && s.dispatched < self.len && (s.dispatched - s.delivered) < self.spec.prefetch as u64
     }
@@ -205,6 +229,37 @@ impl Scheduler {
 
     /// Opens a stream; its samples are made as the returned stream is polled.
     pub fn open(self: &Arc<Self>, spec: StreamSpec, produce: Produce) -> Result<SampleStream, ServiceError> {
+        self.open_with(spec, None, produce)
+    }
+
+    /// Opens a stream of an explicit index list (any order, duplicates allowed), delivered in
+    /// the list's order, `batch_size` samples per batch and `prefetch` made ahead.
+    pub fn open_indices(
+        self: &Arc<Self>,
+        indices: Vec<u64>,
+        batch_size: usize,
+        prefetch: usize,
+        max_message_bytes: usize,
+        produce: Produce,
+    ) -> Result<SampleStream, ServiceError> {
+        let spec = StreamSpec {
+            start_index: 0,
+            rank: 0,
+            world_size: 1,
+            count: indices.len() as u64,
+            batch_size,
+            prefetch,
+            max_message_bytes,
+        };
+        self.open_with(spec, Some(indices.into()), produce)
+    }
+
+    fn open_with(
+        self: &Arc<Self>,
+        spec: StreamSpec,
+        indices: Option<Arc<[u64]>>,
+        produce: Produce,
+    ) -> Result<SampleStream, ServiceError> {
         let mut spec = spec;
         spec.world_size = spec.world_size.max(1);
         spec.batch_size = spec.batch_size.max(1);
@@ -219,7 +274,8 @@ impl Scheduler {
             let shared = Arc::new(StreamShared {
                 id,
                 spec,
-                len: spec.len(),
+                len: indices.as_ref().map_or_else(|| spec.len(), |l| l.len() as u64),
+                indices,
                 produce,
                 state: Mutex::new(StreamState {
                     dispatched: 0,
@@ -275,7 +331,7 @@ impl Scheduler {
             None
         } else {
             // the index exists: k < len
-            let index = st.spec.index(k).unwrap_or(u64::MAX);
+            let index = st.index(k);
             let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| (st.produce)(index)))
                 .unwrap_or_else(|_| Err(ServiceError::Internal(format!("sample {index}: the worker panicked"))));
             Some(r.map(|s| {
@@ -381,8 +437,10 @@ impl SampleStream {
 
     fn end_with(&mut self, mut status: Status, delivered: u64) -> Poll<Option<Result<pb::SampleBatch, Status>>> {
         self.finished = true;
-        let (next, resume) = self.shared.spec.cursor(delivered);
-        with_cursor(&mut status, next, resume);
+        if self.shared.indices.is_none() {
+            let (next, resume) = self.shared.spec.cursor(delivered);
+            with_cursor(&mut status, next, resume);
+        }
         Poll::Ready(Some(Err(status)))
     }
 }
@@ -409,8 +467,7 @@ impl Stream for SampleStream {
             let Some(Err(e)) = g.ready.remove(&delivered) else { unreachable!() };
             g.closed = true;
             drop(g);
-            let (next, resume) = spec.cursor(delivered);
-            return self.end_with(e.into_status_with_cursor(next, resume), delivered);
+            return self.end_with(e.into(), delivered);
         }
         let want = (spec.batch_size as u64).min(remaining) as usize;
         let mut contiguous = 0usize;
@@ -439,7 +496,7 @@ impl Stream for SampleStream {
             let delivered = g.delivered;
             let depth = g.ready.len();
             drop(g);
-            let (next_index, resume_start_index) = spec.cursor(delivered);
+            let (next_index, resume_start_index) = shared.cursor(delivered);
             let m = &self.scheduler.metrics;
             m.samples_sent.inc_by(samples.len() as u64);
             m.bytes_sent.inc_by(bytes as u64);

@@ -90,7 +90,9 @@ impl State {
             let timings = s.timings;
             let (corner, s) = match &out.crop {
                 Some(c) => {
-                    let (x0, y0, cw, ch) = crop_window(c, s.width, s.height, s.address);
+                    // a crop larger than the frame is the request's fault, never shrunk
+                    let (x0, y0, cw, ch) = crop_window(c, s.width, s.height, s.address)
+                        .map_err(|e| ServiceError::invalid("crop", e.to_string()))?;
                     if (cw, ch) == (s.width, s.height) {
                         ((0, 0), s)
                     } else {
@@ -133,11 +135,7 @@ impl State {
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         // the stream limit
-        let limit = self.config.max_streams;
-        if self.active_streams.fetch_add(1, Ordering::SeqCst) >= limit {
-            self.active_streams.fetch_sub(1, Ordering::SeqCst);
-            return Err(ServiceError::TooManyStreams { limit });
-        }
+        self.admit()?;
         let spec = StreamSpec {
             start_index: r.start_index,
             rank: u64::from(rank),
@@ -169,7 +167,56 @@ impl State {
             prefetch,
             "stream opened"
         );
-        Ok(CountedStream { inner, state: self.clone() })
+        Ok(CountedStream { inner, state: self.clone(), random_access: false })
+    }
+
+    /// Counts a new stream against `max_streams` (undone by the returned stream's drop).
+    fn admit(&self) -> Result<(), ServiceError> {
+        let limit = self.config.max_streams;
+        if self.active_streams.fetch_add(1, Ordering::SeqCst) >= limit {
+            self.active_streams.fetch_sub(1, Ordering::SeqCst);
+            return Err(ServiceError::TooManyStreams { limit });
+        }
+        Ok(())
+    }
+
+    /// The samples of an explicit index list, in its order (GetSamples): a stream of the pool
+    /// with the list as its positions, counted against `max_streams`, one sample per message.
+    fn open_samples(self: &Arc<Self>, r: &pb::SamplesRequest) -> Result<CountedStream, ServiceError> {
+        if self.draining.load(Ordering::SeqCst) {
+            return Err(ServiceError::Draining);
+        }
+        let indices = validate::indices(&r.indices)?;
+        let out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
+        self.admit()?;
+        // as many made ahead as keep every worker busy (within max_prefetch)
+        let prefetch = (self.config.default_prefetch as usize)
+            .max(self.scheduler.workers())
+            .min(self.config.max_prefetch as usize)
+            .min(indices.len());
+        let n = indices.len();
+        let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
+        let max_bytes = self.config.max_message_bytes() as usize;
+        let inner = match self.scheduler.open_indices(indices, 1, prefetch, max_bytes, produce) {
+            Ok(s) => s,
+            Err(e) => {
+                self.active_streams.fetch_sub(1, Ordering::SeqCst);
+                return Err(e);
+            }
+        };
+        self.metrics.active_streams.inc();
+        tracing::debug!(
+            stream = inner.id(),
+            dataset = %ds.name,
+            fingerprint = format!("{:016x}", generator.fingerprint()),
+            seed = r.seed,
+            indices = n,
+            prefetch,
+            "samples opened"
+        );
+        Ok(CountedStream { inner, state: self.clone(), random_access: true })
     }
 
     /// One sample through the worker pool (GetSample and the warm-up).
@@ -274,6 +321,7 @@ impl State {
                 max_image_side: c.max_image_side,
                 max_image_pixels: c.max_image_pixels,
                 max_upload_bytes: c.max_upload_bytes,
+                max_indices: validate::MAX_INDICES as u32,
             }),
             workers: self.scheduler.workers() as u32,
             serving: self.is_serving(),
@@ -285,6 +333,8 @@ impl State {
 pub struct CountedStream {
     inner: SampleStream,
     state: Arc<State>,
+    /// A GetSamples call (one per trainer batch): its close is logged at debug level only.
+    random_access: bool,
 }
 
 impl Stream for CountedStream {
@@ -298,7 +348,11 @@ impl Drop for CountedStream {
     fn drop(&mut self) {
         self.state.active_streams.fetch_sub(1, Ordering::SeqCst);
         self.state.metrics.active_streams.dec();
-        tracing::info!(stream = self.inner.id(), "stream closed");
+        if self.random_access {
+            tracing::debug!(stream = self.inner.id(), "samples closed");
+        } else {
+            tracing::info!(stream = self.inner.id(), "stream closed");
+        }
     }
 }
 
@@ -319,6 +373,7 @@ fn refused<T>(state: &State, r: Result<T, ServiceError>) -> Result<T, Status> {
 #[tonic::async_trait]
 impl MpiFlow for Service {
     type StreamSamplesStream = Pin<Box<dyn Stream<Item = Result<pb::SampleBatch, Status>> + Send + 'static>>;
+    type GetSamplesStream = Pin<Box<dyn Stream<Item = Result<pb::Sample, Status>> + Send + 'static>>;
 
     async fn stream_samples(
         &self,
@@ -337,6 +392,20 @@ impl MpiFlow for Service {
             self.state.metrics.count_refused(s.code());
         }
         r.map(Response::new)
+    }
+
+    async fn get_samples(
+        &self,
+        request: Request<pb::SamplesRequest>,
+    ) -> Result<Response<Self::GetSamplesStream>, Status> {
+        let stream = refused(&self.state, self.state.open_samples(request.get_ref()))?;
+        // one sample per batch (batch_size 1): each message is that sample
+        let samples = stream.map(|b| {
+            b.and_then(|b| {
+                b.samples.into_iter().next().ok_or_else(|| ServiceError::Internal("an empty batch".into()).into())
+            })
+        });
+        Ok(Response::new(Box::pin(samples)))
     }
 
     async fn upload_sources(

@@ -11,6 +11,9 @@ use crate::sample::motion::{MotionPreset, MotionRanges};
 /// Largest `world_size` accepted.
 pub const MAX_WORLD_SIZE: u32 = 1 << 20;
 
+/// Most indices one GetSamples request may ask for (`Limits.max_indices`).
+pub const MAX_INDICES: usize = 256;
+
 fn invalid(field: &'static str, message: impl Into<String>) -> ServiceError {
     ServiceError::invalid(field, message)
 }
@@ -144,4 +147,16 @@ pub fn stream_shape(r: &pb::StreamRequest, config: &ServiceConfig) -> Result<(u3
     }
     let prefetch = if r.prefetch == 0 { config.default_prefetch } else { r.prefetch.min(config.max_prefetch) };
     Ok((r.rank, world, batch, prefetch.max(batch)))
+}
+
+/// The index list of a GetSamples request: 1 to [`MAX_INDICES`] indices, any order, duplicates
+/// allowed.
+pub fn indices(indices: &[u64]) -> Result<Vec<u64>, ServiceError> {
+    if indices.is_empty() {
+        return Err(invalid("indices", format!("empty (expected 1 to {MAX_INDICES} indices)")));
+    }
+    if indices.len() > MAX_INDICES {
+        return Err(invalid("indices", format!("{} indices (at most {MAX_INDICES} per request)", indices.len())));
+    }
+    Ok(indices.to_vec())
 }

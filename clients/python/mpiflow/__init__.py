@@ -5,8 +5,10 @@
     s = client.get_sample(0, seed=0)              # s["image1"] u8 [H, W, 3], s["flow"] f32 [H, W, 2]
     for s in client.stream(count=10): ...         # one consumer's stream, with failover
     ds = MPIFlowDataset("127.0.0.1:50051")        # RAFT-style dicts; torch IterableDataset
+    ss = client.get_samples([7, 3, 7])            # random access, one call, in that order
+    mds = MPIFlowMapDataset("127.0.0.1:50051", 1000)  # ds[i] = sample i; torch map-style Dataset
 
-`MPIFlowDataset` imports torch (when installed) on first use only.
+`MPIFlowDataset` and `MPIFlowMapDataset` import torch (when installed) on first use only.
 """
 from ._proto import mpiflow_pb2 as pb
 from .client import Client, MpiFlowError, NotReadyError, is_retryable, parse_addresses
@@ -21,6 +23,7 @@ __all__ = [
     "DecodeError",
     "FlowStream",
     "MPIFlowDataset",
+    "MPIFlowMapDataset",
     "MpiFlowError",
     "NotReadyError",
     "Prefetcher",
@@ -41,4 +44,8 @@ def __getattr__(name):
         from . import dataset
 
         return dataset.MPIFlowDataset
+    if name == "MPIFlowMapDataset":
+        from . import map_dataset
+
+        return map_dataset.MPIFlowMapDataset
     raise AttributeError(f"module 'mpiflow' has no attribute {name!r}")

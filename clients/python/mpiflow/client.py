@@ -28,6 +28,8 @@ log = logging.getLogger("mpiflow")
 
 SERVICE_NAME = "mpiflow.v1.MpiFlow"
 DEFAULT_MAX_RECEIVE = 256 << 20
+# Indices one GetSamples call may carry when the server's Limits.max_indices is not known yet.
+DEFAULT_MAX_INDICES = 256
 
 _RETRYABLE = {
     grpc.StatusCode.UNAVAILABLE,
@@ -46,6 +48,10 @@ class MpiFlowError(RuntimeError):
 
 class NotReadyError(MpiFlowError, TimeoutError):
     """No replica reported SERVING within the timeout."""
+
+
+class _ShortAnswer(Exception):
+    """A GetSamples call that ended cleanly before its last index."""
 
 
 def is_retryable(err: BaseException) -> bool:
@@ -184,7 +190,9 @@ class Client:
     turns TLS on; `tls_cert` and `tls_key` add a client certificate for servers that require one;
     `tls_domain` is the name to verify when the addresses are not names the certificate carries.
 
-    Unary calls (`get_sample`, `info`) fail over to another replica on transport errors;
+    Unary calls (`get_sample`, `info`) fail over to another replica on transport errors, and so
+    does `get_samples` (random access in batches), which continues with the indices not yet
+    received;
     `stream()` returns a FlowStream, which resumes a broken stream on a healthy replica from its
     cursor. Channels are made in the process that first uses them: create the Client after
     forking (e.g. inside a DataLoader worker), not before.
@@ -501,6 +509,116 @@ class Client:
         )
         s = self._unary("GetSample", req, timeout, address)
         return s if raw else decode_sample(s)
+
+    def max_indices(self) -> int:
+        """Indices one GetSamples call may carry: the server's Limits.max_indices once GetInfo
+        was called (connect() does), else 256."""
+        info = self._info
+        if info is not None and info.HasField("limits") and info.limits.max_indices:
+            return int(info.limits.max_indices)
+        return DEFAULT_MAX_INDICES
+
+    def get_samples(
+        self,
+        indices: Iterable[int],
+        *,
+        seed: int = 0,
+        dataset: Optional[str] = None,
+        fingerprint: int = 0,
+        fields: Optional[Iterable[Union[int, str]]] = None,
+        lz4: bool = False,
+        flow_dtype: Union[str, int, None] = None,
+        crop: Any = None,
+        crop_mode: Union[str, int, None] = None,
+        motion_preset: Optional[str] = None,
+        motion_ranges_json: Optional[str] = None,
+        max_objects: Optional[int] = None,
+        motions_per_image: Optional[int] = None,
+        raw: bool = False,
+        timeout: Optional[float] = None,
+        address: Optional[str] = None,
+        prefer: Optional[str] = None,
+    ) -> List[Union[Sample, "pb.Sample"]]:
+        """GetSamples: the samples of `indices` (any order, duplicates allowed) in that order,
+        each the same bytes as get_sample of its index. A list longer than `max_indices()` is
+        sent as several calls. A call broken by a retryable error (UNAVAILABLE, a killed or
+        draining replica) goes on with the indices not yet received on another SERVING replica
+        (`prefer` is tried first, without a health check), within `timeout` seconds per call;
+        after the first sample the dataset and fingerprint are pinned, so a replica serving
+        other data is refused rather than mixed in. `address` uses that replica only."""
+        idx = [int(i) for i in indices]
+        if any(i < 0 for i in idx):
+            raise ValueError("indices must be >= 0")
+        common = build_request_fields(
+            dataset=dataset,
+            fingerprint=fingerprint,
+            seed=seed,
+            fields=fields,
+            lz4=lz4,
+            flow_dtype=flow_dtype,
+            crop=crop,
+            crop_mode=crop_mode,
+            motion_preset=motion_preset,
+            motion_ranges_json=motion_ranges_json,
+            max_objects=max_objects,
+            motions_per_image=motions_per_image,
+        )
+        limit = max(1, self.max_indices())
+        out: List[Any] = []
+        for at in range(0, len(idx), limit):
+            out.extend(self._get_samples(common, idx[at:at + limit], timeout, address, prefer))
+        return out if raw else [decode_sample(s) for s in out]
+
+    def _get_samples(
+        self,
+        common: Dict[str, Any],
+        idx: List[int],
+        timeout: Optional[float],
+        address: Optional[str],
+        prefer: Optional[str],
+    ) -> List["pb.Sample"]:
+        timeout = self.rpc_timeout if timeout is None else timeout
+        deadline = time.monotonic() + timeout
+        got: List[Any] = []
+        addr = address or (prefer if prefer in self._replicas else None) or self.addresses[0]
+        last: Optional[BaseException] = None
+        while True:
+            if last is not None and address is None:
+                try:
+                    addr = self.pick_replica(prefer=addr, avoid=addr, deadline=deadline)
+                except MpiFlowError as e:
+                    raise MpiFlowError(f"GetSamples: {e}") from last
+            req = pb.SamplesRequest(indices=idx[len(got):], **common)
+            left = max(0.1, deadline - time.monotonic())
+            try:
+                call = self._replica(addr).stub.GetSamples(req, timeout=left, metadata=self.metadata)
+                for s in call:
+                    want = idx[len(got)]
+                    if s.index != want:
+                        call.cancel()
+                        raise MpiFlowError(f"GetSamples on {addr}: expected index {want}, got {s.index}")
+                    if not common["dataset"] and s.dataset:
+                        common["dataset"] = s.dataset
+                    if not common["fingerprint"] and s.fingerprint:
+                        common["fingerprint"] = s.fingerprint
+                    got.append(s)
+                    if len(got) == len(idx):
+                        break
+                if len(got) < len(idx):
+                    # a clean end before the last index (never expected): go on elsewhere
+                    raise _ShortAnswer(f"GetSamples on {addr} ended after {len(got)} of {len(idx)}")
+                self._mark_up(addr)
+                return got
+            except (grpc.RpcError, _ShortAnswer) as e:
+                retry = isinstance(e, _ShortAnswer) or (
+                    is_retryable(e) and e.code() != grpc.StatusCode.DEADLINE_EXCEEDED
+                )
+                if not retry or address is not None or time.monotonic() >= deadline:
+                    raise
+                log.warning("mpiflow: GetSamples on %s failed after %d of %d (%s); going on elsewhere",
+                            addr, len(got), len(idx), getattr(e, "code", lambda: e)())
+                self._mark_down(addr)
+                last = e
 
     def stream(self, **kwargs: Any) -> "FlowStream":
         """A FlowStream on this client (see FlowStream for the arguments)."""

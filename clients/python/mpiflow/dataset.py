@@ -7,7 +7,7 @@ import os
 from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
 from .client import Client, parse_addresses
-from .decode import DEFAULT_FIELDS, field_name, to_raft_dict
+from .decode import DEFAULT_FIELDS, field_name, is_motions, to_raft_dict
 from .stream import FlowStream, Prefetcher
 
 __all__ = [
@@ -122,6 +122,10 @@ class _MPIFlowDatasetImpl:
     Failover: with several addresses, a broken stream resumes on another SERVING replica from its
     cursor (no gap, no repeat), with backoff, for up to `retry_timeout` seconds.
     `prefetch` samples are decoded ahead in a background thread (0: none).
+    `crop` (W, H) cuts every sample at a position drawn from the sample's own random stream
+    (`crop_mode="random"`, the default: reproducible, part of the address) or at the centre
+    (`crop_mode="center"`, the Client's default); a crop larger than the rendered frame is
+    refused (INVALID_ARGUMENT naming `crop`), never shrunk.
     `token`, `tls_ca`, `tls_cert`, `tls_key` and `tls_domain` are passed to each worker's Client.
     """
 
@@ -141,7 +145,7 @@ class _MPIFlowDatasetImpl:
         lz4: bool = False,
         flow_dtype: str = "f32",
         crop: Any = None,
-        crop_mode: str = "center",
+        crop_mode: str = "random",
         motion_preset: Optional[str] = None,
         motion_ranges_json: Optional[str] = None,
         max_objects: Optional[int] = None,
@@ -172,8 +176,8 @@ class _MPIFlowDatasetImpl:
         if (rank is None) != (world_size is None) or (worker_id is None) != (num_workers is None):
             raise ValueError("give rank with world_size and worker_id with num_workers")
         fields = [fields] if isinstance(fields, str) else list(fields)
-        self.motions = any(str(f).lower() == "motions" for f in fields)
-        self.fields = [field_name(f) for f in fields if str(f).lower() != "motions"]
+        self.motions = any(is_motions(f) for f in fields)
+        self.fields = [field_name(f) for f in fields if not is_motions(f)]
         self.lz4 = bool(lz4)
         self.flow_dtype = flow_dtype
         self.crop = crop

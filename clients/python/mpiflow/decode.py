@@ -22,6 +22,7 @@ __all__ = [
     "decode_tensor",
     "parse_fields",
     "field_name",
+    "is_motions",
     "to_raft_dict",
 ]
 
@@ -69,14 +70,27 @@ def field_name(f: Union[int, str]) -> str:
     return _FIELD_NAMES[int(f)]
 
 
+# Not a tensor: every sample carries its camera and object motions; the name asks the dataset
+# dicts to include them (accepted, and sent as nothing, by every entry point).
+MOTIONS = "motions"
+
+
+def is_motions(f: Union[int, str]) -> bool:
+    """Whether a field name is "motions" (the motions every sample carries, not a tensor)."""
+    return isinstance(f, str) and f.strip().lower() == MOTIONS
+
+
 def parse_fields(fields: Optional[Iterable[Union[int, str]]]) -> List[int]:
-    """Field enum values for a request; None = the server's defaults (an empty list)."""
+    """Field enum values for a request; None = the server's defaults (an empty list). The name
+    "motions" is accepted and adds nothing (the motions travel with every sample)."""
     if fields is None:
         return []
     if isinstance(fields, (str, int)):
         fields = [fields]
     out: List[int] = []
     for f in fields:
+        if is_motions(f):
+            continue
         v = _NAME_FIELDS[field_name(f)]
         if v not in out:
             out.append(v)

@@ -64,8 +64,9 @@ def make_arrays(seed: int, index: int, fields, flow_f16: bool, crop) -> dict:
         elif f in (pb.FIELD_DEPTH1, pb.FIELD_DEPTH2):
             out[NAMES[f]] = (1.0 + 0.01 * (x + y) + index).astype(np.float32)
     if crop is not None and (crop.width or crop.height):
-        w = min(crop.width or WIDTH, WIDTH)
-        h = min(crop.height or HEIGHT, HEIGHT)
+        w, h = crop.width or WIDTH, crop.height or HEIGHT
+        if w > WIDTH or h > HEIGHT:  # refused as the real server does, never shrunk
+            raise CropTooLarge(f"crop: {w}x{h} is larger than the rendered frame {WIDTH}x{HEIGHT}")
         if crop.mode == pb.CROP_MODE_RANDOM:
             x0 = int(rng.integers(0, WIDTH - w + 1))
             y0 = int(rng.integers(0, HEIGHT - h + 1))
@@ -73,6 +74,10 @@ def make_arrays(seed: int, index: int, fields, flow_f16: bool, crop) -> dict:
             x0, y0 = (WIDTH - w) // 2, (HEIGHT - h) // 2
         out = {k: np.ascontiguousarray(v[y0:y0 + h, x0:x0 + w]) for k, v in out.items()}
     return out
+
+
+class CropTooLarge(ValueError):
+    pass
 
 
 def make_sample(seed, index, fields, flow_dtype, compression, crop, with_motion=True) -> pb.Sample:
@@ -122,6 +127,12 @@ class Service(pb_grpc.MpiFlowServicer):
         if req.fingerprint not in (0, FINGERPRINT):
             context.abort(grpc.StatusCode.FAILED_PRECONDITION, "fingerprint differs")
 
+    def _make(self, context, *args):
+        try:
+            return make_sample(*args)
+        except CropTooLarge as e:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
+
     def StreamSamples(self, req, context):
         self._check(req, context)
         w = req.world_size or 1
@@ -137,7 +148,7 @@ class Service(pb_grpc.MpiFlowServicer):
                 context.abort(grpc.StatusCode.UNAVAILABLE, "server draining")
             if self.delay:
                 time.sleep(self.delay)
-            batch.samples.append(make_sample(req.seed, i, req.fields, req.flow_dtype,
+            batch.samples.append(self._make(context, req.seed, i, req.fields, req.flow_dtype,
                                              req.compression, req.crop if req.HasField("crop") else None))
             i += w
             sent += 1
@@ -149,14 +160,26 @@ class Service(pb_grpc.MpiFlowServicer):
 
     def GetSample(self, req, context):
         self._check(req, context)
-        return make_sample(req.seed, req.index, req.fields, req.flow_dtype, req.compression,
+        return self._make(context, req.seed, req.index, req.fields, req.flow_dtype, req.compression,
                            req.crop if req.HasField("crop") else None)
+
+    def GetSamples(self, req, context):
+        self._check(req, context)
+        if not 1 <= len(req.indices) <= 256:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"indices: {len(req.indices)} (1 to 256)")
+        for i in req.indices:
+            if self.draining.is_set():
+                context.abort(grpc.StatusCode.UNAVAILABLE, "server draining")
+            if self.delay:
+                time.sleep(self.delay)
+            yield self._make(context, req.seed, i, req.fields, req.flow_dtype, req.compression,
+                              req.crop if req.HasField("crop") else None)
 
     def GetInfo(self, req, context):
         return pb.InfoResponse(
             version="fake-0",
             datasets=[pb.DatasetInfo(name=DATASET, fingerprint=FINGERPRINT, sources=4, is_default=True)],
-            limits=pb.Limits(max_message_bytes=64 << 20, max_streams=64, max_batch_size=16),
+            limits=pb.Limits(max_message_bytes=64 << 20, max_streams=64, max_batch_size=16, max_indices=256),
             workers=1,
             serving=not self.draining.is_set(),
         )

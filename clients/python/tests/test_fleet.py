@@ -199,7 +199,8 @@ def test_three_replicas_two_ranks_sigkill_and_restart(spawn, caplog, tmp_path):
         for r in ranks:
             for k in sorted(p for p in check if 0 <= p < N):
                 i = r.indices[k]
-                ref = mpiflow.to_raft_dict(client.get_sample(i, seed=SEED, crop=crop, fields=FIELDS))
+                ref = mpiflow.to_raft_dict(client.get_sample(i, seed=SEED, crop=crop, crop_mode="random",
+                                                            fields=FIELDS))
                 got = r.samples[i]
                 arrays = sorted(k2 for k2, v in ref.items() if isinstance(v, np.ndarray))
                 assert arrays and set(arrays) >= {"img1", "img2", "flow", "valid", "occlusion"}, arrays

@@ -21,4 +21,4 @@ def test_stub_service_matches_the_proto():
     svc = pb.DESCRIPTOR.services_by_name["MpiFlow"]
     assert svc.full_name == "mpiflow.v1.MpiFlow"
     assert pb.DESCRIPTOR.name == "mpiflow/v1/mpiflow.proto"
-    assert {m.name for m in svc.methods} == {"StreamSamples", "GetSample", "UploadSources", "GetInfo"}
+    assert {m.name for m in svc.methods} == {"StreamSamples", "GetSample", "GetSamples", "UploadSources", "GetInfo"}

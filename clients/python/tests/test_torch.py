@@ -82,3 +82,21 @@ def test_resume_with_other_worker_count_is_refused(server):
     ds2.load_state_dict(ds.state_dict())
     with pytest.raises(Exception, match="same ranks"):
         list(DataLoader(ds2, batch_size=1, num_workers=2))
+
+
+def test_map_dataset_under_shuffle_and_a_distributed_sampler(server):
+    from torch.utils.data.distributed import DistributedSampler
+
+    n = 12
+    ds = mpiflow.MPIFlowMapDataset(server.address, n, crop=server.crop, fields=["flow"], timeout=120)
+    assert isinstance(ds, torch.utils.data.Dataset) and len(ds) == n
+    got = sum((indices(b) for b in DataLoader(ds, batch_size=3, shuffle=True, num_workers=2)), [])
+    assert sorted(got) == list(range(n))
+    got = []
+    for rank in range(2):
+        sampler = DistributedSampler(ds, num_replicas=2, rank=rank, shuffle=True, seed=3)
+        want = list(sampler)
+        per_rank = sum((indices(b) for b in DataLoader(ds, batch_size=2, sampler=sampler, num_workers=2)), [])
+        assert per_rank == want  # each batch in the sampler's order
+        got += per_rank
+    assert sorted(got) == list(range(n))

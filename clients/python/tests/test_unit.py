@@ -385,3 +385,14 @@ def test_client_not_ready_times_out():
         c.wait_ready(1.0)
     assert time.monotonic() - t0 < 5
     c.close()
+
+
+def test_motions_is_a_field_name_of_every_entry_point():
+    from mpiflow.decode import parse_fields
+
+    assert parse_fields(["motions"]) == []
+    assert parse_fields(["img1", "Motions", "flow"]) == [pb.FIELD_IMAGE1, pb.FIELD_FLOW]
+    kw = build_request_fields(fields=["flow", "motions"])
+    assert kw["fields"] == [pb.FIELD_FLOW]
+    with pytest.raises(ValueError):
+        parse_fields(["motion"])

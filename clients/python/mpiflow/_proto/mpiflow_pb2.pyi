@@ -144,6 +144,34 @@ class SampleRequest(_message.Message):
     motions_per_image: int
     def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ...) -> None: ...
 
+class SamplesRequest(_message.Message):
+    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image")
+    DATASET_FIELD_NUMBER: _ClassVar[int]
+    FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    INDICES_FIELD_NUMBER: _ClassVar[int]
+    FIELDS_FIELD_NUMBER: _ClassVar[int]
+    FLOW_DTYPE_FIELD_NUMBER: _ClassVar[int]
+    COMPRESSION_FIELD_NUMBER: _ClassVar[int]
+    CROP_FIELD_NUMBER: _ClassVar[int]
+    MOTION_PRESET_FIELD_NUMBER: _ClassVar[int]
+    MOTION_RANGES_JSON_FIELD_NUMBER: _ClassVar[int]
+    MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
+    MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
+    dataset: str
+    fingerprint: int
+    seed: int
+    indices: _containers.RepeatedScalarFieldContainer[int]
+    fields: _containers.RepeatedScalarFieldContainer[Field]
+    flow_dtype: FlowDtype
+    compression: Compression
+    crop: OutputCrop
+    motion_preset: str
+    motion_ranges_json: str
+    max_objects: int
+    motions_per_image: int
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ...) -> None: ...
+
 class Tensor(_message.Message):
     __slots__ = ("name", "shape", "dtype", "compression", "raw_size", "data")
     NAME_FIELD_NUMBER: _ClassVar[int]
@@ -330,7 +358,7 @@ class ModelInfo(_message.Message):
     def __init__(self, role: _Optional[str] = ..., name: _Optional[str] = ...) -> None: ...
 
 class Limits(_message.Message):
-    __slots__ = ("max_message_bytes", "max_streams", "max_batch_size", "max_prefetch", "max_image_side", "max_image_pixels", "max_upload_bytes")
+    __slots__ = ("max_message_bytes", "max_streams", "max_batch_size", "max_prefetch", "max_image_side", "max_image_pixels", "max_upload_bytes", "max_indices")
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
     MAX_STREAMS_FIELD_NUMBER: _ClassVar[int]
     MAX_BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
@@ -338,6 +366,7 @@ class Limits(_message.Message):
     MAX_IMAGE_SIDE_FIELD_NUMBER: _ClassVar[int]
     MAX_IMAGE_PIXELS_FIELD_NUMBER: _ClassVar[int]
     MAX_UPLOAD_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MAX_INDICES_FIELD_NUMBER: _ClassVar[int]
     max_message_bytes: int
     max_streams: int
     max_batch_size: int
@@ -345,7 +374,8 @@ class Limits(_message.Message):
     max_image_side: int
     max_image_pixels: int
     max_upload_bytes: int
-    def __init__(self, max_message_bytes: _Optional[int] = ..., max_streams: _Optional[int] = ..., max_batch_size: _Optional[int] = ..., max_prefetch: _Optional[int] = ..., max_image_side: _Optional[int] = ..., max_image_pixels: _Optional[int] = ..., max_upload_bytes: _Optional[int] = ...) -> None: ...
+    max_indices: int
+    def __init__(self, max_message_bytes: _Optional[int] = ..., max_streams: _Optional[int] = ..., max_batch_size: _Optional[int] = ..., max_prefetch: _Optional[int] = ..., max_image_side: _Optional[int] = ..., max_image_pixels: _Optional[int] = ..., max_upload_bytes: _Optional[int] = ..., max_indices: _Optional[int] = ...) -> None: ...
 
 class InfoResponse(_message.Message):
     __slots__ = ("version", "datasets", "models", "limits", "workers", "serving")

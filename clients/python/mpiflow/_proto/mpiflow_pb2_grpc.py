@@ -44,6 +44,11 @@ class MpiFlowStub:
                 request_serializer=mpiflow_dot_v1_dot_mpiflow__pb2.SampleRequest.SerializeToString,
                 response_deserializer=mpiflow_dot_v1_dot_mpiflow__pb2.Sample.FromString,
                 _registered_method=True)
+        self.GetSamples = channel.unary_stream(
+                '/mpiflow.v1.MpiFlow/GetSamples',
+                request_serializer=mpiflow_dot_v1_dot_mpiflow__pb2.SamplesRequest.SerializeToString,
+                response_deserializer=mpiflow_dot_v1_dot_mpiflow__pb2.Sample.FromString,
+                _registered_method=True)
         self.UploadSources = channel.stream_unary(
                 '/mpiflow.v1.MpiFlow/UploadSources',
                 request_serializer=mpiflow_dot_v1_dot_mpiflow__pb2.SourceChunk.SerializeToString,
@@ -68,6 +73,16 @@ class MpiFlowServicer:
 
     def GetSample(self, request, context):
         """One sample by its index: for debugging and for checking reproducibility.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def GetSamples(self, request, context):
+        """Random access in batches: the samples of an explicit index list (any order, duplicates
+        allowed, at most `Limits.max_indices`, 256), answered in request order, each byte-identical
+        to GetSample of its index. Made through the worker pool like a stream (counted against
+        max_streams, with the same back-pressure).
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -100,6 +115,11 @@ def add_MpiFlowServicer_to_server(servicer, server):
             'GetSample': grpc.unary_unary_rpc_method_handler(
                     servicer.GetSample,
                     request_deserializer=mpiflow_dot_v1_dot_mpiflow__pb2.SampleRequest.FromString,
+                    response_serializer=mpiflow_dot_v1_dot_mpiflow__pb2.Sample.SerializeToString,
+            ),
+            'GetSamples': grpc.unary_stream_rpc_method_handler(
+                    servicer.GetSamples,
+                    request_deserializer=mpiflow_dot_v1_dot_mpiflow__pb2.SamplesRequest.FromString,
                     response_serializer=mpiflow_dot_v1_dot_mpiflow__pb2.Sample.SerializeToString,
             ),
             'UploadSources': grpc.stream_unary_rpc_method_handler(
@@ -166,6 +186,33 @@ class MpiFlow:
             target,
             '/mpiflow.v1.MpiFlow/GetSample',
             mpiflow_dot_v1_dot_mpiflow__pb2.SampleRequest.SerializeToString,
+            mpiflow_dot_v1_dot_mpiflow__pb2.Sample.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetSamples(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/mpiflow.v1.MpiFlow/GetSamples',
+            mpiflow_dot_v1_dot_mpiflow__pb2.SamplesRequest.SerializeToString,
             mpiflow_dot_v1_dot_mpiflow__pb2.Sample.FromString,
             options,
             channel_credentials,
