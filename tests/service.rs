@@ -655,3 +655,59 @@ fn a_binary_garbage_source_gives_one_printable_error_line() {
     assert!(err.starts_with("error: ") && err.contains("noise.tar"), "{err:?}");
     assert!(!err.trim_end().chars().any(char::is_control), "{err:?}");
 }
+
+/// Reads from a raw connection until the server closes it (Ok(0)); the read timeout bounds the
+/// wait, so a server that keeps the connection fails the test instead of hanging it.
+fn closed_by_server(mut s: std::net::TcpStream) -> bool {
+    use std::io::Read;
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let mut buf = [0u8; 256];
+    loop {
+        match s.read(&mut buf) {
+            Ok(0) => return true,
+            Ok(_) => continue,
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => return true,
+            Err(_) => return false,
+        }
+    }
+}
+
+/// Connection hygiene: a connection that sends nothing is closed after
+/// `idle_connection_timeout_s`; with `max_connections` open, a further connection is closed as
+/// it arrives, even one that speaks HTTP/2; when one closes, new clients get in again.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn silent_connections_are_closed_and_connections_are_bounded() {
+    let idle = server(ServiceConfig { idle_connection_timeout_s: 0.5, ..config() }).await;
+    let addr = idle.addr;
+    let silent = tokio::task::spawn_blocking(move || closed_by_server(std::net::TcpStream::connect(addr).unwrap()));
+    assert!(silent.await.unwrap(), "a silent connection is closed");
+
+    let s = server(ServiceConfig { max_connections: 2, idle_connection_timeout_s: 600.0, ..config() }).await;
+    let (a, b) = (channel(&s.addr.to_string()).await, channel(&s.addr.to_string()).await);
+    let (mut ca, mut cb) = (client_for(a.clone()), client_for(b.clone()));
+    assert!(ca.get_info(pb::InfoRequest {}).await.is_ok() && cb.get_info(pb::InfoRequest {}).await.is_ok());
+    let addr = s.addr;
+    let third = tokio::task::spawn_blocking(move || {
+        use std::io::Write;
+        let mut t = std::net::TcpStream::connect(addr).unwrap();
+        // a real HTTP/2 preface: refused for the bound, not for silence (the timeout is 600 s)
+        let _ = t.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n");
+        closed_by_server(t)
+    });
+    assert!(third.await.unwrap(), "a connection over max_connections is closed");
+    // one client leaves: a new one gets in (the server sees the close when it happens)
+    drop((ca, a));
+    let t = Instant::now();
+    loop {
+        let ok = match Endpoint::from_shared(format!("http://{}", s.addr)).unwrap().connect().await {
+            Ok(ch) => client_for(ch).get_info(pb::InfoRequest {}).await.is_ok(),
+            Err(_) => false,
+        };
+        if ok {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "no slot came back");
+        tokio::task::yield_now().await;
+    }
+    assert!(cb.get_info(pb::InfoRequest {}).await.is_ok(), "the connection that stayed is served");
+}

@@ -129,6 +129,11 @@ pub struct ServiceConfig {
     pub max_image_bytes: u64,
     /// Largest upload (all files of one UploadSources call) in bytes.
     pub max_upload_bytes: u64,
+    /// Most connections open at once on each listener (more are closed as they arrive).
+    pub max_connections: usize,
+    /// Seconds a new connection may stay silent before it is closed; also the HTTP/2 keepalive
+    /// ping interval, a ping unanswered for this long closes the connection.
+    pub idle_connection_timeout_s: f64,
     /// Most uploads in progress at once; more are RESOURCE_EXHAUSTED with nothing kept.
     pub max_concurrent_uploads: usize,
     /// Most MiB held by all uploads in progress together (received, not yet committed); over it
@@ -183,6 +188,8 @@ impl Default for ServiceConfig {
             max_image_pixels: 4 << 20,
             max_image_bytes: 64 << 20,
             max_upload_bytes: 256 << 20,
+            max_connections: 512,
+            idle_connection_timeout_s: 20.0,
             max_concurrent_uploads: 4,
             max_upload_buffer_mb: 512,
             size: None,
@@ -233,7 +240,8 @@ impl ServiceConfig {
     /// Applies `MPIFLOW_*` overrides: `ADDR`, `METRICS_ADDR` (empty = off), `WORKERS`,
     /// `MAX_IN_FLIGHT`, `MAX_STREAMS`, `PREFETCH`, `MAX_PREFETCH`, `MAX_BATCH_SIZE`,
     /// `MAX_IMAGE_SIDE`, `MAX_IMAGE_PIXELS`, `MAX_IMAGE_BYTES`, `MAX_UPLOAD_BYTES`,
-    /// `MAX_CONCURRENT_UPLOADS`, `MAX_UPLOAD_BUFFER_MB`, `SIZE`,
+    /// `MAX_CONCURRENT_UPLOADS`, `MAX_UPLOAD_BUFFER_MB`, `MAX_CONNECTIONS`,
+    /// `IDLE_CONNECTION_TIMEOUT_S`, `SIZE`,
     /// `CACHE_MB`, `DRAIN_TIMEOUT_S`, `WARMUP_DELAY_MS`, `LOG_FORMAT`, `LOG_LEVEL`, `PLANES`,
     /// `DEPTH_MODEL`, `MPI_MODEL`, `SEGMENT_MODEL`, `PRESET`, `MAX_OBJECTS`, `MOTIONS_PER_IMAGE`,
     /// `HEALTH_ADDR`, `TLS_CERT`, `TLS_KEY`, `TLS_CLIENT_CA`, `AUTH_TOKEN`, `AUTH_TOKEN_FILE`
@@ -262,6 +270,8 @@ impl ServiceConfig {
                 "MAX_IMAGE_BYTES" => self.max_image_bytes = env_parse(&key, &value)?,
                 "MAX_UPLOAD_BYTES" => self.max_upload_bytes = env_parse(&key, &value)?,
                 "MAX_CONCURRENT_UPLOADS" => self.max_concurrent_uploads = env_parse(&key, &value)?,
+                "MAX_CONNECTIONS" => self.max_connections = env_parse(&key, &value)?,
+                "IDLE_CONNECTION_TIMEOUT_S" => self.idle_connection_timeout_s = env_parse(&key, &value)?,
                 "MAX_UPLOAD_BUFFER_MB" => self.max_upload_buffer_mb = env_parse(&key, &value)?,
                 "SIZE" => self.size = (!value.trim().is_empty()).then(|| value.trim().to_string()),
                 "CACHE_MB" => self.cache_mb = env_parse(&key, &value)?,
@@ -310,6 +320,15 @@ impl ServiceConfig {
         let bad = |m: String| Err(ServiceError::Config(m));
         if self.max_streams == 0 {
             return bad("max_streams = 0 (expected at least 1)".into());
+        }
+        if self.max_connections == 0 {
+            return bad("max_connections = 0 (expected at least 1)".into());
+        }
+        if !(self.idle_connection_timeout_s.is_finite() && self.idle_connection_timeout_s > 0.0) {
+            return bad(format!(
+                "idle_connection_timeout_s = {} (expected seconds > 0)",
+                self.idle_connection_timeout_s
+            ));
         }
         if self.max_concurrent_uploads == 0 || self.max_upload_buffer_mb == 0 {
             return bad("max_concurrent_uploads and max_upload_buffer_mb must be at least 1".into());

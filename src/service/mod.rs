@@ -20,6 +20,7 @@ pub mod pb {
 
 pub mod client;
 pub mod config;
+pub mod conn;
 pub mod dataset;
 pub mod encode;
 pub mod error;

@@ -480,6 +480,9 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     state.set_health(ServingStatus::NotServing).await;
 
     let listener = bind(&config.addr, "addr").await?;
+    // connection hygiene, the same on every listener (see service::conn)
+    let idle = Duration::from_secs_f64(config.idle_connection_timeout_s);
+    let conn_limits = super::conn::ConnLimits { max_connections: config.max_connections, first_bytes_timeout: idle };
     let addr = listener.local_addr().map_err(|e| ServiceError::Config(format!("addr: {e}")))?;
     let (metrics_addr, metrics_task) = match &config.metrics_addr {
         Some(a) => {
@@ -494,8 +497,11 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         Some(a) => {
             let l = bind(a, "health_addr").await?;
             let bound = l.local_addr().map_err(|e| ServiceError::Config(format!("health_addr: {e}")))?;
-            let incoming = tonic::transport::server::TcpIncoming::from(l).with_nodelay(Some(true));
-            let health = tonic::transport::Server::builder().add_service(health_service.clone());
+            let incoming = super::conn::incoming(l, conn_limits);
+            let health = tonic::transport::Server::builder()
+                .http2_keepalive_interval(Some(idle))
+                .http2_keepalive_timeout(Some(idle))
+                .add_service(health_service.clone());
             (Some(bound), Some(tokio::spawn(health.serve_with_incoming(incoming))))
         }
         None => (None, None),
@@ -513,12 +519,13 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let service = MpiFlowServer::new(Service { state: state.clone() })
         .max_decoding_message_size(limit)
         .max_encoding_message_size(limit);
-    let mut builder = tonic::transport::Server::builder();
+    let mut builder =
+        tonic::transport::Server::builder().http2_keepalive_interval(Some(idle)).http2_keepalive_timeout(Some(idle));
     if let Some(tls) = tls.clone() {
         builder = builder.tls_config(tls).map_err(|e| ServiceError::Config(format!("tls_cert / tls_key: {e}")))?;
     }
     let (tx, rx) = oneshot::channel::<()>();
-    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    let incoming = super::conn::incoming(listener, conn_limits);
     let server = tokio::spawn(
         builder
             .add_service(health_service)
