@@ -711,3 +711,19 @@ async fn silent_connections_are_closed_and_connections_are_bounded() {
     }
     assert!(cb.get_info(pb::InfoRequest {}).await.is_ok(), "the connection that stayed is served");
 }
+
+/// A request over the message limit is RESOURCE_EXHAUSTED (gRPC's code for "too large"), not
+/// tonic's OUT_OF_RANGE, for a unary call and a server stream alike; the server goes on serving.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_oversized_request_is_resource_exhausted() {
+    let s = server(config()).await;
+    let limit = s.state.config.max_message_bytes() as usize;
+    let ch = channel(&s.addr.to_string()).await;
+    let mut c = MpiFlowClient::new(ch).max_encoding_message_size(usize::MAX).max_decoding_message_size(usize::MAX);
+    let huge = "d".repeat(limit + 1000);
+    let e = c.get_sample(pb::SampleRequest { dataset: huge.clone(), ..Default::default() }).await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    let e = c.stream_samples(pb::StreamRequest { dataset: huge, ..Default::default() }).await.unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(c.get_info(pb::InfoRequest {}).await.is_ok());
+}

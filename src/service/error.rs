@@ -99,6 +99,55 @@ impl From<SourceError> for ServiceError {
     }
 }
 
+/// The message tonic gives a request over the decoding limit (with OUT_OF_RANGE).
+const TOO_LARGE: &str = "decoded message length too large";
+
+/// A failure reading a client stream's next message: over the message limit is
+/// RESOURCE_EXHAUSTED (gRPC's code for a request too large), anything else is the `chunks`' fault.
+pub fn from_request_stream(status: Status) -> ServiceError {
+    if status.code() == Code::OutOfRange && status.message().contains(TOO_LARGE) {
+        ServiceError::LimitExceeded(format!("chunks: {}", status.message()))
+    } else {
+        ServiceError::invalid("chunks", status.message().to_string())
+    }
+}
+
+/// The response layer of the server: tonic answers a unary or server-streaming request over the
+/// decoding limit with OUT_OF_RANGE before any handler runs; by gRPC's convention (and the error
+/// table of docs/api.md) a request too large is RESOURCE_EXHAUSTED, so the status header of such
+/// a (trailers-only) response is rewritten. Every other response passes unchanged.
+pub fn oversized_is_resource_exhausted<B>(
+    mut response: tonic::codegen::http::Response<B>,
+) -> tonic::codegen::http::Response<B> {
+    let h = response.headers();
+    let out_of_range = h.get("grpc-status").is_some_and(|v| v.as_bytes() == b"11");
+    let too_large =
+        h.get("grpc-message").and_then(|v| v.to_str().ok()).is_some_and(|m| percent_decoded_contains(m, TOO_LARGE));
+    if out_of_range && too_large {
+        response.headers_mut().insert("grpc-status", tonic::codegen::http::HeaderValue::from_static("8"));
+    }
+    response
+}
+
+/// Whether a `grpc-message` header (percent-encoded) contains `needle` (plain ASCII).
+fn percent_decoded_contains(header: &str, needle: &str) -> bool {
+    let mut plain = String::with_capacity(header.len());
+    let b = header.as_bytes();
+    let mut i = 0;
+    while i < b.len() {
+        if b[i] == b'%' && i + 2 < b.len() {
+            if let Ok(v) = u8::from_str_radix(&header[i + 1..i + 3], 16) {
+                plain.push(char::from(v));
+                i += 3;
+                continue;
+            }
+        }
+        plain.push(char::from(b[i]));
+        i += 1;
+    }
+    plain.contains(needle)
+}
+
 /// Most characters of a status message: a message never grows with what a client sent (a
 /// gRPC client refuses metadata over its limit, which would hide the real error).
 pub const MAX_STATUS_CHARS: usize = 2048;

@@ -253,7 +253,7 @@ impl State {
         // the in-progress budgets: a slot now, bytes as they arrive (RESOURCE_EXHAUSTED over them)
         let mut session = self.datasets.uploads.session()?;
         let mut dataset = String::new();
-        while let Some(chunk) = chunks.message().await.map_err(|e| ServiceError::invalid("chunks", e.message()))? {
+        while let Some(chunk) = chunks.message().await.map_err(super::error::from_request_stream)? {
             if dataset.is_empty() {
                 dataset = chunk.dataset.clone();
                 if self.datasets.is_configured(&dataset) {
@@ -528,6 +528,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let incoming = super::conn::incoming(listener, conn_limits);
     let server = tokio::spawn(
         builder
+            .layer(tower::util::MapResponseLayer::new(super::error::oversized_is_resource_exhausted))
             .add_service(health_service)
             .add_service(InterceptedService::new(reflection_v1, auth.clone()))
             .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
