@@ -3,9 +3,9 @@ with exact resume and failover. A torch IterableDataset when torch is importable
 from __future__ import annotations
 
 import copy
-import os
 from typing import Any, Dict, Iterable, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
+from ._torch import dataset_class
 from .client import Client, parse_addresses
 from .decode import DEFAULT_FIELDS, field_name, is_motions, to_raft_dict
 from .stream import FlowStream, Prefetcher
@@ -380,25 +380,8 @@ class _MPIFlowDatasetImpl:
         )
 
 
-_CLASS = None
-
-
 def _build_class():
-    global _CLASS
-    if _CLASS is not None:
-        return _CLASS
-    bases: Tuple[type, ...] = (_MPIFlowDatasetImpl,)
-    if os.environ.get("MPIFLOW_NO_TORCH", "") not in ("1", "true", "yes"):
-        try:
-            from torch.utils.data import IterableDataset
-
-            bases = (_MPIFlowDatasetImpl, IterableDataset)
-        except Exception:
-            pass
-    cls = type("MPIFlowDataset", bases, {"__module__": __name__, "__doc__": _MPIFlowDatasetImpl.__doc__})
-    cls.__qualname__ = "MPIFlowDataset"
-    _CLASS = cls
-    return cls
+    return dataset_class(_MPIFlowDatasetImpl, "MPIFlowDataset", __name__, "IterableDataset")
 
 
 def __getattr__(name: str):

@@ -6,6 +6,7 @@ import operator
 import os
 from typing import Any, Dict, Iterable, Iterator, List, Optional, Sequence, Tuple, Union
 
+from ._torch import dataset_class
 from .client import Client, parse_addresses
 from .decode import DEFAULT_FIELDS, field_name, is_motions, to_raft_dict
 
@@ -191,25 +192,8 @@ class _MPIFlowMapDatasetImpl:
         )
 
 
-_CLASS = None
-
-
 def _build_class():
-    global _CLASS
-    if _CLASS is not None:
-        return _CLASS
-    bases: Tuple[type, ...] = (_MPIFlowMapDatasetImpl,)
-    if os.environ.get("MPIFLOW_NO_TORCH", "") not in ("1", "true", "yes"):
-        try:
-            from torch.utils.data import Dataset
-
-            bases = (_MPIFlowMapDatasetImpl, Dataset)
-        except Exception:
-            pass
-    cls = type("MPIFlowMapDataset", bases, {"__module__": __name__, "__doc__": _MPIFlowMapDatasetImpl.__doc__})
-    cls.__qualname__ = "MPIFlowMapDataset"
-    _CLASS = cls
-    return cls
+    return dataset_class(_MPIFlowMapDatasetImpl, "MPIFlowMapDataset", __name__, "Dataset")
 
 
 def __getattr__(name: str):
