@@ -727,3 +727,95 @@ async fn an_oversized_request_is_resource_exhausted() {
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
     assert!(c.get_info(pb::InfoRequest {}).await.is_ok());
 }
+
+/// A channel whose HTTP/2 windows are small: a client on it that never reads stalls its stream
+/// after about one message.
+async fn small_window_client(addr: &str) -> MpiFlowClient<Channel> {
+    let small = Endpoint::from_shared(format!("http://{addr}"))
+        .unwrap()
+        .initial_stream_window_size(65_535)
+        .initial_connection_window_size(65_535)
+        .connect()
+        .await
+        .unwrap();
+    client_for(small)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_streams_hold_at_most_their_share_of_the_buffered_budget() {
+    const MIB: u64 = 1 << 20;
+    let s = server(ServiceConfig {
+        max_buffered_mb: 1,
+        max_prefetch: 64,
+        metrics_addr: Some("127.0.0.1:0".into()),
+        ..config()
+    })
+    .await;
+    let addr = s.addr.to_string();
+    wait_serving(&addr).await;
+    let all: Vec<i32> = (1..=9).collect();
+    let stalled_req = |seed| pb::StreamRequest { seed, fields: all.clone(), prefetch: 64, ..Default::default() };
+    // the size of one such sample (its estimate on the server)
+    let mut c = client(&addr).await;
+    let one = pull_all(&mut c, pb::StreamRequest { count: 1, ..stalled_req(1) }).await;
+    let sample = prost::Message::encoded_len(&one.samples[0]) as u64;
+    assert!(sample > 60_000, "all nine fields at 64x48: {sample} bytes");
+    let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    assert_eq!(info.limits.unwrap().max_buffered_bytes, MIB);
+
+    // four stalled streams, each asking for 64 samples ahead (about 5 MB): the budget stops them
+    let mut stalled = Vec::new();
+    for seed in 1..=4u64 {
+        let mut sc = small_window_client(&addr).await;
+        stalled.push((sc.stream_samples(stalled_req(seed)).await.unwrap().into_inner(), sc));
+    }
+    let settled = |n: usize| {
+        let st = s.state.scheduler.stats();
+        st.in_flight == 0 && st.eligible == 0 && st.per_stream.len() == n
+    };
+    until("the stalled streams settle", || settled(4)).await;
+    let st = s.state.scheduler.stats();
+    let share = MIB / 4;
+    for (p, held) in st.per_stream.iter().zip(&st.held) {
+        let (_, dispatched, delivered, _, _) = *p;
+        assert!(dispatched - delivered < 64, "the budget, not the prefetch window, stopped it: {st:?}");
+        assert!(*held <= share.max(sample), "a stream holds at most its share: {held} > {share}: {st:?}");
+    }
+    assert!(st.max_buffered_seen <= MIB + 4 * sample, "{st:?}");
+    let metrics = http_get(&s.metrics_addr.unwrap().to_string(), "/metrics").await;
+    assert!(metrics.contains(&format!("mpiflow_buffered_bytes {}", st.buffered)), "{metrics}");
+    assert!(metrics.contains(&format!("mpiflow_buffered_budget_bytes {MIB}")), "{metrics}");
+
+    // a fast client still gets its samples, in order
+    let fast = pull_all(&mut c, pb::StreamRequest { count: 30, ..stalled_req(9) }).await;
+    assert_eq!(fast.indices(), (0..30).collect::<Vec<_>>());
+
+    // a fifth stalled stream shrinks the shares: the others drop their newest samples
+    let mut sc = small_window_client(&addr).await;
+    stalled.push((sc.stream_samples(stalled_req(5)).await.unwrap().into_inner(), sc));
+    until("five stalled streams settle", || settled(5)).await;
+    let st = s.state.scheduler.stats();
+    assert!(st.dropped > 0, "{st:?}");
+    let share = MIB / 5;
+    assert!(st.held.iter().all(|&h| h <= share.max(sample)), "{st:?}");
+    assert!(st.max_buffered_seen <= MIB + 5 * sample, "{st:?}");
+
+    // a stalled stream that dropped samples reads on: it gets every index once, byte for byte
+    // the samples a fresh stream makes
+    let (mut first, _keep) = stalled.remove(0);
+    let mut got = Vec::new();
+    while got.len() < 40 {
+        let b = first.message().await.unwrap().expect("the stream goes on");
+        got.extend(b.samples.into_iter().map(content));
+    }
+    got.truncate(40);
+    let fresh = pull_all(&mut c, pb::StreamRequest { count: 40, ..stalled_req(1) }).await;
+    assert_eq!(got, fresh.samples.into_iter().map(content).collect::<Vec<_>>());
+
+    // when the clients leave, nothing stays held
+    drop((first, _keep));
+    drop(stalled);
+    until("every stream is closed", || s.state.scheduler.stats().streams == 0).await;
+    assert_eq!(s.state.scheduler.stats().buffered, 0);
+    s.shutdown(Duration::from_millis(500)).await;
+}

@@ -36,6 +36,10 @@ pub struct ServeArgs {
     /// Concurrent streams (default 64).
     #[arg(long, value_name = "N")]
     max_streams: Option<usize>,
+    /// MiB of samples made but not yet sent, over all streams (default: a quarter of the
+    /// memory, 256 to 4096).
+    #[arg(long, value_name = "MIB")]
+    max_buffered_mb: Option<u64>,
     /// Samples made ahead per stream when a request says 0 (default 4).
     #[arg(long, value_name = "N")]
     prefetch: Option<u32>,
@@ -116,6 +120,7 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
     set!(max_in_flight => max_in_flight);
     set!(max_streams => max_streams);
     set!(prefetch => default_prefetch);
+    set!(max_buffered_mb => max_buffered_mb);
     set!(drain_timeout_s => drain_timeout_s);
     set!(log_format => log_format);
     set!(log_level => log_level);

@@ -119,6 +119,10 @@ pub struct ServiceConfig {
     pub default_prefetch: u32,
     /// Cap of a request's `prefetch`.
     pub max_prefetch: u32,
+    /// MiB of samples made but not yet sent, over all streams (queues, messages handed to the
+    /// transport); each stream may hold its fair share. 0 = sized for the machine: a quarter of
+    /// the memory the process may use (cgroup limit, else physical memory), 256 to 4096 MiB.
+    pub max_buffered_mb: u64,
     /// Largest `batch_size` a request may ask for.
     pub max_batch_size: u32,
     /// Largest source image side in pixels (checked in the file header before decoding).
@@ -183,6 +187,7 @@ impl Default for ServiceConfig {
             max_streams: 64,
             default_prefetch: 4,
             max_prefetch: 64,
+            max_buffered_mb: 0,
             max_batch_size: 64,
             max_image_side: 8192,
             max_image_pixels: 4 << 20,
@@ -238,7 +243,7 @@ impl ServiceConfig {
     }
 
     /// Applies `MPIFLOW_*` overrides: `ADDR`, `METRICS_ADDR` (empty = off), `WORKERS`,
-    /// `MAX_IN_FLIGHT`, `MAX_STREAMS`, `PREFETCH`, `MAX_PREFETCH`, `MAX_BATCH_SIZE`,
+    /// `MAX_IN_FLIGHT`, `MAX_STREAMS`, `PREFETCH`, `MAX_PREFETCH`, `MAX_BUFFERED_MB`, `MAX_BATCH_SIZE`,
     /// `MAX_IMAGE_SIDE`, `MAX_IMAGE_PIXELS`, `MAX_IMAGE_BYTES`, `MAX_UPLOAD_BYTES`,
     /// `MAX_CONCURRENT_UPLOADS`, `MAX_UPLOAD_BUFFER_MB`, `MAX_CONNECTIONS`,
     /// `IDLE_CONNECTION_TIMEOUT_S`, `SIZE`,
@@ -264,6 +269,7 @@ impl ServiceConfig {
                 "MAX_STREAMS" => self.max_streams = env_parse(&key, &value)?,
                 "PREFETCH" => self.default_prefetch = env_parse(&key, &value)?,
                 "MAX_PREFETCH" => self.max_prefetch = env_parse(&key, &value)?,
+                "MAX_BUFFERED_MB" => self.max_buffered_mb = env_parse(&key, &value)?,
                 "MAX_BATCH_SIZE" => self.max_batch_size = env_parse(&key, &value)?,
                 "MAX_IMAGE_SIDE" => self.max_image_side = env_parse(&key, &value)?,
                 "MAX_IMAGE_PIXELS" => self.max_image_pixels = env_parse(&key, &value)?,
@@ -409,6 +415,16 @@ impl ServiceConfig {
         }
     }
 
+    /// The byte budget of made-but-unsent samples (`max_buffered_mb`, 0 resolved for the
+    /// machine: a quarter of [`memory_limit_bytes`], 256 to 4096 MiB; 1024 MiB when unknown).
+    pub fn buffered_budget_bytes(&self) -> u64 {
+        const MIB: u64 = 1 << 20;
+        match self.max_buffered_mb {
+            0 => memory_limit_bytes().map_or(1024 * MIB, |m| (m / 4).clamp(256 * MIB, 4096 * MIB)),
+            n => n.saturating_mul(MIB),
+        }
+    }
+
     /// The in-flight bound (0 resolved to 2 x workers).
     pub fn in_flight_capacity(&self) -> usize {
         match self.max_in_flight {
@@ -457,6 +473,21 @@ pub fn valid_name(name: &str) -> bool {
         && name.len() <= 64
         && !name.starts_with('.')
         && name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+}
+
+/// The memory this process may use: the cgroup v2 limit (`memory.max`) when one is set, else
+/// the machine's physical memory (`MemTotal`); None where neither can be read.
+pub fn memory_limit_bytes() -> Option<u64> {
+    let total = std::fs::read_to_string("/proc/meminfo").ok().and_then(|t| {
+        let line = t.lines().find(|l| l.starts_with("MemTotal:"))?;
+        let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+        Some(kib * 1024)
+    });
+    let cgroup = std::fs::read_to_string("/sys/fs/cgroup/memory.max").ok().and_then(|t| t.trim().parse::<u64>().ok());
+    match (cgroup, total) {
+        (Some(c), Some(t)) => Some(c.min(t)),
+        (c, t) => c.or(t),
+    }
 }
 
 #[cfg(test)]

@@ -52,6 +52,11 @@ pub struct Metrics {
     pub active_streams: Gauge,
     /// Samples being made now.
     pub in_flight: Gauge,
+    /// Bytes of samples made but not yet sent, over all streams, and their budget.
+    pub buffered_bytes: Gauge,
+    pub buffered_budget: Gauge,
+    /// Finished samples dropped to bring a stream back to its share of the budget.
+    pub samples_dropped: Counter,
     /// The in-flight bound.
     pub capacity: Gauge,
     /// in_flight / capacity (0 to 1): the autoscaling signal.
@@ -102,6 +107,9 @@ impl Metrics {
             queue_depth: Family::default(),
             active_streams: Gauge::default(),
             in_flight: Gauge::default(),
+            buffered_bytes: Gauge::default(),
+            buffered_budget: Gauge::default(),
+            samples_dropped: Counter::default(),
             capacity: Gauge::default(),
             saturation: Gauge::default(),
             busy_seconds: Counter::default(),
@@ -131,6 +139,17 @@ impl Metrics {
         r.register("stream_queue_depth", "Finished samples waiting in a stream's queue", m.queue_depth.clone());
         r.register("active_streams", "Open StreamSamples calls", m.active_streams.clone());
         r.register("in_flight_jobs", "Samples being made now", m.in_flight.clone());
+        r.register(
+            "buffered_bytes",
+            "Bytes of samples made but not yet sent, over all streams (queues and transport)",
+            m.buffered_bytes.clone(),
+        );
+        r.register("buffered_budget_bytes", "Budget of buffered_bytes (max_buffered_mb)", m.buffered_budget.clone());
+        r.register(
+            "samples_dropped",
+            "Finished samples dropped to bring a stream back to its share of the budget (made again when read)",
+            m.samples_dropped.clone(),
+        );
         r.register("in_flight_capacity", "Bound on samples being made at once", m.capacity.clone());
         r.register("saturation", "in_flight_jobs / in_flight_capacity (0 to 1), for autoscaling", m.saturation.clone());
         r.register("worker_busy_seconds", "Worker seconds spent making samples", m.busy_seconds.clone());
@@ -235,6 +254,12 @@ impl Metrics {
         self.in_flight.set(in_flight as i64);
         self.capacity.set(capacity as i64);
         self.saturation.set(if capacity == 0 { 0.0 } else { in_flight as f64 / capacity as f64 });
+    }
+
+    /// Sets the buffered-bytes gauges.
+    pub fn set_buffered(&self, bytes: u64, budget: u64) {
+        self.buffered_bytes.set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        self.buffered_budget.set(i64::try_from(budget).unwrap_or(i64::MAX));
     }
 
     pub fn set_queue_depth(&self, stream: u64, depth: usize) {

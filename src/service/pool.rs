@@ -20,9 +20,25 @@
 //!
 //! While draining, no new job starts; each stream sends what is finished and then ends with
 //! UNAVAILABLE and its resume cursor.
+//!
+//! # The byte budget
+//!
+//! Over all streams, the bytes of samples made but not yet sent are bounded by `budget`
+//! (`max_buffered_mb`): a stream *holds* the encoded size of its finished samples waiting in its
+//! queue, of the last message handed to the transport (until the transport asks for the next
+//! one, which it does once it has room for it), and, for each running job, the size of the
+//! stream's previous sample (its estimate; a stream whose sample size is not known yet runs one
+//! job at a time). A stream may start a job while what it holds plus the estimate stays within
+//! its fair share, `budget / open streams`; a stream holding nothing may always start one. When
+//! a stream opens and the shares shrink, streams holding more than their new share drop their
+//! newest finished samples (made again, byte for byte, when the stream reads on) and make no
+//! more ahead until they send a message, so a stalled stream never keeps more than its share,
+//! does not refill and drop again as other streams come and go, and the fast streams keep
+//! their share. In all at most `budget` plus one message per stream is held.
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::task::{Context, Poll, Waker};
 use std::time::Instant;
@@ -99,6 +115,17 @@ type Item = Result<(pb::Sample, usize), ServiceError>;
 struct StreamState {
     /// Positions dispatched so far (the next job's k).
     dispatched: u64,
+    /// Bytes this stream holds against the budget (queued samples, the message in transport and
+    /// the estimates of running jobs).
+    held: u64,
+    /// The encoded size of the stream's latest sample (the estimate of the next); 0 = not known.
+    estimate: u64,
+    /// Bytes of the last message handed to the transport, held until the next poll.
+    in_transport: u64,
+    /// Samples were dropped to bring the stream back to its share: it makes no more ahead until
+    /// it sends a message (a stalled stream stays small instead of refilling and dropping again
+    /// every time another stream comes and goes).
+    trimmed: bool,
     /// Positions handed to the transport so far.
     delivered: u64,
     /// Jobs running now.
@@ -142,8 +169,14 @@ impl StreamShared {
         }
     }
 
-    fn eligible(&self, s: &StreamState) -> bool {
-        !s.closed && !s.draining && s.dispatched < self.len && (s.dispatched - s.delivered) < self.spec.prefetch as u64
+    fn eligible(&self, s: &StreamState, share: u64) -> bool {
+        let holds_nothing = s.held == 0 && s.running == 0;
+        let within_share = holds_nothing || (!s.trimmed && s.estimate > 0 && s.held + s.estimate <= share);
+        !s.closed
+            && !s.draining
+            && s.dispatched < self.len
+            && (s.dispatched - s.delivered) < self.spec.prefetch as u64
+            && within_share
     }
 
     /// (dispatched, delivered, produced, queued) for tests and diagnostics.
@@ -167,6 +200,16 @@ pub struct Scheduler {
     pool: rayon::ThreadPool,
     workers: usize,
     capacity: usize,
+    /// Bytes of made-but-unsent samples over all streams (see the module docs).
+    budget: u64,
+    /// Bytes held now over all streams.
+    buffered: AtomicU64,
+    /// Streams open now (for the share, read without the streams lock).
+    open_streams: AtomicUsize,
+    /// The most bytes held at once so far.
+    max_buffered_seen: AtomicU64,
+    /// Finished samples dropped to bring a stream back to its share (made again later).
+    dropped: AtomicU64,
     inner: Mutex<Sched>,
     metrics: Arc<Metrics>,
 }
@@ -184,12 +227,24 @@ pub struct SchedulerStats {
     pub in_flight: usize,
     pub max_in_flight_seen: usize,
     pub capacity: usize,
+    /// The byte budget of made-but-unsent samples, the bytes held now and the most held at once.
+    pub budget: u64,
+    pub buffered: u64,
+    pub max_buffered_seen: u64,
+    /// Finished samples dropped to bring streams back to their share (made again when read).
+    pub dropped: u64,
     /// Per stream: (id, dispatched, delivered, produced, queued).
     pub per_stream: Vec<(u64, u64, u64, u64, usize)>,
+    /// Per stream: bytes held against the budget.
+    pub held: Vec<u64>,
+    /// Streams that may start a job now (0 with nothing in flight = production has settled).
+    pub eligible: usize,
 }
 
 impl Scheduler {
-    pub fn new(workers: usize, capacity: usize, metrics: Arc<Metrics>) -> Result<Arc<Self>, ServiceError> {
+    /// A pool of `workers` threads running at most `capacity` jobs, holding at most about
+    /// `budget` bytes of made-but-unsent samples (see the module docs).
+    pub fn new(workers: usize, capacity: usize, budget: u64, metrics: Arc<Metrics>) -> Result<Arc<Self>, ServiceError> {
         let workers = workers.max(1);
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(workers)
@@ -198,10 +253,16 @@ impl Scheduler {
             .map_err(|e| ServiceError::Config(format!("cannot start {workers} worker threads: {e}")))?;
         metrics.workers.set(workers as i64);
         metrics.set_in_flight(0, capacity.max(1));
+        metrics.set_buffered(0, budget.max(1));
         Ok(Arc::new(Self {
             pool,
             workers,
             capacity: capacity.max(1),
+            budget: budget.max(1),
+            buffered: AtomicU64::new(0),
+            open_streams: AtomicUsize::new(0),
+            max_buffered_seen: AtomicU64::new(0),
+            dropped: AtomicU64::new(0),
             inner: Mutex::new(Sched {
                 streams: Vec::new(),
                 rr: 0,
@@ -220,6 +281,21 @@ impl Scheduler {
 
     pub fn capacity(&self) -> usize {
         self.capacity
+    }
+
+    pub fn budget(&self) -> u64 {
+        self.budget
+    }
+
+    /// Adds `add` and takes `sub` bytes from the total held (one stream's change).
+    fn account(&self, add: u64, sub: u64) {
+        let now = if add >= sub {
+            self.buffered.fetch_add(add - sub, Ordering::AcqRel) + (add - sub)
+        } else {
+            self.buffered.fetch_sub(sub - add, Ordering::AcqRel) - (sub - add)
+        };
+        self.max_buffered_seen.fetch_max(now, Ordering::AcqRel);
+        self.metrics.set_buffered(now, self.budget);
     }
 
     /// Runs `f` on the worker pool (for work outside streams, e.g. benchmarks).
@@ -279,6 +355,10 @@ impl Scheduler {
                 produce,
                 state: Mutex::new(StreamState {
                     dispatched: 0,
+                    held: 0,
+                    estimate: 0,
+                    in_transport: 0,
+                    trimmed: false,
                     delivered: 0,
                     running: 0,
                     ready: BTreeMap::new(),
@@ -289,6 +369,11 @@ impl Scheduler {
                 }),
             });
             s.streams.push(shared.clone());
+            self.open_streams.store(s.streams.len(), Ordering::Release);
+            let share = self.share(s.streams.len());
+            for st in &s.streams {
+                self.trim(st, &mut lock(&st.state), share);
+            }
             shared
         };
         self.pump();
@@ -300,31 +385,65 @@ impl Scheduler {
         let mut s = lock(&self.inner);
         while s.in_flight < self.capacity && !s.draining {
             let n = s.streams.len();
+            let share = self.share(n);
             let mut picked = None;
             for off in 0..n {
                 let i = (s.rr + off) % n;
                 let st = &s.streams[i];
                 let mut g = lock(&st.state);
-                if st.eligible(&g) {
+                if st.eligible(&g, share) {
                     let k = g.dispatched;
+                    let reserved = g.estimate;
                     g.dispatched += 1;
                     g.running += 1;
-                    picked = Some((st.clone(), k));
+                    g.held += reserved;
+                    self.account(reserved, 0);
+                    picked = Some((st.clone(), k, reserved));
                     drop(g);
                     s.rr = (i + 1) % n;
                     break;
                 }
             }
-            let Some((st, k)) = picked else { break };
+            let Some((st, k, reserved)) = picked else { break };
             s.in_flight += 1;
             s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
             self.metrics.set_in_flight(s.in_flight, self.capacity);
             let me = self.clone();
-            self.pool.spawn(move || me.run_job(st, k));
+            self.pool.spawn(move || me.run_job(st, k, reserved));
         }
     }
 
-    fn run_job(self: Arc<Self>, st: Arc<StreamShared>, k: u64) {
+    /// A stream's fair share of the budget with `n` streams open.
+    fn share(&self, n: usize) -> u64 {
+        self.budget / n.max(1) as u64
+    }
+
+    /// Brings a stream back within `share` (its state locked by the caller): while it holds
+    /// more, it drops its newest finished sample from the end of what it has dispatched (a
+    /// running job there stops it) and will make it again, byte for byte, when it reads on.
+    fn trim(&self, st: &StreamShared, g: &mut StreamState, share: u64) {
+        let mut freed = 0u64;
+        while g.held > share && g.dispatched > g.delivered {
+            let top = g.dispatched - 1;
+            let Some(item) = g.ready.remove(&top) else { break }; // still running
+            let size = match &item {
+                Ok((_, n)) => *n as u64,
+                Err(_) => 0,
+            };
+            g.dispatched = top;
+            g.held -= size;
+            g.trimmed = true;
+            freed += size;
+            self.dropped.fetch_add(1, Ordering::AcqRel);
+            self.metrics.samples_dropped.inc();
+        }
+        if freed > 0 {
+            self.metrics.set_queue_depth(st.id, g.ready.len());
+            self.account(0, freed);
+        }
+    }
+
+    fn run_job(self: Arc<Self>, st: Arc<StreamShared>, k: u64, reserved: u64) {
         let t = Instant::now();
         let skip = lock(&st.state).closed;
         let item: Option<Item> = if skip {
@@ -343,11 +462,28 @@ impl Scheduler {
         let waker = {
             let mut g = lock(&st.state);
             g.running -= 1;
+            // the estimate reserved at dispatch becomes the sample's real size
+            let size = match &item {
+                Some(Ok((_, n))) if !g.closed => *n as u64,
+                _ => 0,
+            };
+            if !g.closed {
+                g.held = g.held - reserved + size;
+                if size > 0 {
+                    g.estimate = size;
+                }
+                self.account(size, reserved);
+            }
             if let Some(item) = item {
                 if !g.closed {
                     g.produced += 1;
                     g.ready.insert(k, item);
                     self.metrics.set_queue_depth(st.id, g.ready.len());
+                    // a job that was running when the shares shrank may leave the stream over its share
+                    let share = self.share(self.open_streams.load(Ordering::Acquire));
+                    if g.held > share {
+                        self.trim(&st, &mut g, share);
+                    }
                 }
             }
             g.waker.take()
@@ -368,10 +504,15 @@ impl Scheduler {
             let mut g = lock(&st.state);
             g.closed = true;
             g.ready.clear();
+            // what running jobs reserved is released here; they hand back nothing when done
+            self.account(0, g.held);
+            g.held = 0;
+            g.in_transport = 0;
         }
         {
             let mut s = lock(&self.inner);
             s.streams.retain(|x| !Arc::ptr_eq(x, st));
+            self.open_streams.store(s.streams.len(), Ordering::Release);
             if s.rr >= s.streams.len() {
                 s.rr = 0;
             }
@@ -410,6 +551,15 @@ impl Scheduler {
             in_flight: s.in_flight,
             max_in_flight_seen: s.max_in_flight_seen,
             capacity: self.capacity,
+            budget: self.budget,
+            buffered: self.buffered.load(Ordering::Acquire),
+            max_buffered_seen: self.max_buffered_seen.load(Ordering::Acquire),
+            dropped: self.dropped.load(Ordering::Acquire),
+            held: s.streams.iter().map(|st| lock(&st.state).held).collect(),
+            eligible: {
+                let share = self.share(s.streams.len());
+                s.streams.iter().filter(|st| st.eligible(&lock(&st.state), share)).count()
+            },
             per_stream: s
                 .streams
                 .iter()
@@ -455,6 +605,15 @@ impl Stream for SampleStream {
         let shared = self.shared.clone();
         let spec = shared.spec;
         let mut g = lock(&shared.state);
+        // the transport asks for the next message: it has taken the previous one
+        let released = std::mem::take(&mut g.in_transport);
+        if released > 0 {
+            g.held -= released;
+            self.scheduler.account(0, released);
+            drop(g);
+            self.scheduler.pump(); // the stream may start jobs again
+            g = lock(&shared.state);
+        }
         let remaining = shared.len - g.delivered;
         if remaining == 0 {
             drop(g);
@@ -478,6 +637,7 @@ impl Stream for SampleStream {
         if contiguous > 0 && (contiguous == want || drained) {
             let mut samples = Vec::with_capacity(contiguous);
             let mut bytes = 0usize;
+            let mut moved = 0u64;
             for _ in 0..contiguous {
                 let k = g.delivered;
                 let size = match g.ready.get(&k) {
@@ -489,12 +649,16 @@ impl Stream for SampleStream {
                 }
                 if let Some(Ok((s, n))) = g.ready.remove(&k) {
                     bytes += n + 16;
+                    moved += n as u64;
                     samples.push(s);
                     g.delivered += 1;
                 }
             }
             let delivered = g.delivered;
             let depth = g.ready.len();
+            // the samples move from the queue to the transport: still held until the next poll
+            g.in_transport = moved;
+            g.trimmed = false;
             drop(g);
             let (next_index, resume_start_index) = shared.cursor(delivered);
             let m = &self.scheduler.metrics;

@@ -322,6 +322,7 @@ impl State {
                 max_image_pixels: c.max_image_pixels,
                 max_upload_bytes: c.max_upload_bytes,
                 max_indices: validate::MAX_INDICES as u32,
+                max_buffered_bytes: self.scheduler.budget(),
             }),
             workers: self.scheduler.workers() as u32,
             serving: self.is_serving(),
@@ -465,7 +466,12 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     for d in datasets.all() {
         metrics.record_skips(&d.name, &d.opened_skips());
     }
-    let scheduler = Scheduler::new(config.worker_count(), config.in_flight_capacity(), metrics.clone())?;
+    let scheduler = Scheduler::new(
+        config.worker_count(),
+        config.in_flight_capacity(),
+        config.buffered_budget_bytes(),
+        metrics.clone(),
+    )?;
     let (health, health_service) = tonic_health::server::health_reporter();
     let state = Arc::new(State {
         config: config.clone(),

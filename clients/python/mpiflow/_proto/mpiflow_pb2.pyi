@@ -358,7 +358,7 @@ class ModelInfo(_message.Message):
     def __init__(self, role: _Optional[str] = ..., name: _Optional[str] = ...) -> None: ...
 
 class Limits(_message.Message):
-    __slots__ = ("max_message_bytes", "max_streams", "max_batch_size", "max_prefetch", "max_image_side", "max_image_pixels", "max_upload_bytes", "max_indices")
+    __slots__ = ("max_message_bytes", "max_streams", "max_batch_size", "max_prefetch", "max_image_side", "max_image_pixels", "max_upload_bytes", "max_indices", "max_buffered_bytes")
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
     MAX_STREAMS_FIELD_NUMBER: _ClassVar[int]
     MAX_BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
@@ -367,6 +367,7 @@ class Limits(_message.Message):
     MAX_IMAGE_PIXELS_FIELD_NUMBER: _ClassVar[int]
     MAX_UPLOAD_BYTES_FIELD_NUMBER: _ClassVar[int]
     MAX_INDICES_FIELD_NUMBER: _ClassVar[int]
+    MAX_BUFFERED_BYTES_FIELD_NUMBER: _ClassVar[int]
     max_message_bytes: int
     max_streams: int
     max_batch_size: int
@@ -375,7 +376,8 @@ class Limits(_message.Message):
     max_image_pixels: int
     max_upload_bytes: int
     max_indices: int
-    def __init__(self, max_message_bytes: _Optional[int] = ..., max_streams: _Optional[int] = ..., max_batch_size: _Optional[int] = ..., max_prefetch: _Optional[int] = ..., max_image_side: _Optional[int] = ..., max_image_pixels: _Optional[int] = ..., max_upload_bytes: _Optional[int] = ..., max_indices: _Optional[int] = ...) -> None: ...
+    max_buffered_bytes: int
+    def __init__(self, max_message_bytes: _Optional[int] = ..., max_streams: _Optional[int] = ..., max_batch_size: _Optional[int] = ..., max_prefetch: _Optional[int] = ..., max_image_side: _Optional[int] = ..., max_image_pixels: _Optional[int] = ..., max_upload_bytes: _Optional[int] = ..., max_indices: _Optional[int] = ..., max_buffered_bytes: _Optional[int] = ...) -> None: ...
 
 class InfoResponse(_message.Message):
     __slots__ = ("version", "datasets", "models", "limits", "workers", "serving")
