@@ -91,7 +91,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--addr", default="127.0.0.1:50051", help="server address(es), comma-separated")
     ap.add_argument("--spawn", nargs="?", const="", default=None, metavar="SERVE_ARGS",
-                    help="start `$MPIFLOW_BIN serve SERVE_ARGS` for this run instead of using --addr")
+                    help="start `$MPIFLOW_BIN serve SERVE_ARGS` for this run instead of using --addr "
+                         "(one argument: --spawn '--size 640x480 --workers 1' or --spawn=--workers=1)")
     ap.add_argument("--dataset", choices=("stream", "map"), default="stream")
     ap.add_argument("--length", type=int, default=10_000, help="samples of the map-style dataset")
     ap.add_argument("--steps", type=int, default=50)
