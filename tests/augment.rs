@@ -79,7 +79,14 @@ fn photometric_consistency_holds_after_spatial_augmentation() {
     let sparse = Augment {
         preset: AugmentPreset::RaftKitti,
         custom: true,
-        params: AugmentParams { eraser_prob: 0.0, brightness: 0.0, contrast: 0.0, saturation: 0.0, hue: 0.0, ..AugmentPreset::RaftKitti.params() },
+        params: AugmentParams {
+            eraser_prob: 0.0,
+            brightness: 0.0,
+            contrast: 0.0,
+            saturation: 0.0,
+            hue: 0.0,
+            ..AugmentPreset::RaftKitti.params()
+        },
     }
     .with_crop((140, 60));
     let (mut resized, mut flipped, mut wrong_worse) = (0, 0, 0);
@@ -92,13 +99,15 @@ fn photometric_consistency_holds_after_spatial_augmentation() {
             let out = apply_plan(&plan, s.clone());
             assert!(out.flow.iter().all(|v| v.is_finite()));
             let (err, n) = photometric_error(&out, &out.flow);
-            let what = format!("index {index} {:?} {:?} {:?}: base {base:.2} ({n0} px), augmented {err:.2} ({n} px)", a.preset, plan.x, plan.y);
+            let what = format!(
+                "index {index} {:?} {:?} {:?}: base {base:.2} ({n0} px), augmented {err:.2} ({n} px)",
+                a.preset, plan.x, plan.y
+            );
             assert!(n > 0, "{what}");
             assert!(err <= base * 1.3 + 1.5, "{what}");
             // the law has teeth: the flow left as it was (not scaled, not mirrored) breaks it
             let (kx, ky) = (plan.x.slope() as f32, plan.y.slope() as f32);
-            let untransformed: Vec<f32> =
-                out.flow.chunks_exact(2).flat_map(|f| [f[0] / kx, f[1] / ky]).collect();
+            let untransformed: Vec<f32> = out.flow.chunks_exact(2).flat_map(|f| [f[0] / kx, f[1] / ky]).collect();
             let (wrong, _) = photometric_error(&out, &untransformed);
             let moved = (kx.abs() - 1.0).abs() > 0.2 || kx < 0.0 || ky < 0.0;
             if moved {

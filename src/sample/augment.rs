@@ -158,10 +158,7 @@ impl AugmentParams {
                 return Err(bad(field, format!("{v} ({what})")));
             }
         }
-        for (field, v) in [
-            ("augment.min_scale", self.min_scale),
-            ("augment.max_scale", self.max_scale),
-        ] {
+        for (field, v) in [("augment.min_scale", self.min_scale), ("augment.max_scale", self.max_scale)] {
             if !(-4.0..=4.0).contains(&v) {
                 return Err(bad(field, format!("{v} (expected a log2 scale in -4 to 4)")));
             }
@@ -332,7 +329,10 @@ impl Augment {
         let t = text.trim();
         if !t.starts_with('{') {
             return AugmentPreset::parse(t).map(Augment::preset).ok_or_else(|| {
-                bad("augment", format!("unknown preset {t:?} (expected one of {}, or a JSON object)", AugmentPreset::names()))
+                bad(
+                    "augment",
+                    format!("unknown preset {t:?} (expected one of {}, or a JSON object)", AugmentPreset::names()),
+                )
             });
         }
         let value: serde_json::Value = serde_json::from_str(t).map_err(|e| bad("augment", format!("JSON: {e}")))?;
@@ -353,9 +353,10 @@ impl Augment {
             match key.as_str() {
                 "preset" => {}
                 "crop" => {
-                    let pair = v.as_array().filter(|a| a.len() == 2).ok_or_else(|| {
-                        bad(field, format!("{v} (expected [width, height] or null)"))
-                    });
+                    let pair = v
+                        .as_array()
+                        .filter(|a| a.len() == 2)
+                        .ok_or_else(|| bad(field, format!("{v} (expected [width, height] or null)")));
                     p.crop = if v.is_null() {
                         None
                     } else {
@@ -598,7 +599,8 @@ pub fn draw(p: &AugmentParams, address: SampleAddress, w: usize, h: usize) -> Pl
     let (cx_word, cy_word) = (rng.next_word(), rng.next_word());
     // RAFT: the scale is clipped so that the frame exceeds the crop by 8 px (1 px, sparse)
     let margin = if p.sparse { 1.0 } else { 8.0 };
-    let fit = p.crop.map_or(0.0, |(cw, ch)| ((f64::from(ch) + margin) / h as f64).max((f64::from(cw) + margin) / w as f64));
+    let fit =
+        p.crop.map_or(0.0, |(cw, ch)| ((f64::from(ch) + margin) / h as f64).max((f64::from(cw) + margin) / w as f64));
     let (mut sx, mut sy) = (scale, scale);
     if stretched {
         sx *= ax.exp2();
@@ -673,20 +675,24 @@ fn rgb_to_hsv(p: &[u8]) -> [u8; 3] {
     } else {
         4.0 + gc - rc
     };
-    let h = (h / 6.0 + 1.0).rem_euclid(1.0);
-    [((h * 255.0) as i32).clamp(0, 255) as u8, ((s * 255.0) as i32).clamp(0, 255) as u8, maxc as u8]
+    // fmod(h / 6 + 1, 1): h / 6 + 1 lies in [5/6, 11/6)
+    let h = h / 6.0 + 1.0;
+    let h = if h >= 1.0 { h - 1.0 } else { h };
+    // float to u8 casts saturate and truncate, as PIL's CLIP8((int) x) for x >= 0
+    [(h * 255.0) as u8, (s * 255.0) as u8, maxc as u8]
 }
 
 fn hsv_to_rgb(hsv: [u8; 3]) -> [u8; 3] {
     let h = f32::from(hsv[0]) * 6.0 / 255.0;
     let s = f32::from(hsv[1]) / 255.0;
     let v = f32::from(hsv[2]);
-    let i = h.floor();
-    let f = h - i;
-    let c = |x: f32| x.round().clamp(0.0, 255.0) as u8;
+    // h >= 0: the cast is the floor; x >= 0: x + 0.5 truncated is x rounded (half away from 0)
+    let i = h as u32;
+    let f = h - i as f32;
+    let c = |x: f32| (x + 0.5) as u8;
     let (p, q, t) = (c(v * (1.0 - s)), c(v * (1.0 - s * f)), c(v * (1.0 - s * (1.0 - f))));
     let v = c(v);
-    match (i as i32).rem_euclid(6) {
+    match i % 6 {
         0 => [v, t, p],
         1 => [q, v, p],
         2 => [p, v, t],
@@ -770,7 +776,13 @@ fn apply_eraser(img: &mut [u8], w: usize, h: usize, boxes: &[EraserBox]) {
 // the spatial map
 
 /// Bilinear resampling of an interleaved u8 image (rounded to nearest).
-fn bilinear_u8(src: &[u8], w: usize, channels: usize, xt: &[(usize, usize, f32)], yt: &[(usize, usize, f32)]) -> Vec<u8> {
+fn bilinear_u8(
+    src: &[u8],
+    w: usize,
+    channels: usize,
+    xt: &[(usize, usize, f32)],
+    yt: &[(usize, usize, f32)],
+) -> Vec<u8> {
     if src.is_empty() {
         return Vec::new();
     }
@@ -778,12 +790,13 @@ fn bilinear_u8(src: &[u8], w: usize, channels: usize, xt: &[(usize, usize, f32)]
     for &(y0, y1, fy) in yt {
         let (r0, r1) = (&src[y0 * w * channels..][..w * channels], &src[y1 * w * channels..][..w * channels]);
         for &(x0, x1, fx) in xt {
+            let (a, b) = (&r0[x0 * channels..][..channels], &r0[x1 * channels..][..channels]);
+            let (d, e) = (&r1[x0 * channels..][..channels], &r1[x1 * channels..][..channels]);
             for c in 0..channels {
-                let (a, b) = (f32::from(r0[x0 * channels + c]), f32::from(r0[x1 * channels + c]));
-                let (d, e) = (f32::from(r1[x0 * channels + c]), f32::from(r1[x1 * channels + c]));
-                let top = a + (b - a) * fx;
-                let bottom = d + (e - d) * fx;
-                out.push((top + (bottom - top) * fy + 0.5).floor().clamp(0.0, 255.0) as u8);
+                let top = f32::from(a[c]) + (f32::from(b[c]) - f32::from(a[c])) * fx;
+                let bottom = f32::from(d[c]) + (f32::from(e[c]) - f32::from(d[c])) * fx;
+                // in [0, 255.5): the saturating cast of v + 0.5 is v rounded
+                out.push((top + (bottom - top) * fy + 0.5) as u8);
             }
         }
     }
@@ -812,18 +825,18 @@ fn dense_flow(s: &Sample, plan: &Plan, xt: &[(usize, usize, f32)], yt: &[(usize,
     let mut flow = Vec::with_capacity(2 * n);
     let mut valid = Vec::with_capacity(n);
     for &(y0, y1, fy) in yt {
+        let (f0, f1) = (&s.flow[2 * y0 * w..][..2 * w], &s.flow[2 * y1 * w..][..2 * w]);
+        let (v0, v1) = (&s.valid[y0 * w..][..w], &s.valid[y1 * w..][..w]);
+        // the second row counts only with a non-zero weight
+        let row1 = fy > 0.0;
         for &(x0, x1, fx) in xt {
-            let at = |y: usize, x: usize| (2 * (y * w + x), y * w + x);
-            let taps = [at(y0, x0), at(y0, x1), at(y1, x0), at(y1, x1)];
-            let weights = [(1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy];
-            let ok = taps.iter().zip(weights).all(|(&(_, v), wt)| wt == 0.0 || s.valid[v] != 0);
-            let lerp = |c: usize| {
-                let top = s.flow[taps[0].0 + c] + (s.flow[taps[1].0 + c] - s.flow[taps[0].0 + c]) * fx;
-                let bottom = s.flow[taps[2].0 + c] + (s.flow[taps[3].0 + c] - s.flow[taps[2].0 + c]) * fx;
-                top + (bottom - top) * fy
-            };
-            flow.push(lerp(0) * kx);
-            flow.push(lerp(1) * ky);
+            let col1 = fx > 0.0;
+            let ok = v0[x0] != 0 && (!col1 || v0[x1] != 0) && (!row1 || (v1[x0] != 0 && (!col1 || v1[x1] != 0)));
+            for (c, k) in [(0, kx), (1, ky)] {
+                let top = f0[2 * x0 + c] + (f0[2 * x1 + c] - f0[2 * x0 + c]) * fx;
+                let bottom = f1[2 * x0 + c] + (f1[2 * x1 + c] - f1[2 * x0 + c]) * fx;
+                flow.push((top + (bottom - top) * fy) * k);
+            }
             valid.push(u8::from(ok));
         }
     }
@@ -903,6 +916,10 @@ pub fn apply_plan(plan: &Plan, mut s: Sample) -> Sample {
         }
     }
     apply_eraser(&mut s.image2, w, h, &plan.eraser);
+    if plan.x == Axis::identity(w) && plan.y == Axis::identity(h) {
+        // no resize, flip or crop: the flow, `valid` and the labels stay as they are
+        return s;
+    }
     // the spatial map
     let (xt, yt) = (plan.x.taps(), plan.y.taps());
     let (xn, yn) = (plan.x.nearest(), plan.y.nearest());

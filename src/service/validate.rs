@@ -90,7 +90,10 @@ pub fn augment(text: &str, out: &mut OutputSpec, config: &ServiceConfig) -> Resu
         if c.width == 0 || c.height == 0 {
             return Err(invalid(
                 "crop",
-                format!("{}x{}: with augment, give both sides (or none, for the augmentation's crop)", c.width, c.height),
+                format!(
+                    "{}x{}: with augment, give both sides (or none, for the augmentation's crop)",
+                    c.width, c.height
+                ),
             ));
         }
         a = a.with_crop((c.width, c.height));
