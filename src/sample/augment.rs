@@ -38,6 +38,10 @@ use crate::rng::{Purpose, SampleRng};
 /// The random stream of a sample's augmentation: `Purpose::Other(AUGMENT_PURPOSE)`.
 pub const AUGMENT_PURPOSE: u32 = 0x6175_676d; // "augm"
 
+/// RAFT writes its hue ranges as `0.5 / 3.14` and `0.3 / 3.14`: that 3.14, not pi.
+#[allow(clippy::approx_constant)]
+const RAFT_PI: f64 = 3.14;
+
 /// Most eraser boxes per sample.
 pub const MAX_ERASER_BOXES: u32 = 16;
 
@@ -130,7 +134,7 @@ impl AugmentParams {
             brightness: 0.4,
             contrast: 0.4,
             saturation: 0.4,
-            hue: 0.5 / 3.14,
+            hue: 0.5 / RAFT_PI,
             asymmetric_color_prob: 0.2,
             eraser_prob: 0.5,
             eraser_min: 50,
@@ -254,7 +258,7 @@ impl AugmentPreset {
                 brightness: 0.3,
                 contrast: 0.3,
                 saturation: 0.3,
-                hue: 0.3 / 3.14,
+                hue: 0.3 / RAFT_PI,
                 asymmetric_color_prob: 0.0,
                 eraser_prob: 0.5,
                 eraser_min: 50,
