@@ -62,6 +62,7 @@ fn sample_request(r: &pb::SamplesRequest, index: u64) -> pb::SampleRequest {
         motion_ranges_json: r.motion_ranges_json.clone(),
         max_objects: r.max_objects,
         motions_per_image: r.motions_per_image,
+        augment: r.augment.clone(),
     }
 }
 

@@ -9,6 +9,7 @@ use super::Timing;
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
 use crate::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions};
+use crate::sample::augment::Augment;
 use crate::sample::recipe::{Generator, SampleConfig, SampleError};
 use crate::sample::StageTimings;
 use crate::scene::cache::SceneCache;
@@ -108,6 +109,9 @@ pub struct SampleBenchConfig {
     pub object: bool,
     pub seed: u64,
     pub sample: SampleConfig,
+    /// An augmentation to time on each finished sample (on the calling thread, as a server worker
+    /// runs it).
+    pub augment: Option<Augment>,
 }
 
 /// Wall time per sample and the stage timings of each.
@@ -119,6 +123,8 @@ pub struct SampleBenchReport {
     pub objects: usize,
     /// Holes inpainted, median over the samples.
     pub holes_median: u64,
+    /// The augmentation's time per sample (without the sample), with `augment`.
+    pub augment: Option<Timing>,
 }
 
 impl SampleBenchReport {
@@ -156,15 +162,28 @@ pub fn bench_sample(cfg: &SampleBenchConfig) -> Result<SampleBenchReport, Sample
     let mut stages = Vec::with_capacity(cfg.samples);
     let mut holes = Vec::with_capacity(cfg.samples);
     let mut objects = 0;
+    let mut augment = Vec::new();
     for index in 1..=cfg.samples.max(1) as u64 {
         let t = Instant::now();
         let s = g.sample(cfg.seed, index)?;
         wall.push(t.elapsed().as_secs_f64() * 1e3);
+        if let Some(a) = &cfg.augment {
+            let copy = s.clone();
+            let t = Instant::now();
+            std::hint::black_box(a.apply(copy));
+            augment.push(t.elapsed().as_secs_f64() * 1e3);
+        }
         objects = objects.max(s.objects.len());
         holes.push(s.inpainted_pixels);
         stages.push(s.timings);
         std::hint::black_box(&s);
     }
     holes.sort_unstable();
-    Ok(SampleBenchReport { wall: Timing::from_samples(wall), stages, objects, holes_median: holes[holes.len() / 2] })
+    Ok(SampleBenchReport {
+        wall: Timing::from_samples(wall),
+        stages,
+        objects,
+        holes_median: holes[holes.len() / 2],
+        augment: (!augment.is_empty()).then(|| Timing::from_samples(augment)),
+    })
 }

@@ -50,6 +50,10 @@ pub struct SampleBench {
     full_frame: bool,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Also time a training augmentation of each sample (a preset such as raft-chairs, or its
+    /// JSON form; docs/augment.md), on one thread.
+    #[arg(long, value_name = "NAME|JSON")]
+    augment: Option<String>,
 }
 
 #[derive(Args, Debug)]
@@ -181,6 +185,10 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
     }
     let threads = b.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, std::num::NonZero::get));
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+    let augment = match &b.augment {
+        Some(t) => Some(mpiflow::sample::augment::Augment::parse(t).map_err(|e| CliError(format!("--augment: {e}")))?),
+        None => None,
+    };
     for object in [true, false] {
         let sample = SampleConfig {
             merge: b.merge,
@@ -196,6 +204,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             object,
             seed: b.seed,
             sample,
+            augment: augment.clone(),
         };
         let r = pool.install(|| bench_sample(&cfg))?;
         println!(
@@ -216,6 +225,15 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         println!("  {:<8} {:>10} {:>10} {:>7}", "stage", "median ms", "mean ms", "share");
         for (name, median, mean, share) in r.stage_table() {
             println!("  {name:<8} {median:>10.2} {mean:>10.2} {:>6.1}%", 100.0 * share);
+        }
+        if let (Some(t), Some(text)) = (&r.augment, &b.augment) {
+            println!(
+                "  augment {}: median {:.2} ms (min {:.2}, max {:.2}) per sample on one thread",
+                text.trim(),
+                t.median,
+                t.min,
+                t.max
+            );
         }
         println!();
     }

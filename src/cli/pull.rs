@@ -66,6 +66,10 @@ pub struct PullArgs {
     /// Consecutive samples per source photo (default: the dataset's).
     #[arg(long)]
     motions_per_image: Option<u32>,
+    /// Training augmentation: a preset (raft-chairs, raft-things, raft-sintel, raft-kitti, none)
+    /// or its JSON form (docs/augment.md); with --crop, the crop replaces the preset's.
+    #[arg(long, value_name = "NAME|JSON")]
+    augment: Option<String>,
     /// Crop every sample to WxH (centre, or random with --random-crop).
     #[arg(long, value_name = "WxH")]
     crop: Option<String>,
@@ -116,6 +120,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
         motions_per_image: a.motions_per_image,
         batch_size: a.batch_size,
         prefetch: a.prefetch,
+        augment: a.augment.clone().unwrap_or_default(),
     })
 }
 

@@ -1,6 +1,7 @@
 //! Building one training sample: random motions, object motion and merging, inpainting of
 //! holes, and the deterministic recipe that ties a sample to its address.
 
+pub mod augment;
 pub mod config;
 pub mod holes;
 pub mod inpaint;

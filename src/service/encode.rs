@@ -6,6 +6,7 @@ use half::f16;
 
 use super::pb;
 use crate::geometry::Intrinsics;
+use crate::sample::augment::{clear_valid_outside, Augment};
 use crate::sample::motion::{Motion, RotationKind};
 use crate::sample::rng::{Purpose, SampleRng};
 use crate::sample::{ObjectRecord, Sample, SampleAddress, StageTimings};
@@ -27,18 +28,21 @@ pub struct CropSpec {
 }
 
 /// What a request wants of each sample.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct OutputSpec {
     /// In wire order (the enum's order), without duplicates.
     pub fields: Vec<pb::Field>,
     pub flow_f16: bool,
     pub lz4: bool,
+    /// The crop without augmentation (with it, the augmentation crops).
     pub crop: Option<CropSpec>,
+    /// The training augmentation, applied before encoding (its crop replaces `crop`).
+    pub augment: Option<Augment>,
 }
 
 impl Default for OutputSpec {
     fn default() -> Self {
-        Self { fields: DEFAULT_FIELDS.to_vec(), flow_f16: false, lz4: false, crop: None }
+        Self { fields: DEFAULT_FIELDS.to_vec(), flow_f16: false, lz4: false, crop: None, augment: None }
     }
 }
 
@@ -96,16 +100,7 @@ pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sa
     let w = s.width;
     let flow = crop_plane(&s.flow, w, 2, x0, y0, cw, ch);
     let mut valid = crop_plane(&s.valid, w, 1, x0, y0, cw, ch);
-    let (maxx, maxy) = ((cw - 1) as f32, (ch - 1) as f32);
-    for (i, v) in valid.iter_mut().enumerate() {
-        if *v != 0 {
-            let tx = (i % cw) as f32 + flow[2 * i];
-            let ty = (i / cw) as f32 + flow[2 * i + 1];
-            if !(tx >= 0.0 && tx <= maxx && ty >= 0.0 && ty <= maxy) {
-                *v = 0;
-            }
-        }
-    }
+    clear_valid_outside(&flow, &mut valid, cw, ch);
     Sample {
         address: s.address,
         source_id: s.source_id.clone(),
@@ -270,6 +265,7 @@ pub fn to_proto(
         crop_y: crop.1 as u32,
         inpainted_pixels: s.inpainted_pixels,
         provenance: std::mem::take(&mut s.provenance),
+        augment: String::new(),
     }
 }
 

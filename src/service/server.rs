@@ -86,10 +86,18 @@ impl State {
                 }
             }
             // the camera of the scene the sample was made from (before any crop)
-            let k = s.intrinsics;
+            let mut k = s.intrinsics;
             let timings = s.timings;
-            let (corner, s) = match &out.crop {
-                Some(c) => {
+            let mut record = String::new();
+            let (corner, s) = match (&out.augment, &out.crop) {
+                (Some(a), _) => {
+                    // the augmentation makes its own crop (the frame resized to fit it)
+                    let (s, r) = a.apply(s);
+                    record = r.to_json();
+                    k = s.intrinsics;
+                    ((0, 0), s)
+                }
+                (None, Some(c)) => {
                     // a crop larger than the frame is the request's fault, never shrunk
                     let (x0, y0, cw, ch) = crop_window(c, s.width, s.height, s.address)
                         .map_err(|e| ServiceError::invalid("crop", e.to_string()))?;
@@ -99,9 +107,10 @@ impl State {
                         ((x0, y0), crop_sample(&s, x0, y0, cw, ch))
                     }
                 }
-                None => ((0, 0), s),
+                (None, None) => ((0, 0), s),
             };
-            let p = to_proto(s, &dataset.name, k, corner, &out);
+            let mut p = to_proto(s, &dataset.name, k, corner, &out);
+            p.augment = record;
             metrics.observe_sample(&timings, p.timings.as_ref().map_or(0.0, |t| t.encode_ms));
             Ok(p)
         })
@@ -131,7 +140,8 @@ impl State {
             return Err(ServiceError::Draining);
         }
         let (rank, world, batch, prefetch) = validate::stream_shape(r, &self.config)?;
-        let out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        validate::augment(&r.augment, &mut out, &self.config)?;
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         // the stream limit
@@ -187,7 +197,8 @@ impl State {
             return Err(ServiceError::Draining);
         }
         let indices = validate::indices(&r.indices)?;
-        let out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        validate::augment(&r.augment, &mut out, &self.config)?;
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         self.admit()?;
@@ -224,7 +235,8 @@ impl State {
         if r.index == super::pool::END_INDEX {
             return Err(ServiceError::invalid("index", "2^64 - 1 is the end of the index space, not a sample").into());
         }
-        let out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
+        validate::augment(&r.augment, &mut out, &self.config)?;
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         let spec = StreamSpec {

@@ -6,6 +6,7 @@ use super::dataset::Overrides;
 use super::encode::{CropSpec, OutputSpec, DEFAULT_FIELDS};
 use super::error::ServiceError;
 use super::pb;
+use crate::sample::augment::Augment;
 use crate::sample::motion::{MotionPreset, MotionRanges};
 
 /// Largest `world_size` accepted.
@@ -70,7 +71,41 @@ pub fn output_spec(
             (c.width != 0 || c.height != 0).then_some(CropSpec { width: c.width, height: c.height, random })
         }
     };
-    Ok(OutputSpec { fields: list, flow_f16, lz4, crop })
+    Ok(OutputSpec { fields: list, flow_f16, lz4, crop, augment: None })
+}
+
+/// The `augment` of a request, put into `out`: a preset name or JSON (docs/augment.md); errors
+/// name the JSON key (`augment.crop`, ...). A request crop naming both sides replaces the
+/// augmentation's crop (one side alone is refused: the other would depend on the drawn scale);
+/// the augmentation then makes the crop, so `out.crop` is cleared.
+pub fn augment(text: &str, out: &mut OutputSpec, config: &ServiceConfig) -> Result<(), ServiceError> {
+    if text.trim().is_empty() {
+        return Ok(());
+    }
+    if text.len() > 64 << 10 {
+        return Err(invalid("augment", "longer than 64 KiB"));
+    }
+    let mut a = Augment::parse(text).map_err(|e| invalid(e.field, e.reason))?;
+    if let Some(c) = out.crop.take() {
+        if c.width == 0 || c.height == 0 {
+            return Err(invalid(
+                "crop",
+                format!(
+                    "{}x{}: with augment, give both sides (or none, for the augmentation's crop)",
+                    c.width, c.height
+                ),
+            ));
+        }
+        a = a.with_crop((c.width, c.height));
+    }
+    if let Some((w, h)) = a.params.crop {
+        let side = config.max_image_side;
+        if w > side || h > side {
+            return Err(invalid("augment.crop", format!("{w}x{h} is larger than the largest image side {side}")));
+        }
+    }
+    out.augment = Some(a);
+    Ok(())
 }
 
 /// The sample-configuration overrides of a request.

@@ -1,6 +1,7 @@
 """The gRPC client of an mpiflow server or of several replicas of it."""
 from __future__ import annotations
 
+import json
 import logging
 import random
 import re
@@ -115,6 +116,17 @@ def _crop(crop: Any, mode: Union[str, int, None]) -> Optional["pb.OutputCrop"]:
     return pb.OutputCrop(width=w, height=h, mode=mode)
 
 
+def _augment(v: Any) -> str:
+    """The request's `augment`: a preset name or JSON text as is, a dict as JSON (docs/augment.md)."""
+    if v is None:
+        return ""
+    if isinstance(v, dict):
+        return json.dumps(v, sort_keys=True)
+    if isinstance(v, str):
+        return v
+    raise TypeError(f"augment must be a preset name, JSON text or a dict, not {type(v).__name__}")
+
+
 def _flow_dtype(v: Union[str, int, None]) -> int:
     if v is None:
         return pb.FLOW_DTYPE_F32
@@ -142,6 +154,7 @@ def build_request_fields(
     motion_ranges_json: Optional[str] = None,
     max_objects: Optional[int] = None,
     motions_per_image: Optional[int] = None,
+    augment: Any = None,
 ) -> Dict[str, Any]:
     """The keyword arguments shared by StreamRequest and SampleRequest."""
     kw: Dict[str, Any] = dict(
@@ -153,6 +166,7 @@ def build_request_fields(
         compression=pb.COMPRESSION_LZ4 if lz4 else pb.COMPRESSION_NONE,
         motion_preset=motion_preset or "",
         motion_ranges_json=motion_ranges_json or "",
+        augment=_augment(augment),
     )
     c = _crop(crop, crop_mode)
     if c is not None:
@@ -485,6 +499,7 @@ class Client:
         motion_ranges_json: Optional[str] = None,
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
+        augment: Any = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -505,6 +520,7 @@ class Client:
                 motion_ranges_json=motion_ranges_json,
                 max_objects=max_objects,
                 motions_per_image=motions_per_image,
+                augment=augment,
             ),
         )
         s = self._unary("GetSample", req, timeout, address)
@@ -534,6 +550,7 @@ class Client:
         motion_ranges_json: Optional[str] = None,
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
+        augment: Any = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -562,6 +579,7 @@ class Client:
             motion_ranges_json=motion_ranges_json,
             max_objects=max_objects,
             motions_per_image=motions_per_image,
+            augment=augment,
         )
         limit = max(1, self.max_indices())
         out: List[Any] = []

@@ -125,7 +125,11 @@ class _MPIFlowDatasetImpl:
     `crop` (W, H) cuts every sample at a position drawn from the sample's own random stream
     (`crop_mode="random"`, the default: reproducible, part of the address) or at the centre
     (`crop_mode="center"`, the Client's default); a crop larger than the rendered frame is
-    refused (INVALID_ARGUMENT naming `crop`), never shrunk.
+    refused (INVALID_ARGUMENT naming `crop`), never shrunk, unless `augment` is given.
+    `augment` is a server-side training augmentation (docs/augment.md): a preset reproducing a
+    RAFT training stage ("raft-chairs", "raft-things", "raft-sintel", "raft-kitti") or its
+    parameters as JSON text or a dict; it is part of the address (same bytes every time), makes
+    its own random crop (the preset's size, or `crop` when given) and resizes the frame to fit it.
     `token`, `tls_ca`, `tls_cert`, `tls_key` and `tls_domain` are passed to each worker's Client.
     """
 
@@ -150,6 +154,7 @@ class _MPIFlowDatasetImpl:
         motion_ranges_json: Optional[str] = None,
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
+        augment: Any = None,
         batch_size: int = 1,
         prefetch: int = 8,
         server_prefetch: int = 0,
@@ -186,6 +191,7 @@ class _MPIFlowDatasetImpl:
         self.motion_ranges_json = motion_ranges_json
         self.max_objects = max_objects
         self.motions_per_image = motions_per_image
+        self.augment = augment
         self.batch_size = int(batch_size)
         self.prefetch = int(prefetch)
         self.server_prefetch = int(server_prefetch)
@@ -339,6 +345,7 @@ class _MPIFlowDatasetImpl:
             motion_ranges_json=self.motion_ranges_json,
             max_objects=self.max_objects,
             motions_per_image=self.motions_per_image,
+            augment=self.augment,
             batch_size=self.batch_size,
             server_prefetch=self.server_prefetch,
             retry_timeout=self.retry_timeout,

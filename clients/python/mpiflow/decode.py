@@ -146,6 +146,8 @@ class Sample:
     intrinsics: Any = None
     timings: Any = None
     skipped_sources: int = 0
+    # what the server-side augmentation applied (the Sample's `augment` JSON); empty without it
+    augment: str = ""
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.tensors[name]
@@ -173,6 +175,7 @@ def decode_sample(s: "pb.Sample") -> Sample:
         intrinsics=s.intrinsics if s.HasField("intrinsics") else None,
         timings=s.timings if s.HasField("timings") else None,
         skipped_sources=s.skipped_sources,
+        augment=s.augment,
     )
 
 

@@ -69,6 +69,7 @@ class FlowStream:
         motion_ranges_json: Optional[str] = None,
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
+        augment: Any = None,
         batch_size: int = 1,
         server_prefetch: int = 0,
         retry_timeout: float = 120.0,
@@ -107,6 +108,7 @@ class FlowStream:
             motion_ranges_json=motion_ranges_json,
             max_objects=max_objects,
             motions_per_image=motions_per_image,
+            augment=augment,
         )
         self._call = None
         self._lock = threading.Lock()

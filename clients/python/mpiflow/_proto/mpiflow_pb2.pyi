@@ -79,7 +79,7 @@ class OutputCrop(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., mode: _Optional[_Union[CropMode, str]] = ...) -> None: ...
 
 class StreamRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "rank", "world_size", "start_index", "count", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "batch_size", "prefetch")
+    __slots__ = ("dataset", "fingerprint", "seed", "rank", "world_size", "start_index", "count", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "batch_size", "prefetch", "augment")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -97,6 +97,7 @@ class StreamRequest(_message.Message):
     MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PREFETCH_FIELD_NUMBER: _ClassVar[int]
+    AUGMENT_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -114,10 +115,11 @@ class StreamRequest(_message.Message):
     motions_per_image: int
     batch_size: int
     prefetch: int
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ...) -> None: ...
+    augment: str
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ..., augment: _Optional[str] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "index", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image")
+    __slots__ = ("dataset", "fingerprint", "seed", "index", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -130,6 +132,7 @@ class SampleRequest(_message.Message):
     MOTION_RANGES_JSON_FIELD_NUMBER: _ClassVar[int]
     MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
     MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
+    AUGMENT_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -142,10 +145,11 @@ class SampleRequest(_message.Message):
     motion_ranges_json: str
     max_objects: int
     motions_per_image: int
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ...) -> None: ...
+    augment: str
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ...) -> None: ...
 
 class SamplesRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image")
+    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -158,6 +162,7 @@ class SamplesRequest(_message.Message):
     MOTION_RANGES_JSON_FIELD_NUMBER: _ClassVar[int]
     MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
     MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
+    AUGMENT_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -170,7 +175,8 @@ class SamplesRequest(_message.Message):
     motion_ranges_json: str
     max_objects: int
     motions_per_image: int
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ...) -> None: ...
+    augment: str
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ...) -> None: ...
 
 class Tensor(_message.Message):
     __slots__ = ("name", "shape", "dtype", "compression", "raw_size", "data")
@@ -249,7 +255,7 @@ class Timings(_message.Message):
     def __init__(self, scene_ms: _Optional[float] = ..., render_ms: _Optional[float] = ..., objects_ms: _Optional[float] = ..., merge_ms: _Optional[float] = ..., inpaint_ms: _Optional[float] = ..., total_ms: _Optional[float] = ..., encode_ms: _Optional[float] = ...) -> None: ...
 
 class Sample(_message.Message):
-    __slots__ = ("index", "dataset", "fingerprint", "seed", "source_id", "width", "height", "tensors", "camera", "objects", "intrinsics", "timings", "skipped_sources", "crop_x", "crop_y", "inpainted_pixels", "provenance")
+    __slots__ = ("index", "dataset", "fingerprint", "seed", "source_id", "width", "height", "tensors", "camera", "objects", "intrinsics", "timings", "skipped_sources", "crop_x", "crop_y", "inpainted_pixels", "provenance", "augment")
     INDEX_FIELD_NUMBER: _ClassVar[int]
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
@@ -267,6 +273,7 @@ class Sample(_message.Message):
     CROP_Y_FIELD_NUMBER: _ClassVar[int]
     INPAINTED_PIXELS_FIELD_NUMBER: _ClassVar[int]
     PROVENANCE_FIELD_NUMBER: _ClassVar[int]
+    AUGMENT_FIELD_NUMBER: _ClassVar[int]
     index: int
     dataset: str
     fingerprint: int
@@ -284,7 +291,8 @@ class Sample(_message.Message):
     crop_y: int
     inpainted_pixels: int
     provenance: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, index: _Optional[int] = ..., dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., source_id: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., tensors: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., camera: _Optional[_Union[Motion, _Mapping]] = ..., objects: _Optional[_Iterable[_Union[ObjectMotion, _Mapping]]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., timings: _Optional[_Union[Timings, _Mapping]] = ..., skipped_sources: _Optional[int] = ..., crop_x: _Optional[int] = ..., crop_y: _Optional[int] = ..., inpainted_pixels: _Optional[int] = ..., provenance: _Optional[_Iterable[str]] = ...) -> None: ...
+    augment: str
+    def __init__(self, index: _Optional[int] = ..., dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., source_id: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., tensors: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., camera: _Optional[_Union[Motion, _Mapping]] = ..., objects: _Optional[_Iterable[_Union[ObjectMotion, _Mapping]]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., timings: _Optional[_Union[Timings, _Mapping]] = ..., skipped_sources: _Optional[int] = ..., crop_x: _Optional[int] = ..., crop_y: _Optional[int] = ..., inpainted_pixels: _Optional[int] = ..., provenance: _Optional[_Iterable[str]] = ..., augment: _Optional[str] = ...) -> None: ...
 
 class SampleBatch(_message.Message):
     __slots__ = ("samples", "next_index", "resume_start_index")
