@@ -96,7 +96,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
     };
     let mut fields = vec![pb::Field::Image1, pb::Field::Image2, pb::Field::Flow, pb::Field::Valid];
     if a.out.is_some() {
-        fields.extend([pb::Field::Occlusion, pb::Field::Mask1]);
+        fields.extend([pb::Field::Occlusion, pb::Field::Holes, pb::Field::Mask1]);
     }
     Ok(pb::StreamRequest {
         dataset: a.dataset.clone(),

@@ -178,11 +178,11 @@ pub fn assemble_with_occupancy(
     occupancy: Option<&Occupancy>,
 ) -> Result<Sample, SampleError> {
     let start = Instant::now();
-    let (mut sample, hole) = assemble_merged(scene, address, config, occupancy)?;
+    let mut sample = assemble_merged_sample(scene, address, config, occupancy)?;
     let t = Instant::now();
     if sample.inpainted_pixels > 0 {
         let (w, h) = (sample.width, sample.height);
-        inpaint_holes(&mut sample.image2, w, h, &hole, config.inpaint_method, config.inpaint_radius, true);
+        inpaint_holes(&mut sample.image2, w, h, &sample.holes, config.inpaint_method, config.inpaint_radius, true);
     }
     sample.timings.inpaint_ms = ms(t);
     sample.timings.total_ms = ms(start);
@@ -191,13 +191,26 @@ pub fn assemble_with_occupancy(
 
 /// [`assemble_with_occupancy`] up to the merge: the sample with `image2` as merged, its holes not
 /// yet inpainted, and the hole mask (H x W, 1 = hole; [`Sample::inpainted_pixels`] counts them).
-/// [`assemble`] is this followed by [`inpaint_holes`] over the mask (windowed).
+/// [`assemble`] is this followed by [`inpaint_holes`] over the mask (windowed). The mask is
+/// also the sample's [`Sample::holes`].
 pub fn assemble_merged(
     scene: &Scene,
     address: SampleAddress,
     config: &SampleConfig,
     occupancy: Option<&Occupancy>,
 ) -> Result<(Sample, Vec<u8>), SampleError> {
+    let sample = assemble_merged_sample(scene, address, config, occupancy)?;
+    let hole = sample.holes.clone();
+    Ok((sample, hole))
+}
+
+/// [`assemble_merged`] without the copy of the hole mask (it is [`Sample::holes`]).
+fn assemble_merged_sample(
+    scene: &Scene,
+    address: SampleAddress,
+    config: &SampleConfig,
+    occupancy: Option<&Occupancy>,
+) -> Result<Sample, SampleError> {
     let start = Instant::now();
     config.validate()?;
     check_scene(scene)?;
@@ -382,11 +395,12 @@ pub fn assemble_merged(
         objects: records,
         depth1,
         depth2: merged.depth2,
+        holes: merged.hole,
         inpainted_pixels: merged.holes,
         skipped_sources: 0,
         provenance: scene.provenance.clone(),
         intrinsics: scene.intrinsics,
         timings,
     };
-    Ok((sample, merged.hole))
+    Ok(sample)
 }
