@@ -57,7 +57,7 @@ pub struct PullArgs {
     /// Samples the server makes ahead for this stream (0 = the server's default).
     #[arg(long, default_value_t = 0)]
     prefetch: u32,
-    /// Motion preset: reference, paper-kitti or depthstillation (default: the dataset's).
+    /// Motion preset: reference, paper-kitti, depthstillation or mixed (default: the dataset's).
     #[arg(long, default_value = "")]
     preset: String,
     /// Moving objects per sample (default: the dataset's).
