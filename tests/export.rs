@@ -130,6 +130,7 @@ fn make_sample(index: u64, objects: bool) -> Sample {
         objects,
         depth1: (0..n).map(|i| 1.0 + i as f32 * 0.01).collect(),
         depth2: (0..n).map(|i| if i % 7 == 0 { 0.0 } else { 2.0 + i as f32 * 0.01 }).collect(),
+        holes: (0..n).map(|i| u8::from(i % 7 == 0)).collect(),
         inpainted_pixels: 17,
         skipped_sources: 0,
         provenance: vec!["depth: test".into(), "mpi: test".into()],
@@ -246,6 +247,7 @@ res['img1'] = png8('img1', 'RGB').reshape(-1).tolist()
 res['img2'] = png8('img2', 'RGB').reshape(-1).tolist()
 res['valid'] = png8('valid', 'L').reshape(-1).tolist()
 res['occ'] = png8('occ', 'L').reshape(-1).tolist()
+res['holes'] = png8('holes', 'L').reshape(-1).tolist()
 mask_path = os.path.join(out, key + '_mask.png')
 res['mask'] = png8('mask', 'L').reshape(-1).tolist() if os.path.exists(mask_path) else None
 if fmt == 'flo':
@@ -314,8 +316,14 @@ fn check_json(j: &Value, index: u64, s: &Sample, flow_field: &str) {
     assert_eq!(j["provenance"], serde_json::json!(["depth: test", "mpi: test"]));
     assert_eq!(j["inpainted_pixels"], 17);
     let fields: Vec<String> = serde_json::from_value(j["fields"].clone()).unwrap();
-    let mut want =
-        vec!["img1.png".to_string(), "img2.png".into(), flow_field.into(), "valid.png".into(), "occ.png".into()];
+    let mut want = vec![
+        "img1.png".to_string(),
+        "img2.png".into(),
+        flow_field.into(),
+        "valid.png".into(),
+        "occ.png".into(),
+        "holes.png".into(),
+    ];
     if !s.objects.is_empty() {
         want.push("mask.png".into());
     }
@@ -346,7 +354,7 @@ fn flo_layout_reads_back_exactly_with_numpy_and_pillow() {
 
     let mut expect_files = vec![];
     for (key, objects) in [("00000000", true), ("00000042", false)] {
-        for f in ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png"] {
+        for f in ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png", "holes.png"] {
             expect_files.push(format!("{key}_{f}"));
         }
         if objects {
@@ -365,6 +373,7 @@ fn flo_layout_reads_back_exactly_with_numpy_and_pillow() {
         assert_eq!(as_u8(&r["img2"]), s.image2);
         assert_eq!(as_u8(&r["valid"]), to255(&s.valid));
         assert_eq!(as_u8(&r["occ"]), to255(&s.occlusion));
+        assert_eq!(as_u8(&r["holes"]), to255(&s.holes));
         if s.objects.is_empty() {
             assert!(r["mask"].is_null());
         } else {
@@ -433,7 +442,7 @@ for u in urls:
     with tarfile.open(u) as t:
         res['members'][os.path.basename(u)] = [(m.name, m.size, m.mode) for m in t.getmembers()]
 # masks as 8-bit gray arrays, images through webdataset's own 'rgb8' handler (uint8 HxWx3)
-masks = wds.handle_extension('valid.png occ.png mask.png', gray)
+masks = wds.handle_extension('valid.png occ.png holes.png mask.png', gray)
 ds = wds.WebDataset(urls, shardshuffle=False).decode(masks, 'rgb8')
 for s in ds:
     flow = s['flow.npy']
@@ -451,6 +460,7 @@ for s in ds:
         'img2': img2.reshape(-1).tolist(),
         'valid': s['valid.png'].reshape(-1).tolist(),
         'occ': s['occ.png'].reshape(-1).tolist(),
+        'holes': s['holes.png'].reshape(-1).tolist(),
         'mask': s['mask.png'].reshape(-1).tolist() if 'mask.png' in s else None,
         'json': s['json'],
     }
@@ -492,6 +502,7 @@ fn webdataset_shards_round_trip_through_the_webdataset_library() {
             "00000000.flow.npy",
             "00000000.valid.png",
             "00000000.occ.png",
+            "00000000.holes.png",
             "00000000.mask.png",
             "00000000.json",
             "00000001.img1.png",
@@ -499,6 +510,7 @@ fn webdataset_shards_round_trip_through_the_webdataset_library() {
             "00000001.flow.npy",
             "00000001.valid.png",
             "00000001.occ.png",
+            "00000001.holes.png",
             "00000001.json",
         ]
     );
@@ -507,7 +519,7 @@ fn webdataset_shards_round_trip_through_the_webdataset_library() {
     assert_eq!(got.len(), samples.len());
     for (g, (i, s)) in got.iter().zip(&samples) {
         assert_eq!(g["key"], sample_key(*i));
-        let mut fields = vec!["flow.npy", "img1.png", "img2.png", "json", "occ.png", "valid.png"];
+        let mut fields = vec!["flow.npy", "holes.png", "img1.png", "img2.png", "json", "occ.png", "valid.png"];
         if !s.objects.is_empty() {
             fields.push("mask.png");
             fields.sort();
@@ -520,6 +532,7 @@ fn webdataset_shards_round_trip_through_the_webdataset_library() {
         assert_eq!(as_u8(&g["img2"]), s.image2);
         assert_eq!(as_u8(&g["valid"]), to255(&s.valid));
         assert_eq!(as_u8(&g["occ"]), to255(&s.occlusion));
+        assert_eq!(as_u8(&g["holes"]), to255(&s.holes));
         if s.objects.is_empty() {
             assert!(g["mask"].is_null());
         } else {
@@ -661,7 +674,7 @@ fn generate_flo_on_the_bundled_scenes() {
     let mut flos = Vec::new();
     for i in 0..3u64 {
         let key = sample_key(i);
-        for f in ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png"] {
+        for f in ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png", "holes.png"] {
             assert!(files.contains(&format!("{key}_{f}")), "{key}_{f} missing in {files:?}");
         }
         let j: Value = serde_json::from_slice(&std::fs::read(out.join(format!("{key}.json"))).unwrap()).unwrap();

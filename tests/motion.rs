@@ -66,6 +66,19 @@ fn stated(preset: MotionPreset) -> (Stated, Stated) {
                 angles: [Signed(PI / 72.0, PI / 36.0); 3],
             },
         ),
+        // log-uniform magnitudes with random signs (the coverage check holds at both ends)
+        MotionPreset::Mixed => (
+            Stated {
+                translation: [Signed(0.001, 0.3); 3],
+                kind: RotationKind::AxisAngle,
+                angles: [Signed(0.0002, 0.05); 3],
+            },
+            Stated {
+                translation: [Signed(0.001, 0.1); 3],
+                kind: RotationKind::AxisAngle,
+                angles: [Signed(0.0002, 0.03); 3],
+            },
+        ),
     }
 }
 
@@ -226,7 +239,7 @@ fn print_golden_draws() {
 /// the test pass; a change of the laws, the draw order or the generator breaks the dataset format.
 #[test]
 fn golden_draws() {
-    let golden: [(MotionPreset, [u64; 6]); 3] = [
+    let golden: [(MotionPreset, [u64; 6]); 4] = [
         // t = (0.14769656653191213, -0.15999348463127225, -0.14540143644347525),
         // axis-angle (-0.015079096785697112, 0.018178869755759233, -0.029954811605584546)
         (
@@ -264,6 +277,19 @@ fn golden_draws() {
                 0x3fc3a9ed7c1a20a2,
                 0xbfbff62949c28182,
                 0xbfc4ae0103183c66,
+            ],
+        ),
+        // t = (0.0151880419263858, -0.030627486650942077, 0.005620380971156504),
+        // axis-angle (0.013317021484801786, -0.0021565562704272886, -0.022003922758677935)
+        (
+            MotionPreset::Mixed,
+            [
+                0x3f8f1ae87ae9af48,
+                0xbf9f5ccfd6190f65,
+                0x3f770565876514a8,
+                0x3f8b45f45e0f0f1b,
+                0xbf61aaa054e937b0,
+                0xbf968832428767c8,
             ],
         ),
     ];
@@ -353,7 +379,7 @@ fn preset_names_parse_and_print() {
         assert_eq!(p.ranges().name, p.to_string());
     }
     assert_eq!(
-        ["reference", "paper-kitti", "depthstillation"],
+        ["reference", "paper-kitti", "depthstillation", "mixed"],
         MotionPreset::ALL.map(mpiflow::sample::motion::MotionPreset::name)
     );
     assert_eq!("Paper-KITTI".parse::<MotionPreset>().unwrap(), MotionPreset::PaperKitti);

@@ -19,7 +19,7 @@ use std::sync::Arc;
 
 const SIZE: &str = "64x48";
 /// The sample files both commands write (per index `I`; `mask.png` only when objects moved).
-const FILES: [&str; 6] = ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png", "mask.png"];
+const FILES: [&str; 7] = ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png", "holes.png", "mask.png"];
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_mpiflow"))

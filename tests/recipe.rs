@@ -175,7 +175,9 @@ fn within(law: &RigidLaw, m: &Motion) {
         let (lo, hi) = c.bounds();
         assert!(v >= lo && v <= hi, "{v} outside [{lo}, {hi}] ({c:?})");
         match *c {
-            Component::RandomSign { min, .. } => assert!(v.abs() >= min, "|{v}| < {min}"),
+            Component::RandomSign { min, .. } | Component::LogUniform { min, .. } => {
+                assert!(v.abs() >= min, "|{v}| < {min}");
+            }
             Component::Forward { .. } => assert!(v <= 0.0, "forward motion has t_z <= 0"),
             Component::Uniform { .. } => {}
         }

@@ -9,7 +9,7 @@ use mpiflow::io::image::RgbImage;
 use mpiflow::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions};
 use mpiflow::mpi::npz::load_npz;
 use mpiflow::render::{render, Fields, RenderOutput, RenderParams, Skip};
-use mpiflow::sample::merge::{merge, MergeRule, ObjectView, SceneView};
+use mpiflow::sample::merge::{merge, LabelRule, MergeRule, ObjectView, SceneView};
 use mpiflow::sample::motion::{Axes, Component, MotionRanges, RigidLaw, RotationKind};
 use mpiflow::sample::object::{object_window, scene_mask_window, support_rect, target_footprint, Rect, WindowRender};
 use mpiflow::sample::preblend::{preblend, source_transmittance};
@@ -224,7 +224,7 @@ fn merge_rules_on_hand_made_renders() {
         scene_mask_patch: None,
         flow: flow.to_vec(),
         valid: valid.to_vec(),
-        source_depth: &sdepth,
+        source_depth: sdepth.to_vec(),
     };
     let obj = |m: [f32; 4], d: [f32; 4], col: f32, fl: f32| WindowRender {
         win: Rect::full(w, h),
@@ -253,7 +253,7 @@ fn merge_rules_on_hand_made_renders() {
     ];
     let v = |x: f32| (x * 255.0).round() as u8;
 
-    let d = merge(scene.clone(), &objects, MergeRule::DepthAware, 0.99);
+    let d = merge(scene.clone(), &objects, MergeRule::DepthAware, LabelRule::Honest, 0.99);
     // pixel 0: background at depth 5 behind both objects: the nearer object A is drawn
     // pixel 1: background at depth 1 in front of A: stays
     // pixel 2: the object's old place: A drawn; pixel 3: hole, B covers it (A's mask is 0.5)
@@ -266,15 +266,24 @@ fn merge_rules_on_hand_made_renders() {
     // flow: source pixel 2 from A (+1), pixel 3 from B (-1, M = 0.995 >= 0.99), others scene
     assert_eq!(d.flow, vec![0.0, 0.0, 0.0, 0.0, 1.0, 0.0, -1.0, 0.0]);
     assert_eq!(d.mask1, vec![0, 0, 1, 2]);
+    // honest labels: source 0 (background, z 5) lands on A (label 1): occluded; 1 lands on the
+    // background it is (z 1): visible; 2 (A, +1) lands on B's pixel: occluded; 3 (B, z 2, -1)
+    // lands between A and B where B shows depth 4: not B's point, occluded
+    assert_eq!(d.occlusion, vec![1, 0, 1, 1]);
+    assert_eq!(d.target_depth, vec![5.0, 1.0, 2.0, 2.0]);
+    // the depth-only rule: occluded only when behind all four neighbours (source 0 only)
+    let o = merge(scene.clone(), &objects, MergeRule::DepthAware, LabelRule::DepthOnly, 0.99);
+    assert_eq!(o.occlusion, vec![1, 0, 0, 0]);
+    assert_eq!((o.mask2, o.flow, o.image2), (d.mask2.clone(), d.flow.clone(), d.image2.clone()));
 
-    let r = merge(scene.clone(), &objects, MergeRule::Reference, 0.99);
+    let r = merge(scene.clone(), &objects, MergeRule::Reference, LabelRule::Honest, 0.99);
     // reference: no depth test; pixel 0 has two candidates with equal masks -> lower slot (A)
     assert_eq!(r.mask2, vec![1, 1, 1, 2]);
     assert_eq!(r.flow, d.flow);
     assert_eq!(r.hole, vec![0, 0, 0, 0]);
 
     // without objects: holes are exactly the pixels with scene mask < tau
-    let n = merge(scene, &[], MergeRule::DepthAware, 0.99);
+    let n = merge(scene, &[], MergeRule::DepthAware, LabelRule::Honest, 0.99);
     assert_eq!(n.hole, vec![0, 0, 1, 1]);
     assert_eq!(n.holes, 2);
     assert_eq!(n.mask1, vec![0; 4]);

@@ -350,7 +350,7 @@ async fn refusals_have_the_right_code_and_name_the_field() {
         (pb::StreamRequest { batch_size: 65, ..d() }, inv, "batch_size"),
         (pb::StreamRequest { fields: vec![42], ..d() }, inv, "fields"),
         (pb::StreamRequest { fields: vec![0], ..d() }, inv, "fields"),
-        (pb::StreamRequest { fields: vec![10], ..d() }, inv, "fields"),
+        (pb::StreamRequest { fields: vec![11], ..d() }, inv, "fields"),
         (pb::StreamRequest { flow_dtype: 9, ..d() }, inv, "flow_dtype"),
         (pb::StreamRequest { compression: 9, ..d() }, inv, "compression"),
         (pb::StreamRequest { crop: crop(9000, 0, 0), ..d() }, inv, "crop.width"),

@@ -2,6 +2,7 @@
 //! run time (`accuracy`).
 
 pub mod accuracy;
+pub mod quality;
 pub mod sample;
 
 use crate::geometry::{Intrinsics, Pose};

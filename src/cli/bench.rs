@@ -23,6 +23,28 @@ pub enum BenchCommand {
     /// Delivered samples/s of `mpiflow serve` over loopback against the in-process generator
     /// rate on the same workers; time to first sample, p99 gap, memory with stalled/fast clients.
     Serve(super::bench_serve::ServeBench),
+    /// The figures to check before training on a photo collection: photometric error on valid,
+    /// non-occluded pixels, label-law violations, hole fraction, thin-line runs, valid and
+    /// occluded fractions, flow magnitude percentiles; per merge rule, with and without objects.
+    Quality(QualityBench),
+}
+
+#[derive(Args, Debug)]
+pub struct QualityBench {
+    /// A folder of photos or the reference layout (default: the bundled scenes).
+    #[arg(long)]
+    source: Option<PathBuf>,
+    /// Samples per row of the table.
+    #[arg(long, default_value_t = 12)]
+    count: u64,
+    /// Resize every image to WxH (default: the bundled scenes' 640x480, photos as they are).
+    #[arg(long, value_parser = mpiflow::sample::pipeline::parse_size)]
+    size: Option<(usize, usize)>,
+    /// Motion preset: reference, paper-kitti, depthstillation or mixed.
+    #[arg(long, default_value = "reference")]
+    preset: mpiflow::sample::motion::MotionPreset,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
 }
 
 #[derive(Args, Debug)]
@@ -42,7 +64,7 @@ pub struct SampleBench {
     /// Merge rule: depth-aware or reference.
     #[arg(long, default_value = "depth-aware")]
     merge: mpiflow::sample::merge::MergeRule,
-    /// Motion preset: reference, paper-kitti or depthstillation.
+    /// Motion preset: reference, paper-kitti, depthstillation or mixed.
     #[arg(long, default_value = "reference")]
     preset: mpiflow::sample::motion::MotionPreset,
     /// Render the object and mask channel over full frames (the reference's way) instead of windows.
@@ -99,7 +121,68 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::Accuracy(a) => accuracy(a),
         BenchCommand::Sample(s) => sample(s),
         BenchCommand::Serve(s) => super::bench_serve::run(s),
+        BenchCommand::Quality(q) => quality(q),
     }
+}
+
+fn quality(q: QualityBench) -> Result<(), CliError> {
+    use mpiflow::bench::quality::{quality, QualityReport};
+    use mpiflow::sample::merge::{LabelRule, MergeRule};
+    use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
+    use mpiflow::sample::recipe::SampleConfig;
+    use mpiflow::scene::cache::SceneCache;
+    use mpiflow::scene::models::ModelConfig;
+    use std::sync::Arc;
+    if q.count == 0 || q.count > 100_000 {
+        return Err(CliError("--count must be 1 to 100000".into()));
+    }
+    let spec = q.source.clone().map_or(SourceSpec::Builtin, SourceSpec::Path);
+    let source = open_source(&spec, &OpenOptions { resize: q.size, ..OpenOptions::default() })
+        .map_err(|e| CliError(e.to_string()))?;
+    let stage = Arc::new(ModelConfig::default().build_stage().map_err(|e| CliError(e.to_string()))?);
+    let base = SampleConfig::with_preset(q.preset);
+    let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
+        .map_err(|e| CliError(e.to_string()))?;
+    println!("{}; {} samples per row, seed {}, motion {}", p.describe(), q.count, q.seed, q.preset);
+    println!(
+        "| merge | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | valid | occluded | flow p5 / p50 / p95 px | < 1 px |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let pct = |r: &QualityReport, n: u64| format!("{:.3}%", 100.0 * r.laws.rate(n));
+    for merge in [MergeRule::DepthAware, MergeRule::Reference] {
+        for (objects, labels) in [(0, LabelRule::Honest), (1, LabelRule::Honest), (1, LabelRule::DepthOnly)] {
+            let c = SampleConfig { merge, max_objects: objects, label_rule: labels, ..base.clone() };
+            let r = quality(p.generator(), &c, q.seed, q.count).map_err(|e| CliError(e.to_string()))?;
+            println!(
+                "| {} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} | {:.2}% |",
+                match merge {
+                    MergeRule::DepthAware => "depth-aware",
+                    MergeRule::Reference => "reference",
+                },
+                objects,
+                r.with_objects,
+                match labels {
+                    LabelRule::Honest => "honest",
+                    LabelRule::DepthOnly => "depth-only",
+                },
+                r.photometric,
+                r.photometric_background,
+                pct(&r, r.laws.holes),
+                pct(&r, r.laws.label),
+                pct(&r, r.laws.depth),
+                r.hole_fraction,
+                r.lines2,
+                r.lines1,
+                r.valid_fraction,
+                r.occluded_fraction,
+                r.flow_p5,
+                r.flow_p50,
+                r.flow_p95,
+                100.0 * r.below_1px
+            );
+        }
+    }
+    Ok(())
 }
 
 fn accuracy(a: AccuracyBench) -> Result<(), CliError> {

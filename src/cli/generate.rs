@@ -57,7 +57,7 @@ pub struct GenerateArgs {
     /// First sample index.
     #[arg(long, value_name = "I", default_value_t = 0)]
     start: u64,
-    /// Motion law: reference, paper-kitti or depthstillation.
+    /// Motion law: reference, paper-kitti, depthstillation or mixed.
     #[arg(long, value_name = "NAME", default_value = "reference")]
     preset: MotionPreset,
     /// Most objects moved independently per sample (0 = camera motion only).

@@ -57,7 +57,7 @@ pub struct PullArgs {
     /// Samples the server makes ahead for this stream (0 = the server's default).
     #[arg(long, default_value_t = 0)]
     prefetch: u32,
-    /// Motion preset: reference, paper-kitti or depthstillation (default: the dataset's).
+    /// Motion preset: reference, paper-kitti, depthstillation or mixed (default: the dataset's).
     #[arg(long, default_value = "")]
     preset: String,
     /// Moving objects per sample (default: the dataset's).
@@ -100,7 +100,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
     };
     let mut fields = vec![pb::Field::Image1, pb::Field::Image2, pb::Field::Flow, pb::Field::Valid];
     if a.out.is_some() {
-        fields.extend([pb::Field::Occlusion, pb::Field::Mask1]);
+        fields.extend([pb::Field::Occlusion, pb::Field::Holes, pb::Field::Mask1]);
     }
     Ok(pb::StreamRequest {
         dataset: a.dataset.clone(),

@@ -95,7 +95,7 @@ pub fn check_sample(index: u64, s: &Sample) -> Result<(), ExportError> {
         Some(n) if n > 0 && s.width <= u32::MAX as usize && s.height <= u32::MAX as usize => n,
         _ => return bad(format!("cannot export a {} x {} sample", s.width, s.height)),
     };
-    let checks: [(&str, usize, usize); 7] = [
+    let checks: [(&str, usize, usize); 8] = [
         ("image1", s.image1.len(), n * 3),
         ("image2", s.image2.len(), n * 3),
         ("flow", s.flow.len(), n * 2),
@@ -103,6 +103,7 @@ pub fn check_sample(index: u64, s: &Sample) -> Result<(), ExportError> {
         ("occlusion", s.occlusion.len(), n),
         ("mask1", s.mask1.len(), n),
         ("mask2", s.mask2.len(), n),
+        ("holes", s.holes.len(), n),
     ];
     for (name, got, want) in checks {
         if got != want {
@@ -242,11 +243,11 @@ pub fn sample_json(index: u64, s: &Sample, flow: FlowEncoding, fields: &[String]
 }
 
 /// Encodes a sample's fields in writing order: `img1.png`, `img2.png`, the flow, `valid.png`,
-/// `occ.png`, `mask.png` (only when objects moved) and the JSON record.
+/// `occ.png`, `holes.png`, `mask.png` (only when objects moved) and the JSON record.
 pub fn encode_sample(index: u64, s: &Sample, flow: FlowEncoding) -> Result<EncodedSample, ExportError> {
     check_sample(index, s)?;
     let (w, h) = (s.width, s.height);
-    let mut fields = Vec::with_capacity(7);
+    let mut fields = Vec::with_capacity(8);
     fields.push(Field { name: "img1", ext: "png", bytes: encode_png(w, h, &s.image1, ExtendedColorType::Rgb8)? });
     fields.push(Field { name: "img2", ext: "png", bytes: encode_png(w, h, &s.image2, ExtendedColorType::Rgb8)? });
     let flow_bytes = match flow {
@@ -266,6 +267,7 @@ pub fn encode_sample(index: u64, s: &Sample, flow: FlowEncoding) -> Result<Encod
     fields.push(Field { name: "flow", ext: flow.ext(), bytes: flow_bytes });
     fields.push(Field { name: "valid", ext: "png", bytes: binary_png(w, h, &s.valid)? });
     fields.push(Field { name: "occ", ext: "png", bytes: binary_png(w, h, &s.occlusion)? });
+    fields.push(Field { name: "holes", ext: "png", bytes: binary_png(w, h, &s.holes)? });
     if !s.objects.is_empty() {
         fields.push(Field { name: "mask", ext: "png", bytes: encode_png(w, h, &s.mask1, ExtendedColorType::L8)? });
     }

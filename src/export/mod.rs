@@ -11,6 +11,7 @@
 //! | flow | `I_flow.flo` / `I_flow.png` | `I.flow.npy` | forward flow on image 1's pixels |
 //! | valid | `I_valid.png` | `I.valid.png` | 8-bit gray, 255 = flow valid |
 //! | occlusion | `I_occ.png` | `I.occ.png` | 8-bit gray, 255 = hidden in image 2 |
+//! | holes | `I_holes.png` | `I.holes.png` | 8-bit gray, 255 = image 2 filled by 2-D inpainting |
 //! | objects | `I_mask.png` | `I.mask.png` | object labels (1, 2, ...) in image 1, when objects moved |
 //! | record | `I.json` | `I.json` | source id, address, motions, objects, stats, provenance, timings |
 //!

@@ -886,8 +886,8 @@ pub fn clear_valid_outside(flow: &[f32], valid: &mut [u8], w: usize, h: usize) {
 }
 
 /// The u8 label planes of a sample (one byte per pixel, resampled with nearest neighbour).
-fn label_planes(s: &mut Sample) -> [&mut Vec<u8>; 3] {
-    [&mut s.occlusion, &mut s.mask1, &mut s.mask2]
+fn label_planes(s: &mut Sample) -> [&mut Vec<u8>; 4] {
+    [&mut s.occlusion, &mut s.mask1, &mut s.mask2, &mut s.holes]
 }
 
 /// The intrinsics of the output frame: scaled with the frame, the principal point mirrored

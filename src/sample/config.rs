@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::merge::MergeRule;
+use super::merge::{LabelRule, MergeRule};
 use super::motion::{MotionPreset, MotionRanges};
 use super::object::ObjectChoice;
 use super::recipe::SampleError;
@@ -82,6 +82,8 @@ pub struct SampleConfig {
     pub objects_follow_camera: bool,
     /// Default `depth-aware`.
     pub merge: MergeRule,
+    /// Which valid pixels are marked occluded ([`LabelRule`]). Default `honest`.
+    pub label_rule: LabelRule,
     /// The mask threshold of the merge (the reference's 0.99).
     pub mask_threshold: f32,
     /// Telea neighbourhood radius in pixels. Default 3 (the reference's inpainting radius).
@@ -112,6 +114,7 @@ impl Default for SampleConfig {
             min_object_area_fraction: 0.002,
             objects_follow_camera: false,
             merge: MergeRule::DepthAware,
+            label_rule: LabelRule::Honest,
             mask_threshold: 0.99,
             inpaint_radius: 3.0,
             inpaint_method: InpaintMethod::TeleaKnownOnly,

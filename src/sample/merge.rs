@@ -29,8 +29,17 @@
 //! # [`MergeRule::DepthAware`] (the paper's module; the default)
 //!
 //! Background nearer than a moved object stays in front: object `j` is hidden at a candidate
-//! pixel where `M_occ = s * m_j * [D_t < D_t^obj_j] >= 1/2` (`s = 1 - M_t`). Among the candidates
-//! not hidden, the nearest (`D_t^obj` smallest; ties: lower slot) is drawn. Holes = `s < tau`
+//! pixel where `M_occ = s * m_j * [D_t (1 + tol) < D_t^obj_j] >= 1/2` (`s = 1 - M_t`, `tol` =
+//! [`OCCLUSION_TOLERANCE`]). Among the candidates not hidden, the nearest (`D_t^obj` smallest;
+//! ties: lower slot) is drawn.
+//!
+//! The tolerance is what keeps touching surfaces from striping: a mask that spans many depths
+//! (an object with part of the floor it stands on) moves that floor with the object, so the
+//! object render and the scene render show the same surface at nearly the same depth, and the
+//! paper's exact comparison `D_t < D_t^obj` flips from row to row with the renders' rounding:
+//! image2 showed one-pixel rows of the object's render across the scene's (the "thin lines"
+//! of issue 12; `tests/labels.rs` counts them). Within the tolerance the object is drawn, as
+//! where it is nearer, so the decision changes only at a real depth step. Holes = `s < tau`
 //! and nothing drawn (scene holes include rays that left the source frustum, coverage < tau).
 //!
 //! The depth of what image2 shows (the drawn object's `D_t^obj`, else the scene's `D_t`; 0 in
@@ -44,13 +53,24 @@
 //!   is the object render's (flow target inside the frame, point in front of the camera).
 //! - `mask1` = label `j + 1` where `M_j >= 1/2` (largest `M_j`, ties: lower slot), else 0;
 //!   `mask2` = the label of the object drawn at each image2 pixel.
-//! - `occlusion`: a valid source pixel is occluded when its expected target depth exceeds the
-//!   depth of what image2 shows, by more than [`OCCLUSION_TOLERANCE`] relative, at all four
-//!   bilinear neighbours of where it lands (the renderer's rule, applied to the merged frame).
-//!   What image2 shows: the drawn object's `D_t^obj`, else the scene's `D_t`; holes show
-//!   nothing and never occlude. So it covers scene self-occlusion, scene points covered by a
-//!   drawn nearer object, object points hidden by nearer background or another object, and an
-//!   object's self-occlusion.
+//! - `occlusion` by the [`LabelRule`]. What image2 shows at a pixel: the drawn object's
+//!   `D_t^obj` and label, else the scene's `D_t` and label 0, or a hole. Let `z` be a valid
+//!   source pixel's expected target depth (the object's where the object owns its flow), `l`
+//!   its `mask1` label and `N` the four bilinear neighbours of where it lands (clamped to the
+//!   frame, as the renderer's occlusion test).
+//!   - [`LabelRule::Honest`] (the default): the pixel is **not** occluded only when image2
+//!     really shows it there: no pixel of `N` is a hole (it would show an inpainted guess), and
+//!     some pixel of `N` shows label `l` at a depth `d` with `z / d` in
+//!     `[1 / (1 + tol), 1 + tol]` (`tol` = [`OCCLUSION_TOLERANCE`]). Every pixel that breaks one of
+//!     these laws is occluded: scene self-occlusion, scene points covered by a drawn object or
+//!     landing on an object's place, object points hidden by nearer background or another
+//!     object, an object's self-occlusion, points whose surface image2 does not show (it shows
+//!     something farther), and points that land on or next to a hole. So the label never says
+//!     "this surface moved here" where image2 shows another surface or an inpainted smudge
+//!     (tested as laws in `tests/labels.rs`).
+//!   - [`LabelRule::DepthOnly`] (the rule before issue 12): occluded when `z` exceeds `d` by more
+//!     than `tol` relative at all four pixels of `N` (the renderer's rule applied to the merged
+//!     frame); holes never occlude.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -80,6 +100,29 @@ impl std::str::FromStr for MergeRule {
     }
 }
 
+/// Which valid source pixels the merge marks occluded (see the module documentation).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LabelRule {
+    /// Visible only where image2 shows the pixel's label at its depth, with no hole next to the
+    /// target.
+    #[default]
+    Honest,
+    /// Occluded only when hidden behind by depth (holes never occlude): the rule before issue 12.
+    DepthOnly,
+}
+
+impl std::str::FromStr for LabelRule {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "honest" => Ok(LabelRule::Honest),
+            "depth-only" => Ok(LabelRule::DepthOnly),
+            _ => Err(format!("unknown label rule `{s}` (expected honest or depth-only)")),
+        }
+    }
+}
+
 /// The scene render, full frame (see the module documentation). `depth`, `flow` and `valid` are
 /// taken by value: the merge reuses them as buffers of its result (they are the largest arrays
 /// of a sample, and fresh memory costs page faults).
@@ -98,7 +141,9 @@ pub struct SceneView<'a> {
     /// H x W x 2.
     pub flow: Vec<f32>,
     pub valid: Vec<u8>,
-    pub source_depth: &'a [f32],
+    /// The expected target depth of every source pixel (H x W); reused as
+    /// [`Merged::target_depth`].
+    pub source_depth: Vec<f32>,
 }
 
 /// One moved object (see the module documentation).
@@ -129,6 +174,10 @@ pub struct Merged {
     /// H x W, the depth (z in the target camera) of what image2 shows: the drawn object's, else
     /// the scene's; 0 in holes and where it is not a positive finite number.
     pub depth2: Vec<f32>,
+    /// H x W, the expected target depth of each source pixel as the occlusion test used it (the
+    /// owning object's where an object owns the flow, else the scene's); 0 where not a positive
+    /// finite number.
+    pub target_depth: Vec<f32>,
 }
 
 /// `floor(255 v + 1/2)` with `v` clamped to [0, 1], NaN to 0 (round half up; the same as
@@ -154,7 +203,7 @@ struct Hit {
 /// # Panics
 /// If a buffer's size disagrees with `scene.width` x `scene.height`, or there are more than 255
 /// objects.
-pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, tau: f32) -> Merged {
+pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, labels: LabelRule, tau: f32) -> Merged {
     let (w, h) = (scene.width, scene.height);
     let n = w * h;
     assert!(objects.len() < 256, "at most 255 objects");
@@ -206,7 +255,7 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
                             }
                         }
                         MergeRule::DepthAware => {
-                            let occluded = d_t < depth;
+                            let occluded = d_t * (1.0 + OCCLUSION_TOLERANCE) < depth;
                             let m_occ = if occluded { s * m } else { 0.0 };
                             if m_occ >= 0.5 {
                                 continue; // nearer background stays in front
@@ -245,15 +294,16 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
 
     // ---- source side: mask1, flow, valid, occlusion
     // the scene's flow and valid are read and then replaced, pixel by pixel
-    let (mut flow, mut valid) = (flow, valid);
+    let (mut flow, mut valid, mut target_depth) = (flow, valid, source_depth);
     let mut occlusion = vec![0u8; n];
     let mut mask1 = vec![0u8; n];
     flow.par_chunks_mut(2 * w)
         .zip(valid.par_chunks_mut(w))
         .zip(occlusion.par_chunks_mut(w))
         .zip(mask1.par_chunks_mut(w))
+        .zip(target_depth.par_chunks_mut(w))
         .enumerate()
-        .for_each(|(y, (((fl, va), oc), m1))| {
+        .for_each(|(y, ((((fl, va), oc), m1), zs))| {
             for x in 0..w {
                 let i = y * w + x;
                 let (mut label_m, mut flow_m) = (0.5f32, tau);
@@ -274,14 +324,19 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
                         let r = &objects[s].render.out;
                         ([r.flow[2 * idx], r.flow[2 * idx + 1]], r.valid[idx], r.source_depth_in_target[idx])
                     }
-                    None => ([fl[2 * x], fl[2 * x + 1]], va[x], source_depth[i]),
+                    None => ([fl[2 * x], fl[2 * x + 1]], va[x], zs[x]),
                 };
                 let f = [finite_or_zero(f[0]), finite_or_zero(f[1])];
                 fl[2 * x] = f[0];
                 fl[2 * x + 1] = f[1];
                 va[x] = v;
+                zs[x] = if z.is_finite() && z > 0.0 { z } else { 0.0 };
                 if v != 0 {
-                    oc[x] = u8::from(hidden(&shown_depth, w, h, x as f32 + f[0], y as f32 + f[1], z));
+                    let (tx, ty) = (x as f32 + f[0], y as f32 + f[1]);
+                    oc[x] = u8::from(match labels {
+                        LabelRule::Honest => !shown_there(&shown_depth, &mask2, w, h, tx, ty, z, m1[x]),
+                        LabelRule::DepthOnly => hidden(&shown_depth, w, h, tx, ty, z),
+                    });
                 }
             }
         });
@@ -294,7 +349,7 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
             }
         }
     });
-    Merged { image2, flow, valid, occlusion, mask1, mask2, hole, holes, depth2 }
+    Merged { image2, flow, valid, occlusion, mask1, mask2, hole, holes, depth2, target_depth }
 }
 
 #[inline]
@@ -306,15 +361,38 @@ fn finite_or_zero(v: f32) -> f32 {
     }
 }
 
-/// The renderer's occlusion test against the merged frame's shown depth (inf = hole).
+/// The frame indices of the four bilinear neighbours of `(tx, ty)`, clamped to the frame.
 #[inline]
-fn hidden(shown: &[f32], w: usize, h: usize, tx: f32, ty: f32, z: f32) -> bool {
+fn neighbours(w: usize, h: usize, tx: f32, ty: f32) -> [usize; 4] {
     let tx = tx.clamp(0.0, (w - 1) as f32);
     let ty = ty.clamp(0.0, (h - 1) as f32);
     let (x0, y0) = (tx as usize, ty as usize);
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-    [(x0, y0), (x1, y0), (x0, y1), (x1, y1)].iter().all(|&(nx, ny)| {
-        let d = shown[ny * w + nx];
+    [y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1]
+}
+
+/// The renderer's occlusion test against the merged frame's shown depth (inf = hole).
+#[inline]
+fn hidden(shown: &[f32], w: usize, h: usize, tx: f32, ty: f32, z: f32) -> bool {
+    neighbours(w, h, tx, ty).iter().all(|&n| {
+        let d = shown[n];
         d.is_finite() && z > d * (1.0 + OCCLUSION_TOLERANCE)
+    })
+}
+
+/// [`LabelRule::Honest`]: image2 shows the source point (expected target depth `z`, label
+/// `label`) at `(tx, ty)`: no bilinear neighbour is a hole (shown depth inf), and some neighbour
+/// shows `label` at a depth within the tolerance of `z`.
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn shown_there(shown: &[f32], mask2: &[u8], w: usize, h: usize, tx: f32, ty: f32, z: f32, label: u8) -> bool {
+    let nb = neighbours(w, h, tx, ty);
+    if nb.iter().any(|&n| shown[n] == f32::INFINITY) {
+        return false;
+    }
+    let tol = 1.0 + OCCLUSION_TOLERANCE;
+    nb.iter().any(|&n| {
+        let d = shown[n];
+        mask2[n] == label && d.is_finite() && d > 0.0 && z <= d * tol && d <= z * tol
     })
 }

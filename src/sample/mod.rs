@@ -87,7 +87,10 @@ pub struct Sample {
     /// camera) of what image2 shows, objects where they win the merge; 0 in holes (the pixels
     /// that were inpainted) and where invalid.
     pub depth2: Vec<f32>,
-    /// Pixels of image2 that were inpainted.
+    /// H x W, 1 = image2 was filled there by 2-D inpainting (no render covers the pixel); the
+    /// merge's hole mask. Trainers can mask or down-weight these pixels.
+    pub holes: Vec<u8>,
+    /// Pixels of image2 that were inpainted (the ones of `holes`).
     pub inpainted_pixels: u64,
     /// Bad source items passed over to make this sample (see
     /// [`recipe::Generator::sample`]); 0 when its own source item loaded.

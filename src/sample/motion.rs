@@ -1,5 +1,5 @@
-//! Random camera and object motions: the configurable motion laws ([`MotionRanges`]), the three
-//! presets (`reference`, `paper-kitti`, `depthstillation`) and the record of one drawn motion
+//! Random camera and object motions: the configurable motion laws ([`MotionRanges`]), the four
+//! presets (`reference`, `paper-kitti`, `depthstillation`, `mixed`) and the record of one drawn motion
 //! ([`Motion`]) that goes into sample metadata.
 //!
 //! # Conventions
@@ -26,7 +26,8 @@
 //!
 //! A rigid motion draws translation x, y, z, then rotation x, y, z, each component by its law:
 //! [`Component::Uniform`] and [`Component::Forward`] take one [`SampleRng::uniform`];
-//! [`Component::RandomSign`] takes one `uniform` for the magnitude, then one [`SampleRng::sign`].
+//! [`Component::RandomSign`] and [`Component::LogUniform`] take one `uniform` for the magnitude,
+//! then one [`SampleRng::sign`].
 //! The camera and each object should use their own streams (`Purpose::CameraMotion`,
 //! `Purpose::ObjectMotion(slot)`), so the two never shift each other's numbers.
 //!
@@ -52,7 +53,7 @@ pub enum MotionError {
     /// A range of a [`MotionRanges`] is unusable; `field` is its path, e.g. `camera.translation.z`.
     #[error("invalid motion range {field}: {reason}")]
     InvalidRange { field: String, reason: String },
-    #[error("unknown motion preset {0:?} (expected one of: reference, paper-kitti, depthstillation)")]
+    #[error("unknown motion preset {0:?} (expected one of: reference, paper-kitti, depthstillation, mixed)")]
     UnknownPreset(String),
 }
 
@@ -70,6 +71,9 @@ pub enum Component {
     /// Forward motion (translation z only): a distance `d` uniform in `[min, max]`
     /// (`0 <= min <= max`), and the value is `t_z = -d`.
     Forward { min: f64, max: f64 },
+    /// Magnitude log-uniform in `[min, max]` (`0 < min <= max`: `min (max / min)^u`, `u`
+    /// uniform in [0, 1]), then a random sign: as many small motions per octave as large ones.
+    LogUniform { min: f64, max: f64 },
 }
 
 impl Component {
@@ -93,6 +97,12 @@ impl Component {
                 magnitude * sign
             }
             Component::Forward { min, max } => -rng.uniform(min, max),
+            Component::LogUniform { min, max } => {
+                let u = rng.uniform(0.0, 1.0);
+                let magnitude = (min * (max / min).powf(u)).clamp(min, max);
+                let sign = rng.sign();
+                magnitude * sign
+            }
         }
     }
 
@@ -100,7 +110,7 @@ impl Component {
     pub fn bounds(&self) -> (f64, f64) {
         match *self {
             Component::Uniform { lo, hi } => (lo, hi),
-            Component::RandomSign { max, .. } => (-max, max),
+            Component::RandomSign { max, .. } | Component::LogUniform { max, .. } => (-max, max),
             Component::Forward { min, max } => (-max, -min),
         }
     }
@@ -134,6 +144,13 @@ impl Component {
                 }
                 if min > max {
                     return bad(format!("min ({min}) > max ({max})"));
+                }
+            }
+            Component::LogUniform { min, max } => {
+                if !(min.is_finite() && max.is_finite() && min > 0.0 && min <= max) {
+                    return bad(format!(
+                        "log-uniform magnitudes need 0 < min <= max, finite (min = {min}, max = {max})"
+                    ));
                 }
             }
         }
@@ -336,11 +353,17 @@ pub enum MotionPreset {
     /// "Euler" triplet to an axis-angle function; set `rotation_kind = "axis-angle"` for that
     /// reading. At these angles the two differ by second-order terms.)
     Depthstillation,
+    /// Small and large motions together (issue 12): every camera component log-uniform with a
+    /// random sign, translations in [0.001, 0.3] (forward or backward along z), axis-angle
+    /// components in [0.0002, 0.05] rad; objects: translations in [0.001, 0.1], axis-angle
+    /// components in [0.0002, 0.03]. Flow magnitudes span sub-pixel motions to a tail past
+    /// 100 px (percentiles in `docs/quality.md`), where `reference` has almost none under 5 px.
+    Mixed,
 }
 
 impl MotionPreset {
-    pub const ALL: [MotionPreset; 3] =
-        [MotionPreset::Reference, MotionPreset::PaperKitti, MotionPreset::Depthstillation];
+    pub const ALL: [MotionPreset; 4] =
+        [MotionPreset::Reference, MotionPreset::PaperKitti, MotionPreset::Depthstillation, MotionPreset::Mixed];
 
     /// The preset's name: `reference`, `paper-kitti` or `depthstillation`.
     pub fn name(self) -> &'static str {
@@ -348,6 +371,7 @@ impl MotionPreset {
             MotionPreset::Reference => "reference",
             MotionPreset::PaperKitti => "paper-kitti",
             MotionPreset::Depthstillation => "depthstillation",
+            MotionPreset::Mixed => "mixed",
         }
     }
 
@@ -401,6 +425,21 @@ impl MotionPreset {
                     rotation: Axes::splat(Component::RandomSign { min: PI / 72.0, max: PI / 36.0 }),
                 },
             ),
+            MotionPreset::Mixed => {
+                let log = |min: f64, max: f64| Axes::splat(Component::LogUniform { min, max });
+                (
+                    RigidLaw {
+                        translation: log(0.001, 0.3),
+                        rotation_kind: RotationKind::AxisAngle,
+                        rotation: log(0.0002, 0.05),
+                    },
+                    RigidLaw {
+                        translation: log(0.001, 0.1),
+                        rotation_kind: RotationKind::AxisAngle,
+                        rotation: log(0.0002, 0.03),
+                    },
+                )
+            }
         };
         MotionRanges { name: self.name().to_string(), camera, object }
     }
@@ -415,7 +454,7 @@ impl fmt::Display for MotionPreset {
 impl FromStr for MotionPreset {
     type Err = MotionError;
 
-    /// `reference`, `paper-kitti` or `depthstillation` (ASCII case ignored).
+    /// `reference`, `paper-kitti`, `depthstillation` or `mixed` (ASCII case ignored).
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         MotionPreset::ALL
             .into_iter()

@@ -15,7 +15,7 @@
 //! The [`Generator`] makes the sample at an address: it loads the address's scene through the
 //! shared [`SceneCache`] (once per scene, see [`crate::scene::cache`]), keeps each cached
 //! scene's tile occupancy, passes over bad source items deterministically and runs
-//! [`super::recipe::assemble_with_occupancy`].
+//! [`super::recipe::assemble_with_target_depth`] (the sample and its target depth).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -24,7 +24,7 @@ use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
 
 use super::config::SampleConfig;
-use super::recipe::{assemble_with_occupancy, check_scene, ms, prepare_scene, SampleError};
+use super::recipe::{assemble_with_target_depth, check_scene, ms, prepare_scene, SampleError};
 use super::{Sample, SampleAddress};
 use crate::io::image::ImageLimits;
 use crate::render::{Mode, Occupancy};
@@ -336,6 +336,12 @@ impl Generator {
     /// [`Sample::skipped_sources`] counts the items passed over for this sample. When every
     /// item fails the error is [`SampleError::NoGoodSource`].
     pub fn sample(&self, seed: u64, index: u64) -> Result<Sample, SampleError> {
+        self.sample_with_target_depth(seed, index).map(|(s, _)| s)
+    }
+
+    /// [`sample`](Self::sample) with the expected target depth of every image1 pixel (see
+    /// [`assemble_with_target_depth`]), for checking the labels.
+    pub fn sample_with_target_depth(&self, seed: u64, index: u64) -> Result<(Sample, Vec<f32>), SampleError> {
         let start = Instant::now();
         let first = self.source_item(index).ok_or(SampleError::EmptySource)?;
         let len = self.loader.len();
@@ -360,11 +366,11 @@ impl Generator {
             let occ = self.occupancy(self.key(item), &scene);
             let scene_ms = ms(start);
             let address = SampleAddress { dataset: self.fingerprint, seed, index };
-            let mut s = assemble_with_occupancy(&scene, address, &self.config, occ.as_deref())?;
+            let (mut s, z) = assemble_with_target_depth(&scene, address, &self.config, occ.as_deref())?;
             s.skipped_sources = passed;
             s.timings.scene_ms = scene_ms;
             s.timings.total_ms += scene_ms;
-            return Ok(s);
+            return Ok((s, z));
         }
         let bad = self.bad_items();
         let first_reason = bad.values().next().map(|b| b.reason.clone()).unwrap_or_default();

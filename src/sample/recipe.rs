@@ -177,27 +177,54 @@ pub fn assemble_with_occupancy(
     config: &SampleConfig,
     occupancy: Option<&Occupancy>,
 ) -> Result<Sample, SampleError> {
+    Ok(assemble_with_target_depth(scene, address, config, occupancy)?.0)
+}
+
+/// [`assemble_with_occupancy`], with the expected target depth of every image1 pixel (H x W, the
+/// depth its point has in image2's camera under the motion that moves it; 0 where unknown): the
+/// `z` of the merge's occlusion rule ([`super::merge::LabelRule`]), for checking the labels
+/// (`tests/labels.rs`, `mpiflow bench quality`).
+pub fn assemble_with_target_depth(
+    scene: &Scene,
+    address: SampleAddress,
+    config: &SampleConfig,
+    occupancy: Option<&Occupancy>,
+) -> Result<(Sample, Vec<f32>), SampleError> {
     let start = Instant::now();
-    let (mut sample, hole) = assemble_merged(scene, address, config, occupancy)?;
+    let (mut sample, target_depth) = assemble_merged_sample(scene, address, config, occupancy)?;
     let t = Instant::now();
     if sample.inpainted_pixels > 0 {
         let (w, h) = (sample.width, sample.height);
-        inpaint_holes(&mut sample.image2, w, h, &hole, config.inpaint_method, config.inpaint_radius, true);
+        inpaint_holes(&mut sample.image2, w, h, &sample.holes, config.inpaint_method, config.inpaint_radius, true);
     }
     sample.timings.inpaint_ms = ms(t);
     sample.timings.total_ms = ms(start);
-    Ok(sample)
+    Ok((sample, target_depth))
 }
 
 /// [`assemble_with_occupancy`] up to the merge: the sample with `image2` as merged, its holes not
 /// yet inpainted, and the hole mask (H x W, 1 = hole; [`Sample::inpainted_pixels`] counts them).
-/// [`assemble`] is this followed by [`inpaint_holes`] over the mask (windowed).
+/// [`assemble`] is this followed by [`inpaint_holes`] over the mask (windowed). The mask is
+/// also the sample's [`Sample::holes`].
 pub fn assemble_merged(
     scene: &Scene,
     address: SampleAddress,
     config: &SampleConfig,
     occupancy: Option<&Occupancy>,
 ) -> Result<(Sample, Vec<u8>), SampleError> {
+    let (sample, _) = assemble_merged_sample(scene, address, config, occupancy)?;
+    let hole = sample.holes.clone();
+    Ok((sample, hole))
+}
+
+/// [`assemble_merged`] without the copy of the hole mask (it is [`Sample::holes`]), with the
+/// merge's target depth of every source pixel.
+fn assemble_merged_sample(
+    scene: &Scene,
+    address: SampleAddress,
+    config: &SampleConfig,
+    occupancy: Option<&Occupancy>,
+) -> Result<(Sample, Vec<f32>), SampleError> {
     let start = Instant::now();
     config.validate()?;
     check_scene(scene)?;
@@ -334,7 +361,7 @@ pub fn assemble_merged(
         scene_mask_patch: mask_patch.as_ref().map(|(r, p)| (*r, p.as_slice())),
         flow,
         valid,
-        source_depth: &source_depth_in_target,
+        source_depth: source_depth_in_target,
     };
     let views: Vec<ObjectView<'_>> = chosen
         .iter()
@@ -346,7 +373,7 @@ pub fn assemble_merged(
             render: r,
         })
         .collect();
-    let merged = merge(view, &views, config.merge, config.mask_threshold);
+    let merged = merge(view, &views, config.merge, config.label_rule, config.mask_threshold);
     let image1: Vec<u8> = scene.image.data.iter().map(|&v| unit_to_u8(v)).collect();
     // depth1 = 1 / disparity, written over the scene render's coverage (no longer needed; a
     // buffer already in memory costs no page faults)
@@ -382,11 +409,12 @@ pub fn assemble_merged(
         objects: records,
         depth1,
         depth2: merged.depth2,
+        holes: merged.hole,
         inpainted_pixels: merged.holes,
         skipped_sources: 0,
         provenance: scene.provenance.clone(),
         intrinsics: scene.intrinsics,
         timings,
     };
-    Ok((sample, merged.hole))
+    Ok((sample, merged.target_depth))
 }

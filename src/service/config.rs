@@ -13,8 +13,8 @@ pub use crate::scene::models::ModelConfig;
 use super::error::ServiceError;
 
 /// Bytes per pixel of a sample with every field: image1 and image2 (3 + 3), f32 flow (8), valid,
-/// occlusion, mask1, mask2 (4 x 1), f32 depth1 and depth2 (8).
-pub const BYTES_PER_PIXEL_ALL_FIELDS: u64 = 26;
+/// occlusion, mask1, mask2, holes (5 x 1), f32 depth1 and depth2 (8).
+pub const BYTES_PER_PIXEL_ALL_FIELDS: u64 = 27;
 
 /// The largest gRPC message the server ever allows (well below protobuf's 2 GiB).
 pub const MAX_MESSAGE_CAP: u64 = 1 << 30;

@@ -117,6 +117,7 @@ pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sa
         objects: s.objects.clone(),
         depth1: crop_plane(&s.depth1, w, 1, x0, y0, cw, ch),
         depth2: crop_plane(&s.depth2, w, 1, x0, y0, cw, ch),
+        holes: crop_plane(&s.holes, w, 1, x0, y0, cw, ch),
         inpainted_pixels: s.inpainted_pixels,
         skipped_sources: s.skipped_sources,
         provenance: s.provenance.clone(),
@@ -177,6 +178,7 @@ pub fn field_name(f: pb::Field) -> &'static str {
         pb::Field::Mask2 => "mask2",
         pb::Field::Depth1 => "depth1",
         pb::Field::Depth2 => "depth2",
+        pb::Field::Holes => "holes",
     }
 }
 
@@ -223,6 +225,7 @@ pub fn to_proto(
             pb::Field::Mask2 => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.mask2), out.lz4),
             pb::Field::Depth1 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth1), out.lz4),
             pb::Field::Depth2 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth2), out.lz4),
+            pb::Field::Holes => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.holes), out.lz4),
             pb::Field::Unspecified => continue,
         };
         tensors.push(t);
@@ -367,6 +370,7 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
             .collect(),
         depth1: vec![0.0; n],
         depth2: vec![0.0; n],
+        holes: vec![0; n],
         inpainted_pixels: s.inpainted_pixels,
         skipped_sources: s.skipped_sources,
         provenance: s.provenance.clone(),
@@ -419,6 +423,7 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
                     "occlusion" => &mut out.occlusion,
                     "mask1" => &mut out.mask1,
                     "mask2" => &mut out.mask2,
+                    "holes" => &mut out.holes,
                     _ => continue,
                 };
                 let v = decode_tensor(t)?;
@@ -472,6 +477,7 @@ mod tests {
             objects: vec![],
             depth1: vec![1.0; n],
             depth2: vec![1.0; n],
+            holes: vec![0; n],
             inpainted_pixels: 0,
             skipped_sources: 0,
             provenance: vec![],

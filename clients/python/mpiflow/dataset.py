@@ -103,7 +103,7 @@ class _MPIFlowDatasetImpl:
 
     Iterating yields dicts: `img1`, `img2` float32 [3, H, W] in 0..255, `flow` float32
     [2, H, W], `valid` float32 [H, W], `index` (the sample's address), `next_index` (this
-    consumer's cursor after it), and `occlusion`, `mask1`, `mask2`, `depth1`, `depth2` when in
+    consumer's cursor after it), and `occlusion`, `mask1`, `mask2`, `depth1`, `depth2`, `holes` when in
     `fields`, plus `camera`, `intrinsics`, `objects`, `num_objects` when `fields` holds
     "motions". Arrays are numpy (torch's default collate makes tensors of them).
 

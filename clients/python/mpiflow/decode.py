@@ -48,6 +48,7 @@ _FIELD_NAMES = {
     pb.FIELD_MASK2: "mask2",
     pb.FIELD_DEPTH1: "depth1",
     pb.FIELD_DEPTH2: "depth2",
+    pb.FIELD_HOLES: "holes",
 }
 _NAME_FIELDS = {v: k for k, v in _FIELD_NAMES.items()}
 _ALIASES = {"img1": "image1", "img2": "image2", "occ": "occlusion"}
@@ -207,8 +208,8 @@ def to_raft_dict(
     `img1`, `img2`: float32 [3, H, W] in 0..255; `flow`: float32 [2, H, W]; `valid`: float32
     [H, W] (the server's mask, or RAFT's |flow| < 1000 rule when it was not requested);
     `index`; `next_index` (this consumer's cursor after the sample, when given); `occlusion`
-    float32 [H, W], `mask1`/`mask2` uint8 [H, W], `depth1`/`depth2` float32 [H, W] when
-    requested; with `motions`: `camera` {rotation [3,3], translation [3], axis_angle [3]},
+    float32 [H, W], `mask1`/`mask2` uint8 [H, W], `depth1`/`depth2` float32 [H, W], `holes`
+    float32 [H, W] (1 = image2 filled by 2-D inpainting) when requested; with `motions`: `camera` {rotation [3,3], translation [3], axis_angle [3]},
     `intrinsics` [fx, fy, cx, cy] and `objects` padded to `pad_objects` entries (label 0 = none)
     so that torch's default collate can stack them. Every array is new and writable.
     """
@@ -230,6 +231,8 @@ def to_raft_dict(
         out["valid"] = ((np.abs(f[0]) < 1000) & (np.abs(f[1]) < 1000)).astype(np.float32)
     if "occlusion" in t:
         out["occlusion"] = t["occlusion"].astype(np.float32)
+    if "holes" in t:
+        out["holes"] = t["holes"].astype(np.float32)
     for name in ("mask1", "mask2"):
         if name in t:
             out[name] = t[name].copy()

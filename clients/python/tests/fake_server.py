@@ -43,6 +43,7 @@ NAMES = {
     pb.FIELD_MASK2: "mask2",
     pb.FIELD_DEPTH1: "depth1",
     pb.FIELD_DEPTH2: "depth2",
+    pb.FIELD_HOLES: "holes",
 }
 
 
@@ -59,7 +60,7 @@ def make_arrays(seed: int, index: int, fields, flow_f16: bool, crop) -> dict:
         elif f == pb.FIELD_FLOW:
             fl = np.stack([x * 0.25 + index, y * -0.5 + seed], -1).astype(np.float32)
             out["flow"] = fl.astype(np.float16) if flow_f16 else fl
-        elif f in (pb.FIELD_VALID, pb.FIELD_OCCLUSION, pb.FIELD_MASK1, pb.FIELD_MASK2):
+        elif f in (pb.FIELD_VALID, pb.FIELD_OCCLUSION, pb.FIELD_MASK1, pb.FIELD_MASK2, pb.FIELD_HOLES):
             out[NAMES[f]] = ((x + y + index + f) % 3 == 0).astype(np.uint8)
         elif f in (pb.FIELD_DEPTH1, pb.FIELD_DEPTH2):
             out[NAMES[f]] = (1.0 + 0.01 * (x + y) + index).astype(np.float32)

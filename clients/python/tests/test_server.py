@@ -70,6 +70,18 @@ def test_depth_fields(server, client):
     assert np.isfinite(s["depth2"]).all() and (s["depth2"] >= 0).all() and (s["depth1"] > 0).all()
 
 
+def test_holes_field(server, client):
+    # holes: u8 0/1, the pixels image2 got from 2-D inpainting; nothing rendered there, so the
+    # merged depth is 0 at every hole
+    s = client.get_sample(2, crop=server.crop, fields=["holes", "depth2"])
+    cw, ch = server.crop
+    assert s["holes"].shape == (ch, cw) and s["holes"].dtype == np.uint8
+    assert set(np.unique(s["holes"])) <= {0, 1}
+    assert (s["depth2"][s["holes"] == 1] == 0).all()
+    d = mpiflow.to_raft_dict(s)
+    assert d["holes"].dtype == np.float32 and d["holes"].shape == (ch, cw)
+
+
 def test_stream_equals_get_sample(server, client):
     kw = dict(seed=7, crop=server.crop, fields=["image1", "image2", "flow", "valid", "occlusion"])
     got = list(client.stream(rank=1, world_size=2, start_index=5, count=3, **kw))

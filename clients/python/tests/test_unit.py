@@ -107,6 +107,7 @@ def fake_sample(index=3, h=4, w=6, fields=("image1", "image2", "flow", "valid"),
         "mask2": rng.integers(0, 3, (h, w), dtype=np.uint8),
         "depth1": rng.random((h, w)).astype(np.float32),
         "depth2": rng.random((h, w)).astype(np.float32),
+        "holes": (rng.random((h, w)) > 0.7).astype(np.uint8),
     }
     for f in fields:
         s.tensors.append(tensor(f, arrays[f]))
@@ -135,7 +136,7 @@ def test_to_raft_dict_layout():
 
 
 def test_to_raft_dict_optional_fields_and_motions():
-    fields = ("image1", "flow", "occlusion", "mask1", "mask2", "depth1", "depth2")
+    fields = ("image1", "flow", "occlusion", "mask1", "mask2", "depth1", "depth2", "holes")
     s, arrays = fake_sample(fields=fields, flow_dtype=np.float16)
     d = to_raft_dict(mpiflow.decode_sample(s), motions=True, pad_objects=4)
     assert d["flow"].dtype == np.float32
@@ -143,6 +144,8 @@ def test_to_raft_dict_optional_fields_and_motions():
     np.testing.assert_array_equal(d["valid"], np.ones((4, 6), np.float32))
     assert d["occlusion"].dtype == np.float32 and d["mask1"].dtype == np.uint8
     assert d["depth1"].dtype == np.float32 and d["depth2"].shape == (4, 6)
+    assert d["holes"].dtype == np.float32
+    np.testing.assert_array_equal(d["holes"], arrays["holes"].astype(np.float32))
     assert d["camera"]["rotation"].shape == (3, 3)
     np.testing.assert_allclose(d["camera"]["translation"], [0.1, 0.2, -0.3])
     assert d["objects"]["label"].tolist() == [2, 0, 0, 0] and d["num_objects"] == 1
