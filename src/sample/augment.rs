@@ -1034,6 +1034,7 @@ mod tests {
             occlusion: (0..n).map(|i| u8::from(i % 5 == 0)).collect(),
             mask1: (0..n).map(|i| (i % 251) as u8).collect(),
             mask2: (0..n).map(|i| (i % 13) as u8).collect(),
+            holes: (0..n).map(|i| u8::from(i % 11 == 0)).collect(),
             camera: Motion::new("x", [0.0; 3], RotationKind::AxisAngle, [0.0; 3]),
             objects: vec![],
             depth1: (0..n).map(|i| i as f32).collect(),
@@ -1112,7 +1113,7 @@ mod tests {
             assert_eq!((ra.resized, ra.flip, ra.crop), (rb.resized, rb.flip, rb.crop));
             assert_eq!(a.flow, b.flow);
             assert_eq!(a.valid, b.valid);
-            assert_eq!((a.occlusion, a.mask1, a.depth1), (b.occlusion, b.mask1, b.depth1));
+            assert_eq!((a.occlusion, a.mask1, a.holes, a.depth1), (b.occlusion, b.mask1, b.holes, b.depth1));
             changed += usize::from(a.image1 != b.image1 || a.image2 != b.image2);
         }
         assert!(changed >= 15, "colour changed only {changed} of 20 samples");
