@@ -23,6 +23,9 @@ pub enum BenchCommand {
     /// Delivered samples/s of `mpiflow serve` over loopback against the in-process generator
     /// rate on the same workers; time to first sample, p99 gap, memory with stalled/fast clients.
     Serve(super::bench_serve::ServeBench),
+    /// A real server under fast, stalled, slow, cancelling and uploading clients for M minutes:
+    /// RSS over time, fast-client rate against a solo run, errors by code, lost/repeated indices.
+    Soak(super::bench_soak::SoakBench),
 }
 
 #[derive(Args, Debug)]
@@ -95,6 +98,7 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::Accuracy(a) => accuracy(a),
         BenchCommand::Sample(s) => sample(s),
         BenchCommand::Serve(s) => super::bench_serve::run(s),
+        BenchCommand::Soak(s) => super::bench_soak::run(s),
     }
 }
 
