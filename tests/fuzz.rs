@@ -1269,3 +1269,34 @@ fn regression_motion_ranges_json_error_quotes_no_control_characters() {
     let text = mpiflow::service::validate::overrides("", &bad, None, None).unwrap_err().to_string();
     assert!(text.starts_with("motion_ranges_json") && !text.chars().any(char::is_control), "{text:?}");
 }
+
+fn saved(name: &str) -> Vec<u8> {
+    std::fs::read(repo("tests/data/fuzz").join(name)).expect("a saved fuzz input")
+}
+
+/// `png_jpeg` case 128: a damaged JPEG's decoder error ended in a newline.
+#[test]
+fn regression_png_jpeg_case_128_decoder_error_is_one_printable_line() {
+    let e = load_rgb_from_bytes(&saved("png_jpeg-case-128.bin"), &PHOTO_LIMITS).err().expect("a damaged JPEG");
+    check_image_error("photo", &e).unwrap();
+}
+
+/// `npy_depth` case 1: the `.npy` header parser's error was several lines quoting the header.
+#[test]
+fn regression_npy_depth_case_1_parser_error_is_one_printable_line() {
+    let (kind, m) =
+        depth_npy_from_bytes(&saved("npy_depth-case-1.bin"), &DEPTH_LIMITS).err().expect("a damaged header");
+    assert_eq!(kind, FailureKind::Depth);
+    printable_error("depth", &m).unwrap();
+}
+
+/// `webdataset_shard` case 94: a damaged tar header's error quoted its raw bytes.
+#[test]
+fn regression_webdataset_shard_case_94_tar_error_is_printable() {
+    let dir = failure_dir().join("regression-shard");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("case-94.tar");
+    std::fs::write(&path, saved("webdataset_shard-case-94.bin")).unwrap();
+    let e = ShardSource::open(&path, &shard_options()).err().expect("no usable sample");
+    printable_error("open", &e.to_string()).unwrap();
+}
