@@ -188,6 +188,8 @@ impl ServerProcess {
         } else {
             None
         };
+        // keep reading the server's stdout to its end: a closed pipe would fail its later writes
+        std::thread::spawn(move || lines.for_each(drop));
         Ok(Self { child, addr, metrics_addr })
     }
 
@@ -195,10 +197,19 @@ impl ServerProcess {
         self.child.id()
     }
 
-    /// SIGTERM (a graceful drain), then waits; the exit status.
-    pub fn terminate(mut self) -> Option<std::process::ExitStatus> {
+    /// SIGTERM (a graceful drain), then waits up to `grace`; the exit status (`None` when it had
+    /// to be killed).
+    pub fn terminate(mut self, grace: Duration) -> Option<std::process::ExitStatus> {
         let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
-        self.child.wait().ok()
+        let end = Instant::now() + grace;
+        while Instant::now() < end {
+            match self.child.try_wait() {
+                Ok(Some(status)) => return Some(status),
+                Ok(None) => std::thread::sleep(Duration::from_millis(50)),
+                Err(_) => break,
+            }
+        }
+        None // Drop kills it
     }
 }
 
@@ -293,7 +304,8 @@ async fn fast_client(addr: String, seed: u64, rank: u32, world: u32, until: toki
             }
             Err(_) => return,
         };
-        loop {
+        // a timeout polls its future first: a stream that is always ready never times out
+        while tokio::time::Instant::now() < until {
             match timeout_at(until, stream.message()).await {
                 Err(_) => return,
                 Ok(Ok(Some(batch))) => {
@@ -382,7 +394,7 @@ async fn slow_client(addr: String, seed: u64, until: tokio::time::Instant, sh: A
             }
             Err(_) => return,
         };
-        loop {
+        while tokio::time::Instant::now() < until {
             match timeout_at(until, s.message()).await {
                 Ok(Ok(Some(b))) => {
                     sh.slow_samples.fetch_add(b.samples.len() as u64, Ordering::Relaxed);
@@ -560,7 +572,9 @@ pub fn run_soak(cfg: &SoakConfig, log: &mut dyn FnMut(&str)) -> Result<SoakRepor
         .build()
         .map_err(|e| SoakError(format!("async runtime: {e}")))?;
     let report = rt.block_on(mix(cfg, &addr, pid, metrics.as_deref(), log));
-    let status = server.terminate();
+    rt.shutdown_timeout(Duration::from_secs(5));
+    log("clients done; draining the server (SIGTERM)");
+    let status = server.terminate(Duration::from_secs(30));
     let mut report = report?;
     if !status.is_some_and(|s| s.success()) {
         report.unexpected += 1;
@@ -608,19 +622,26 @@ async fn mix(
     let hold = (cfg.duration / 3).min(Duration::from_secs(30));
     let mut tasks = Vec::new();
     for k in 0..cfg.fast {
-        tasks.push(tokio::spawn(fast_client(addr.to_string(), 3, k as u32, cfg.fast as u32, until, sh.clone())));
+        tasks.push((
+            "fast",
+            tokio::spawn(fast_client(addr.to_string(), 3, k as u32, cfg.fast as u32, until, sh.clone())),
+        ));
     }
     for k in 0..cfg.stalled {
-        tasks.push(tokio::spawn(stalled_client(addr.to_string(), 1000 * (k as u64 + 1), hold, until, sh.clone())));
+        tasks.push((
+            "stalled",
+            tokio::spawn(stalled_client(addr.to_string(), 1000 * (k as u64 + 1), hold, until, sh.clone())),
+        ));
     }
     for k in 0..cfg.slow {
-        tasks.push(tokio::spawn(slow_client(addr.to_string(), 100 + k as u64, until, sh.clone())));
+        tasks.push(("slow", tokio::spawn(slow_client(addr.to_string(), 100 + k as u64, until, sh.clone()))));
     }
     for k in 0..cfg.cancelling {
-        tasks.push(tokio::spawn(cancelling_client(addr.to_string(), 200 + k as u64, until, sh.clone())));
+        tasks
+            .push(("cancelling", tokio::spawn(cancelling_client(addr.to_string(), 200 + k as u64, until, sh.clone()))));
     }
     for k in 0..cfg.uploading {
-        tasks.push(tokio::spawn(uploading_client(addr.to_string(), k, until, sh.clone())));
+        tasks.push(("uploading", tokio::spawn(uploading_client(addr.to_string(), k, until, sh.clone()))));
     }
     let every = cfg.report_every.max(Duration::from_millis(200));
     let (mut last_n, mut last_t) = (0u64, start);
@@ -656,11 +677,19 @@ async fn mix(
         (last_n, last_t) = (n, now);
     }
     report.mix_s = (tokio::time::Instant::now() - start).as_secs_f64();
-    for t in tasks {
-        if let Err(e) = t.await {
-            sh.error("client", "task failed", &e.to_string(), false);
+    // every client stops at the deadline; one that has not within 15 s more is a finding
+    let grace = tokio::time::Instant::now() + Duration::from_secs(15);
+    for (kind, mut t) in tasks {
+        match timeout_at(grace, &mut t).await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => sh.error(kind, "task failed", &e.to_string(), false),
+            Err(_) => {
+                t.abort();
+                sh.error(kind, "did not stop", "still running 15 s after the deadline", false);
+            }
         }
     }
+    log("clients stopped");
     // the server's memory once every client has left (the streams are dropped)
     let mut end = rss_mib(pid).unwrap_or(0.0);
     for _ in 0..10 {
