@@ -1277,7 +1277,7 @@ fn saved(name: &str) -> Vec<u8> {
 /// `png_jpeg` case 128: a damaged JPEG's decoder error ended in a newline.
 #[test]
 fn regression_png_jpeg_case_128_decoder_error_is_one_printable_line() {
-    let e = load_rgb_from_bytes(&saved("png_jpeg-case-128.bin"), &PHOTO_LIMITS).err().expect("a damaged JPEG");
+    let e = load_rgb_from_bytes(&saved("png_jpeg-case-128.bin"), &PHOTO_LIMITS).map(drop).expect_err("a damaged JPEG");
     check_image_error("photo", &e).unwrap();
 }
 
@@ -1285,7 +1285,7 @@ fn regression_png_jpeg_case_128_decoder_error_is_one_printable_line() {
 #[test]
 fn regression_npy_depth_case_1_parser_error_is_one_printable_line() {
     let (kind, m) =
-        depth_npy_from_bytes(&saved("npy_depth-case-1.bin"), &DEPTH_LIMITS).err().expect("a damaged header");
+        depth_npy_from_bytes(&saved("npy_depth-case-1.bin"), &DEPTH_LIMITS).map(drop).expect_err("a damaged header");
     assert_eq!(kind, FailureKind::Depth);
     printable_error("depth", &m).unwrap();
 }
@@ -1297,6 +1297,6 @@ fn regression_webdataset_shard_case_94_tar_error_is_printable() {
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("case-94.tar");
     std::fs::write(&path, saved("webdataset_shard-case-94.bin")).unwrap();
-    let e = ShardSource::open(&path, &shard_options()).err().expect("no usable sample");
+    let e = ShardSource::open(&path, &shard_options()).map(drop).expect_err("no usable sample");
     printable_error("open", &e.to_string()).unwrap();
 }

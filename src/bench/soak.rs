@@ -419,7 +419,7 @@ async fn cancelling_client(addr: String, seed: u64, until: tokio::time::Instant,
     while tokio::time::Instant::now() < until {
         round += 1;
         let reads = round % 4;
-        let opened = if round % 2 == 0 {
+        let opened = if round.is_multiple_of(2) {
             let req = pb::SamplesRequest { seed, indices: vec![round, round + 7, round * 3], ..Default::default() };
             match timeout_at(until, client.get_samples(req)).await {
                 Ok(Ok(s)) => {
