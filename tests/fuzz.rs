@@ -1300,3 +1300,15 @@ fn regression_webdataset_shard_case_94_tar_error_is_printable() {
     let e = ShardSource::open(&path, &shard_options()).map(drop).expect_err("no usable sample");
     printable_error("open", &e.to_string()).unwrap();
 }
+
+/// `npy_depth` case 17955 (the 20-second run): a 65-byte version-2 `.npy` whose header length
+/// field claims 662 MB made the header parser allocate that much; the claim is checked against
+/// the file's size first (`io::npy::check_header_len`).
+#[test]
+fn regression_npy_depth_case_17955_header_length_bomb_is_refused_before_allocating() {
+    let bytes = saved("npy_depth-case-17955.bin");
+    let (r, peak) = peak_of(|| depth_npy_from_bytes(&bytes, &DEPTH_LIMITS).map(drop));
+    let (kind, m) = r.expect_err("a header longer than the file");
+    assert_eq!(kind, FailureKind::Depth, "{m}");
+    assert!(peak < 64 << 10, "refusing it allocated {peak} bytes");
+}
