@@ -1,9 +1,10 @@
-//! Benchmarks behind `mpiflow bench`: render timing (median of several runs) and error against
-//! run time (`accuracy`).
+//! Benchmarks behind `mpiflow bench`: render timing (median of several runs), error against
+//! run time (`accuracy`), and a server under a mix of clients for a while (`soak`).
 
 pub mod accuracy;
 pub mod quality;
 pub mod sample;
+pub mod soak;
 
 use crate::geometry::{Intrinsics, Pose};
 use crate::mpi::synthetic::bench_mpi;

@@ -27,6 +27,9 @@ pub enum BenchCommand {
     /// non-occluded pixels, label-law violations, hole fraction, thin-line runs, valid and
     /// occluded fractions, flow magnitude percentiles; per merge rule, with and without objects.
     Quality(QualityBench),
+    /// A real server under fast, stalled, slow, cancelling and uploading clients for M minutes:
+    /// RSS over time, fast-client rate against a solo run, errors by code, lost/repeated indices.
+    Soak(super::bench_soak::SoakBench),
 }
 
 #[derive(Args, Debug)]
@@ -122,6 +125,7 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
         BenchCommand::Sample(s) => sample(s),
         BenchCommand::Serve(s) => super::bench_serve::run(s),
         BenchCommand::Quality(q) => quality(q),
+        BenchCommand::Soak(s) => super::bench_soak::run(s),
     }
 }
 

@@ -2,6 +2,7 @@
 
 mod bench;
 mod bench_serve;
+mod bench_soak;
 mod connect;
 mod generate;
 mod health;

@@ -121,20 +121,25 @@ impl From<ImageError> for io::Error {
     }
 }
 
+/// A decoder's message as one printable line (some end in a newline or quote raw bytes).
+fn reason(e: &dyn std::fmt::Display) -> String {
+    crate::failure::printable(e.to_string().trim_end(), 300)
+}
+
 fn map_decode_error(path: &Path, e: ::image::ImageError) -> ImageError {
     use ::image::ImageError as E;
     let path = path.to_path_buf();
     match e {
-        E::Unsupported(u) => ImageError::Unsupported { path, reason: u.to_string() },
-        E::Decoding(d) => ImageError::Corrupt { path, reason: d.to_string() },
-        E::Parameter(p) => ImageError::Corrupt { path, reason: p.to_string() },
+        E::Unsupported(u) => ImageError::Unsupported { path, reason: reason(&u) },
+        E::Decoding(d) => ImageError::Corrupt { path, reason: reason(&d) },
+        E::Parameter(p) => ImageError::Corrupt { path, reason: reason(&p) },
         E::IoError(io) if io.kind() == io::ErrorKind::UnexpectedEof => {
-            ImageError::Truncated { path, reason: format!("unexpected end of data ({io})") }
+            ImageError::Truncated { path, reason: format!("unexpected end of data ({})", reason(&io)) }
         }
         E::IoError(io) => ImageError::Io { path, source: io },
         // a header within our limits whose decoding still needs more memory than budgeted
-        E::Limits(l) => ImageError::Corrupt { path, reason: l.to_string() },
-        E::Encoding(x) => ImageError::Corrupt { path, reason: x.to_string() },
+        E::Limits(l) => ImageError::Corrupt { path, reason: reason(&l) },
+        E::Encoding(x) => ImageError::Corrupt { path, reason: reason(&x) },
     }
 }
 

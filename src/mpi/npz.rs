@@ -10,20 +10,40 @@ use std::path::Path;
 
 /// Loads an MPI. Values are not sanitised here; call [`Mpi::sanitize`].
 pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
+    load_npz_limited(path, u64::MAX)
+}
+
+/// [`load_npz`] refusing arrays of more than `max_values` values in all, by the shapes in their
+/// headers before their data is read (an `.npz` is a zip: a small file can hold huge arrays of
+/// zeros).
+pub fn load_npz_limited(path: &Path, max_values: u64) -> Result<Mpi, MpiError> {
     let p = path.display().to_string();
+    // the archive's and parser's messages as one printable line
+    let reason = |e: &dyn std::fmt::Display| crate::failure::printable(&e.to_string(), 300);
     let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| match e.kind() {
         std::io::ErrorKind::NotFound | std::io::ErrorKind::PermissionDenied => {
             MpiError::Io { path: p.clone(), source: e }
         }
-        _ => MpiError::BadArchive { path: p.clone(), reason: e.to_string() },
+        _ => MpiError::BadArchive { path: p.clone(), reason: reason(&e) },
     })?;
+    let mut values = 0u64;
     let mut get = |key: &'static str| -> Result<Option<Array>, MpiError> {
+        let bad = |e: &dyn std::fmt::Display| MpiError::BadArchive {
+            path: p.clone(),
+            reason: format!("array `{key}`: {}", reason(e)),
+        };
         match npz.by_name(key) {
-            Ok(Some(f)) => read_array(f)
-                .map(Some)
-                .map_err(|e| MpiError::BadArchive { path: p.clone(), reason: format!("array `{key}`: {e}") }),
+            Ok(Some(f)) => {
+                let n = f.shape().iter().try_fold(1u64, |a, &d| a.checked_mul(d)).unwrap_or(u64::MAX);
+                values = values.saturating_add(n);
+                if values > max_values {
+                    let m = format!("shape {:?} brings the arrays over the limit of {max_values} values", f.shape());
+                    return Err(bad(&m));
+                }
+                read_array(f).map(Some).map_err(|e| bad(&e))
+            }
             Ok(None) => Ok(None),
-            Err(e) => Err(MpiError::BadArchive { path: p.clone(), reason: format!("array `{key}`: {e}") }),
+            Err(e) => Err(bad(&e)),
         }
     };
     let need = |a: Option<Array>, key: &'static str| a.ok_or(MpiError::MissingKey { path: p.clone(), key });

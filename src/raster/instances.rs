@@ -55,18 +55,35 @@ impl InstanceMasks {
     /// One instance per distinct non-zero id of a row-major `width x height` index map (0 =
     /// background), in increasing id order, with score 1.0 and area = its pixel count.
     pub fn from_index_map(ids: &[u32], width: usize, height: usize) -> Result<Self, MaskError> {
+        Self::from_index_map_within(ids, width, height, usize::MAX).map_err(|e| match e {
+            Err(e) => e,
+            Ok(n) => size_err("index map", format!("{n} instances")), // no budget: never
+        })
+    }
+
+    /// [`from_index_map`](Self::from_index_map) refusing, before the masks are allocated, an
+    /// index map whose instances x pixels exceed `max_values` (`Err(Ok(instances))`).
+    fn from_index_map_within(
+        ids: &[u32],
+        width: usize,
+        height: usize,
+        max_values: usize,
+    ) -> Result<Self, Result<usize, MaskError>> {
         if Some(ids.len()) != width.checked_mul(height) {
-            return Err(size_err("index map", format!("{} values for {width} x {height} pixels", ids.len())));
+            return Err(Err(size_err("index map", format!("{} values for {width} x {height} pixels", ids.len()))));
         }
         let mut counts: BTreeMap<u32, usize> = BTreeMap::new();
         for &id in ids.iter().filter(|&&id| id != 0) {
             *counts.entry(id).or_insert(0) += 1;
             if counts.len() > MAX_INSTANCES {
-                return Err(size_err(
+                return Err(Err(size_err(
                     "index map",
                     format!("more than {MAX_INSTANCES} distinct instance ids (MAX_INSTANCES)"),
-                ));
+                )));
             }
+        }
+        if counts.len().saturating_mul(ids.len()) > max_values {
+            return Err(Ok(counts.len()));
         }
         let mut slot: BTreeMap<u32, usize> = BTreeMap::new();
         let mut masks: Vec<Instance> = Vec::with_capacity(counts.len());
@@ -115,7 +132,7 @@ impl InstanceMasks {
         let img = decode_file(path, limits)?;
         let (w, h) = (img.width() as usize, img.height() as usize);
         let ids = index_ids(&img).map_err(|reason| MaskError::IndexPng { path: path.to_path_buf(), reason })?;
-        Self::from_index_map(&ids, w, h).map_err(|e| e.prefixed(&path.display().to_string()))
+        Self::from_index_png_ids(&ids, w, h, path, limits)
     }
 
     /// [`from_index_png_with_limits`](Self::from_index_png_with_limits) for a PNG held in memory
@@ -131,7 +148,30 @@ impl InstanceMasks {
         let img = crate::io::image::decode_bytes(bytes, path, limits)?;
         let (w, h) = (img.width() as usize, img.height() as usize);
         let ids = index_ids(&img).map_err(|reason| MaskError::IndexPng { path: path.to_path_buf(), reason })?;
-        Self::from_index_map(&ids, w, h).map_err(|e| e.prefixed(name))
+        Self::from_index_png_ids(&ids, w, h, path, limits)
+    }
+
+    /// The instances of an index PNG's ids within the mask budget: at most
+    /// [`MAX_MASK_FRAMES`] x `limits.max_pixels` mask values (each instance is a full-frame f32
+    /// mask), refused as [`MaskError::TooLarge`] before they are allocated.
+    fn from_index_png_ids(
+        ids: &[u32],
+        w: usize,
+        h: usize,
+        path: &Path,
+        limits: &ImageLimits,
+    ) -> Result<Self, MaskError> {
+        let budget = usize::try_from(limits.max_pixels).unwrap_or(usize::MAX).saturating_mul(MAX_MASK_FRAMES);
+        Self::from_index_map_within(ids, w, h, budget).map_err(|e| match e {
+            Err(e) => e.prefixed(&path.display().to_string()),
+            Ok(n) => MaskError::TooLarge {
+                path: path.to_path_buf(),
+                reason: format!(
+                    "{n} instances of {w} x {h} pixels are more mask values than the budget of {budget} \
+                     ({MAX_MASK_FRAMES} frames of the pixel limit)"
+                ),
+            },
+        })
     }
 
     /// The index map of the instances: each pixel gets the id of the instance with the largest

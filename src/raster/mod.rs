@@ -47,6 +47,12 @@ pub use rle::*;
 /// error rather than gigabytes of masks.
 pub const MAX_INSTANCES: usize = 1024;
 
+/// The most instance-mask values an index PNG may expand to, in frames of the pixel limit:
+/// `instances x width x height <= MAX_MASK_FRAMES x ImageLimits::max_pixels` (16 f32 frames:
+/// 2.5 GB at the default 40 MP limit, any number of instances up to [`MAX_INSTANCES`] for small
+/// images), checked before the masks are allocated.
+pub const MAX_MASK_FRAMES: usize = 16;
+
 /// The most boundary points one polygon may produce in the 5x upsampled edge walk (about 5 x its
 /// perimeter in pixels), a guard against absurd coordinates.
 pub const MAX_POLYGON_STEPS: u64 = 1 << 25;
@@ -66,6 +72,9 @@ pub enum MaskError {
     /// Sizes that do not fit together (mask vs image, too many instances, ids out of range).
     #[error("{what}: {reason}")]
     Size { what: String, reason: String },
+    /// More instance-mask values than the budget ([`MAX_MASK_FRAMES`] frames of the pixel limit).
+    #[error("{}: {reason}", .path.display())]
+    TooLarge { path: PathBuf, reason: String },
     /// An instance-index PNG of a kind that cannot be read as instance ids.
     #[error("{}: {reason}", .path.display())]
     IndexPng { path: PathBuf, reason: String },
@@ -80,6 +89,7 @@ impl MaskError {
     pub fn failure_kind(&self) -> FailureKind {
         match self {
             MaskError::Image(e) => e.failure_kind().in_part(FailureKind::Mask),
+            MaskError::TooLarge { .. } => FailureKind::TooLarge,
             _ => FailureKind::Mask,
         }
     }

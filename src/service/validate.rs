@@ -6,6 +6,7 @@ use super::dataset::Overrides;
 use super::encode::{CropSpec, OutputSpec, DEFAULT_FIELDS};
 use super::error::ServiceError;
 use super::pb;
+use crate::failure::{echo, printable, ECHO_CHARS};
 use crate::sample::augment::Augment;
 use crate::sample::motion::{MotionPreset, MotionRanges};
 
@@ -120,7 +121,8 @@ pub fn overrides(
     } else {
         Some(motion_preset.parse::<MotionPreset>().map_err(|_| {
             let names: Vec<&str> = MotionPreset::ALL.iter().map(|p| p.name()).collect();
-            invalid("motion_preset", format!("unknown preset {motion_preset:?} (expected one of {})", names.join(", ")))
+            let given = echo(motion_preset);
+            invalid("motion_preset", format!("unknown preset {given} (expected one of {})", names.join(", ")))
         })?)
     };
     let motion_ranges = if motion_ranges_json.trim().is_empty() {
@@ -129,9 +131,10 @@ pub fn overrides(
         if motion_ranges_json.len() > 64 << 10 {
             return Err(invalid("motion_ranges_json", "longer than 64 KiB"));
         }
-        let r: MotionRanges =
-            serde_json::from_str(motion_ranges_json).map_err(|e| invalid("motion_ranges_json", e.to_string()))?;
-        r.validate().map_err(|e| invalid("motion_ranges_json", e.to_string()))?;
+        // the parser's message quotes the input (unknown fields, variants): one short printable line
+        let bad = |e: &dyn std::fmt::Display| invalid("motion_ranges_json", printable(&e.to_string(), ECHO_CHARS));
+        let r: MotionRanges = serde_json::from_str(motion_ranges_json).map_err(|e| bad(&e))?;
+        r.validate().map_err(|e| bad(&e))?;
         Some(r)
     };
     if let Some(m) = max_objects {

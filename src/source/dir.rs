@@ -101,7 +101,9 @@ pub struct SourceOptions {
     /// Limits for images, depth and mask files (file size and dimensions, checked before
     /// decoding).
     pub limits: ImageLimits,
-    /// Largest accepted `.npz` MPI file in bytes (MPIs are much larger than images).
+    /// Largest accepted `.npz` MPI file in bytes (MPIs are much larger than images); its arrays
+    /// may hold at most `max_mpi_bytes / 4` values together (as f32), checked from their headers
+    /// before they are decompressed.
     pub max_mpi_bytes: u64,
     /// Intrinsics for every item; `None` = the reference default (or the MPI's own `K`).
     pub intrinsics: Option<IntrinsicsSpec>,
@@ -561,7 +563,8 @@ impl DirSource {
                 format!("{size} bytes is larger than the MPI limit of {} bytes", self.options.max_mpi_bytes),
             ));
         }
-        let mpi = crate::mpi::npz::load_npz(p).map_err(|e| file_err(p, FailureKind::Mpi, mpi_message(e)))?;
+        let mpi = crate::mpi::npz::load_npz_limited(p, self.options.max_mpi_bytes / 4)
+            .map_err(|e| file_err(p, FailureKind::Mpi, mpi_message(e)))?;
         mpi.validate().map_err(|e| file_err(p, FailureKind::Mpi, mpi_message(e)))?;
         Ok(mpi)
     }

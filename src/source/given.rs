@@ -5,7 +5,6 @@
 use super::dir::{file_err, io_err, over_limit, DepthFile};
 use super::{FailureKind, SourceError};
 use crate::io::image::{decode_file, load_depth_png16_with_limits, ImageLimits, RgbImage};
-use crate::io::npy::read_npy_file;
 use crate::raster::resize_nearest;
 use ::image::DynamicImage;
 use std::path::Path;
@@ -44,14 +43,28 @@ pub fn read_depth_npy(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, V
     if size > limits.max_bytes {
         return Err(file_err(p, FailureKind::TooLarge, over_limit(size, limits)));
     }
-    let a = read_npy_file(p).map_err(|e| {
+    let not_valid = |e: std::io::Error| {
         if e.kind() == std::io::ErrorKind::NotFound {
             io_err(p, &e, FailureKind::Depth)
         } else {
-            file_err(p, FailureKind::Depth, format!("not a valid .npy depth: {e}"))
+            file_err(p, FailureKind::Depth, not_a_depth(&e))
         }
-    })?;
+    };
+    let mut f = std::fs::File::open(p).map_err(not_valid)?;
+    let mut prefix = [0u8; 12];
+    let got = std::io::Read::read(&mut f, &mut prefix).map_err(not_valid)?;
+    crate::io::npy::check_header_len(&prefix[..got], size).map_err(not_valid)?;
+    std::io::Seek::rewind(&mut f).map_err(not_valid)?;
+    let npy = npyz::NpyFile::new(std::io::BufReader::new(f)).map_err(not_valid)?;
+    // the shape from the header against the limits before any data is read
+    depth_dims(npy.shape(), limits).map_err(|(kind, m)| file_err(p, kind, m))?;
+    let a = crate::io::npy::read_array(npy).map_err(not_valid)?;
     depth_from_array(a, limits).map_err(|(kind, m)| file_err(p, kind, m))
+}
+
+/// The message of a `.npy` that does not parse (the parser's own text made one printable line).
+fn not_a_depth(e: &std::io::Error) -> String {
+    format!("not a valid .npy depth: {}", crate::failure::printable(&e.to_string(), 300))
 }
 
 /// [`read_depth_npy`] for an `.npy` held in memory (errors without a name, with their kind).
@@ -62,9 +75,11 @@ pub fn depth_npy_from_bytes(
     if bytes.len() as u64 > limits.max_bytes {
         return Err((FailureKind::TooLarge, over_limit(bytes.len() as u64, limits)));
     }
-    let a = npyz::NpyFile::new(bytes)
-        .and_then(crate::io::npy::read_array)
-        .map_err(|e| (FailureKind::Depth, format!("not a valid .npy depth: {e}")))?;
+    crate::io::npy::check_header_len(bytes, bytes.len() as u64).map_err(|e| (FailureKind::Depth, not_a_depth(&e)))?;
+    let npy = npyz::NpyFile::new(bytes).map_err(|e| (FailureKind::Depth, not_a_depth(&e)))?;
+    // the shape from the header against the limits before any data is read
+    depth_dims(npy.shape(), limits)?;
+    let a = crate::io::npy::read_array(npy).map_err(|e| (FailureKind::Depth, not_a_depth(&e)))?;
     depth_from_array(a, limits)
 }
 
@@ -74,7 +89,13 @@ fn depth_from_array(
     a: crate::io::npy::Array,
     limits: &ImageLimits,
 ) -> Result<(usize, usize, Vec<f32>), (FailureKind, String)> {
-    let (h, w) = match a.shape.as_slice() {
+    let (w, h) = depth_dims(&a.shape, limits)?;
+    Ok((w, h, a.data.into_iter().map(|v| v as f32).collect()))
+}
+
+/// A depth array's (width, height) from its shape, checked against the limits.
+fn depth_dims(shape: &[u64], limits: &ImageLimits) -> Result<(usize, usize), (FailureKind, String)> {
+    let (h, w) = match shape {
         [h, w] | [1, h, w] | [h, w, 1] | [1, 1, h, w] => (*h, *w),
         s => {
             let m = format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])");
@@ -85,7 +106,7 @@ fn depth_from_array(
     if !dims_ok {
         return Err((FailureKind::TooLarge, format!("depth of {w} x {h} pixels is empty or too large ({limits})")));
     }
-    Ok((w as usize, h as usize, a.data.into_iter().map(|v| v as f32).collect()))
+    Ok((w as usize, h as usize))
 }
 
 /// Reads a grey disparity PNG as values in [0, 1]: 8-bit / 255, 16-bit / 65535 (alpha ignored;

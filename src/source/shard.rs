@@ -48,6 +48,7 @@
 use super::dir::SourceOptions;
 use super::encoded::{decode_item, intrinsics_from_json, DepthEncoding, Encoded, EncodedItem};
 use super::{FailureKind, Fnv64, SkippedItem, Source, SourceError, SourceItem};
+use crate::failure::printable;
 use std::collections::HashSet;
 use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
@@ -129,7 +130,8 @@ pub fn index_shard(path: &Path) -> Result<ShardIndex, SourceError> {
         let entry = match entry {
             Ok(e) => e,
             Err(e) => {
-                truncated = Some(format!("unreadable tar header after byte {end} ({e})"));
+                truncated =
+                    Some(format!("unreadable tar header after byte {end} ({})", printable(&e.to_string(), 200)));
                 break;
             }
         };
@@ -138,7 +140,7 @@ pub fn index_shard(path: &Path) -> Result<ShardIndex, SourceError> {
         let kind = entry.header().entry_type();
         let data_end = pos.checked_add(size);
         if data_end.is_none_or(|e| e > len) {
-            let what = name.as_deref().unwrap_or("a member");
+            let what = printable(name.as_deref().unwrap_or("a member"), 200);
             truncated = Some(format!("{what} needs {size} bytes at byte {pos}, the shard has {len} bytes"));
             if let Some((key, _)) = name.as_deref().and_then(split_key) {
                 last_key = Some(key);
@@ -284,8 +286,9 @@ impl ShardSource {
             let shard = shards.len();
             let index = index_shard(&p)?;
             let id_of = |key: &str| if prefixed { format!("{stem}/{key}") } else { key.to_string() };
+            // names come from the tar headers: reported as printable lines
             let mut skip = |item: String, kind: FailureKind, reason: String| {
-                skipped.push(SkippedItem { item, kind, reason });
+                skipped.push(SkippedItem { item: printable(&item, 300), kind, reason: printable(&reason, 300) });
             };
             if let Some(reason) = &index.truncated {
                 let item = match &index.incomplete_key {
@@ -369,8 +372,9 @@ impl ShardSource {
         self.entries.get(i).map(|e| e.key.as_str())
     }
 
+    /// The member's name in errors (printable: keys and fields come from the tar headers).
     fn member_name(&self, e: &Entry, m: &Member) -> String {
-        format!("{}:{}.{}", self.shards[e.shard].name, e.key, m.field)
+        printable(&format!("{}:{}.{}", self.shards[e.shard].name, e.key, m.field), 300)
     }
 
     /// Reads a member's bytes; `part` is the kind of a read failure of the member's role

@@ -1,0 +1,733 @@
+//! `mpiflow bench soak`: a real `mpiflow serve` (a child process on a free loopback port) under a
+//! mix of fast, stalled, slow, cancelling and uploading clients for a given time; the server's
+//! memory over time (`VmRSS` from `/proc/PID/status`, and `mpiflow_buffered_bytes` from its
+//! `/metrics` where the server has it), the fast clients' samples/s against one client alone,
+//! errors by client and gRPC code, and whether any fast client lost or repeated an index.
+//!
+//! # The clients (each bounded in count; all stop at the deadline)
+//!
+//! - **fast** `k` of `F`: one endless stream of rank `k`, world size `F`, read as fast as it
+//!   comes; every index must be the next of its rank (`k, k + F, ...`); an interrupted stream is
+//!   resumed from its cursor. Any error is unexpected.
+//! - **stalled**: opens a stream with prefetch 64 and every field, reads one batch, then stops
+//!   reading for a while (a third of the run, at most 30 s), drops it and starts again.
+//! - **slow**: reads one batch every 250 ms.
+//! - **cancelling**: opens a stream, reads 0 to 3 batches and drops it; every other time a
+//!   GetSamples of three indices read once.
+//! - **uploading**: uploads two small photos with depth to its own dataset, checks that both are
+//!   accepted and pulls two samples of it; once a second.
+//!
+//! RESOURCE_EXHAUSTED (a budget said no) is expected for all but the fast clients; every other
+//! error is unexpected. [`SoakReport::passed`] is false on a lost or repeated index, an
+//! unexpected error, or fast clients that got nothing.
+
+use std::collections::BTreeMap;
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::time::timeout_at;
+
+use crate::service::client::{connect, Client};
+use crate::service::pb;
+
+/// A soak run's failure to run at all (the server did not start, the runtime failed).
+#[derive(Debug, thiserror::Error)]
+#[error("soak: {0}")]
+pub struct SoakError(pub String);
+
+/// What a soak run does; see the module documentation.
+#[derive(Clone, Debug)]
+pub struct SoakConfig {
+    /// The `mpiflow` binary to start as `mpiflow serve`.
+    pub exe: PathBuf,
+    /// How long the mix of clients runs.
+    pub duration: Duration,
+    /// How long the one fast client runs alone first (its rate is the reference).
+    pub solo: Duration,
+    /// `--size` of the server (e.g. `160x120`).
+    pub size: String,
+    /// `--workers` of the server.
+    pub workers: usize,
+    pub fast: usize,
+    pub stalled: usize,
+    pub slow: usize,
+    pub cancelling: usize,
+    pub uploading: usize,
+    /// How often the server's memory is read and printed.
+    pub report_every: Duration,
+    /// More `mpiflow serve` flags (e.g. `--max-buffered-mb 512`).
+    pub server_args: Vec<String>,
+}
+
+/// One reading of the server during the mix.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SoakPoint {
+    /// Seconds since the mix started.
+    pub t_s: f64,
+    pub rss_mib: f64,
+    /// `mpiflow_buffered_bytes` from `/metrics`, when the server reports it.
+    pub buffered_bytes: Option<f64>,
+    /// Fast clients' samples/s since the previous reading.
+    pub fast_per_s: f64,
+}
+
+/// What a soak run measured.
+#[derive(Clone, Debug, Default)]
+pub struct SoakReport {
+    /// One fast client alone, samples/s.
+    pub solo_per_s: f64,
+    /// All fast clients together during the mix, samples/s.
+    pub fast_per_s: f64,
+    pub fast_samples: u64,
+    /// Indices a fast client never got (a gap in its rank's sequence).
+    pub lost: u64,
+    /// Indices a fast client got twice or out of order.
+    pub repeated: u64,
+    /// Server RSS after warm-up, before any client of the mix.
+    pub idle_rss_mib: f64,
+    pub peak_rss_mib: f64,
+    /// Server RSS after every client left.
+    pub end_rss_mib: f64,
+    pub points: Vec<SoakPoint>,
+    /// Errors seen, by `client kind: CODE`.
+    pub errors: BTreeMap<String, u64>,
+    /// How many of them were unexpected, and the first few with their messages.
+    pub unexpected: u64,
+    pub unexpected_examples: Vec<String>,
+    pub slow_samples: u64,
+    pub stalled_streams: u64,
+    pub cancelled_streams: u64,
+    pub uploads: u64,
+    /// The mix's length as it ran, seconds.
+    pub mix_s: f64,
+}
+
+impl SoakReport {
+    /// No index lost or repeated, no unexpected error, and the fast clients got samples.
+    pub fn passed(&self) -> bool {
+        self.lost == 0 && self.repeated == 0 && self.unexpected == 0 && self.fast_samples > 0
+    }
+
+    /// The closing summary, one fact a line.
+    pub fn summary(&self) -> Vec<String> {
+        let ratio = if self.solo_per_s > 0.0 { 100.0 * self.fast_per_s / self.solo_per_s } else { 0.0 };
+        let errors = if self.errors.is_empty() {
+            "none".to_string()
+        } else {
+            self.errors.iter().map(|(k, n)| format!("{k} x{n}")).collect::<Vec<_>>().join(", ")
+        };
+        let mut out = vec![
+            format!(
+                "fast clients: {:.2} samples/s together over {:.0} s ({} samples) = {ratio:.0}% of one client alone ({:.2} samples/s)",
+                self.fast_per_s, self.mix_s, self.fast_samples, self.solo_per_s
+            ),
+            format!("fast-client indices: {} lost, {} repeated", self.lost, self.repeated),
+            format!(
+                "server RSS: {:.0} MiB idle, peak {:.0} MiB, {:.0} MiB after the clients left",
+                self.idle_rss_mib, self.peak_rss_mib, self.end_rss_mib
+            ),
+            format!(
+                "other clients: {} stalled streams, {} slow samples, {} cancelled streams, {} uploads",
+                self.stalled_streams, self.slow_samples, self.cancelled_streams, self.uploads
+            ),
+            format!("errors by code: {errors}; unexpected: {}", self.unexpected),
+        ];
+        out.extend(self.unexpected_examples.iter().map(|e| format!("  unexpected: {e}")));
+        out.push(if self.passed() { "soak: PASS".into() } else { "soak: FAIL".into() });
+        out
+    }
+}
+
+/// The resident memory (`VmRSS`) of a process in MiB.
+pub fn rss_mib(pid: u32) -> Option<f64> {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmRSS:"))?;
+    Some(line.split_whitespace().nth(1)?.parse::<f64>().ok()? / 1024.0)
+}
+
+/// A `mpiflow serve` child process on loopback; SIGTERM and wait on drop.
+pub struct ServerProcess {
+    child: Child,
+    /// `HOST:PORT` of the gRPC listener.
+    pub addr: String,
+    /// `HOST:PORT` of `/metrics`, when the server printed one.
+    pub metrics_addr: Option<String>,
+}
+
+impl ServerProcess {
+    /// Starts `exe serve ARGS` and reads the addresses it prints (`mpiflow serving on ...`, then
+    /// `mpiflow metrics on http://.../metrics` when `--metrics-addr` is among the arguments).
+    pub fn start(exe: &std::path::Path, args: &[String]) -> Result<Self, SoakError> {
+        let mut child = Command::new(exe)
+            .arg("serve")
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .map_err(|e| SoakError(format!("cannot start {} serve: {e}", exe.display())))?;
+        let stdout = child.stdout.take().ok_or_else(|| SoakError("no stdout from mpiflow serve".into()))?;
+        let mut lines = BufReader::new(stdout).lines();
+        let mut next = || lines.next().and_then(Result::ok).unwrap_or_default();
+        let first = next();
+        let Some(addr) = first.trim().strip_prefix("mpiflow serving on ").map(str::to_string) else {
+            let _ = child.kill();
+            let _ = child.wait();
+            return Err(SoakError(format!("mpiflow serve printed {:?}", crate::failure::printable(&first, 200))));
+        };
+        let metrics_addr = if args.iter().any(|a| a == "--metrics-addr") {
+            let m = next();
+            m.trim()
+                .strip_prefix("mpiflow metrics on http://")
+                .and_then(|m| m.strip_suffix("/metrics"))
+                .map(str::to_string)
+        } else {
+            None
+        };
+        // keep reading the server's stdout to its end: a closed pipe would fail its later writes
+        std::thread::spawn(move || lines.for_each(drop));
+        Ok(Self { child, addr, metrics_addr })
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// SIGTERM (a graceful drain), then waits up to `grace`; the exit status (`None` when it had
+    /// to be killed).
+    pub fn terminate(mut self, grace: Duration) -> Option<std::process::ExitStatus> {
+        let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
+        let end = Instant::now() + grace;
+        while Instant::now() < end {
+            match self.child.try_wait() {
+                Ok(Some(status)) => return Some(status),
+                Ok(None) => std::thread::sleep(Duration::from_millis(50)),
+                Err(_) => break,
+            }
+        }
+        None // Drop kills it
+    }
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// The sum of a metric's samples in a Prometheus text exposition (`None` when absent).
+pub fn metric_value(text: &str, name: &str) -> Option<f64> {
+    let mut found = None;
+    for line in text.lines().filter(|l| !l.starts_with('#')) {
+        let Some(rest) = line.strip_prefix(name) else { continue };
+        if !(rest.starts_with(' ') || rest.starts_with('{')) {
+            continue;
+        }
+        if let Some(v) = rest.rsplit(' ').next().and_then(|v| v.parse::<f64>().ok()) {
+            *found.get_or_insert(0.0) += v;
+        }
+    }
+    found
+}
+
+/// `GET /metrics` over plain HTTP/1.0.
+async fn scrape(addr: &str) -> Option<String> {
+    let mut s = tokio::net::TcpStream::connect(addr).await.ok()?;
+    s.write_all(format!("GET /metrics HTTP/1.0\r\nHost: {addr}\r\n\r\n").as_bytes()).await.ok()?;
+    let mut body = Vec::new();
+    s.read_to_end(&mut body).await.ok()?;
+    Some(String::from_utf8_lossy(&body).into_owned())
+}
+
+/// Every field there is (`pb::Field` values but `FIELD_UNSPECIFIED`).
+fn all_fields() -> Vec<i32> {
+    (1..64).filter(|&v| pb::Field::try_from(v).is_ok_and(|f| f != pb::Field::Unspecified)).collect()
+}
+
+/// What the clients share: counters and the error table.
+#[derive(Default)]
+struct Shared {
+    fast_samples: AtomicU64,
+    lost: AtomicU64,
+    repeated: AtomicU64,
+    slow_samples: AtomicU64,
+    stalled_streams: AtomicU64,
+    cancelled_streams: AtomicU64,
+    uploads: AtomicU64,
+    errors: Mutex<(BTreeMap<String, u64>, u64, Vec<String>)>,
+}
+
+impl Shared {
+    /// Counts an error of a client kind; RESOURCE_EXHAUSTED is expected unless `strict`.
+    fn error(&self, kind: &str, code: &str, message: &str, expected: bool) {
+        let mut e = self.errors.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        *e.0.entry(format!("{kind}: {code}")).or_insert(0) += 1;
+        if !expected {
+            e.1 += 1;
+            if e.2.len() < 5 {
+                e.2.push(format!("{kind}: {code}: {}", crate::failure::printable(message, 200)));
+            }
+        }
+    }
+
+    fn status(&self, kind: &str, s: &tonic::Status, strict: bool) {
+        let expected = !strict && s.code() == tonic::Code::ResourceExhausted;
+        self.error(kind, &format!("{:?}", s.code()), s.message(), expected);
+    }
+}
+
+/// A fast client: rank `rank` of `world`, read as fast as it comes until `until`; checks that
+/// every index is the next of its rank, resumes an interrupted stream from its cursor.
+async fn fast_client(addr: String, seed: u64, rank: u32, world: u32, until: tokio::time::Instant, sh: Arc<Shared>) {
+    let mut client = match timeout_at(until, connect(&addr)).await {
+        Ok(Ok(c)) => c,
+        Ok(Err(e)) => return sh.error("fast", "connect", &e.to_string(), false),
+        Err(_) => return,
+    };
+    let step = u64::from(world);
+    let mut expected = u64::from(rank);
+    let mut start = 0u64;
+    while tokio::time::Instant::now() < until {
+        let req = pb::StreamRequest { seed, rank, world_size: world, start_index: start, ..Default::default() };
+        let mut stream = match timeout_at(until, client.stream_samples(req)).await {
+            Ok(Ok(s)) => s.into_inner(),
+            Ok(Err(s)) => {
+                sh.status("fast", &s, true);
+                continue;
+            }
+            Err(_) => return,
+        };
+        // a timeout polls its future first: a stream that is always ready never times out
+        while tokio::time::Instant::now() < until {
+            match timeout_at(until, stream.message()).await {
+                Err(_) => return,
+                Ok(Ok(Some(batch))) => {
+                    for s in &batch.samples {
+                        if s.index == expected {
+                            expected += step;
+                        } else if s.index < expected {
+                            sh.repeated.fetch_add(1, Ordering::Relaxed);
+                        } else {
+                            let gap = (s.index - expected) / step;
+                            sh.lost.fetch_add(gap.max(1), Ordering::Relaxed);
+                            expected = s.index + step;
+                        }
+                        sh.fast_samples.fetch_add(1, Ordering::Relaxed);
+                    }
+                    start = batch.resume_start_index;
+                }
+                Ok(Ok(None)) => {
+                    sh.error("fast", "stream ended", "an endless stream ended", false);
+                    break;
+                }
+                Ok(Err(s)) => {
+                    sh.status("fast", &s, true);
+                    if let Some((_, resume)) = crate::service::error::cursor_of(&s) {
+                        start = resume;
+                    }
+                    break;
+                }
+            }
+        }
+    }
+}
+
+async fn connected(kind: &str, addr: &str, until: tokio::time::Instant, sh: &Shared) -> Option<Client> {
+    match timeout_at(until, connect(addr)).await {
+        Ok(Ok(c)) => Some(c),
+        Ok(Err(e)) => {
+            sh.error(kind, "connect", &e.to_string(), false);
+            None
+        }
+        Err(_) => None,
+    }
+}
+
+/// Opens a stream with prefetch 64 and every field, reads one batch, stops reading for `hold`.
+async fn stalled_client(addr: String, seed: u64, hold: Duration, until: tokio::time::Instant, sh: Arc<Shared>) {
+    let Some(mut client) = connected("stalled", &addr, until, &sh).await else { return };
+    let mut round = 0u64;
+    while tokio::time::Instant::now() < until {
+        let req = pb::StreamRequest { seed: seed + round, prefetch: 64, fields: all_fields(), ..Default::default() };
+        round += 1;
+        match timeout_at(until, client.stream_samples(req)).await {
+            Ok(Ok(s)) => {
+                let mut s = s.into_inner();
+                sh.stalled_streams.fetch_add(1, Ordering::Relaxed);
+                match timeout_at(until, s.message()).await {
+                    Ok(Err(status)) => sh.status("stalled", &status, false),
+                    Ok(Ok(_)) => {
+                        // stop reading: the server holds what it made for this stream
+                        let wake = (tokio::time::Instant::now() + hold).min(until);
+                        tokio::time::sleep_until(wake).await;
+                    }
+                    Err(_) => return,
+                }
+            }
+            Ok(Err(status)) => {
+                sh.status("stalled", &status, false);
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(_) => return,
+        }
+    }
+}
+
+/// Reads one batch every 250 ms.
+async fn slow_client(addr: String, seed: u64, until: tokio::time::Instant, sh: Arc<Shared>) {
+    let Some(mut client) = connected("slow", &addr, until, &sh).await else { return };
+    while tokio::time::Instant::now() < until {
+        let req = pb::StreamRequest { seed, ..Default::default() };
+        let mut s = match timeout_at(until, client.stream_samples(req)).await {
+            Ok(Ok(s)) => s.into_inner(),
+            Ok(Err(status)) => {
+                sh.status("slow", &status, false);
+                tokio::time::sleep(Duration::from_millis(200)).await;
+                continue;
+            }
+            Err(_) => return,
+        };
+        while tokio::time::Instant::now() < until {
+            match timeout_at(until, s.message()).await {
+                Ok(Ok(Some(b))) => {
+                    sh.slow_samples.fetch_add(b.samples.len() as u64, Ordering::Relaxed);
+                }
+                Ok(Ok(None)) => break,
+                Ok(Err(status)) => {
+                    sh.status("slow", &status, false);
+                    break;
+                }
+                Err(_) => return,
+            }
+            // the client's pace, not a wait for the server
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    }
+}
+
+/// Opens streams and drops them after 0 to 3 batches; every other time a GetSamples read once.
+async fn cancelling_client(addr: String, seed: u64, until: tokio::time::Instant, sh: Arc<Shared>) {
+    let Some(mut client) = connected("cancelling", &addr, until, &sh).await else { return };
+    let mut round = 0u64;
+    while tokio::time::Instant::now() < until {
+        round += 1;
+        let reads = round % 4;
+        let opened = if round.is_multiple_of(2) {
+            let req = pb::SamplesRequest { seed, indices: vec![round, round + 7, round * 3], ..Default::default() };
+            match timeout_at(until, client.get_samples(req)).await {
+                Ok(Ok(s)) => {
+                    let mut s = s.into_inner();
+                    if let Ok(Err(status)) = timeout_at(until, s.message()).await {
+                        sh.status("cancelling", &status, false);
+                    }
+                    Ok(())
+                }
+                Ok(Err(status)) => Err(status),
+                Err(_) => return,
+            }
+        } else {
+            let req = pb::StreamRequest { seed, start_index: round * 100, ..Default::default() };
+            match timeout_at(until, client.stream_samples(req)).await {
+                Ok(Ok(s)) => {
+                    let mut s = s.into_inner();
+                    for _ in 0..reads {
+                        match timeout_at(until, s.message()).await {
+                            Ok(Ok(Some(_))) => {}
+                            Ok(Ok(None)) => break,
+                            Ok(Err(status)) => {
+                                sh.status("cancelling", &status, false);
+                                break;
+                            }
+                            Err(_) => return,
+                        }
+                    }
+                    Ok(())
+                }
+                Ok(Err(status)) => Err(status),
+                Err(_) => return,
+            }
+        };
+        match opened {
+            Ok(()) => {
+                sh.cancelled_streams.fetch_add(1, Ordering::Relaxed);
+            }
+            Err(status) => {
+                sh.status("cancelling", &status, false);
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+    }
+}
+
+/// The chunks of an upload of two small photos with depth (`.npy`) to `dataset`.
+fn upload_chunks(dataset: &str, round: u64) -> Vec<pb::SourceChunk> {
+    let (w, h) = (80u32, 60u32);
+    let mut chunks = Vec::new();
+    for k in 0..2u32 {
+        let r = (round % 200) as u32;
+        let img = ::image::RgbImage::from_fn(w, h, |x, y| {
+            ::image::Rgb([(x * 3 + r) as u8, (y * 4 + k * 60) as u8, ((x ^ y) + r) as u8])
+        });
+        let mut png = std::io::Cursor::new(Vec::new());
+        if img.write_to(&mut png, ::image::ImageFormat::Png).is_err() {
+            continue;
+        }
+        let depth: Vec<f32> = (0..w * h).map(|i| 2.0 + (i % w) as f32 / w as f32).collect();
+        let mut npy = Vec::new();
+        if crate::io::npy::write_f32_to(&mut npy, &[u64::from(h), u64::from(w)], &depth).is_err() {
+            continue;
+        }
+        let name = format!("photo{k}");
+        let png = png.into_inner();
+        // the image in two chunks, as a client streaming a file does
+        let half = png.len() / 2;
+        chunks.push(pb::SourceChunk {
+            dataset: dataset.into(),
+            name: name.clone(),
+            kind: "image".into(),
+            data: png[..half].to_vec(),
+        });
+        chunks.push(pb::SourceChunk { data: png[half..].to_vec(), ..Default::default() });
+        chunks.push(pb::SourceChunk { name, kind: "depth".into(), data: npy, ..Default::default() });
+    }
+    chunks
+}
+
+/// Uploads two photos with depth to its dataset once a second, checks both are accepted, pulls
+/// two samples of it.
+async fn uploading_client(addr: String, k: usize, until: tokio::time::Instant, sh: Arc<Shared>) {
+    let Some(mut client) = connected("uploading", &addr, until, &sh).await else { return };
+    let dataset = format!("soak-upload-{k}");
+    let mut round = 0u64;
+    while tokio::time::Instant::now() < until {
+        round += 1;
+        let chunks = upload_chunks(&dataset, round);
+        match timeout_at(until, client.upload_sources(tokio_stream::iter(chunks))).await {
+            Ok(Ok(r)) => {
+                let sum = r.into_inner();
+                if sum.accepted != 4 || !sum.rejected.is_empty() {
+                    let m = format!("accepted {} of 4, rejected {:?}", sum.accepted, sum.rejected);
+                    sh.error("uploading", "not accepted", &m, false);
+                } else {
+                    sh.uploads.fetch_add(1, Ordering::Relaxed);
+                    let req =
+                        pb::StreamRequest { dataset: dataset.clone(), seed: round, count: 2, ..Default::default() };
+                    match timeout_at(until, crate::service::client::pull(&mut client, req, |_| {})).await {
+                        Ok(Ok(p)) => {
+                            if let Some(s) = p.error {
+                                sh.status("uploading", &s, false);
+                            } else if p.samples != 2 {
+                                sh.error("uploading", "short pull", &format!("{} of 2 samples", p.samples), false);
+                            }
+                        }
+                        Ok(Err(s)) => sh.status("uploading", &s, false),
+                        Err(_) => return,
+                    }
+                }
+            }
+            Ok(Err(status)) => sh.status("uploading", &status, false),
+            Err(_) => return,
+        }
+        // the client's pace: one upload a second
+        tokio::time::sleep_until((tokio::time::Instant::now() + Duration::from_secs(1)).min(until)).await;
+    }
+}
+
+/// Runs a soak (see the module documentation), printing progress lines through `log`.
+pub fn run_soak(cfg: &SoakConfig, log: &mut dyn FnMut(&str)) -> Result<SoakReport, SoakError> {
+    if cfg.fast == 0 || cfg.duration.is_zero() {
+        return Err(SoakError("a soak needs at least one fast client and a positive duration".into()));
+    }
+    let mut args: Vec<String> = [
+        "--addr",
+        "127.0.0.1:0",
+        "--metrics-addr",
+        "127.0.0.1:0",
+        "--workers",
+        &cfg.workers.to_string(),
+        "--size",
+        &cfg.size,
+        "--log-level",
+        "error",
+    ]
+    .iter()
+    .map(|s| (*s).to_string())
+    .collect();
+    args.extend(cfg.server_args.iter().cloned());
+    let server = ServerProcess::start(&cfg.exe, &args)?;
+    let pid = server.pid();
+    let addr = server.addr.clone();
+    let metrics = server.metrics_addr.clone();
+    log(&format!("server pid {pid} on {addr}, metrics {}", metrics.as_deref().unwrap_or("-")));
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| SoakError(format!("async runtime: {e}")))?;
+    let report = rt.block_on(mix(cfg, &addr, pid, metrics.as_deref(), log));
+    rt.shutdown_timeout(Duration::from_secs(5));
+    log("clients done; draining the server (SIGTERM)");
+    let status = server.terminate(Duration::from_secs(30));
+    let mut report = report?;
+    if !status.is_some_and(|s| s.success()) {
+        report.unexpected += 1;
+        report.unexpected_examples.push(format!("the server did not exit cleanly on SIGTERM: {status:?}"));
+    }
+    Ok(report)
+}
+
+async fn mix(
+    cfg: &SoakConfig,
+    addr: &str,
+    pid: u32,
+    metrics: Option<&str>,
+    log: &mut dyn FnMut(&str),
+) -> Result<SoakReport, SoakError> {
+    let mut report = SoakReport::default();
+    // warm the scene cache
+    let mut client = connect(addr).await.map_err(|e| SoakError(format!("{addr}: {e}")))?;
+    let warm = pb::StreamRequest { seed: 1, count: 8, ..Default::default() };
+    let w = crate::service::client::pull(&mut client, warm, |_| {}).await.map_err(|s| SoakError(s.to_string()))?;
+    if let Some(e) = w.error {
+        return Err(SoakError(format!("warm-up pull: {e}")));
+    }
+    drop(client);
+    report.idle_rss_mib = rss_mib(pid).unwrap_or(0.0);
+
+    // one fast client alone
+    let solo = Arc::new(Shared::default());
+    let t = Instant::now();
+    let until = tokio::time::Instant::now() + cfg.solo;
+    fast_client(addr.to_string(), 2, 0, 1, until, solo.clone()).await;
+    report.solo_per_s = solo.fast_samples.load(Ordering::Relaxed) as f64 / t.elapsed().as_secs_f64();
+    log(&format!(
+        "solo: {:.2} samples/s ({} samples in {:.0} s); idle RSS {:.0} MiB",
+        report.solo_per_s,
+        solo.fast_samples.load(Ordering::Relaxed),
+        t.elapsed().as_secs_f64(),
+        report.idle_rss_mib
+    ));
+
+    // the mix
+    let sh = Arc::new(Shared::default());
+    let start = tokio::time::Instant::now();
+    let until = start + cfg.duration;
+    let hold = (cfg.duration / 3).min(Duration::from_secs(30));
+    let mut tasks = Vec::new();
+    for k in 0..cfg.fast {
+        tasks.push((
+            "fast",
+            tokio::spawn(fast_client(addr.to_string(), 3, k as u32, cfg.fast as u32, until, sh.clone())),
+        ));
+    }
+    for k in 0..cfg.stalled {
+        tasks.push((
+            "stalled",
+            tokio::spawn(stalled_client(addr.to_string(), 1000 * (k as u64 + 1), hold, until, sh.clone())),
+        ));
+    }
+    for k in 0..cfg.slow {
+        tasks.push(("slow", tokio::spawn(slow_client(addr.to_string(), 100 + k as u64, until, sh.clone()))));
+    }
+    for k in 0..cfg.cancelling {
+        tasks
+            .push(("cancelling", tokio::spawn(cancelling_client(addr.to_string(), 200 + k as u64, until, sh.clone()))));
+    }
+    for k in 0..cfg.uploading {
+        tasks.push(("uploading", tokio::spawn(uploading_client(addr.to_string(), k, until, sh.clone()))));
+    }
+    let every = cfg.report_every.max(Duration::from_millis(200));
+    let (mut last_n, mut last_t) = (0u64, start);
+    let mut peak = report.idle_rss_mib;
+    loop {
+        let now = tokio::time::Instant::now();
+        if now >= until {
+            break;
+        }
+        tokio::time::sleep_until((now + every).min(until)).await;
+        let now = tokio::time::Instant::now();
+        let n = sh.fast_samples.load(Ordering::Relaxed);
+        let rss = rss_mib(pid).unwrap_or(0.0);
+        peak = peak.max(rss);
+        let buffered = match metrics {
+            Some(m) => scrape(m).await.and_then(|t| metric_value(&t, "mpiflow_buffered_bytes")),
+            None => None,
+        };
+        let p = SoakPoint {
+            t_s: (now - start).as_secs_f64(),
+            rss_mib: rss,
+            buffered_bytes: buffered,
+            fast_per_s: (n - last_n) as f64 / (now - last_t).as_secs_f64().max(1e-9),
+        };
+        log(&format!(
+            "t {:>6.0} s  RSS {:>6.0} MiB  buffered {}  fast {:>6.2} samples/s",
+            p.t_s,
+            p.rss_mib,
+            p.buffered_bytes.map_or("-".to_string(), |b| format!("{:.1} MB", b / 1e6)),
+            p.fast_per_s
+        ));
+        report.points.push(p);
+        (last_n, last_t) = (n, now);
+    }
+    report.mix_s = (tokio::time::Instant::now() - start).as_secs_f64();
+    // every client stops at the deadline; one that has not within 15 s more is a finding
+    let grace = tokio::time::Instant::now() + Duration::from_secs(15);
+    for (kind, mut t) in tasks {
+        match timeout_at(grace, &mut t).await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => sh.error(kind, "task failed", &e.to_string(), false),
+            Err(_) => {
+                t.abort();
+                sh.error(kind, "did not stop", "still running 15 s after the deadline", false);
+            }
+        }
+    }
+    log("clients stopped");
+    // the server's memory once every client has left (the streams are dropped)
+    let mut end = rss_mib(pid).unwrap_or(0.0);
+    for _ in 0..10 {
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        end = rss_mib(pid).unwrap_or(end);
+    }
+    report.end_rss_mib = end;
+    report.peak_rss_mib = peak;
+    report.fast_samples = sh.fast_samples.load(Ordering::Relaxed);
+    report.fast_per_s = report.fast_samples as f64 / report.mix_s.max(1e-9);
+    report.lost = sh.lost.load(Ordering::Relaxed) + solo.lost.load(Ordering::Relaxed);
+    report.repeated = sh.repeated.load(Ordering::Relaxed) + solo.repeated.load(Ordering::Relaxed);
+    report.slow_samples = sh.slow_samples.load(Ordering::Relaxed);
+    report.stalled_streams = sh.stalled_streams.load(Ordering::Relaxed);
+    report.cancelled_streams = sh.cancelled_streams.load(Ordering::Relaxed);
+    report.uploads = sh.uploads.load(Ordering::Relaxed);
+    for s in [&solo, &sh] {
+        let e = s.errors.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        for (k, n) in &e.0 {
+            *report.errors.entry(k.clone()).or_insert(0) += n;
+        }
+        report.unexpected += e.1;
+        report.unexpected_examples.extend(e.2.iter().cloned());
+    }
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metric_values_are_summed_over_labels_and_absent_ones_are_none() {
+        let text = "# HELP mpiflow_buffered_bytes x\n# TYPE mpiflow_buffered_bytes gauge\n\
+                    mpiflow_buffered_bytes 1024\nmpiflow_buffered_bytes_limit 5\n\
+                    mpiflow_streams{dataset=\"a\"} 2\nmpiflow_streams{dataset=\"b\"} 3\n";
+        assert_eq!(metric_value(text, "mpiflow_buffered_bytes"), Some(1024.0));
+        assert_eq!(metric_value(text, "mpiflow_streams"), Some(5.0));
+        assert_eq!(metric_value(text, "mpiflow_missing"), None);
+    }
+}

@@ -1,0 +1,101 @@
+//! `mpiflow bench soak`: a real `mpiflow serve` under a mix of fast, stalled, slow, cancelling
+//! and uploading clients for M minutes ([`mpiflow::bench::soak`]); a non-zero exit code when a
+//! fast client lost or repeated an index or an unexpected error came back.
+
+use std::time::Duration;
+
+use clap::Args;
+use mpiflow::bench::soak::{run_soak, SoakConfig};
+
+use super::CliError;
+
+#[derive(Args, Debug)]
+pub struct SoakBench {
+    /// Minutes the mix of clients runs.
+    #[arg(long, conflicts_with = "seconds")]
+    minutes: Option<f64>,
+    /// Seconds the mix of clients runs (for short runs; default 60).
+    #[arg(long)]
+    seconds: Option<f64>,
+    /// Seconds one fast client runs alone first (the reference rate).
+    #[arg(long, default_value_t = 10.0)]
+    solo_s: f64,
+    /// Source image size of the server.
+    #[arg(long, value_name = "WxH", default_value = "320x240")]
+    size: String,
+    /// Generation threads of the server (default: all cores).
+    #[arg(long)]
+    workers: Option<usize>,
+    #[arg(long, default_value_t = 4)]
+    fast: usize,
+    #[arg(long, default_value_t = 8)]
+    stalled: usize,
+    #[arg(long, default_value_t = 2)]
+    slow: usize,
+    #[arg(long, default_value_t = 2)]
+    cancelling: usize,
+    #[arg(long, default_value_t = 1)]
+    uploading: usize,
+    /// Seconds between readings of the server's memory.
+    #[arg(long, default_value_t = 10.0)]
+    report_every_s: f64,
+    /// More `mpiflow serve` flags, after `--` (e.g. `-- --max-buffered-mb 512`).
+    #[arg(last = true, value_name = "SERVE FLAGS")]
+    server_args: Vec<String>,
+}
+
+fn seconds(what: &str, s: f64, max: f64) -> Result<Duration, CliError> {
+    if !(s.is_finite() && s > 0.0 && s <= max) {
+        return Err(CliError(format!("bench soak: {what} must be above 0 and at most {max}")));
+    }
+    Ok(Duration::from_secs_f64(s))
+}
+
+pub fn run(b: SoakBench) -> Result<(), CliError> {
+    let duration = match (b.minutes, b.seconds) {
+        (Some(m), _) => seconds("--minutes", m * 60.0, 7.0 * 24.0 * 3600.0)?,
+        (None, s) => seconds("--seconds", s.unwrap_or(60.0), 7.0 * 24.0 * 3600.0)?,
+    };
+    if b.fast == 0 || b.fast + b.stalled + b.slow + b.cancelling + b.uploading > 1000 {
+        return Err(CliError("bench soak: at least 1 fast client and at most 1000 clients in all".into()));
+    }
+    let exe = std::env::current_exe().map_err(|e| CliError(format!("cannot find the mpiflow binary: {e}")))?;
+    let cfg = SoakConfig {
+        exe,
+        duration,
+        solo: seconds("--solo-s", b.solo_s, 3600.0)?,
+        size: b.size,
+        workers: b.workers.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, std::num::NonZero::get)),
+        fast: b.fast,
+        stalled: b.stalled,
+        slow: b.slow,
+        cancelling: b.cancelling,
+        uploading: b.uploading,
+        report_every: seconds("--report-every-s", b.report_every_s, 3600.0)?,
+        server_args: b.server_args,
+    };
+    println!(
+        "soak: {:.0} s of {} fast, {} stalled, {} slow, {} cancelling, {} uploading clients; server --size {} --workers {} {}",
+        duration.as_secs_f64(),
+        cfg.fast,
+        cfg.stalled,
+        cfg.slow,
+        cfg.cancelling,
+        cfg.uploading,
+        cfg.size,
+        cfg.workers,
+        cfg.server_args.join(" ")
+    );
+    let report = run_soak(&cfg, &mut |line: &str| println!("{line}"))?;
+    for line in report.summary() {
+        println!("{line}");
+    }
+    if report.passed() {
+        Ok(())
+    } else {
+        Err(CliError(format!(
+            "soak failed: {} indices lost, {} repeated, {} unexpected errors, {} fast samples",
+            report.lost, report.repeated, report.unexpected, report.fast_samples
+        )))
+    }
+}

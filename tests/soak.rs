@@ -1,0 +1,40 @@
+//! The soak test, short: a real `mpiflow serve` (child process, free loopback port) under fast,
+//! stalled, slow, cancelling and uploading clients for 20 s at 160x120; what the soak reports
+//! must show no lost or repeated index for the fast clients, no unexpected error code, every
+//! kind of client at work, and the server's memory read from its /proc status.
+
+use std::time::Duration;
+
+use mpiflow::bench::soak::{run_soak, SoakConfig};
+
+#[test]
+fn a_short_soak_loses_and_repeats_no_index_and_sees_no_unexpected_error() {
+    let cfg = SoakConfig {
+        exe: env!("CARGO_BIN_EXE_mpiflow").into(),
+        duration: Duration::from_secs(20),
+        solo: Duration::from_secs(4),
+        size: "160x120".into(),
+        workers: 2,
+        fast: 2,
+        stalled: 3,
+        slow: 1,
+        cancelling: 1,
+        uploading: 1,
+        report_every: Duration::from_secs(5),
+        server_args: vec![],
+    };
+    let mut lines = Vec::new();
+    let report = run_soak(&cfg, &mut |l: &str| lines.push(l.to_string())).expect("the soak runs");
+    let text = [lines, report.summary()].concat().join("\n");
+    eprintln!("{text}");
+    assert_eq!((report.lost, report.repeated), (0, 0), "{text}");
+    assert_eq!(report.unexpected, 0, "{text}");
+    assert!(report.passed(), "{text}");
+    assert!(report.solo_per_s > 0.0 && report.fast_samples > 0, "{text}");
+    // every kind of client did its part
+    assert!(report.stalled_streams >= 3 && report.slow_samples > 0, "{text}");
+    assert!(report.cancelled_streams > 0 && report.uploads > 0, "{text}");
+    // the server's memory was read over time
+    assert!(!report.points.is_empty() && report.points.iter().all(|p| p.rss_mib > 0.0), "{text}");
+    assert!(report.idle_rss_mib > 0.0 && report.peak_rss_mib >= report.idle_rss_mib, "{text}");
+}
