@@ -2,11 +2,10 @@
 //! process, pulled by the Rust client) against the in-process generator rate on the same number
 //! of workers; time to first sample, p99 gap; server memory with stalled and fast clients.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use clap::Args;
+use mpiflow::bench::soak::{rss_mib, ServerProcess};
 use mpiflow::service::client::{connect, pull};
 use mpiflow::service::config::DatasetConfig;
 use mpiflow::service::dataset::Datasets;
@@ -40,46 +39,6 @@ pub struct ServeBench {
     /// Seconds each memory phase lasts.
     #[arg(long, default_value_t = 6.0)]
     memory_s: f64,
-}
-
-fn rss_mib(pid: u32) -> Option<(f64, f64)> {
-    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let field = |name: &str| {
-        s.lines().find(|l| l.starts_with(name)).and_then(|l| l.split_whitespace().nth(1)?.parse::<f64>().ok())
-    };
-    Some((field("VmRSS:")? / 1024.0, field("VmHWM:")? / 1024.0))
-}
-
-struct ServerProcess {
-    child: Child,
-    addr: String,
-}
-
-impl ServerProcess {
-    fn start(args: &[String]) -> Result<Self, CliError> {
-        let exe = std::env::current_exe().map_err(|e| CliError(format!("cannot find the mpiflow binary: {e}")))?;
-        let mut child = Command::new(exe)
-            .arg("serve")
-            .args(args)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .map_err(|e| CliError(format!("cannot start mpiflow serve: {e}")))?;
-        let stdout = child.stdout.take().ok_or_else(|| CliError("no stdout from mpiflow serve".into()))?;
-        let mut line = String::new();
-        BufReader::new(stdout).read_line(&mut line).map_err(|e| CliError(format!("mpiflow serve: {e}")))?;
-        let addr = line
-            .trim()
-            .strip_prefix("mpiflow serving on ")
-            .ok_or_else(|| CliError(format!("mpiflow serve printed {line:?}")))?
-            .to_string();
-        Ok(Self { child, addr })
-    }
-
-    fn terminate(mut self) {
-        let _ = Command::new("kill").arg("-TERM").arg(self.child.id().to_string()).status();
-        let _ = self.child.wait();
-    }
 }
 
 fn request(b: &ServeBench, seed: u64, count: u64) -> pb::StreamRequest {
@@ -133,8 +92,9 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
     if let Some(s) = &b.source {
         args.extend(["--source".into(), s.clone()]);
     }
-    let server = ServerProcess::start(&args)?;
-    let pid = server.child.id();
+    let exe = std::env::current_exe().map_err(|e| CliError(format!("cannot find the mpiflow binary: {e}")))?;
+    let server = ServerProcess::start(&exe, &args).map_err(|e| CliError(e.0))?;
+    let pid = server.pid();
     let addr = server.addr.clone();
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
@@ -165,7 +125,7 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
             return Ok(());
         }
         let phase = Duration::from_secs_f64(b.memory_s);
-        let idle = rss_mib(pid).map_or(0.0, |m| m.0);
+        let idle = rss_mib(pid).unwrap_or(0.0);
         // stalled: streams opened and never read
         let mut stalled = Vec::new();
         for _ in 0..b.clients {
@@ -174,7 +134,7 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
             stalled.push((c, s));
         }
         tokio::time::sleep(phase).await;
-        let stalled_rss = rss_mib(pid).map_or(0.0, |m| m.0);
+        let stalled_rss = rss_mib(pid).unwrap_or(0.0);
         drop(stalled);
         tokio::time::sleep(Duration::from_millis(500)).await;
         // fast: streams read as fast as they come
@@ -200,7 +160,7 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
         let start = Instant::now();
         while start.elapsed() < phase {
             tokio::time::sleep(Duration::from_millis(200)).await;
-            peak = peak.max(rss_mib(pid).map_or(0.0, |m| m.0));
+            peak = peak.max(rss_mib(pid).unwrap_or(0.0));
         }
         let mut fast_samples = 0;
         for t in tasks {
@@ -214,6 +174,6 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
         );
         Ok(())
     });
-    server.terminate();
+    server.terminate(Duration::from_secs(30));
     result
 }
