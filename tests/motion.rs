@@ -79,6 +79,15 @@ fn stated(preset: MotionPreset) -> (Stated, Stated) {
                 angles: [Signed(0.0002, 0.03); 3],
             },
         ),
+        // a baseline along x only (t_x = -B, B in [0.02, 0.2]); nothing else moves
+        MotionPreset::Stereo => (
+            Stated {
+                translation: [In(-0.2, -0.02), In(0.0, 0.0), In(0.0, 0.0)],
+                kind: RotationKind::AxisAngle,
+                angles: [In(0.0, 0.0); 3],
+            },
+            Stated { translation: [In(0.0, 0.0); 3], kind: RotationKind::AxisAngle, angles: [In(0.0, 0.0); 3] },
+        ),
     }
 }
 
@@ -379,7 +388,7 @@ fn preset_names_parse_and_print() {
         assert_eq!(p.ranges().name, p.to_string());
     }
     assert_eq!(
-        ["reference", "paper-kitti", "depthstillation", "mixed"],
+        ["reference", "paper-kitti", "depthstillation", "mixed", "stereo"],
         MotionPreset::ALL.map(mpiflow::sample::motion::MotionPreset::name)
     );
     assert_eq!("Paper-KITTI".parse::<MotionPreset>().unwrap(), MotionPreset::PaperKitti);

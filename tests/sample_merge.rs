@@ -79,7 +79,7 @@ fn rigid(t: [f64; 3], r: [f64; 3]) -> RigidLaw {
 
 fn config(camera: RigidLaw, object: RigidLaw, rule: MergeRule) -> SampleConfig {
     SampleConfig {
-        motion: MotionSpec::Ranges(Box::new(MotionRanges { name: "test".into(), camera, object })),
+        motion: MotionSpec::Ranges(Box::new(MotionRanges { name: "test".into(), camera, object, stereo: false })),
         merge: rule,
         inpaint_radius: 3.0,
         ..SampleConfig::default()

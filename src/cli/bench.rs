@@ -43,7 +43,7 @@ pub struct QualityBench {
     /// Resize every image to WxH (default: the bundled scenes' 640x480, photos as they are).
     #[arg(long, value_parser = mpiflow::sample::pipeline::parse_size)]
     size: Option<(usize, usize)>,
-    /// Motion preset: reference, paper-kitti, depthstillation or mixed.
+    /// Motion preset: reference, paper-kitti, depthstillation, mixed or stereo.
     #[arg(long, default_value = "reference")]
     preset: mpiflow::sample::motion::MotionPreset,
     #[arg(long, default_value_t = 0)]
@@ -67,7 +67,7 @@ pub struct SampleBench {
     /// Merge rule: depth-aware or reference.
     #[arg(long, default_value = "depth-aware")]
     merge: mpiflow::sample::merge::MergeRule,
-    /// Motion preset: reference, paper-kitti, depthstillation or mixed.
+    /// Motion preset: reference, paper-kitti, depthstillation, mixed or stereo.
     #[arg(long, default_value = "reference")]
     preset: mpiflow::sample::motion::MotionPreset,
     /// Render the object and mask channel over full frames (the reference's way) instead of windows.

@@ -45,7 +45,8 @@ pub struct GenerateArgs {
     /// Output folder (created if missing).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Layout: flo (FlyingChairs-style, .flo flow), kitti (16-bit flow PNG) or webdataset (tar shards).
+    /// Layout: flo (FlyingChairs-style, .flo flow), kitti (16-bit flow PNG), webdataset (tar shards)
+    /// or stereo (left/ right/ disparity/ folders of rectified pairs; needs --preset stereo).
     #[arg(long, default_value = "flo", value_parser = parse_format)]
     format: ExportFormat,
     /// Consecutive samples made from each source item (its scene is computed once).
@@ -57,7 +58,7 @@ pub struct GenerateArgs {
     /// First sample index.
     #[arg(long, value_name = "I", default_value_t = 0)]
     start: u64,
-    /// Motion law: reference, paper-kitti, depthstillation or mixed.
+    /// Motion law: reference, paper-kitti, depthstillation, mixed or stereo (rectified pairs).
     #[arg(long, value_name = "NAME", default_value = "reference")]
     preset: MotionPreset,
     /// Most objects moved independently per sample (0 = camera motion only).

@@ -30,7 +30,7 @@ enum Command {
     /// Benchmarks: render speed, and error against run time.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
-    /// Write a training set to disk (flo, kitti or webdataset layout) with preview sheets.
+    /// Write a training set to disk (flo, kitti, webdataset or stereo layout) with preview sheets.
     Generate(generate::GenerateArgs),
     /// Serve endless reproducible sample streams over gRPC (mpiflow.v1.MpiFlow).
     Serve(serve::ServeArgs),

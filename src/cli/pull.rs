@@ -25,10 +25,13 @@ pub struct PullArgs {
     /// Samples to pull.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     count: u64,
-    /// Save the samples here (flo layout with previews); without it samples are received,
-    /// decoded and dropped (for benchmarks).
+    /// Save the samples here (in the --format layout, with previews); without it samples are
+    /// received, decoded and dropped (for benchmarks).
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+    /// Layout of --out: flo, kitti, webdataset or stereo (rectified pairs; needs --preset stereo).
+    #[arg(long, default_value = "flo", value_parser = |s: &str| s.parse::<ExportFormat>())]
+    format: ExportFormat,
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// This consumer's rank among --world-size consumers.
@@ -57,7 +60,8 @@ pub struct PullArgs {
     /// Samples the server makes ahead for this stream (0 = the server's default).
     #[arg(long, default_value_t = 0)]
     prefetch: u32,
-    /// Motion preset: reference, paper-kitti, depthstillation or mixed (default: the dataset's).
+    /// Motion preset: reference, paper-kitti, depthstillation, mixed or stereo (default: the
+    /// dataset's).
     #[arg(long, default_value = "")]
     preset: String,
     /// Moving objects per sample (default: the dataset's).
@@ -131,7 +135,7 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
     let (tx, rx) = sync_channel::<pb::Sample>(64);
     let writer = match &a.out {
         Some(dir) => {
-            let mut options = ExportOptions::new(ExportFormat::Flo, dir);
+            let mut options = ExportOptions::new(a.format, dir);
             options.preview = PreviewOptions { every: a.preview_every, ..PreviewOptions::default() };
             let mut exporter = Exporter::create(options)?;
             std::thread::spawn(move || -> Result<u64, String> {

@@ -70,7 +70,7 @@ pub struct ServeArgs {
     /// Planes of the built-in layering.
     #[arg(long, value_name = "N")]
     planes: Option<usize>,
-    /// Default motion preset of the datasets: reference, paper-kitti, depthstillation or mixed.
+    /// Default motion preset of the datasets: reference, paper-kitti, depthstillation, mixed or stereo.
     #[arg(long, value_name = "NAME")]
     preset: Option<mpiflow::sample::motion::MotionPreset>,
     /// Default objects moved per sample.

@@ -25,6 +25,9 @@ pub enum FlowEncoding {
     KittiPng,
     /// NumPy `.npy`, float32 H x W x 2, exact.
     Npy,
+    /// The stereo layout: no flow file, the disparity `d = -u` as a one-channel PFM
+    /// ([`super::stereo`]).
+    DisparityPfm,
 }
 
 impl FlowEncoding {
@@ -34,6 +37,7 @@ impl FlowEncoding {
             FlowEncoding::Flo => "flo",
             FlowEncoding::KittiPng => "png",
             FlowEncoding::Npy => "npy",
+            FlowEncoding::DisparityPfm => "pfm",
         }
     }
 }
@@ -126,7 +130,7 @@ pub fn encode_png(width: usize, height: usize, bytes: &[u8], color: ExtendedColo
 }
 
 /// 0/1 (or any non-zero) mask as an 8-bit PNG with 0 and 255.
-fn binary_png(width: usize, height: usize, mask: &[u8]) -> Result<Vec<u8>, ExportError> {
+pub(crate) fn binary_png(width: usize, height: usize, mask: &[u8]) -> Result<Vec<u8>, ExportError> {
     let v: Vec<u8> = mask.iter().map(|&m| if m != 0 { 255 } else { 0 }).collect();
     encode_png(width, height, &v, ExtendedColorType::L8)
 }
@@ -219,6 +223,7 @@ fn record<'a>(index: u64, key: &'a str, s: &'a Sample, flow: FlowEncoding, field
             FlowEncoding::Flo => "flo",
             FlowEncoding::KittiPng => "kitti-png",
             FlowEncoding::Npy => "npy-float32-hw2",
+            FlowEncoding::DisparityPfm => "pfm-disparity",
         },
         camera: &s.camera,
         objects: &s.objects,
@@ -245,6 +250,9 @@ pub fn sample_json(index: u64, s: &Sample, flow: FlowEncoding, fields: &[String]
 /// Encodes a sample's fields in writing order: `img1.png`, `img2.png`, the flow, `valid.png`,
 /// `occ.png`, `holes.png`, `mask.png` (only when objects moved) and the JSON record.
 pub fn encode_sample(index: u64, s: &Sample, flow: FlowEncoding) -> Result<EncodedSample, ExportError> {
+    if flow == FlowEncoding::DisparityPfm {
+        return super::stereo::encode_stereo(index, s);
+    }
     check_sample(index, s)?;
     let (w, h) = (s.width, s.height);
     let mut fields = Vec::with_capacity(8);
@@ -263,6 +271,7 @@ pub fn encode_sample(index: u64, s: &Sample, flow: FlowEncoding) -> Result<Encod
                 .map_err(|e| ExportError::Encode(format!(".npy: {e}")))?;
             v
         }
+        FlowEncoding::DisparityPfm => unreachable!("encoded by the stereo layout above"),
     };
     fields.push(Field { name: "flow", ext: flow.ext(), bytes: flow_bytes });
     fields.push(Field { name: "valid", ext: "png", bytes: binary_png(w, h, &s.valid)? });
@@ -271,6 +280,16 @@ pub fn encode_sample(index: u64, s: &Sample, flow: FlowEncoding) -> Result<Encod
     if !s.objects.is_empty() {
         fields.push(Field { name: "mask", ext: "png", bytes: encode_png(w, h, &s.mask1, ExtendedColorType::L8)? });
     }
+    finish_record(index, s, flow, fields)
+}
+
+/// Appends the JSON record (listing `fields` and itself) to a sample's encoded fields.
+pub(crate) fn finish_record(
+    index: u64,
+    s: &Sample,
+    flow: FlowEncoding,
+    mut fields: Vec<Field>,
+) -> Result<EncodedSample, ExportError> {
     let mut names: Vec<String> = fields.iter().map(|f| format!("{}.{}", f.name, f.ext)).collect();
     names.push("json".into());
     let key = sample_key(index);

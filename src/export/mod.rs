@@ -1,6 +1,7 @@
 //! Offline export of samples to disk, in layouts RAFT-style trainers read: flat files
 //! (`flo`: FlyingChairs-style with Middlebury `.flo`; `kitti`: the same with a KITTI 16-bit flow
-//! PNG) or WebDataset tar shards, plus preview contact sheets. See `docs/export.md`.
+//! PNG), WebDataset tar shards, or the stereo folders of rectified pairs (`stereo`, see
+//! [`stereo`]), plus preview contact sheets. See `docs/export.md`.
 //!
 //! With `I` the sample index as 8 digits (`00000042`):
 //!
@@ -21,6 +22,7 @@
 pub mod fields;
 pub mod layout;
 pub mod preview;
+pub mod stereo;
 pub mod webdataset;
 
 use std::fmt;
@@ -57,16 +59,20 @@ pub enum ExportFormat {
     Kitti,
     /// WebDataset tar shards, flow as `.npy`.
     WebDataset,
+    /// Rectified stereo pairs in SceneFlow-style folders, disparity as PFM ([`stereo`]).
+    Stereo,
 }
 
 impl ExportFormat {
-    pub const ALL: [ExportFormat; 3] = [ExportFormat::Flo, ExportFormat::Kitti, ExportFormat::WebDataset];
+    pub const ALL: [ExportFormat; 4] =
+        [ExportFormat::Flo, ExportFormat::Kitti, ExportFormat::WebDataset, ExportFormat::Stereo];
 
     pub fn name(self) -> &'static str {
         match self {
             ExportFormat::Flo => "flo",
             ExportFormat::Kitti => "kitti",
             ExportFormat::WebDataset => "webdataset",
+            ExportFormat::Stereo => "stereo",
         }
     }
 
@@ -76,6 +82,7 @@ impl ExportFormat {
             ExportFormat::Flo => FlowEncoding::Flo,
             ExportFormat::Kitti => FlowEncoding::KittiPng,
             ExportFormat::WebDataset => FlowEncoding::Npy,
+            ExportFormat::Stereo => FlowEncoding::DisparityPfm,
         }
     }
 }
@@ -93,7 +100,8 @@ impl FromStr for ExportFormat {
             "flo" => Ok(ExportFormat::Flo),
             "kitti" => Ok(ExportFormat::Kitti),
             "webdataset" | "wds" => Ok(ExportFormat::WebDataset),
-            _ => Err(format!("unknown export format {s:?} (expected flo, kitti or webdataset)")),
+            "stereo" => Ok(ExportFormat::Stereo),
+            _ => Err(format!("unknown export format {s:?} (expected flo, kitti, webdataset or stereo)")),
         }
     }
 }
@@ -128,6 +136,7 @@ pub struct ExportSummary {
 enum Sink {
     Files,
     Shards(webdataset::ShardWriter),
+    Stereo,
 }
 
 /// Writes samples in one format, with previews. Give it samples in increasing index order.
@@ -147,6 +156,13 @@ impl Exporter {
         let sink = match options.format {
             ExportFormat::WebDataset => Sink::Shards(webdataset::ShardWriter::new(dir, options.shard_size)?),
             ExportFormat::Flo | ExportFormat::Kitti => Sink::Files,
+            ExportFormat::Stereo => {
+                for f in stereo::FOLDERS {
+                    let d = dir.join(f);
+                    std::fs::create_dir_all(&d).map_err(|source| ExportError::Io { path: d, source })?;
+                }
+                Sink::Stereo
+            }
         };
         let previews = preview::PreviewCollector::new(&dir.join("previews"), options.preview)?;
         Ok(Self { options, sink, previews, samples: 0, bytes: 0 })
@@ -179,6 +195,9 @@ impl Exporter {
                 layout::write_files(&self.options.out_dir, encoded)?;
             }
             Sink::Shards(w) => w.append(encoded)?,
+            Sink::Stereo => {
+                stereo::write_stereo(&self.options.out_dir, encoded)?;
+            }
         }
         if let Some(s) = sample {
             self.previews.add(encoded.index, s)?;
@@ -203,7 +222,7 @@ impl Exporter {
     pub fn finish(self) -> Result<ExportSummary, ExportError> {
         let shards = match self.sink {
             Sink::Shards(w) => w.finish()?.into_iter().map(|s| s.path).collect(),
-            Sink::Files => Vec::new(),
+            Sink::Files | Sink::Stereo => Vec::new(),
         };
         let previews = self.previews.finish()?;
         Ok(ExportSummary { samples: self.samples, bytes: self.bytes, shards, previews })

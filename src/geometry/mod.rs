@@ -133,6 +133,17 @@ pub fn rotation_from_axis_angle(v: DVec3) -> DMat3 {
     DMat3::from_axis_angle(v / angle, angle)
 }
 
+/// `K_t R K_s^-1`: how a rotation moves pixels at infinity, the part of every plane's homography
+/// that does not depend on depth. Exactly the identity when the cameras are equal and `R` is the
+/// identity, so a pure translation keeps pixel rows and columns exactly (a rectified stereo
+/// pair's vertical flow is 0, not the 1e-14 of a rounded `K K^-1`).
+pub fn pixel_rotation(k_src: &Intrinsics, k_tgt: &Intrinsics, rotation: &DMat3) -> DMat3 {
+    if *rotation == DMat3::IDENTITY && k_src == k_tgt {
+        return DMat3::IDENTITY;
+    }
+    k_tgt.matrix() * *rotation * k_src.inverse_matrix()
+}
+
 /// The homography of the plane Z = depth (source camera) from source to target pixels:
 /// H = K_t (R + t n^T / depth) K_s^-1, n = (0, 0, 1).
 pub fn plane_homography(k_src: &Intrinsics, k_tgt: &Intrinsics, pose: &Pose, depth: f64) -> DMat3 {

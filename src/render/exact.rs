@@ -281,7 +281,7 @@ pub(super) fn source_view<T: Real>(
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let ww = win.width();
     let (ks, kt) = (p.k_src, p.k_tgt);
-    let m = kt.matrix() * p.pose.rotation * ks.inverse_matrix();
+    let m = crate::geometry::pixel_rotation(&ks, &kt, &p.pose.rotation);
     let bt = kt.matrix() * p.pose.translation;
     let mr = |i: usize| [T::of(m.row(i).x), T::of(m.row(i).y), T::of(m.row(i).z)];
     let m_t = [mr(0), mr(1), mr(2)];

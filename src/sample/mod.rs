@@ -101,3 +101,12 @@ pub struct Sample {
     pub intrinsics: crate::geometry::Intrinsics,
     pub timings: StageTimings,
 }
+
+impl Sample {
+    /// The stereo disparity of a rectified pair (stereo motion laws): `d = x1 - x2 = -u`, H x W,
+    /// on image1's (the left view's) grid; `valid` and `occlusion` say where it holds.
+    pub fn disparity(&self) -> Vec<f32> {
+        // `0.0 - u`, not `-u`: a zero flow gives +0.0, never -0.0
+        self.flow.chunks_exact(2).map(|uv| 0.0 - uv[0]).collect()
+    }
+}

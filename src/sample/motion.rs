@@ -1,6 +1,15 @@
-//! Random camera and object motions: the configurable motion laws ([`MotionRanges`]), the four
-//! presets (`reference`, `paper-kitti`, `depthstillation`, `mixed`) and the record of one drawn motion
-//! ([`Motion`]) that goes into sample metadata.
+//! Random camera and object motions: the configurable motion laws ([`MotionRanges`]), the five
+//! presets (`reference`, `paper-kitti`, `depthstillation`, `mixed`, `stereo`) and the record of
+//! one drawn motion ([`Motion`]) that goes into sample metadata.
+//!
+//! # Stereo
+//!
+//! Laws with `stereo = true` make rectified stereo pairs: image 1 is the left view, image 2 the
+//! right view of a camera moved by a baseline `B` along its x axis, `X_tgt = X_src - (B, 0, 0)`,
+//! so `t = (-B, 0, 0)`, no rotation, the same intrinsics and no moving objects. A point at depth
+//! `Z` then has the disparity `d = x1 - x2 = fx B / Z >= 0` and the flow `(u, v) = (-d, 0)`.
+//! [`MotionRanges::validate`] holds such laws to that form: translation x at most 0, every other
+//! component exactly 0.
 //!
 //! # Conventions
 //!
@@ -53,7 +62,7 @@ pub enum MotionError {
     /// A range of a [`MotionRanges`] is unusable; `field` is its path, e.g. `camera.translation.z`.
     #[error("invalid motion range {field}: {reason}")]
     InvalidRange { field: String, reason: String },
-    #[error("unknown motion preset {0:?} (expected one of: reference, paper-kitti, depthstillation, mixed)")]
+    #[error("unknown motion preset {0:?} (expected one of: reference, paper-kitti, depthstillation, mixed, stereo)")]
     UnknownPreset(String),
 }
 
@@ -293,6 +302,11 @@ pub struct MotionRanges {
     pub name: String,
     pub camera: RigidLaw,
     pub object: RigidLaw,
+    /// Rectified stereo pairs (see the module documentation): the camera law is a pure baseline
+    /// along x (`translation.x <= 0`, every other component 0) and no object moves. Left out of
+    /// the JSON when false, so the laws of other presets keep their fingerprints.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub stereo: bool,
 }
 
 impl Default for MotionRanges {
@@ -308,8 +322,40 @@ impl MotionRanges {
     /// laws the largest possible rotation vector shorter than pi.
     pub fn validate(&self) -> Result<(), MotionError> {
         self.camera.validate("camera")?;
-        self.object.validate("object")
+        self.object.validate("object")?;
+        if self.stereo {
+            self.validate_stereo()?;
+        }
+        Ok(())
     }
+
+    /// Stereo laws: a baseline along x only (`t_x <= 0`: image 2 is the right view) and no
+    /// rotation, so the pair is rectified.
+    fn validate_stereo(&self) -> Result<(), MotionError> {
+        let c = &self.camera;
+        let bad = |field: String, reason: &str| Err(MotionError::InvalidRange { field, reason: reason.into() });
+        let (_, hi) = c.translation.x.bounds();
+        if hi > 0.0 {
+            return bad(
+                "camera.translation.x".into(),
+                "stereo laws need translation x <= 0 (t = (-B, 0, 0): image 2 is the right view)",
+            );
+        }
+        let rest = [("translation", "y", &c.translation.y), ("translation", "z", &c.translation.z)]
+            .into_iter()
+            .chain(c.rotation.components().map(|(axis, comp)| ("rotation", axis, comp)));
+        for (part, axis, comp) in rest {
+            if comp.bounds() != (0.0, 0.0) {
+                let reason = "stereo laws allow no motion but the baseline along x (a rectified pair)";
+                return bad(format!("camera.{part}.{axis}"), reason);
+            }
+        }
+        Ok(())
+    }
+
+    /// A stereo preset's baseline law in the camera's translation x has a magnitude between
+    /// these bounds; [`MotionPreset::Stereo`] uses them.
+    pub const STEREO_BASELINE: (f64, f64) = (0.02, 0.2);
 
     /// Draws a camera motion (use a `Purpose::CameraMotion` stream).
     pub fn sample_camera_motion(&self, rng: &mut SampleRng) -> Motion {
@@ -359,19 +405,30 @@ pub enum MotionPreset {
     /// components in [0.0002, 0.03]. Flow magnitudes span sub-pixel motions to a tail past
     /// 100 px (percentiles in `docs/quality.md`), where `reference` has almost none under 5 px.
     Mixed,
+    /// Rectified stereo pairs (issue 14): image 2 is the right view at a baseline `B` uniform in
+    /// [`MotionRanges::STEREO_BASELINE`] = [0.02, 0.2] scene units (the nearest content lies at
+    /// depth ~1, so the largest disparity is ~`fx B`: 0.116 W px at B = 0.2 with the reference
+    /// intrinsics `fx = 0.58 W`), `t = (-B, 0, 0)`, no rotation, no moving objects.
+    Stereo,
 }
 
 impl MotionPreset {
-    pub const ALL: [MotionPreset; 4] =
-        [MotionPreset::Reference, MotionPreset::PaperKitti, MotionPreset::Depthstillation, MotionPreset::Mixed];
+    pub const ALL: [MotionPreset; 5] = [
+        MotionPreset::Reference,
+        MotionPreset::PaperKitti,
+        MotionPreset::Depthstillation,
+        MotionPreset::Mixed,
+        MotionPreset::Stereo,
+    ];
 
-    /// The preset's name: `reference`, `paper-kitti` or `depthstillation`.
+    /// The preset's name: `reference`, `paper-kitti`, `depthstillation`, `mixed` or `stereo`.
     pub fn name(self) -> &'static str {
         match self {
             MotionPreset::Reference => "reference",
             MotionPreset::PaperKitti => "paper-kitti",
             MotionPreset::Depthstillation => "depthstillation",
             MotionPreset::Mixed => "mixed",
+            MotionPreset::Stereo => "stereo",
         }
     }
 
@@ -440,8 +497,25 @@ impl MotionPreset {
                     },
                 )
             }
+            MotionPreset::Stereo => {
+                let (min, max) = MotionRanges::STEREO_BASELINE;
+                let still = RigidLaw {
+                    translation: Axes::splat(Component::constant(0.0)),
+                    rotation_kind: RotationKind::AxisAngle,
+                    rotation: Axes::splat(Component::constant(0.0)),
+                };
+                let camera = RigidLaw {
+                    translation: Axes::new(
+                        Component::Uniform { lo: -max, hi: -min },
+                        Component::constant(0.0),
+                        Component::constant(0.0),
+                    ),
+                    ..still
+                };
+                return MotionRanges { name: self.name().to_string(), camera, object: still, stereo: true };
+            }
         };
-        MotionRanges { name: self.name().to_string(), camera, object }
+        MotionRanges { name: self.name().to_string(), camera, object, stereo: false }
     }
 }
 
@@ -454,7 +528,7 @@ impl fmt::Display for MotionPreset {
 impl FromStr for MotionPreset {
     type Err = MotionError;
 
-    /// `reference`, `paper-kitti`, `depthstillation` or `mixed` (ASCII case ignored).
+    /// `reference`, `paper-kitti`, `depthstillation`, `mixed` or `stereo` (ASCII case ignored).
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         MotionPreset::ALL
             .into_iter()

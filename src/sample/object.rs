@@ -134,7 +134,7 @@ pub fn target_footprint(
     if rect.is_empty() {
         return Some(*rect);
     }
-    let m = k.matrix() * pose.rotation * k.inverse_matrix();
+    let m = crate::geometry::pixel_rotation(k, k, &pose.rotation);
     let b = k.matrix() * pose.translation;
     let mut bx = [f64::MAX, f64::MAX, f64::MIN, f64::MIN];
     for (x, y) in rect.corners() {

@@ -243,7 +243,8 @@ fn assemble_merged_sample(
     let t = Instant::now();
     let camera = ranges.sample_camera_motion(&mut rng(Purpose::CameraMotion));
     let cam_pose = camera.to_pose();
-    let chosen = if config.max_objects > 0 && !scene.masks.masks.is_empty() {
+    // stereo laws move no object: a rectified pair is one rigid camera motion
+    let chosen = if config.max_objects > 0 && !ranges.stereo && !scene.masks.masks.is_empty() {
         choose_objects(
             &scene.masks,
             config.max_objects,

@@ -179,6 +179,7 @@ pub fn field_name(f: pb::Field) -> &'static str {
         pb::Field::Depth1 => "depth1",
         pb::Field::Depth2 => "depth2",
         pb::Field::Holes => "holes",
+        pb::Field::Disparity => "disparity",
     }
 }
 
@@ -226,6 +227,7 @@ pub fn to_proto(
             pb::Field::Depth1 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth1), out.lz4),
             pb::Field::Depth2 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth2), out.lz4),
             pb::Field::Holes => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.holes), out.lz4),
+            pb::Field::Disparity => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.disparity()), out.lz4),
             pb::Field::Unspecified => continue,
         };
         tensors.push(t);
@@ -405,6 +407,12 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
                 let v = decode_f32(t)?;
                 check(v.len(), n * 2)?;
                 out.flow = v;
+            }
+            // a disparity without a flow tensor gives the flow (u, v) = (-d, 0)
+            "disparity" if !s.tensors.iter().any(|t| t.name == "flow") => {
+                let v = decode_f32(t)?;
+                check(v.len(), n)?;
+                out.flow = v.iter().flat_map(|&d| [0.0 - d, 0.0]).collect();
             }
             "depth1" | "depth2" => {
                 let v = decode_f32(t)?;

@@ -144,6 +144,7 @@ impl State {
         validate::augment(&r.augment, &mut out, &self.config)?;
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
+        validate::outputs_fit_motion(&out, generator.config())?;
         // the stream limit
         self.admit()?;
         let spec = StreamSpec {
@@ -201,6 +202,7 @@ impl State {
         validate::augment(&r.augment, &mut out, &self.config)?;
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
+        validate::outputs_fit_motion(&out, generator.config())?;
         self.admit()?;
         // as many made ahead as keep every worker busy (within max_prefetch)
         let prefetch = (self.config.default_prefetch as usize)
@@ -239,6 +241,7 @@ impl State {
         validate::augment(&r.augment, &mut out, &self.config)?;
         let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
+        validate::outputs_fit_motion(&out, generator.config())?;
         let spec = StreamSpec {
             start_index: r.index,
             rank: 0,

@@ -9,6 +9,7 @@ use super::pb;
 use crate::failure::{echo, printable, ECHO_CHARS};
 use crate::sample::augment::Augment;
 use crate::sample::motion::{MotionPreset, MotionRanges};
+use crate::sample::recipe::SampleConfig;
 
 /// Largest `world_size` accepted.
 pub const MAX_WORLD_SIZE: u32 = 1 << 20;
@@ -106,6 +107,29 @@ pub fn augment(text: &str, out: &mut OutputSpec, config: &ServiceConfig) -> Resu
         }
     }
     out.augment = Some(a);
+    Ok(())
+}
+
+/// What the outputs of a request need of its motion law: the disparity field needs a stereo law
+/// (a rectified pair), and a stereo pair takes no horizontal flip (it would swap the left and
+/// right views and the sign of the disparity).
+pub fn outputs_fit_motion(out: &OutputSpec, config: &SampleConfig) -> Result<(), ServiceError> {
+    let stereo = config.motion.ranges().stereo;
+    if out.fields.contains(&pb::Field::Disparity) && !stereo {
+        return Err(invalid(
+            "fields",
+            "FIELD_DISPARITY needs a stereo motion law (motion_preset \"stereo\" or motion_ranges_json with \"stereo\": true)",
+        ));
+    }
+    if let Some(a) = out.augment.as_ref().filter(|a| stereo && a.params.h_flip_prob > 0.0) {
+        return Err(invalid(
+            "augment.h_flip_prob",
+            format!(
+                "{} with a stereo motion law (a horizontal flip swaps the left and right views); set it to 0",
+                a.params.h_flip_prob
+            ),
+        ));
+    }
     Ok(())
 }
 

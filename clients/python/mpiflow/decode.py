@@ -49,6 +49,7 @@ _FIELD_NAMES = {
     pb.FIELD_DEPTH1: "depth1",
     pb.FIELD_DEPTH2: "depth2",
     pb.FIELD_HOLES: "holes",
+    pb.FIELD_DISPARITY: "disparity",
 }
 _NAME_FIELDS = {v: k for k, v in _FIELD_NAMES.items()}
 _ALIASES = {"img1": "image1", "img2": "image2", "occ": "occlusion"}
@@ -209,7 +210,8 @@ def to_raft_dict(
     [H, W] (the server's mask, or RAFT's |flow| < 1000 rule when it was not requested);
     `index`; `next_index` (this consumer's cursor after the sample, when given); `occlusion`
     float32 [H, W], `mask1`/`mask2` uint8 [H, W], `depth1`/`depth2` float32 [H, W], `holes`
-    float32 [H, W] (1 = image2 filled by 2-D inpainting) when requested; with `motions`: `camera` {rotation [3,3], translation [3], axis_angle [3]},
+    float32 [H, W] (1 = image2 filled by 2-D inpainting) and `disparity` float32 [H, W] (stereo
+    pairs: d = x1 - x2 >= 0, the flow is (-d, 0) as RAFT-Stereo's datasets make it) when requested; with `motions`: `camera` {rotation [3,3], translation [3], axis_angle [3]},
     `intrinsics` [fx, fy, cx, cy] and `objects` padded to `pad_objects` entries (label 0 = none)
     so that torch's default collate can stack them. Every array is new and writable.
     """
@@ -233,6 +235,8 @@ def to_raft_dict(
         out["occlusion"] = t["occlusion"].astype(np.float32)
     if "holes" in t:
         out["holes"] = t["holes"].astype(np.float32)
+    if "disparity" in t:
+        out["disparity"] = t["disparity"].astype(np.float32)
     for name in ("mask1", "mask2"):
         if name in t:
             out[name] = t[name].copy()

@@ -20,6 +20,7 @@ class Field(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     FIELD_DEPTH1: _ClassVar[Field]
     FIELD_DEPTH2: _ClassVar[Field]
     FIELD_HOLES: _ClassVar[Field]
+    FIELD_DISPARITY: _ClassVar[Field]
 
 class DType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -56,6 +57,7 @@ FIELD_MASK2: Field
 FIELD_DEPTH1: Field
 FIELD_DEPTH2: Field
 FIELD_HOLES: Field
+FIELD_DISPARITY: Field
 DTYPE_UNSPECIFIED: DType
 DTYPE_U8: DType
 DTYPE_F16: DType
