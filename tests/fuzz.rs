@@ -1249,6 +1249,28 @@ fn regression_npz_zip_bomb_is_refused_by_its_shapes() {
     assert!(peak < 4 * MIB, "refusing it allocated {peak} bytes");
 }
 
+/// `npz_mpi`: an `.npz` member whose version-2 npy header claims 4 GiB (a u32 length) made the
+/// parser allocate that buffer before reading; the length is now checked against the member's
+/// size and the 64 KiB header limit first (as `.npy` depth files already were).
+#[test]
+fn regression_npz_member_header_length_is_checked_before_allocating() {
+    let dir = failure_dir().join("regression-npz-header");
+    std::fs::create_dir_all(&dir).unwrap();
+    for claimed in [0xFFFF_FFF0u32, 1 << 20] {
+        let mut member = b"\x93NUMPY\x02\x00".to_vec();
+        member.extend_from_slice(&claimed.to_le_bytes());
+        // a member long enough for the 1 MiB claim, so only the header limit can refuse it
+        member.resize(12 + (1 << 20) + 64, b' ');
+        let path = dir.join(format!("header-{claimed}.npz"));
+        std::fs::write(&path, npz(&[("mpi_rgb", member)])).unwrap();
+        let (r, peak) = peak_of(|| mpiflow::mpi::npz::load_npz_limited(&path, NPZ_MAX_VALUES));
+        let e = r.unwrap_err().to_string();
+        assert!(e.contains("mpi_rgb") && e.contains("header of"), "{claimed}: {e}");
+        assert!(peak < 4 * MIB, "{claimed}: refusing it allocated {peak} bytes");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// `requests`: a `motion_preset` of 15 000 characters was repeated whole in the error; it is
 /// echoed short (`failure::echo`).
 #[test]

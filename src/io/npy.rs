@@ -30,9 +30,13 @@ fn bad(msg: String) -> io::Error {
     io::Error::new(io::ErrorKind::InvalidData, msg)
 }
 
-/// Refuses an `.npy` whose header claims more bytes than the whole file holds (`total_len`),
-/// from its first 12 bytes, before a parser allocates a buffer of that claimed length (a
-/// version 2/3 header length is a u32: 4 GiB from a 100-byte file).
+/// Longest `.npy` header accepted: 64 KiB (NumPy itself reads at most 10,000 bytes by default;
+/// every version 1 header, whose length is a u16, fits).
+pub const MAX_HEADER_LEN: u64 = 64 << 10;
+
+/// Refuses an `.npy` whose header claims more bytes than the whole file holds (`total_len`) or
+/// more than [`MAX_HEADER_LEN`], from its first 12 bytes, before a parser allocates a buffer of
+/// that claimed length (a version 2/3 header length is a u32: 4 GiB from a 100-byte file).
 pub fn check_header_len(prefix: &[u8], total_len: u64) -> io::Result<()> {
     if !prefix.starts_with(b"\x93NUMPY") || prefix.len() < 12 || !matches!(prefix[6], 2 | 3) {
         return Ok(());
@@ -40,6 +44,9 @@ pub fn check_header_len(prefix: &[u8], total_len: u64) -> io::Result<()> {
     let n = u64::from(u32::from_le_bytes([prefix[8], prefix[9], prefix[10], prefix[11]]));
     if 12 + n > total_len {
         return Err(bad(format!("header of {n} bytes is longer than the {total_len} bytes of the file")));
+    }
+    if n > MAX_HEADER_LEN {
+        return Err(bad(format!("header of {n} bytes is longer than the limit of {MAX_HEADER_LEN} bytes")));
     }
     Ok(())
 }
