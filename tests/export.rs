@@ -658,6 +658,38 @@ for p in sys.argv[1:]:
 print(json.dumps(out))
 "#;
 
+/// `--label-rule depth-only` is the earlier occlusion rule, which marks fewer pixels occluded
+/// where objects moved (it does not occlude next to holes): another dataset (the fingerprint
+/// names the rule, so its samples draw other motions), with fewer occluded pixels over the same
+/// indices.
+#[test]
+fn generate_label_rule_selects_the_occlusion_rule() {
+    let dir = tmpdir("gen-labels");
+    let run = |rule: &str| {
+        let out = dir.join(rule);
+        let o = out.to_str().unwrap().to_string();
+        let args = ["generate", "--count", "4", "--size", "96x64", "--quiet", "--label-rule", rule, "--out", &o];
+        let r = mpiflow(&args);
+        assert!(r.status.success(), "{rule}: {}", text(&r.stderr));
+        out
+    };
+    let (honest, depth) = (run("honest"), run("depth-only"));
+    let (mut occ_h, mut occ_d) = (0usize, 0usize);
+    for i in 0..4u64 {
+        let key = sample_key(i);
+        let gray = |d: &Path| image::open(d.join(format!("{key}_occ.png"))).unwrap().to_luma8().into_raw();
+        let count = |v: Vec<u8>| v.iter().filter(|&&p| p != 0).count();
+        occ_h += count(gray(&honest));
+        occ_d += count(gray(&depth));
+        let fp = |d: &Path| -> Value {
+            serde_json::from_slice(&std::fs::read(d.join(format!("{key}.json"))).unwrap()).unwrap()
+        };
+        assert_ne!(fp(&honest)["address"]["dataset"], fp(&depth)["address"]["dataset"]);
+    }
+    assert!(occ_h > occ_d, "honest occludes more: {occ_h} vs {occ_d}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn generate_flo_on_the_bundled_scenes() {
     let dir = tmpdir("gen-flo");
@@ -825,6 +857,7 @@ fn generate_refuses_bad_arguments_with_one_line_and_exit_code_2() {
         (vec!["--count", "1", "--out", o, "--source", "/nonexistent/mpiflow-photos"], "--source"),
         (vec!["--count", "1", "--out", o, "--preset", "fast"], "unknown motion preset"),
         (vec!["--count", "1", "--out", o, "--merge", "painter"], "unknown merge rule"),
+        (vec!["--count", "1", "--out", o, "--label-rule", "lenient"], "unknown label rule"),
         (vec!["--count", "1", "--out", o, "--planes", "0"], "--planes"),
         (vec!["--count", "1", "--out", o, "--shard-size", "0"], "--shard-size"),
         (vec!["--count", "1", "--out", o, "--size", "8x8"], "--size"),

@@ -18,7 +18,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
 use mpiflow::export::{sample_key, EncodedSample, ExportFormat, ExportOptions, Exporter, PreviewOptions};
 use mpiflow::geometry::Intrinsics;
 use mpiflow::mpi::layering::MAX_PLANES;
-use mpiflow::sample::merge::MergeRule;
+use mpiflow::sample::merge::{LabelRule, MergeRule};
 use mpiflow::sample::motion::MotionPreset;
 use mpiflow::sample::pipeline::{open_source, parse_size, OpenOptions, Pipeline, SourceSpec};
 use mpiflow::sample::recipe::{SampleConfig, SampleError};
@@ -67,6 +67,10 @@ pub struct GenerateArgs {
     /// How object and scene renders are merged: reference or depth-aware.
     #[arg(long, value_name = "RULE", default_value = "depth-aware")]
     merge: MergeRule,
+    /// Which valid pixels are marked occluded: honest (visible only where image2 shows the
+    /// pixel's surface, no hole next to its target) or depth-only (the rule before issue 12).
+    #[arg(long, value_name = "RULE", default_value = "honest")]
+    label_rule: LabelRule,
     /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
@@ -192,6 +196,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     let config = SampleConfig {
         max_objects: usize::from(a.objects),
         merge: a.merge,
+        label_rule: a.label_rule,
         motions_per_image: a.motions_per_image,
         ..SampleConfig::with_preset(a.preset)
     };
