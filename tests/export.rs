@@ -132,6 +132,8 @@ fn make_sample(index: u64, objects: bool) -> Sample {
         depth2: (0..n).map(|i| if i % 7 == 0 { 0.0 } else { 2.0 + i as f32 * 0.01 }).collect(),
         holes: (0..n).map(|i| u8::from(i % 7 == 0)).collect(),
         inpainted_pixels: 17,
+        backward: Default::default(),
+        clip: Vec::new(),
         skipped_sources: 0,
         provenance: vec!["depth: test".into(), "mpi: test".into()],
         intrinsics: mpiflow::geometry::Intrinsics::reference_default(W, H),

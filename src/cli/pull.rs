@@ -78,6 +78,15 @@ pub struct PullArgs {
     /// A preview sheet at every multiple of N (with --out; 0 = none).
     #[arg(long, value_name = "N", default_value_t = 100)]
     preview_every: u64,
+    /// Frames per sample: 2 = a pair, 3 to 8 = a clip (docs/outputs.md).
+    #[arg(long, value_name = "K", default_value_t = 2, value_parser = clap::value_parser!(u32).range(2..=8))]
+    frames: u32,
+    /// Also ask for the backward flow and its valid and occlusion masks.
+    #[arg(long)]
+    backward: bool,
+    /// Layout of --out: flo, kitti, webdataset or sintel.
+    #[arg(long, default_value = "flo")]
+    format: ExportFormat,
 }
 
 fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
@@ -102,6 +111,9 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
     if a.out.is_some() {
         fields.extend([pb::Field::Occlusion, pb::Field::Holes, pb::Field::Mask1]);
     }
+    if a.backward {
+        fields.extend([pb::Field::FlowBackward, pb::Field::ValidBackward, pb::Field::OcclusionBackward]);
+    }
     Ok(pb::StreamRequest {
         dataset: a.dataset.clone(),
         fingerprint,
@@ -121,6 +133,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
         batch_size: a.batch_size,
         prefetch: a.prefetch,
         augment: a.augment.clone().unwrap_or_default(),
+        frames: a.frames,
     })
 }
 
@@ -131,7 +144,7 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
     let (tx, rx) = sync_channel::<pb::Sample>(64);
     let writer = match &a.out {
         Some(dir) => {
-            let mut options = ExportOptions::new(ExportFormat::Flo, dir);
+            let mut options = ExportOptions::new(a.format, dir);
             options.preview = PreviewOptions { every: a.preview_every, ..PreviewOptions::default() };
             let mut exporter = Exporter::create(options)?;
             std::thread::spawn(move || -> Result<u64, String> {
