@@ -49,17 +49,11 @@ fn nearest(w: usize, h: usize, x: f32, y: f32) -> Option<usize> {
 }
 
 /// Mean and 99th percentile of |F(p) + B(p + F(p))| over the valid, non-occluded pixels of the
-/// forward flow `f` whose target's nearest pixel has a valid, non-occluded backward flow `b`.
-fn fb_errors(
-    w: usize,
-    h: usize,
-    f: &[f32],
-    valid: &[u8],
-    occ: &[u8],
-    b: &[f32],
-    bvalid: &[u8],
-    bocc: &[u8],
-) -> (f64, f64, usize) {
+/// forward flow F whose target's nearest pixel has a valid, non-occluded backward flow B.
+fn fb_errors(s: &Sample) -> (f64, f64, usize) {
+    let (w, h) = (s.width, s.height);
+    let (f, valid, occ) = (&s.flow, &s.valid, &s.occlusion);
+    let (b, bvalid, bocc) = (&s.backward.flow, &s.backward.valid, &s.backward.occlusion);
     let mut e: Vec<f64> = Vec::new();
     for i in 0..w * h {
         if valid[i] == 0 || occ[i] != 0 {
@@ -115,7 +109,7 @@ fn forward_backward_consistency_per_scene() {
                     assert!(tx >= 0.0 && ty >= 0.0 && tx <= (w - 1) as f32 && ty <= (h - 1) as f32);
                 }
             }
-            let (mean, p99, n) = fb_errors(w, h, &s.flow, &s.valid, &s.occlusion, &b.flow, &b.valid, &b.occlusion);
+            let (mean, p99, n) = fb_errors(&s);
             println!(
                 "forward-backward {}, {} object(s) moved: mean {mean:.4} px, p99 {p99:.4} px over {n} pixels",
                 s.source_id,

@@ -185,7 +185,9 @@ pub fn mpi_with_mask(mpi: &Mpi, mask: &[f32]) -> Mpi {
 }
 
 /// The full-frame render of `mpi` with `mask` as its one extra channel, through a full copy
-/// ([`mpi_with_mask`]) and [`render`]: the reference's way.
+/// ([`mpi_with_mask`]) and [`render`]: the reference's way. `links` as
+/// [`RenderParams::links`].
+#[allow(clippy::too_many_arguments)]
 pub fn render_full_with_mask(
     mpi: &Mpi,
     k: &Intrinsics,
