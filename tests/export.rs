@@ -629,7 +629,8 @@ fn bad_samples_and_formats_are_refused_with_a_clear_message() {
     assert!(list_files(&dir).is_empty());
     assert_eq!("kitti".parse::<ExportFormat>().unwrap(), ExportFormat::Kitti);
     assert_eq!("webdataset".parse::<ExportFormat>().unwrap(), ExportFormat::WebDataset);
-    assert!("tfrecord".parse::<ExportFormat>().unwrap_err().contains("expected flo, kitti or webdataset"));
+    assert!("tfrecord".parse::<ExportFormat>().unwrap_err().contains("expected flo, kitti, webdataset or sintel"));
+    assert_eq!("sintel".parse::<ExportFormat>().unwrap(), ExportFormat::Sintel);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -820,7 +821,8 @@ fn generate_refuses_bad_arguments_with_one_line_and_exit_code_2() {
     let o = dir.join("out");
     let o = o.to_str().unwrap();
     for (args, needle) in [
-        (vec!["--count", "1", "--out", o, "--format", "tfrecord"], "expected flo, kitti or webdataset"),
+        (vec!["--count", "1", "--out", o, "--format", "tfrecord"], "expected flo, kitti, webdataset or sintel"),
+        (vec!["--count", "1", "--out", o, "--frames", "9"], "--frames"),
         (vec!["--count", "0", "--out", o], "--count"),
         (vec!["--count", "1", "--out", o, "--intrinsics", "1,2,3"], "expected 4"),
         (vec!["--count", "1", "--out", o, "--intrinsics", "30,30,24,16"], "--intrinsics needs --source"),
