@@ -132,6 +132,8 @@ fn make_sample(index: u64, objects: bool) -> Sample {
         depth2: (0..n).map(|i| if i % 7 == 0 { 0.0 } else { 2.0 + i as f32 * 0.01 }).collect(),
         holes: (0..n).map(|i| u8::from(i % 7 == 0)).collect(),
         inpainted_pixels: 17,
+        backward: Default::default(),
+        clip: Vec::new(),
         skipped_sources: 0,
         provenance: vec!["depth: test".into(), "mpi: test".into()],
         intrinsics: mpiflow::geometry::Intrinsics::reference_default(W, H),
@@ -627,7 +629,11 @@ fn bad_samples_and_formats_are_refused_with_a_clear_message() {
     assert!(list_files(&dir).is_empty());
     assert_eq!("kitti".parse::<ExportFormat>().unwrap(), ExportFormat::Kitti);
     assert_eq!("webdataset".parse::<ExportFormat>().unwrap(), ExportFormat::WebDataset);
-    assert!("tfrecord".parse::<ExportFormat>().unwrap_err().contains("expected flo, kitti, webdataset or stereo"));
+    assert!("tfrecord"
+        .parse::<ExportFormat>()
+        .unwrap_err()
+        .contains("expected flo, kitti, webdataset, sintel or stereo"));
+    assert_eq!("sintel".parse::<ExportFormat>().unwrap(), ExportFormat::Sintel);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -850,7 +856,8 @@ fn generate_refuses_bad_arguments_with_one_line_and_exit_code_2() {
     let o = dir.join("out");
     let o = o.to_str().unwrap();
     for (args, needle) in [
-        (vec!["--count", "1", "--out", o, "--format", "tfrecord"], "expected flo, kitti, webdataset or stereo"),
+        (vec!["--count", "1", "--out", o, "--format", "tfrecord"], "expected flo, kitti, webdataset, sintel or stereo"),
+        (vec!["--count", "1", "--out", o, "--frames", "9"], "--frames"),
         (vec!["--count", "0", "--out", o], "--count"),
         (vec!["--count", "1", "--out", o, "--intrinsics", "1,2,3"], "expected 4"),
         (vec!["--count", "1", "--out", o, "--intrinsics", "30,30,24,16"], "--intrinsics needs --source"),

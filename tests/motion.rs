@@ -223,7 +223,10 @@ fn same_key_same_pose_bits_other_keys_differ() {
         assert!(again.iter().all(|b| *b == pose_bits(&a)));
         assert_ne!(pose_bits(&cam(7, 12)), pose_bits(&a), "{preset}: next index");
         assert_ne!(pose_bits(&cam(8, 11)), pose_bits(&a), "{preset}: other seed");
-        assert_ne!(pose_bits(&obj(7, 11, 0)), pose_bits(&obj(7, 11, 1)), "{preset}: object slots");
+        // (stereo laws move no object: their object law is the identity)
+        if !ranges.stereo {
+            assert_ne!(pose_bits(&obj(7, 11, 0)), pose_bits(&obj(7, 11, 1)), "{preset}: object slots");
+        }
         assert_eq!(pose_bits(&obj(7, 11, 0)), pose_bits(&obj(7, 11, 0)));
         let other_dataset = ranges.sample_camera(&mut SampleRng::new(FINGERPRINT + 1, 7, 11, Purpose::CameraMotion));
         assert_ne!(pose_bits(&other_dataset), pose_bits(&a), "{preset}: other dataset");

@@ -79,6 +79,12 @@ pub struct SampleBench {
     /// JSON form; docs/augment.md), on one thread.
     #[arg(long, value_name = "NAME|JSON")]
     augment: Option<String>,
+    /// Frames per sample: 2 = a pair, 3 to 8 = a clip (docs/outputs.md).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u64).range(2..=8))]
+    frames: u64,
+    /// Also make the backward fields (flow image2 -> image1 and its masks).
+    #[arg(long)]
+    backward: bool,
 }
 
 #[derive(Args, Debug)]
@@ -281,6 +287,8 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             merge: b.merge,
             windowed: !b.full_frame,
             max_objects: usize::from(object),
+            frames: b.frames as usize,
+            backward: b.backward,
             ..SampleConfig::with_preset(b.preset)
         };
         let cfg = SampleBenchConfig {
@@ -295,7 +303,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         };
         let r = pool.install(|| bench_sample(&cfg))?;
         println!(
-            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}:",
+            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}:",
             b.width,
             b.height,
             b.planes,
@@ -303,7 +311,9 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             if r.objects == 1 { "" } else { "s" },
             b.merge,
             b.preset,
-            if b.full_frame { "full-frame object renders" } else { "windowed object renders" }
+            if b.full_frame { "full-frame object renders" } else { "windowed object renders" },
+            b.frames,
+            if b.backward { ", backward fields" } else { "" }
         );
         println!(
             "median {:.1} ms (min {:.1}, max {:.1}) over {} samples, {threads} threads; median {} holes inpainted",

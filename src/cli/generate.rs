@@ -45,8 +45,9 @@ pub struct GenerateArgs {
     /// Output folder (created if missing).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Layout: flo (FlyingChairs-style, .flo flow), kitti (16-bit flow PNG), webdataset (tar shards)
-    /// or stereo (left/ right/ disparity/ folders of rectified pairs; needs --preset stereo).
+    /// Layout: flo (FlyingChairs-style, .flo flow), kitti (16-bit flow PNG), webdataset (tar
+    /// shards), sintel (the MPI Sintel training layout, for clips) or stereo (left/ right/
+    /// disparity/ folders of rectified pairs; needs --preset stereo).
     #[arg(long, default_value = "flo", value_parser = parse_format)]
     format: ExportFormat,
     /// Consecutive samples made from each source item (its scene is computed once).
@@ -108,6 +109,13 @@ pub struct GenerateArgs {
     /// Scene cache budget in MiB (a 640x480 scene with 32 planes takes about 160 MiB).
     #[arg(long, value_name = "MIB", default_value_t = 2048, value_parser = clap::value_parser!(u64).range(1..))]
     cache_mb: u64,
+    /// Frames per sample: 2 = a pair, 3 to 8 = a clip along the constant-velocity trajectory
+    /// (docs/outputs.md; part of the fingerprint).
+    #[arg(long, value_name = "K", default_value_t = 2, value_parser = clap::value_parser!(u64).range(2..=8))]
+    frames: u64,
+    /// Also write the backward flow (image2 -> image1) and its valid and occlusion masks.
+    #[arg(long)]
+    backward: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -198,6 +206,8 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         merge: a.merge,
         label_rule: a.label_rule,
         motions_per_image: a.motions_per_image,
+        frames: a.frames as usize,
+        backward: a.backward,
         ..SampleConfig::with_preset(a.preset)
     };
     let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));
@@ -268,7 +278,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
             None => "no source".into(),
         };
         match generator.sample(a.seed, index) {
-            Ok(sample) => match mpiflow::export::encode_sample(index, &sample, format.flow_encoding()) {
+            Ok(sample) => match mpiflow::export::encode_for(format, index, &sample) {
                 Ok(encoded) => Outcome::Done(Box::new((sample, encoded))),
                 Err(e) => Outcome::Skipped(format!("{}: cannot encode: {e}", describe_source())),
             },

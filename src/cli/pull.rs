@@ -29,7 +29,8 @@ pub struct PullArgs {
     /// received, decoded and dropped (for benchmarks).
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
-    /// Layout of --out: flo, kitti, webdataset or stereo (rectified pairs; needs --preset stereo).
+    /// Layout of --out: flo, kitti, webdataset, sintel (clips) or stereo (rectified pairs; needs
+    /// --preset stereo).
     #[arg(long, default_value = "flo", value_parser = |s: &str| s.parse::<ExportFormat>())]
     format: ExportFormat,
     #[arg(long, default_value_t = 0)]
@@ -82,6 +83,12 @@ pub struct PullArgs {
     /// A preview sheet at every multiple of N (with --out; 0 = none).
     #[arg(long, value_name = "N", default_value_t = 100)]
     preview_every: u64,
+    /// Frames per sample: 2 = a pair, 3 to 8 = a clip (docs/outputs.md).
+    #[arg(long, value_name = "K", default_value_t = 2, value_parser = clap::value_parser!(u32).range(2..=8))]
+    frames: u32,
+    /// Also ask for the backward flow and its valid and occlusion masks.
+    #[arg(long)]
+    backward: bool,
 }
 
 fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
@@ -106,6 +113,9 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
     if a.out.is_some() {
         fields.extend([pb::Field::Occlusion, pb::Field::Holes, pb::Field::Mask1]);
     }
+    if a.backward {
+        fields.extend([pb::Field::FlowBackward, pb::Field::ValidBackward, pb::Field::OcclusionBackward]);
+    }
     Ok(pb::StreamRequest {
         dataset: a.dataset.clone(),
         fingerprint,
@@ -125,6 +135,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
         batch_size: a.batch_size,
         prefetch: a.prefetch,
         augment: a.augment.clone().unwrap_or_default(),
+        frames: a.frames,
     })
 }
 

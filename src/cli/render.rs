@@ -129,6 +129,7 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
         mode: a.mode,
         fields: Fields::default(),
         skip: if a.mode == Mode::Exact { Skip::DEFAULT } else { Skip::NONE },
+        links: [None, None],
     };
     let out = render::<f32>(&mpi, &params, None)?;
     if out.stats.repaired > 0 {

@@ -45,3 +45,27 @@ pub fn write_files(dir: &Path, sample: &EncodedSample) -> Result<Vec<PathBuf>, E
     }
     Ok(written)
 }
+
+/// Writes one sample encoded by [`super::fields::encode_sintel`] into the Sintel training
+/// layout under `dir`: field `KIND/frame_000N` to `dir/training/KIND/<key>/frame_000N.EXT`, the
+/// record to `dir/training/<key>.json` (last). Returns the paths written.
+pub fn write_sintel(dir: &Path, sample: &EncodedSample) -> Result<Vec<PathBuf>, ExportError> {
+    let root = dir.join("training");
+    let mut written = Vec::with_capacity(sample.fields.len());
+    for field in &sample.fields {
+        let path = match field.name.split_once('/') {
+            Some((kind, frame)) => {
+                let folder = root.join(kind).join(&sample.key);
+                fs::create_dir_all(&folder).map_err(|source| ExportError::Io { path: folder.clone(), source })?;
+                folder.join(format!("{frame}.{}", field.ext))
+            }
+            None => {
+                fs::create_dir_all(&root).map_err(|source| ExportError::Io { path: root.clone(), source })?;
+                root.join(field.file_name(&sample.key))
+            }
+        };
+        write_atomic(&path, &field.bytes)?;
+        written.push(path);
+    }
+    Ok(written)
+}

@@ -14,7 +14,17 @@
 //! | occlusion | `I_occ.png` | `I.occ.png` | 8-bit gray, 255 = hidden in image 2 |
 //! | holes | `I_holes.png` | `I.holes.png` | 8-bit gray, 255 = image 2 filled by 2-D inpainting |
 //! | objects | `I_mask.png` | `I.mask.png` | object labels (1, 2, ...) in image 1, when objects moved |
+//! | backward flow | `I_flow_bw.flo` / `.png` | `I.flow_bw.npy` | image 2 -> image 1 on image 2's pixels (with the backward fields) |
+//! | backward valid | `I_valid_bw.png` | `I.valid_bw.png` | 255 = backward flow valid |
+//! | backward occlusion | `I_occ_bw.png` | `I.occ_bw.png` | 255 = the image 2 pixel is not visible in image 1 |
+//! | clip frames | `I_img3.png` ... | `I.img3.png` ... | frames 3..K of a clip; pairs `flow23`, `valid23`, `occ23`, `flow_bw32`, ... |
 //! | record | `I.json` | `I.json` | source id, address, motions, objects, stats, provenance, timings |
+//!
+//! The `sintel` format writes the MPI Sintel training layout instead ([`fields::encode_sintel`]):
+//! `OUT/training/clean/I/frame_000k.png` (k = 1..K), `OUT/training/flow/I/frame_000k.flo`
+//! (k = 1..K-1, frame k -> k+1), `OUT/training/occlusions/I/frame_000k.png` and
+//! `OUT/training/invalid/I/frame_000k.png` (255 = occluded / invalid, as Sintel), and the record
+//! `OUT/training/I.json`: RAFT's `MpiSintel(root=OUT, dstype='clean')` reads it as it is.
 //!
 //! Encoding ([`fields::encode_sample`]) is pure and runs on any thread; an [`Exporter`] writes
 //! encoded samples in the order it is given them.
@@ -59,19 +69,22 @@ pub enum ExportFormat {
     Kitti,
     /// WebDataset tar shards, flow as `.npy`.
     WebDataset,
+    /// The MPI Sintel training layout (clips), flow as `.flo`.
+    Sintel,
     /// Rectified stereo pairs in SceneFlow-style folders, disparity as PFM ([`stereo`]).
     Stereo,
 }
 
 impl ExportFormat {
-    pub const ALL: [ExportFormat; 4] =
-        [ExportFormat::Flo, ExportFormat::Kitti, ExportFormat::WebDataset, ExportFormat::Stereo];
+    pub const ALL: [ExportFormat; 5] =
+        [ExportFormat::Flo, ExportFormat::Kitti, ExportFormat::WebDataset, ExportFormat::Sintel, ExportFormat::Stereo];
 
     pub fn name(self) -> &'static str {
         match self {
             ExportFormat::Flo => "flo",
             ExportFormat::Kitti => "kitti",
             ExportFormat::WebDataset => "webdataset",
+            ExportFormat::Sintel => "sintel",
             ExportFormat::Stereo => "stereo",
         }
     }
@@ -79,7 +92,7 @@ impl ExportFormat {
     /// How this layout stores the flow.
     pub fn flow_encoding(self) -> FlowEncoding {
         match self {
-            ExportFormat::Flo => FlowEncoding::Flo,
+            ExportFormat::Flo | ExportFormat::Sintel => FlowEncoding::Flo,
             ExportFormat::Kitti => FlowEncoding::KittiPng,
             ExportFormat::WebDataset => FlowEncoding::Npy,
             ExportFormat::Stereo => FlowEncoding::DisparityPfm,
@@ -100,9 +113,19 @@ impl FromStr for ExportFormat {
             "flo" => Ok(ExportFormat::Flo),
             "kitti" => Ok(ExportFormat::Kitti),
             "webdataset" | "wds" => Ok(ExportFormat::WebDataset),
+            "sintel" => Ok(ExportFormat::Sintel),
             "stereo" => Ok(ExportFormat::Stereo),
-            _ => Err(format!("unknown export format {s:?} (expected flo, kitti, webdataset or stereo)")),
+            _ => Err(format!("unknown export format {s:?} (expected flo, kitti, webdataset, sintel or stereo)")),
         }
+    }
+}
+
+/// Encodes a sample for `format` (pure; call it from any thread).
+pub fn encode_for(format: ExportFormat, index: u64, sample: &Sample) -> Result<EncodedSample, ExportError> {
+    match format {
+        ExportFormat::Sintel => fields::encode_sintel(index, sample),
+        ExportFormat::Stereo => stereo::encode_stereo(index, sample),
+        f => encode_sample(index, sample, f.flow_encoding()),
     }
 }
 
@@ -135,6 +158,7 @@ pub struct ExportSummary {
 
 enum Sink {
     Files,
+    Sintel,
     Shards(webdataset::ShardWriter),
     Stereo,
 }
@@ -163,6 +187,7 @@ impl Exporter {
                 }
                 Sink::Stereo
             }
+            ExportFormat::Sintel => Sink::Sintel,
         };
         let previews = preview::PreviewCollector::new(&dir.join("previews"), options.preview)?;
         Ok(Self { options, sink, previews, samples: 0, bytes: 0 })
@@ -179,7 +204,7 @@ impl Exporter {
 
     /// Encodes a sample for this exporter's format (pure; call it from any thread).
     pub fn encode(&self, index: u64, sample: &Sample) -> Result<EncodedSample, ExportError> {
-        encode_sample(index, sample, self.options.format.flow_encoding())
+        encode_for(self.options.format, index, sample)
     }
 
     /// Whether the next sample written with this index will be drawn in a preview sheet.
@@ -193,6 +218,9 @@ impl Exporter {
         match &mut self.sink {
             Sink::Files => {
                 layout::write_files(&self.options.out_dir, encoded)?;
+            }
+            Sink::Sintel => {
+                layout::write_sintel(&self.options.out_dir, encoded)?;
             }
             Sink::Shards(w) => w.append(encoded)?,
             Sink::Stereo => {
@@ -222,7 +250,7 @@ impl Exporter {
     pub fn finish(self) -> Result<ExportSummary, ExportError> {
         let shards = match self.sink {
             Sink::Shards(w) => w.finish()?.into_iter().map(|s| s.path).collect(),
-            Sink::Files | Sink::Stereo => Vec::new(),
+            Sink::Files | Sink::Sintel | Sink::Stereo => Vec::new(),
         };
         let previews = self.previews.finish()?;
         Ok(ExportSummary { samples: self.samples, bytes: self.bytes, shards, previews })

@@ -3,6 +3,9 @@
 //! the sample's largest flow) | object labels (coloured over a dimmed image1) | validity
 //! (light grey = valid, red = valid but occluded in image2, black = invalid).
 //!
+//! A clip (more than two frames) draws one row per consecutive pair: frame k | frame k + 1 |
+//! flow k -> k + 1 | frame k's labels | validity of that flow.
+//!
 //! A sheet starts at the first sample written and at every sample whose index is a multiple of
 //! `every`, and takes that sample and the following ones until it holds `rows` rows (or the run
 //! ends, or the next sheet starts). `I` is the index of its first row.
@@ -147,6 +150,28 @@ pub fn preview_row(index: u64, s: &Sample, panel_width: usize) -> PreviewRow {
     PreviewRow { index, panels, panel_height: ph }
 }
 
+/// The pairs of a sample as pair samples: itself for a pair; for a clip of K frames the K - 1
+/// consecutive pairs (frame k, frame k + 1, the flow k -> k + 1 and its masks, frame k's labels).
+pub fn pairs_of(s: &Sample) -> Vec<Sample> {
+    let mut out = vec![Sample { clip: Vec::new(), ..s.clone() }];
+    let mut prev = (s.image2.clone(), s.mask2.clone());
+    for c in &s.clip {
+        out.push(Sample {
+            image1: prev.0.clone(),
+            image2: c.image.clone(),
+            flow: c.forward.flow.clone(),
+            valid: c.forward.valid.clone(),
+            occlusion: c.forward.occlusion.clone(),
+            mask1: prev.1.clone(),
+            mask2: c.mask.clone(),
+            clip: Vec::new(),
+            ..s.clone()
+        });
+        prev = (c.image.clone(), c.mask.clone());
+    }
+    out
+}
+
 /// Lays rows out into one sheet; returns (width, height, RGB bytes).
 pub fn compose_sheet(rows: &[PreviewRow], panel_width: usize) -> (usize, usize, Vec<u8>) {
     let width = GAP + PANELS * (panel_width + GAP);
@@ -173,6 +198,8 @@ pub struct PreviewCollector {
     dir: PathBuf,
     options: PreviewOptions,
     current: Vec<PreviewRow>,
+    /// Samples in `current` (a clip draws one row per pair).
+    current_samples: usize,
     seen_any: bool,
     written: Vec<PathBuf>,
 }
@@ -186,7 +213,14 @@ impl PreviewCollector {
                 options.rows, options.panel_width
             )));
         }
-        Ok(Self { dir: dir.to_path_buf(), options, current: Vec::new(), seen_any: false, written: Vec::new() })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            options,
+            current: Vec::new(),
+            current_samples: 0,
+            seen_any: false,
+            written: Vec::new(),
+        })
     }
 
     fn starts_sheet(&self, index: u64) -> bool {
@@ -203,14 +237,21 @@ impl PreviewCollector {
         if self.options.every == 0 {
             return Ok(());
         }
-        if self.starts_sheet(index) {
+        let starts = self.starts_sheet(index);
+        if starts {
             self.flush()?;
-            self.current.push(preview_row(index, s, self.options.panel_width));
-        } else if !self.current.is_empty() {
-            self.current.push(preview_row(index, s, self.options.panel_width));
+        }
+        if starts || !self.current.is_empty() {
+            let rows: Vec<PreviewRow> = if s.clip.is_empty() {
+                vec![preview_row(index, s, self.options.panel_width)]
+            } else {
+                pairs_of(s).iter().map(|p| preview_row(index, p, self.options.panel_width)).collect()
+            };
+            self.current.extend(rows);
+            self.current_samples += 1;
         }
         self.seen_any = true;
-        if self.current.len() >= self.options.rows {
+        if self.current_samples >= self.options.rows {
             self.flush()?;
         }
         Ok(())
@@ -227,6 +268,7 @@ impl PreviewCollector {
         write_atomic(&path, &png)?;
         self.written.push(path);
         self.current.clear();
+        self.current_samples = 0;
         Ok(())
     }
 

@@ -29,7 +29,7 @@
 //! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
 
 use super::occupancy::Occupancy;
-use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap};
+use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
 use crate::mpi::planes::{plane_depth, plane_gaps, DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
 use crate::render::real::Real;
@@ -41,6 +41,7 @@ struct PlaneConst<T> {
     /// 1 + k disp
     a: T,
     depth: T,
+    disp: T,
     ox: T,
     oy: T,
 }
@@ -54,8 +55,35 @@ fn cap<T: Real>(v: T, max: f64) -> T {
     }
 }
 
-/// The target view over the (non-empty) window `win`: image, depth, coverage and the extra
-/// channels given by `channels` (`out`'s buffers are window-sized, allocated by the caller).
+/// A link's projection: homogeneous h = m q + b disp for the source pixel q of a plane point
+/// (m = K_v R_v K_s^-1, b = K_v t_v; exactly the identity and 0 for [`View::Source`], so the
+/// backward flow is q - p without rounding).
+struct LinkConst<T> {
+    m: [[T; 3]; 3],
+    b: [T; 3],
+}
+
+impl<T: Real> LinkConst<T> {
+    fn new(view: &View, p: &RenderParams) -> Self {
+        match view {
+            View::Source => {
+                let (o, z) = (T::one(), T::zero());
+                Self { m: [[o, z, z], [z, o, z], [z, z, o]], b: [z; 3] }
+            }
+            View::Pose(pose) => {
+                let m = p.k_tgt.matrix() * pose.rotation * p.k_src.inverse_matrix();
+                let b = p.k_tgt.matrix() * pose.translation;
+                let r = |i: usize| [T::of(m.row(i).x), T::of(m.row(i).y), T::of(m.row(i).z)];
+                Self { m: [r(0), r(1), r(2)], b: [T::of(b.x), T::of(b.y), T::of(b.z)] }
+            }
+        }
+    }
+}
+
+/// The target view over the (non-empty) window `win`: image, depth, coverage, the extra
+/// channels given by `channels` and the links of `p.links` (`out`'s buffers are window-sized,
+/// allocated by the caller). The loop is specialised once, here, by the number of links (0, 1
+/// or 2): without links it is the loop without any link work.
 pub(super) fn target_view<T: Real>(
     mpi: &Mpi,
     p: &RenderParams,
@@ -63,6 +91,59 @@ pub(super) fn target_view<T: Real>(
     win: &Rect,
     channels: Channels<'_>,
     out: &mut RenderOutput,
+) -> RenderStats {
+    let slots: Vec<usize> = (0..2).filter(|&l| p.links[l].is_some()).collect();
+    let consts: Vec<LinkConst<T>> = p.links.iter().flatten().map(|v| LinkConst::new(v, p)).collect();
+    let mut links = std::mem::take(&mut out.links);
+    let ww = win.width();
+    let mut fronts: Vec<Vec<f32>> = slots.iter().map(|_| vec![0.0f32; ww * win.height()]).collect();
+    let stats = {
+        let mut bufs: Vec<(&mut [f32], &mut [f32], &mut [f32])> = Vec::new();
+        let mut lv = links.iter_mut();
+        let mut fv = fronts.iter_mut();
+        for _ in &slots {
+            // the links of `slots`, in slot order (an unused slot's buffers are empty)
+            let l = lv.by_ref().find(|l| !l.flow.is_empty()).expect("a link buffer per used slot");
+            let f = fv.next().expect("a front buffer per link");
+            bufs.push((&mut l.flow, &mut l.depth, f));
+        }
+        let mut it = bufs.into_iter();
+        match (it.next(), it.next()) {
+            (None, _) => target_view_n::<T, 0>(mpi, p, occ, win, channels, out, &consts, [empty3(), empty3()]),
+            (Some(a), None) => target_view_n::<T, 1>(mpi, p, occ, win, channels, out, &consts, [a, empty3()]),
+            (Some(a), Some(b)) => target_view_n::<T, 2>(mpi, p, occ, win, channels, out, &consts, [a, b]),
+        }
+    };
+    let (w, h) = (mpi.width, mpi.height);
+    for (&slot, front) in slots.iter().zip(&mut fronts) {
+        // holes (coverage < 1/2) are not valid
+        for (f, &c) in front.iter_mut().zip(&out.coverage) {
+            if c < 0.5 {
+                *f = 0.0;
+            }
+        }
+        links[slot].valid = mark_valid(win, w, h, &links[slot].flow, front);
+    }
+    out.links = links;
+    stats
+}
+
+fn empty3<'a>() -> (&'a mut [f32], &'a mut [f32], &'a mut [f32]) {
+    (&mut [], &mut [], &mut [])
+}
+
+/// [`target_view`] with `NL` links (`consts[..NL]`, their flow, depth and front-fraction buffers
+/// in `lb[..NL]`).
+#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
+fn target_view_n<T: Real, const NL: usize>(
+    mpi: &Mpi,
+    p: &RenderParams,
+    occ: Option<&Occupancy>,
+    win: &Rect,
+    channels: Channels<'_>,
+    out: &mut RenderOutput,
+    consts: &[LinkConst<T>],
+    lb: [(&mut [f32], &mut [f32], &mut [f32]); 2],
 ) -> RenderStats {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let ww = win.width();
@@ -81,6 +162,7 @@ pub(super) fn target_view<T: Real>(
         .map(|&disp| PlaneConst {
             a: T::of(1.0 + k * disp),
             depth: T::of(plane_depth(disp)),
+            disp: T::of(disp),
             ox: T::of(ks.fx * centre.x * disp + ks.cx),
             oy: T::of(ks.fy * centre.y * disp + ks.cy),
         })
@@ -103,8 +185,13 @@ pub(super) fn target_view<T: Real>(
     let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
 
     let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
+    let [(f0, d0, r0), (f1, d1, r1)] = lb;
+    let ls = |l: usize, k: usize| if l < NL { k } else { 0 };
+    let z_min = T::of(1e-9);
     // y0 is the band's first row in the window, fy0 in the frame
-    for_each_band(ww, win.height(), [image, depth, coverage, extras], [3, 1, 1, c], |y0, rows, b| {
+    let bufs = [image, depth, coverage, extras, f0, d0, r0, f1, d1, r1];
+    let strides = [3, 1, 1, c, ls(0, 2), ls(0, 1), ls(0, 1), ls(1, 2), ls(1, 1), ls(1, 1)];
+    for_each_band(ww, win.height(), bufs, strides, |y0, rows, b| {
         let fy0 = win.y0 + y0;
         let mut stats = RenderStats::default();
         let mut active = vec![true; n];
@@ -136,6 +223,9 @@ pub(super) fn target_view<T: Real>(
                     // one channel (a broadcast mask) in a register, more in acc_ex
                     let mut acc1 = T::zero();
                     acc_ex.iter_mut().for_each(|a| *a = T::zero());
+                    // per link: flow u, v, depth and weight of the planes in front of its view
+                    let mut lacc = [[T::zero(); 4]; NL];
+                    let (px, py) = (T::of(x as f64), T::of((fy0 + ry) as f64));
                     if s.abs() > T::of(1e-12) {
                         let inv_s = T::one() / s;
                         let forward = s > T::zero();
@@ -154,6 +244,7 @@ pub(super) fn target_view<T: Real>(
                             if !(qx >= lo && qx < hix && qy >= lo && qy < hiy) {
                                 continue; // the ray leaves the source image on this plane
                             }
+                            let q_raw = (qx, qy);
                             // inside [-0.5, W-0.5) x [-0.5, H-0.5): clamp the half-pixel border onto the edge pixels
                             let qx = if qx < T::zero() {
                                 T::zero()
@@ -193,6 +284,20 @@ pub(super) fn target_view<T: Real>(
                             }
                             sum_w += wgt;
                             sum_z += wgt * lambda;
+                            for (acc, lc) in lacc.iter_mut().zip(consts) {
+                                let m = &lc.m;
+                                let (qx, qy) = q_raw;
+                                let hz = m[2][0] * qx + m[2][1] * qy + m[2][2];
+                                let hzb = hz + lc.b[2] * pl.disp;
+                                if hzb > z_min * (hz.abs() + T::one()) {
+                                    let hx = m[0][0] * qx + m[0][1] * qy + m[0][2] + lc.b[0] * pl.disp;
+                                    let hy = m[1][0] * qx + m[1][1] * qy + m[1][2] + lc.b[1] * pl.disp;
+                                    acc[0] += wgt * (hx / hzb - px);
+                                    acc[1] += wgt * (hy / hzb - py);
+                                    acc[2] += wgt * cap(hzb * pl.depth, DEPTH_MAX);
+                                    acc[3] += wgt;
+                                }
+                            }
                             if c == 1 {
                                 acc1 += wgt * tap.sample1(ex_planes[i]);
                             } else if c > 0 {
@@ -215,6 +320,15 @@ pub(super) fn target_view<T: Real>(
                         for k in 0..c {
                             b[3][c * o + k] = acc_ex[k].f32();
                         }
+                    }
+                    for (l, acc) in lacc.iter().enumerate() {
+                        let j = 4 + 3 * l;
+                        if acc[3] > T::of(1e-6) {
+                            b[j][2 * o] = (acc[0] / acc[3]).f32();
+                            b[j][2 * o + 1] = (acc[1] / acc[3]).f32();
+                            b[j + 1][o] = (acc[2] / acc[3]).f32();
+                        }
+                        b[j + 2][o] = if sum_w > T::zero() { (acc[3] / sum_w).f32() } else { 0.0 };
                     }
                 }
             }
@@ -296,7 +410,11 @@ pub(super) fn source_view<T: Real>(
     let mut flow = std::mem::take(&mut out.flow);
     let mut zexp = std::mem::take(&mut out.source_depth_in_target);
     let mut front = vec![0.0f32; ww * win.height()];
-    for_each_band(ww, win.height(), [&mut flow, &mut zexp, &mut front], [2, 1, 1], |y0, rows, b| {
+    // the source camera's own depth, only when a link needs it (allocated by the caller)
+    let mut src_depth = std::mem::take(&mut out.source_depth);
+    let want_sd = !src_depth.is_empty();
+    let bufs: [&mut [f32]; 4] = [&mut flow, &mut zexp, &mut front, &mut src_depth];
+    for_each_band(ww, win.height(), bufs, [2, 1, 1, usize::from(want_sd)], |y0, rows, b| {
         let fy0 = win.y0 + y0;
         let mut active: Vec<usize> = Vec::with_capacity(n);
         for tx0 in (win.x0..win.x1).step_by(TILE) {
@@ -325,6 +443,7 @@ pub(super) fn source_view<T: Real>(
                     let a = [0, 1, 2].map(|r| m_t[r][0] * xf + m_t[r][1] * y + m_t[r][2]);
                     let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall) =
                         (T::one(), T::zero(), T::zero(), T::zero(), T::zero(), T::zero());
+                    let mut sd = T::zero();
                     let pix = 4 * (yy * w + x) + 3;
                     for &i in &active {
                         if tr < t_eps {
@@ -338,6 +457,9 @@ pub(super) fn source_view<T: Real>(
                         let wgt = tr * (T::one() - e);
                         tr *= e;
                         sall += wgt;
+                        if want_sd {
+                            sd += wgt * depth_t[i];
+                        }
                         let hz = a[2] + b_t[2] * disp[i];
                         if hz > z_min * (a[2].abs() + T::one()) {
                             let hx = a[0] + b_t[0] * disp[i];
@@ -355,6 +477,9 @@ pub(super) fn source_view<T: Real>(
                         b[1][o] = (sz / sw).f32();
                     }
                     b[2][o] = if sall > T::zero() { (sw / sall).f32() } else { 0.0 };
+                    if want_sd && sall > T::of(1e-6) {
+                        b[3][o] = (sd / sall).f32();
+                    }
                 }
             }
         }
@@ -363,4 +488,5 @@ pub(super) fn source_view<T: Real>(
     out.valid = mark_valid(win, w, h, &flow, &front);
     out.flow = flow;
     out.source_depth_in_target = zexp;
+    out.source_depth = src_depth;
 }

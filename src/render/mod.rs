@@ -28,6 +28,18 @@
 //! channels only. Every output, full frame or window, passes the non-finite guard (a NaN or Inf
 //! is replaced by 0 and counted in [`RenderStats::repaired`]).
 //!
+//! # Links: the target view followed into other views
+//!
+//! With [`RenderParams::links`] the exact target pass also follows every target pixel into up to
+//! two other cameras ([`View`]): each plane sample's point is projected into the view and the
+//! displacements are composited with the target weights ([`Link`]). Into [`View::Source`] this
+//! is the backward flow (target -> source on the target grid, the inverse displacement of
+//! each plane); into a pose it is the flow between two novel views (the frames of a clip). The
+//! loop is specialised by the number of links outside the pixel loop, so a render without links
+//! does none of that work and gives the same bytes as before links existed. With a link into
+//! the source view, the source pass also gives the source camera's own rendered depth
+//! ([`RenderOutput::source_depth`], for the backward occlusion test).
+//!
 //! The plane spacing rule ([`DELTA_LAST`], [`DEPTH_MAX`], the gaps) belongs to
 //! [`crate::mpi::planes`] and is re-exported here.
 
@@ -108,12 +120,51 @@ pub struct RenderParams {
     pub mode: Mode,
     pub fields: Fields,
     pub skip: Skip,
+    /// Views the target view's pixels are followed into ([`Link`]s, exact mode, with the target
+    /// pass): [`View::Source`] gives the backward flow. None = no link work at all.
+    pub links: [Option<View>; 2],
 }
 
 impl RenderParams {
     pub fn new(k: Intrinsics, pose: Pose) -> Self {
-        Self { k_src: k, k_tgt: k, pose, mode: Mode::Exact, fields: Fields::default(), skip: Skip::DEFAULT }
+        Self {
+            k_src: k,
+            k_tgt: k,
+            pose,
+            mode: Mode::Exact,
+            fields: Fields::default(),
+            skip: Skip::DEFAULT,
+            links: [None, None],
+        }
     }
+}
+
+/// A camera that the points seen in the target view are followed into (see [`Link`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum View {
+    /// The source camera (intrinsics `k_src`): the link is the backward flow, target -> source.
+    Source,
+    /// A camera at this pose from the source camera (`X_view = R X_src + t`) with the target
+    /// intrinsics `k_tgt`: e.g. the next or the previous frame of a clip.
+    Pose(Pose),
+}
+
+/// A target-view correspondence into another [`View`], on the target grid (window-sized like
+/// every target field). For each target pixel p and each plane i its ray meets (in the order
+/// and with the weights w_i of the target view), the plane's point X_i (at source pixel q_i) is
+/// projected into the view, pi_v(X_i); the link flow is sum_i w_i (pi_v(X_i) - p) / sum_i w_i
+/// over the planes whose point is in front of the view's camera. Into [`View::Source`],
+/// pi_v(X_i) = q_i exactly: the backward flow (each plane's inverse displacement composited
+/// with the target weights).
+#[derive(Clone, Debug, Default)]
+pub struct Link {
+    /// H x W x 2 (u, v) in pixels; 0 where nothing in front of the view is rendered.
+    pub flow: Vec<f32>,
+    /// The expected depth of the target pixel's point in the view's camera, H x W.
+    pub depth: Vec<f32>,
+    /// 1 where the target pixel is rendered (coverage >= 1/2), its point is (by weight, mostly)
+    /// in front of the view's camera and lands inside the frame [0, W-1] x [0, H-1].
+    pub valid: Vec<u8>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -184,6 +235,12 @@ pub struct RenderOutput {
     pub valid: Vec<u8>,
     /// 1 where the source point is hidden in the target view (full-frame renders only).
     pub occlusion: Vec<u8>,
+    /// The target view's links into `RenderParams::links` (same slots; empty where None).
+    pub links: [Link; 2],
+    /// The source view's expected depth of each source pixel in the source camera, H x W (the
+    /// depth image1 shows, for the backward occlusion test); only with the flow pass and a link
+    /// into [`View::Source`].
+    pub source_depth: Vec<f32>,
     pub stats: RenderStats,
 }
 
@@ -242,6 +299,13 @@ pub fn render_window<T: Real>(
     {
         return bad("the reference mode renders full frames with the MPI's own channels only".into());
     }
+    let links = params.links;
+    if links.iter().flatten().any(|v| matches!(v, View::Pose(p) if !p.is_finite())) {
+        return Err(RenderError::Pose);
+    }
+    if params.mode == Mode::Reference && links.iter().any(Option::is_some) {
+        return bad("links (backward flow, clip flows) need the exact mode".into());
+    }
     let mut fields = params.fields;
     if fields.occlusion {
         fields.target = true;
@@ -270,6 +334,12 @@ pub fn render_window<T: Real>(
         out.depth = vec![0.0; ww * wh];
         out.coverage = vec![0.0; ww * wh];
         out.extras = vec![0.0; ww * wh * c];
+        for (link, view) in out.links.iter_mut().zip(&links) {
+            if view.is_some() {
+                link.flow = vec![0.0; ww * wh * 2];
+                link.depth = vec![0.0; ww * wh];
+            }
+        }
         let stats = match params.mode {
             Mode::Reference => reference::target_view::<T>(mpi, params, &mut out),
             Mode::Exact => exact::target_view::<T>(mpi, params, occ, window, channels, &mut out),
@@ -280,6 +350,9 @@ pub fn render_window<T: Real>(
         out.flow = vec![0.0; ww * wh * 2];
         out.source_depth_in_target = vec![0.0; ww * wh];
         out.valid = vec![0; ww * wh];
+        if links.contains(&Some(View::Source)) {
+            out.source_depth = vec![0.0; ww * wh];
+        }
         match params.mode {
             Mode::Reference => reference::source_view::<T>(mpi, params, &mut out),
             Mode::Exact => exact::source_view::<T>(mpi, params, occ, window, flow_where, &mut out),
@@ -348,7 +421,11 @@ fn repair_nonfinite(out: &mut RenderOutput) -> u64 {
         &mut out.extras,
         &mut out.flow,
         &mut out.source_depth_in_target,
-    ] {
+        &mut out.source_depth,
+    ]
+    .into_iter()
+    .chain(out.links.iter_mut().flat_map(|l| [&mut l.flow, &mut l.depth]))
+    {
         n += buf
             .par_chunks_mut(1 << 16)
             .map(|chunk| {

@@ -904,8 +904,11 @@ fn intrinsics(k: Intrinsics, x: Axis, y: Axis) -> Intrinsics {
     Intrinsics::new(fx, fy, cx, cy)
 }
 
-/// Applies a drawn plan to a sample (all its per-pixel fields).
+/// Applies a drawn plan to a sample (all its per-pixel fields). Augmentation is made for pairs:
+/// a sample's backward fields and clip frames are dropped (the service refuses to ask for both).
 pub fn apply_plan(plan: &Plan, mut s: Sample) -> Sample {
+    s.backward = crate::sample::LinkFields::default();
+    s.clip.clear();
     let (w, h) = (s.width, s.height);
     if w == 0 || h == 0 {
         return s;
@@ -1040,6 +1043,8 @@ mod tests {
             depth1: (0..n).map(|i| i as f32).collect(),
             depth2: (0..n).map(|i| 2.0 * i as f32).collect(),
             inpainted_pixels: 0,
+            backward: Default::default(),
+            clip: Vec::new(),
             skipped_sources: 0,
             provenance: vec![],
             intrinsics: Intrinsics::reference_default(w, h),

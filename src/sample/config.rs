@@ -103,6 +103,27 @@ pub struct SampleConfig {
     /// Pre-blend the MPI with the source photo when the scene is loaded (for network MPIs;
     /// [`super::preblend`]). Default false.
     pub preblend: bool,
+    /// Frames per sample, [`MIN_FRAMES`] to [`MAX_FRAMES`]: 2 = a pair (image1, image2), more =
+    /// a clip along the constant-velocity trajectory ([`super::recipe`], "Clips"). Default 2.
+    /// Part of the fingerprint when not 2 (so pairs keep the addresses they always had).
+    #[serde(skip_serializing_if = "is_pair")]
+    pub frames: usize,
+    /// Also make the backward fields (flow image2 -> image1 and its masks, for every pair of a
+    /// clip). An output selection, not an option of the sample: it changes no other byte of a
+    /// sample and is not part of the fingerprint (nor of the configuration's JSON), like the
+    /// fields a request asks for. Default false (none of their work is done).
+    #[serde(skip)]
+    pub backward: bool,
+}
+
+/// Fewest frames per sample (a pair).
+pub const MIN_FRAMES: usize = 2;
+/// Most frames per sample.
+pub const MAX_FRAMES: usize = 8;
+
+#[allow(clippy::trivially_copy_pass_by_ref)]
+fn is_pair(frames: &usize) -> bool {
+    *frames == MIN_FRAMES
 }
 
 impl Default for SampleConfig {
@@ -123,6 +144,8 @@ impl Default for SampleConfig {
             skip: Skip::DEFAULT,
             windowed: true,
             preblend: false,
+            frames: MIN_FRAMES,
+            backward: false,
         }
     }
 }
@@ -135,8 +158,15 @@ impl SampleConfig {
 
     /// Checks every field; the error names the field.
     pub fn validate(&self) -> Result<(), SampleError> {
-        self.motion.ranges().validate()?;
+        let ranges = self.motion.ranges();
+        ranges.validate()?;
         let bad = |field: &'static str, message: String| Err(SampleError::Config { field, message });
+        if ranges.stereo && self.frames > MIN_FRAMES {
+            return bad(
+                "frames",
+                format!("{} with a stereo motion law (a stereo sample is one rectified pair)", self.frames),
+            );
+        }
         if self.max_objects > 255 {
             return bad("max_objects", format!("{} (at most 255 objects fit the u8 label masks)", self.max_objects));
         }
@@ -148,6 +178,12 @@ impl SampleConfig {
         }
         if !(self.inpaint_radius.is_finite() && self.inpaint_radius > 0.0) {
             return bad("inpaint_radius", format!("{} (expected a positive number of pixels)", self.inpaint_radius));
+        }
+        if !(MIN_FRAMES..=MAX_FRAMES).contains(&self.frames) {
+            return bad("frames", format!("{} (expected {MIN_FRAMES} to {MAX_FRAMES})", self.frames));
+        }
+        if (self.backward || self.frames > MIN_FRAMES) && self.mode != Mode::Exact {
+            return bad("mode", "reference: the backward fields and clips need the exact mode".into());
         }
         if self.motions_per_image == 0 {
             return bad("motions_per_image", "0 (expected at least 1)".into());

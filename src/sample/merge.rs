@@ -72,11 +72,27 @@
 //!     than `tol` relative at all four pixels of `N` (the renderer's rule applied to the merged
 //!     frame); holes never occlude.
 
+//!
+//! # Links (backward flow, clip flows), target side
+//!
+//! [`merge_link`] merges the renders' [`Link`]s (slot `l`, e.g. into the source view: the
+//! backward flow) the way image2 was merged: at an image2 pixel that shows object `j`
+//! (`mask2 = j + 1`) from object `j`'s render (its inverse motion), at one that shows the scene
+//! from the scene render, and at holes nothing (flow 0, not valid). Its occlusion asks the
+//! same question as the forward one, of the other frame: with `z` the point's expected depth in
+//! the other camera, `l` its `mask2` label and `N` the bilinear neighbours of where it lands,
+//! [`LabelRule::Honest`] calls it visible only when no pixel of `N` is a hole of the other
+//! frame and some pixel of `N` shows label `l` at a depth within the tolerance of `z`;
+//! [`LabelRule::DepthOnly`] calls it occluded when every pixel of `N` is nearer than `z` by more
+//! than the tolerance. Into the source view the other frame is image1: its depth is the
+//! source view's rendered depth, its labels `mask1`, and it has no holes.
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::object::{Rect, WindowRender};
-use crate::render::OCCLUSION_TOLERANCE;
+use super::LinkFields;
+use crate::render::{Link, OCCLUSION_TOLERANCE};
 
 /// How scene and object renders are merged.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -217,10 +233,105 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
         assert_eq!(o.render.out.extra_channels, 1);
     }
 
+    let SceneView { image, depth, scene_mask, scene_mask_patch, flow, valid, source_depth, .. } = scene;
+    let TargetSide { image: image2, mask: mask2, shown_depth, hole, holes } =
+        merge_target(w, h, image, depth, scene_mask, scene_mask_patch, objects, rule, tau);
+
+    // ---- source side: mask1, flow, valid, occlusion
+    // the scene's flow and valid are read and then replaced, pixel by pixel
+    let (mut flow, mut valid, mut target_depth) = (flow, valid, source_depth);
+    let mut occlusion = vec![0u8; n];
+    let mut mask1 = vec![0u8; n];
+    flow.par_chunks_mut(2 * w)
+        .zip(valid.par_chunks_mut(w))
+        .zip(occlusion.par_chunks_mut(w))
+        .zip(mask1.par_chunks_mut(w))
+        .zip(target_depth.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, ((((fl, va), oc), m1), zs))| {
+            for x in 0..w {
+                let i = y * w + x;
+                let (mut label_m, mut flow_m) = (0.5f32, tau);
+                let mut owner: Option<usize> = None;
+                for (slot, o) in objects.iter().enumerate() {
+                    let m = o.source_mask[i];
+                    if m >= label_m && (m > label_m || m1[x] == 0) {
+                        label_m = m;
+                        m1[x] = o.label;
+                    }
+                    if m >= flow_m && (m > flow_m || owner.is_none()) {
+                        flow_m = m;
+                        owner = Some(slot);
+                    }
+                }
+                let (f, v, z) = match owner.and_then(|s| objects[s].render.index(x, y).map(|idx| (s, idx))) {
+                    Some((s, idx)) => {
+                        let r = &objects[s].render.out;
+                        ([r.flow[2 * idx], r.flow[2 * idx + 1]], r.valid[idx], r.source_depth_in_target[idx])
+                    }
+                    None => ([fl[2 * x], fl[2 * x + 1]], va[x], zs[x]),
+                };
+                let f = [finite_or_zero(f[0]), finite_or_zero(f[1])];
+                fl[2 * x] = f[0];
+                fl[2 * x + 1] = f[1];
+                va[x] = v;
+                zs[x] = if z.is_finite() && z > 0.0 { z } else { 0.0 };
+                if v != 0 {
+                    let (tx, ty) = (x as f32 + f[0], y as f32 + f[1]);
+                    oc[x] = u8::from(match labels {
+                        LabelRule::Honest => !shown_there(&shown_depth, &mask2, w, h, tx, ty, z, m1[x]),
+                        LabelRule::DepthOnly => hidden(&shown_depth, w, h, tx, ty, z),
+                    });
+                }
+            }
+        });
+    // what image2 shows, with holes (inf) and anything not positive and finite as 0
+    let mut depth2 = shown_depth;
+    depth2.par_chunks_mut(w.max(1)).for_each(|row| {
+        for d in row {
+            if !(d.is_finite() && *d > 0.0) {
+                *d = 0.0;
+            }
+        }
+    });
+    Merged { image2, flow, valid, occlusion, mask1, mask2, hole, holes, depth2, target_depth }
+}
+
+/// The target side of one frame (see [`merge_target`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TargetSide {
+    /// H x W x 3, holes not yet filled.
+    pub image: Vec<u8>,
+    /// The object labels shown (0 = background).
+    pub mask: Vec<u8>,
+    /// The depth of what is shown; `f32::INFINITY` at holes.
+    pub shown_depth: Vec<f32>,
+    /// 1 = hole.
+    pub hole: Vec<u8>,
+    pub holes: u64,
+}
+
+/// The target side of [`merge`] for one frame (image, labels, shown depth, holes): the scene
+/// render's image (premultiplied), depth `D_t` (taken by value and reused), scene mask `s`
+/// (and its patch) and the objects' renders. [`merge`] is this followed by the source side;
+/// the later frames of a clip are this alone.
+#[allow(clippy::too_many_arguments)]
+pub fn merge_target(
+    w: usize,
+    h: usize,
+    image: &[f32],
+    depth: Vec<f32>,
+    scene_mask: &[f32],
+    scene_mask_patch: Option<(Rect, &[f32])>,
+    objects: &[ObjectView<'_>],
+    rule: MergeRule,
+    tau: f32,
+) -> TargetSide {
+    let n = w * h;
+    assert!(image.len() == 3 * n && depth.len() == n && scene_mask.len() == n);
     // ---- target side: image2, mask2, depth of what is shown (inf = hole), holes
     let mut image2 = vec![0u8; 3 * n];
     let mut mask2 = vec![0u8; n];
-    let SceneView { image, depth, scene_mask, scene_mask_patch, flow, valid, source_depth, .. } = scene;
     // D_t is read and then replaced, pixel by pixel, by the depth of what image2 shows
     let mut shown_depth = depth;
     let mut hole = vec![0u8; n];
@@ -292,64 +403,7 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
         })
         .sum();
 
-    // ---- source side: mask1, flow, valid, occlusion
-    // the scene's flow and valid are read and then replaced, pixel by pixel
-    let (mut flow, mut valid, mut target_depth) = (flow, valid, source_depth);
-    let mut occlusion = vec![0u8; n];
-    let mut mask1 = vec![0u8; n];
-    flow.par_chunks_mut(2 * w)
-        .zip(valid.par_chunks_mut(w))
-        .zip(occlusion.par_chunks_mut(w))
-        .zip(mask1.par_chunks_mut(w))
-        .zip(target_depth.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, ((((fl, va), oc), m1), zs))| {
-            for x in 0..w {
-                let i = y * w + x;
-                let (mut label_m, mut flow_m) = (0.5f32, tau);
-                let mut owner: Option<usize> = None;
-                for (slot, o) in objects.iter().enumerate() {
-                    let m = o.source_mask[i];
-                    if m >= label_m && (m > label_m || m1[x] == 0) {
-                        label_m = m;
-                        m1[x] = o.label;
-                    }
-                    if m >= flow_m && (m > flow_m || owner.is_none()) {
-                        flow_m = m;
-                        owner = Some(slot);
-                    }
-                }
-                let (f, v, z) = match owner.and_then(|s| objects[s].render.index(x, y).map(|idx| (s, idx))) {
-                    Some((s, idx)) => {
-                        let r = &objects[s].render.out;
-                        ([r.flow[2 * idx], r.flow[2 * idx + 1]], r.valid[idx], r.source_depth_in_target[idx])
-                    }
-                    None => ([fl[2 * x], fl[2 * x + 1]], va[x], zs[x]),
-                };
-                let f = [finite_or_zero(f[0]), finite_or_zero(f[1])];
-                fl[2 * x] = f[0];
-                fl[2 * x + 1] = f[1];
-                va[x] = v;
-                zs[x] = if z.is_finite() && z > 0.0 { z } else { 0.0 };
-                if v != 0 {
-                    let (tx, ty) = (x as f32 + f[0], y as f32 + f[1]);
-                    oc[x] = u8::from(match labels {
-                        LabelRule::Honest => !shown_there(&shown_depth, &mask2, w, h, tx, ty, z, m1[x]),
-                        LabelRule::DepthOnly => hidden(&shown_depth, w, h, tx, ty, z),
-                    });
-                }
-            }
-        });
-    // what image2 shows, with holes (inf) and anything not positive and finite as 0
-    let mut depth2 = shown_depth;
-    depth2.par_chunks_mut(w.max(1)).for_each(|row| {
-        for d in row {
-            if !(d.is_finite() && *d > 0.0) {
-                *d = 0.0;
-            }
-        }
-    });
-    Merged { image2, flow, valid, occlusion, mask1, mask2, hole, holes, depth2, target_depth }
+    TargetSide { image: image2, mask: mask2, shown_depth, hole, holes }
 }
 
 #[inline]
@@ -395,4 +449,73 @@ fn shown_there(shown: &[f32], mask2: &[u8], w: usize, h: usize, tx: f32, ty: f32
         let d = shown[n];
         mask2[n] == label && d.is_finite() && d > 0.0 && z <= d * tol && d <= z * tol
     })
+}
+
+/// The frame a link lands in: what it shows (H x W each).
+#[derive(Clone, Copy, Debug)]
+pub struct OtherFrame<'a> {
+    /// The depth of what it shows (z in its camera); `f32::INFINITY` at holes.
+    pub depth: &'a [f32],
+    /// Its object labels (0 = background).
+    pub labels: &'a [u8],
+}
+
+/// Merges link slot `slot` of the scene render (`scene`, full frame) and of the objects' renders
+/// into the target frame whose labels are `mask2` and holes `hole` (see the module
+/// documentation); the occlusion is tested against `other`.
+///
+/// # Panics
+/// If a buffer's size disagrees with `w` x `h`, or a render lacks the link.
+#[allow(clippy::too_many_arguments)]
+pub fn merge_link(
+    slot: usize,
+    scene: &Link,
+    objects: &[ObjectView<'_>],
+    mask2: &[u8],
+    hole: &[u8],
+    other: OtherFrame<'_>,
+    w: usize,
+    h: usize,
+    labels: LabelRule,
+) -> LinkFields {
+    let n = w * h;
+    assert!(scene.flow.len() == 2 * n && scene.depth.len() == n && scene.valid.len() == n);
+    assert!(mask2.len() == n && hole.len() == n && other.depth.len() == n && other.labels.len() == n);
+    let mut flow = vec![0.0f32; 2 * n];
+    let mut valid = vec![0u8; n];
+    let mut occlusion = vec![0u8; n];
+    flow.par_chunks_mut(2 * w).zip(valid.par_chunks_mut(w)).zip(occlusion.par_chunks_mut(w)).enumerate().for_each(
+        |(y, ((fl, va), oc))| {
+            for x in 0..w {
+                let i = y * w + x;
+                if hole[i] != 0 {
+                    continue;
+                }
+                let label = mask2[i];
+                let src = if label == 0 {
+                    Some((scene, i))
+                } else {
+                    objects.iter().find(|o| o.label == label).and_then(|o| {
+                        let link = &o.render.out.links[slot];
+                        o.render.index(x, y).filter(|_| !link.valid.is_empty()).map(|idx| (link, idx))
+                    })
+                };
+                let Some((link, j)) = src else { continue };
+                let f = [finite_or_zero(link.flow[2 * j]), finite_or_zero(link.flow[2 * j + 1])];
+                let v = link.valid[j];
+                let z = link.depth[j];
+                fl[2 * x] = f[0];
+                fl[2 * x + 1] = f[1];
+                va[x] = v;
+                if v != 0 {
+                    let (tx, ty) = (x as f32 + f[0], y as f32 + f[1]);
+                    oc[x] = u8::from(match labels {
+                        LabelRule::Honest => !shown_there(other.depth, other.labels, w, h, tx, ty, z, label),
+                        LabelRule::DepthOnly => hidden(other.depth, w, h, tx, ty, z),
+                    });
+                }
+            }
+        },
+    );
+    LinkFields { flow, valid, occlusion }
 }

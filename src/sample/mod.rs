@@ -40,6 +40,39 @@ pub struct ObjectRecord {
     pub motion: Motion,
 }
 
+/// A flow between two frames with its masks, on the grid of the frame it starts from (the
+/// backward flow: image2 -> image1 on image2's grid). Empty when not computed.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LinkFields {
+    /// H x W x 2 (u, v) in pixels; always finite, 0 where nothing is rendered (holes).
+    pub flow: Vec<f32>,
+    /// H x W, 1 = the target lies inside the other frame and in front of its camera, and the
+    /// pixel is rendered (not a hole).
+    pub valid: Vec<u8>,
+    /// H x W, 1 = the pixel's point is not visible in the other frame (e.g. disoccluded
+    /// background, for the backward flow).
+    pub occlusion: Vec<u8>,
+}
+
+/// Frame `k + 3` of a clip (k = 0, 1, ...; frames 1 and 2 are image1 and image2) with the pair
+/// that ends in it. Every frame is a render of the same MPI (see [`recipe`], "Clips").
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ClipFrame {
+    /// H x W x 3, merged and inpainted like image2.
+    pub image: Vec<u8>,
+    /// The previous frame -> this frame, on the previous frame's grid.
+    pub forward: LinkFields,
+    /// This frame -> the previous frame, on this frame's grid (empty without the backward
+    /// fields).
+    pub backward: LinkFields,
+    /// H x W object labels as visible in this frame.
+    pub mask: Vec<u8>,
+    /// H x W, the depth (z in this frame's camera) of what it shows; 0 in holes.
+    pub depth: Vec<f32>,
+    /// H x W, 1 = filled by inpainting.
+    pub holes: Vec<u8>,
+}
+
 /// Milliseconds spent per stage of one sample.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StageTimings {
@@ -92,6 +125,11 @@ pub struct Sample {
     pub holes: Vec<u8>,
     /// Pixels of image2 that were inpainted (the ones of `holes`).
     pub inpainted_pixels: u64,
+    /// The backward flow image2 -> image1 on image2's grid, its `valid` and `occlusion`
+    /// (empty unless asked for: [`config::SampleConfig::backward`]).
+    pub backward: LinkFields,
+    /// Frames 3.. of a clip ([`config::SampleConfig::frames`] > 2); empty for a pair.
+    pub clip: Vec<ClipFrame>,
     /// Bad source items passed over to make this sample (see
     /// [`recipe::Generator::sample`]); 0 when its own source item loaded.
     pub skipped_sources: u32,
@@ -106,7 +144,12 @@ impl Sample {
     /// The stereo disparity of a rectified pair (stereo motion laws): `d = x1 - x2 = -u`, H x W,
     /// on image1's (the left view's) grid; `valid` and `occlusion` say where it holds.
     pub fn disparity(&self) -> Vec<f32> {
-        // `0.0 - u`, not `-u`: a zero flow gives +0.0, never -0.0
-        self.flow.chunks_exact(2).map(|uv| 0.0 - uv[0]).collect()
+        disparity_of(&self.flow)
     }
+}
+
+/// The disparity `d = -u` of an H x W x 2 flow (`0.0 - u`, not `-u`: a zero flow gives +0.0,
+/// never -0.0).
+pub fn disparity_of(flow: &[f32]) -> Vec<f32> {
+    flow.chunks_exact(2).map(|uv| 0.0 - uv[0]).collect()
 }

@@ -50,7 +50,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::{Intrinsics, Pose};
 use crate::mpi::Mpi;
-use crate::render::{render, render_window, Channels, Fields, Mode, Occupancy, RenderError, RenderParams, Skip};
+use crate::render::{render, render_window, Channels, Fields, Mode, Occupancy, RenderError, RenderParams, Skip, View};
 pub use crate::render::{Rect, WindowRender};
 use crate::scene::masks::InstanceMasks;
 
@@ -185,7 +185,9 @@ pub fn mpi_with_mask(mpi: &Mpi, mask: &[f32]) -> Mpi {
 }
 
 /// The full-frame render of `mpi` with `mask` as its one extra channel, through a full copy
-/// ([`mpi_with_mask`]) and [`render`]: the reference's way.
+/// ([`mpi_with_mask`]) and [`render`]: the reference's way. `links` as
+/// [`RenderParams::links`].
+#[allow(clippy::too_many_arguments)]
 pub fn render_full_with_mask(
     mpi: &Mpi,
     k: &Intrinsics,
@@ -194,12 +196,14 @@ pub fn render_full_with_mask(
     mode: Mode,
     skip: Skip,
     fields: Fields,
+    links: [Option<View>; 2],
 ) -> Result<WindowRender, RenderError> {
     let copy = mpi_with_mask(mpi, mask);
     let mut p = RenderParams::new(*k, *pose);
     p.mode = mode;
     p.skip = skip;
     p.fields = Fields { occlusion: false, ..fields };
+    p.links = links;
     let out = render::<f32>(&copy, &p, None)?;
     Ok(WindowRender { win: Rect::full(mpi.width, mpi.height), out })
 }
@@ -223,9 +227,11 @@ pub fn render_mask_window(
     mask: &[f32],
     skip: Skip,
     source: bool,
+    links: [Option<View>; 2],
 ) -> Result<WindowRender, RenderError> {
     let mut p = RenderParams::new(*k, *pose);
     p.skip = skip;
     p.fields = Fields { target: true, flow: source, occlusion: false };
+    p.links = links;
     render_window::<f32>(mpi, &p, occupancy, win, Channels::Broadcast(mask), source.then_some(mask))
 }

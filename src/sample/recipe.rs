@@ -46,6 +46,26 @@
 //! source frame's depth in the scene scale) and `depth2` (the merge's depth of what image2 shows;
 //! 0 in holes), both taken from what the recipe computes anyway.
 //!
+//! # Backward fields and clips
+//!
+//! With [`SampleConfig::backward`] the image2 renders (scene and objects) also follow each target
+//! pixel back into the source view ([`crate::render::Link`] into [`View::Source`]: every plane's
+//! inverse displacement composited with the target weights), merged like image2 itself
+//! ([`super::merge::merge_link`]: an object's pixels carry its inverse motion, holes are not
+//! valid) into [`Sample::backward`]. Without it no link is rendered at all.
+//!
+//! **Clips** ([`SampleConfig::frames`] = K > 2) follow the constant-velocity model: the camera and
+//! every moving object repeat their drawn frame-1 -> frame-2 rigid motion each frame, so frame
+//! f + 1 (f = 0 is the photo) is the same MPI rendered under `pose^f` ([`trajectory`];
+//! `pose^(f+1) = pose o pose^f`, which composes exactly). Every frame is one render of the
+//! cached scene's MPI (one per object too); frame f's renders carry a link into frame f + 1
+//! (`pose^(f+1)`, the forward flow f -> f + 1 on frame f's grid, exact per plane: no lookup in
+//! another frame) and, with the backward fields, one into frame f - 1. The flow 1 -> 2 is the
+//! pair's (the source view), so a clip's first pair is byte for byte the pair of the same
+//! address and configuration, and frames = 2 adds nothing to the address (the fingerprint).
+//! Occlusion of a link is tested against what the frame it lands in shows (its merged depth and
+//! labels, holes included), the forward rule of the pair applied to that frame.
+//!
 //! An object's motion is by default its own rigid motion from the source camera to the target
 //! camera (the reference script renders the object with its own small pose, independent of the
 //! camera's); with `objects_follow_camera` it is composed with the camera's
@@ -57,7 +77,7 @@ use std::time::Instant;
 
 pub use super::config::{InpaintMethod, MotionSpec, SampleConfig};
 pub use super::holes::inpaint_holes;
-use super::merge::{merge, unit_to_u8, ObjectView, SceneView};
+use super::merge::{merge, merge_link, merge_target, unit_to_u8, ObjectView, OtherFrame, SceneView, TargetSide};
 use super::motion::MotionError;
 use super::object::{
     choose_objects, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect, Rect,
@@ -66,8 +86,9 @@ use super::object::{
 pub use super::pipeline::Generator;
 use super::preblend::{preblend, PreblendError};
 use super::rng::{Purpose, SampleRng};
-use super::{ObjectRecord, Sample, SampleAddress, StageTimings};
-use crate::render::{render, Fields, Mode, Occupancy, RenderError, RenderOutput, RenderParams};
+use super::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
+use crate::geometry::Pose;
+use crate::render::{render, Fields, Link, Mode, Occupancy, RenderError, RenderOutput, RenderParams, View};
 use crate::scene::{Scene, SceneError};
 use crate::source::FailureKind;
 
@@ -193,9 +214,14 @@ pub fn assemble_with_target_depth(
     let start = Instant::now();
     let (mut sample, target_depth) = assemble_merged_sample(scene, address, config, occupancy)?;
     let t = Instant::now();
+    let (w, h) = (sample.width, sample.height);
     if sample.inpainted_pixels > 0 {
-        let (w, h) = (sample.width, sample.height);
         inpaint_holes(&mut sample.image2, w, h, &sample.holes, config.inpaint_method, config.inpaint_radius, true);
+    }
+    for f in &mut sample.clip {
+        if f.holes.contains(&1) {
+            inpaint_holes(&mut f.image, w, h, &f.holes, config.inpaint_method, config.inpaint_radius, true);
+        }
     }
     sample.timings.inpaint_ms = ms(t);
     sample.timings.total_ms = ms(start);
@@ -231,12 +257,7 @@ fn assemble_merged_sample(
     let ranges = config.motion.ranges();
     let mpi = &*scene.mpi;
     let (w, h) = (mpi.width, mpi.height);
-    let k = scene.intrinsics;
     let rng = |p: Purpose| SampleRng::new(address.dataset, address.seed, address.index, p);
-    let render_err = |stage: &'static str| {
-        let id = scene.id.clone();
-        move |source: RenderError| SampleError::Render { id, stage, source: Box::new(source) }
-    };
     let mut timings = StageTimings::default();
 
     // ---- motions and objects
@@ -273,10 +294,6 @@ fn assemble_merged_sample(
     let mut objects_ms = ms(t);
 
     let windowed = config.windowed && config.mode == Mode::Exact;
-    let mut params = RenderParams::new(k, cam_pose);
-    params.mode = config.mode;
-    params.skip = config.skip;
-    params.fields = Fields { target: true, flow: true, occlusion: false };
     // the scene MPI's tile occupancy, shared by the scene render and the windowed renders
     let t = Instant::now();
     let built;
@@ -290,7 +307,7 @@ fn assemble_merged_sample(
     };
     let occupancy_ms = ms(t);
 
-    // ---- the scene render (and the scene mask channel)
+    // ---- the union mask of the moved objects (the scene mask channel is 1 - U)
     let union: Option<Cow<'_, [f32]>> = match chosen.as_slice() {
         [] => None,
         [one] => Some(Cow::Borrowed(&scene.masks.masks[*one].mask)),
@@ -304,77 +321,128 @@ fn assemble_merged_sample(
             Some(Cow::Owned(u))
         }
     };
-    let t = Instant::now();
-    let (scene_out, full_mask): (_, Option<Vec<f32>>) = match (&union, windowed) {
-        (Some(u), false) => {
-            // the reference's scene render: a full copy with the channel 1 - U
-            let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
-            let r = render_full_with_mask(mpi, &k, &cam_pose, &inv, config.mode, config.skip, params.fields)
-                .map_err(render_err("scene"))?;
-            let mut out = r.out;
-            let mask = std::mem::take(&mut out.extras);
-            (out, Some(mask))
-        }
-        _ => (render::<f32>(mpi, &params, occupancy).map_err(render_err("scene"))?, None),
+
+    // ---- every frame's renders: frame f (0-based; f = 1 is image2) under pose^f of the camera
+    // and of each object; links: slot 0 the previous frame (backward fields), slot 1 the next
+    let frames = config.frames;
+    let cam_traj = trajectory(&cam_pose, frames);
+    let obj_traj: Vec<Vec<Pose>> = poses.iter().map(|p| trajectory(p, frames)).collect();
+    let links_of = |traj: &[Pose], f: usize| -> [Option<View>; 2] {
+        let prev = config.backward.then(|| if f == 1 { View::Source } else { View::Pose(traj[f - 1]) });
+        [prev, (f + 1 < frames).then(|| View::Pose(traj[f + 1]))]
     };
-    timings.render_ms = ms(t) + occupancy_ms;
-
-    // render(1 - U) = coverage - render(U), and render(U) is 0 outside U's footprint: the scene
-    // mask is the coverage except over that window
-    let t = Instant::now();
-    let mut mask_patch: Option<(Rect, Vec<f32>)> = None;
-    if let (None, Some(u)) = (&full_mask, &union) {
-        if let Some(support) = support_rect(u, w, h) {
-            let win = scene_mask_window(mpi, &k, &cam_pose, &support);
-            let r = render_mask_window(mpi, occupancy, &k, &cam_pose, &win, u, config.skip, false)
-                .map_err(render_err("scene mask"))?;
-            let patch = r.out.coverage.iter().zip(&r.out.extras).map(|(c, m)| c - m).collect();
-            mask_patch = Some((win, patch));
-        }
-    }
-
-    // ---- object renders
-    let mut renders: Vec<WindowRender> = Vec::with_capacity(chosen.len());
-    for (&idx, pose) in chosen.iter().zip(&poses) {
-        let mask = &scene.masks.masks[idx].mask;
-        let r = match (windowed, support_rect(mask, w, h)) {
-            (true, Some(support)) => {
-                let win = object_window(mpi, &k, pose, &support);
-                render_mask_window(mpi, occupancy, &k, pose, &win, mask, config.skip, true)
-            }
-            _ => render_full_with_mask(mpi, &k, pose, mask, config.mode, config.skip, params.fields),
-        }
-        .map_err(render_err("object"))?;
+    let ctx = FrameCtx { scene, config, windowed, occupancy, union: union.as_deref(), chosen: &chosen };
+    let mut renders: Vec<FrameRender> = Vec::with_capacity(frames - 1);
+    for f in 1..frames {
+        let obj_poses: Vec<(Pose, [Option<View>; 2])> =
+            obj_traj.iter().map(|traj| (traj[f], links_of(traj, f))).collect();
+        let r = render_frame(&ctx, (cam_traj[f], links_of(&cam_traj, f)), &obj_poses, f == 1)?;
         renders.push(r);
     }
-    objects_ms += ms(t);
+    let (mut render_ms, mut objects_extra_ms) = (occupancy_ms, 0.0);
+    for r in &renders {
+        render_ms += r.render_ms;
+        objects_extra_ms += r.objects_ms;
+    }
+    timings.render_ms = render_ms;
+    objects_ms += objects_extra_ms;
     timings.objects_ms = objects_ms;
 
-    // ---- merge
+    // ---- merge: frame 2 both sides (image2 and the forward flow), later frames their target side
     let t = Instant::now();
-    let RenderOutput { image, depth, coverage, flow, source_depth_in_target, valid, .. } = scene_out;
+    let mut first = renders.remove(0);
+    let scene_links = std::mem::take(&mut first.scene.links);
+    let source_depth = std::mem::take(&mut first.scene.source_depth);
+    let RenderOutput { image, depth, coverage, flow, source_depth_in_target, valid, .. } = first.scene;
     let view = SceneView {
         width: w,
         height: h,
         image: &image,
         depth,
-        scene_mask: full_mask.as_deref().unwrap_or(&coverage),
-        scene_mask_patch: mask_patch.as_ref().map(|(r, p)| (*r, p.as_slice())),
+        scene_mask: first.full_mask.as_deref().unwrap_or(&coverage),
+        scene_mask_patch: first.mask_patch.as_ref().map(|(r, p)| (*r, p.as_slice())),
         flow,
         valid,
         source_depth: source_depth_in_target,
     };
-    let views: Vec<ObjectView<'_>> = chosen
-        .iter()
-        .zip(&renders)
-        .enumerate()
-        .map(|(slot, (&idx, r))| ObjectView {
-            label: (slot + 1) as u8,
-            source_mask: &scene.masks.masks[idx].mask,
-            render: r,
+    let views1 = object_views(scene, &chosen, &first.objects);
+    let merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold);
+    drop(image);
+    // what frame 2 shows (inf at holes), for the links that land in it
+    let shown2: Vec<f32> = if frames > 2 {
+        merged.depth2.iter().zip(&merged.hole).map(|(&d, &o)| if o != 0 { f32::INFINITY } else { d }).collect()
+    } else {
+        Vec::new()
+    };
+    let mut later: Vec<(TargetSide, [Link; 2])> = Vec::with_capacity(renders.len());
+    for r in &mut renders {
+        let links = std::mem::take(&mut r.scene.links);
+        let views = object_views(scene, &chosen, &r.objects);
+        let depth = std::mem::take(&mut r.scene.depth);
+        let target = merge_target(
+            w,
+            h,
+            &r.scene.image,
+            depth,
+            r.full_mask.as_deref().unwrap_or(&r.scene.coverage),
+            r.mask_patch.as_ref().map(|(rc, p)| (*rc, p.as_slice())),
+            &views,
+            config.merge,
+            config.mask_threshold,
+        );
+        later.push((target, links));
+    }
+
+    // ---- links: the backward fields of every frame and the forward flows from frame 2 on
+    let image1_labels = &merged.mask1;
+    // what frame f (>= 1) shows
+    let frame_of = |f: usize| -> OtherFrame<'_> {
+        if f == 1 {
+            OtherFrame { depth: &shown2, labels: &merged.mask2 }
+        } else {
+            OtherFrame { depth: &later[f - 2].0.shown_depth, labels: &later[f - 2].0.mask }
+        }
+    };
+    let backward = if config.backward {
+        let other = OtherFrame { depth: &source_depth, labels: image1_labels };
+        merge_link(0, &scene_links[0], &views1, &merged.mask2, &merged.hole, other, w, h, config.label_rule)
+    } else {
+        LinkFields::default()
+    };
+    let mut clip = Vec::with_capacity(later.len());
+    for (j, (target, links)) in later.iter().enumerate() {
+        // frame f = j + 2 (0-based): its previous frame is f - 1
+        let f = j + 2;
+        let (prev_links, prev_mask, prev_hole, prev_views) = if f == 2 {
+            (&scene_links, &merged.mask2, &merged.hole, object_views(scene, &chosen, &first.objects))
+        } else {
+            let (pt, pl) = &later[j - 1];
+            (pl, &pt.mask, &pt.hole, object_views(scene, &chosen, &renders[j - 1].objects))
+        };
+        let forward =
+            merge_link(1, &prev_links[1], &prev_views, prev_mask, prev_hole, frame_of(f), w, h, config.label_rule);
+        let backward = if config.backward {
+            let views = object_views(scene, &chosen, &renders[j].objects);
+            merge_link(0, &links[0], &views, &target.mask, &target.hole, frame_of(f - 1), w, h, config.label_rule)
+        } else {
+            LinkFields::default()
+        };
+        clip.push((forward, backward));
+    }
+    let clip: Vec<ClipFrame> = later
+        .into_iter()
+        .zip(clip)
+        .map(|((t, _), (forward, backward))| ClipFrame {
+            image: t.image,
+            forward,
+            backward,
+            mask: t.mask,
+            depth: t.shown_depth.into_iter().map(|d| if d.is_finite() && d > 0.0 { d } else { 0.0 }).collect(),
+            holes: t.hole,
         })
         .collect();
-    let merged = merge(view, &views, config.merge, config.label_rule, config.mask_threshold);
+    drop(views1);
+    drop(first.objects);
     let image1: Vec<u8> = scene.image.data.iter().map(|&v| unit_to_u8(v)).collect();
     // depth1 = 1 / disparity, written over the scene render's coverage (no longer needed; a
     // buffer already in memory costs no page faults)
@@ -412,10 +480,125 @@ fn assemble_merged_sample(
         depth2: merged.depth2,
         holes: merged.hole,
         inpainted_pixels: merged.holes,
+        backward,
+        clip,
         skipped_sources: 0,
         provenance: scene.provenance.clone(),
         intrinsics: scene.intrinsics,
         timings,
     };
     Ok((sample, merged.target_depth))
+}
+
+/// `[identity, pose, pose^2, ..., pose^(frames - 1)]`: the constant-velocity trajectory (each
+/// frame repeats the drawn frame-1 -> frame-2 motion, `pose^(f+1) = pose o pose^f`).
+pub fn trajectory(pose: &Pose, frames: usize) -> Vec<Pose> {
+    let mut out = vec![Pose::identity()];
+    for f in 1..frames.max(1) {
+        out.push(pose.compose(&out[f - 1]));
+    }
+    out
+}
+
+/// What every frame's renders share.
+struct FrameCtx<'a> {
+    scene: &'a Scene,
+    config: &'a SampleConfig,
+    windowed: bool,
+    occupancy: Option<&'a Occupancy>,
+    union: Option<&'a [f32]>,
+    chosen: &'a [usize],
+}
+
+/// One frame's renders: the scene (whole frame), its scene mask (a full channel, or the
+/// coverage with a patch), the objects.
+struct FrameRender {
+    scene: RenderOutput,
+    full_mask: Option<Vec<f32>>,
+    mask_patch: Option<(Rect, Vec<f32>)>,
+    objects: Vec<WindowRender>,
+    render_ms: f64,
+    objects_ms: f64,
+}
+
+fn object_views<'a>(scene: &'a Scene, chosen: &[usize], renders: &'a [WindowRender]) -> Vec<ObjectView<'a>> {
+    chosen
+        .iter()
+        .zip(renders)
+        .enumerate()
+        .map(|(slot, (&idx, r))| ObjectView {
+            label: (slot + 1) as u8,
+            source_mask: &scene.masks.masks[idx].mask,
+            render: r,
+        })
+        .collect()
+}
+
+/// Renders one frame: the scene under `cam` (with the source view when `source_view`: frame 2,
+/// the forward flow), the scene mask, and each chosen object under its pose, each with its
+/// links.
+fn render_frame(
+    c: &FrameCtx<'_>,
+    cam: (Pose, [Option<View>; 2]),
+    objects: &[(Pose, [Option<View>; 2])],
+    source_view: bool,
+) -> Result<FrameRender, SampleError> {
+    let (scene, config) = (c.scene, c.config);
+    let mpi = &*scene.mpi;
+    let (w, h) = (mpi.width, mpi.height);
+    let k = scene.intrinsics;
+    let render_err = |stage: &'static str| {
+        let id = scene.id.clone();
+        move |source: RenderError| SampleError::Render { id, stage, source: Box::new(source) }
+    };
+    let (cam_pose, cam_links) = cam;
+    let mut params = RenderParams::new(k, cam_pose);
+    params.mode = config.mode;
+    params.skip = config.skip;
+    params.fields = Fields { target: true, flow: source_view, occlusion: false };
+    params.links = cam_links;
+    let t = Instant::now();
+    let (scene_out, full_mask): (_, Option<Vec<f32>>) = match (c.union, c.windowed) {
+        (Some(u), false) => {
+            // the reference's scene render: a full copy with the channel 1 - U
+            let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
+            let r = render_full_with_mask(mpi, &k, &cam_pose, &inv, config.mode, config.skip, params.fields, cam_links)
+                .map_err(render_err("scene"))?;
+            let mut out = r.out;
+            let mask = std::mem::take(&mut out.extras);
+            (out, Some(mask))
+        }
+        _ => (render::<f32>(mpi, &params, c.occupancy).map_err(render_err("scene"))?, None),
+    };
+    let render_ms = ms(t);
+
+    // render(1 - U) = coverage - render(U), and render(U) is 0 outside U's footprint: the scene
+    // mask is the coverage except over that window
+    let t = Instant::now();
+    let mut mask_patch: Option<(Rect, Vec<f32>)> = None;
+    if let (None, Some(u)) = (&full_mask, c.union) {
+        if let Some(support) = support_rect(u, w, h) {
+            let win = scene_mask_window(mpi, &k, &cam_pose, &support);
+            let r = render_mask_window(mpi, c.occupancy, &k, &cam_pose, &win, u, config.skip, false, [None, None])
+                .map_err(render_err("scene mask"))?;
+            let patch = r.out.coverage.iter().zip(&r.out.extras).map(|(c, m)| c - m).collect();
+            mask_patch = Some((win, patch));
+        }
+    }
+
+    // ---- object renders
+    let mut renders: Vec<WindowRender> = Vec::with_capacity(c.chosen.len());
+    for (&idx, (pose, links)) in c.chosen.iter().zip(objects) {
+        let mask = &scene.masks.masks[idx].mask;
+        let r = match (c.windowed, support_rect(mask, w, h)) {
+            (true, Some(support)) => {
+                let win = object_window(mpi, &k, pose, &support);
+                render_mask_window(mpi, c.occupancy, &k, pose, &win, mask, config.skip, source_view, *links)
+            }
+            _ => render_full_with_mask(mpi, &k, pose, mask, config.mode, config.skip, params.fields, *links),
+        }
+        .map_err(render_err("object"))?;
+        renders.push(r);
+    }
+    Ok(FrameRender { scene: scene_out, full_mask, mask_patch, objects: renders, render_ms, objects_ms: ms(t) })
 }

@@ -49,6 +49,10 @@ pub struct Overrides {
     pub motion_ranges: Option<MotionRanges>,
     pub max_objects: Option<usize>,
     pub motions_per_image: Option<u64>,
+    /// Frames per sample (`frames`; part of the fingerprint).
+    pub frames: Option<usize>,
+    /// The request asks for a backward field (not part of the fingerprint).
+    pub backward: bool,
 }
 
 impl Overrides {
@@ -122,6 +126,10 @@ impl Dataset {
         if let Some(m) = o.motions_per_image {
             config.motions_per_image = m;
         }
+        if let Some(f) = o.frames {
+            config.frames = f;
+        }
+        config.backward |= o.backward;
         if let Err(e) = config.validate() {
             // the default configuration was valid, so the field at fault is an overridden one,
             // and the request's overrides are named as the configuration's fields

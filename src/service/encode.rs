@@ -9,7 +9,7 @@ use crate::geometry::Intrinsics;
 use crate::sample::augment::{clear_valid_outside, Augment};
 use crate::sample::motion::{Motion, RotationKind};
 use crate::sample::rng::{Purpose, SampleRng};
-use crate::sample::{ObjectRecord, Sample, SampleAddress, StageTimings};
+use crate::sample::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
 
 /// The random stream of a sample's crop position: `Purpose::Other(CROP_PURPOSE)` of its address.
 pub const CROP_PURPOSE: u32 = 0x6372_6f70; // "crop"
@@ -93,6 +93,16 @@ fn crop_plane<T: Copy>(data: &[T], w: usize, channels: usize, x0: usize, y0: usi
     out
 }
 
+/// A flow with its masks cut to the window (`valid` cleared where the target leaves it).
+fn crop_link(l: &LinkFields, w: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> LinkFields {
+    let flow = crop_plane(&l.flow, w, 2, x0, y0, cw, ch);
+    let mut valid = crop_plane(&l.valid, w, 1, x0, y0, cw, ch);
+    if !valid.is_empty() {
+        clear_valid_outside(&flow, &mut valid, cw, ch);
+    }
+    LinkFields { flow, valid, occlusion: crop_plane(&l.occlusion, w, 1, x0, y0, cw, ch) }
+}
+
 /// Cuts every field of `s` to the window; the flow values stay (a displacement does not change
 /// when both images are cut alike), and `valid` is cleared where the flow target leaves the crop
 /// (the renderer's rule: target inside `[0, cw - 1] x [0, ch - 1]`).
@@ -119,6 +129,19 @@ pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sa
         depth2: crop_plane(&s.depth2, w, 1, x0, y0, cw, ch),
         holes: crop_plane(&s.holes, w, 1, x0, y0, cw, ch),
         inpainted_pixels: s.inpainted_pixels,
+        backward: crop_link(&s.backward, w, x0, y0, cw, ch),
+        clip: s
+            .clip
+            .iter()
+            .map(|f| ClipFrame {
+                image: crop_plane(&f.image, w, 3, x0, y0, cw, ch),
+                forward: crop_link(&f.forward, w, x0, y0, cw, ch),
+                backward: crop_link(&f.backward, w, x0, y0, cw, ch),
+                mask: crop_plane(&f.mask, w, 1, x0, y0, cw, ch),
+                depth: crop_plane(&f.depth, w, 1, x0, y0, cw, ch),
+                holes: crop_plane(&f.holes, w, 1, x0, y0, cw, ch),
+            })
+            .collect(),
         skipped_sources: s.skipped_sources,
         provenance: s.provenance.clone(),
         intrinsics: crate::geometry::Intrinsics::new(
@@ -179,8 +202,109 @@ pub fn field_name(f: pb::Field) -> &'static str {
         pb::Field::Depth1 => "depth1",
         pb::Field::Depth2 => "depth2",
         pb::Field::Holes => "holes",
+        pb::Field::FlowBackward => "flow_backward",
+        pb::Field::ValidBackward => "valid_backward",
+        pb::Field::OcclusionBackward => "occlusion_backward",
         pb::Field::Disparity => "disparity",
     }
+}
+
+/// The wire name of a field in a clip of more than two frames (stacked over the frames or the
+/// pairs), or None for the fields that stay those of the first pair.
+pub fn clip_field_name(f: pb::Field) -> Option<&'static str> {
+    Some(match f {
+        pb::Field::Image1 | pb::Field::Image2 => "images",
+        pb::Field::Flow => "flows",
+        pb::Field::Valid => "valids",
+        pb::Field::Occlusion => "occlusions",
+        pb::Field::FlowBackward => "flows_backward",
+        pb::Field::ValidBackward => "valids_backward",
+        pb::Field::OcclusionBackward => "occlusions_backward",
+        _ => return None,
+    })
+}
+
+/// Whether the fields ask for the backward flow or its masks.
+pub fn wants_backward(fields: &[pb::Field]) -> bool {
+    fields
+        .iter()
+        .any(|f| matches!(f, pb::Field::FlowBackward | pb::Field::ValidBackward | pb::Field::OcclusionBackward))
+}
+
+fn flow_tensor(name: &str, shape: &[usize], v: &[f32], out: &OutputSpec) -> pb::Tensor {
+    if out.flow_f16 {
+        tensor(name, shape, pb::DType::DtypeF16, f16_bytes(v), out.lz4)
+    } else {
+        tensor(name, shape, pb::DType::DtypeF32, f32_bytes(v), out.lz4)
+    }
+}
+
+/// The stacked tensors of a clip (see [`clip_field_name`]).
+fn clip_tensors(s: &mut Sample, out: &OutputSpec, tensors: &mut Vec<pb::Tensor>) -> Vec<pb::Field> {
+    let (w, h) = (s.width, s.height);
+    let k = s.clip.len() + 2;
+    let mut pair_fields = Vec::new();
+    let mut images_done = false;
+    for &f in &out.fields {
+        let Some(name) = clip_field_name(f) else {
+            pair_fields.push(f);
+            continue;
+        };
+        let cat_u8 = |first: &[u8], rest: &mut dyn Iterator<Item = &[u8]>| -> Vec<u8> {
+            let mut v = first.to_vec();
+            for r in rest {
+                v.extend_from_slice(r);
+            }
+            v
+        };
+        let cat_f32 = |first: &[f32], rest: &mut dyn Iterator<Item = &[f32]>| -> Vec<f32> {
+            let mut v = first.to_vec();
+            for r in rest {
+                v.extend_from_slice(r);
+            }
+            v
+        };
+        let t = match f {
+            pb::Field::Image1 | pb::Field::Image2 => {
+                if images_done {
+                    continue;
+                }
+                images_done = true;
+                let mut v = cat_u8(&s.image1, &mut std::iter::once(s.image2.as_slice()));
+                for c in &s.clip {
+                    v.extend_from_slice(&c.image);
+                }
+                tensor(name, &[k, h, w, 3], pb::DType::DtypeU8, v, out.lz4)
+            }
+            pb::Field::Flow => {
+                let v = cat_f32(&s.flow, &mut s.clip.iter().map(|c| c.forward.flow.as_slice()));
+                flow_tensor(name, &[k - 1, h, w, 2], &v, out)
+            }
+            pb::Field::FlowBackward => {
+                let v = cat_f32(&s.backward.flow, &mut s.clip.iter().map(|c| c.backward.flow.as_slice()));
+                flow_tensor(name, &[k - 1, h, w, 2], &v, out)
+            }
+            pb::Field::Valid => {
+                let v = cat_u8(&s.valid, &mut s.clip.iter().map(|c| c.forward.valid.as_slice()));
+                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+            }
+            pb::Field::Occlusion => {
+                let v = cat_u8(&s.occlusion, &mut s.clip.iter().map(|c| c.forward.occlusion.as_slice()));
+                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+            }
+            pb::Field::ValidBackward => {
+                let v = cat_u8(&s.backward.valid, &mut s.clip.iter().map(|c| c.backward.valid.as_slice()));
+                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+            }
+            pb::Field::OcclusionBackward => {
+                let v = cat_u8(&s.backward.occlusion, &mut s.clip.iter().map(|c| c.backward.occlusion.as_slice()));
+                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+            }
+            _ => continue,
+        };
+        tensors.push(t);
+    }
+    pair_fields
 }
 
 fn motion_pb(m: &Motion) -> pb::Motion {
@@ -208,8 +332,10 @@ pub fn to_proto(
 ) -> pb::Sample {
     let t = std::time::Instant::now();
     let (w, h) = (s.width, s.height);
+    let frames = s.clip.len() + 2;
     let mut tensors = Vec::with_capacity(out.fields.len());
-    for &f in &out.fields {
+    let pair_fields = if s.clip.is_empty() { out.fields.clone() } else { clip_tensors(&mut s, out, &mut tensors) };
+    for &f in &pair_fields {
         let name = field_name(f);
         let t = match f {
             pb::Field::Image1 => tensor(name, &[h, w, 3], pb::DType::DtypeU8, std::mem::take(&mut s.image1), out.lz4),
@@ -227,6 +353,13 @@ pub fn to_proto(
             pb::Field::Depth1 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth1), out.lz4),
             pb::Field::Depth2 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth2), out.lz4),
             pb::Field::Holes => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.holes), out.lz4),
+            pb::Field::FlowBackward => flow_tensor(name, &[h, w, 2], &s.backward.flow, out),
+            pb::Field::ValidBackward => {
+                tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.backward.valid), out.lz4)
+            }
+            pb::Field::OcclusionBackward => {
+                tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.backward.occlusion), out.lz4)
+            }
             pb::Field::Disparity => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.disparity()), out.lz4),
             pb::Field::Unspecified => continue,
         };
@@ -271,6 +404,7 @@ pub fn to_proto(
         inpainted_pixels: s.inpainted_pixels,
         provenance: std::mem::take(&mut s.provenance),
         augment: String::new(),
+        frames: frames as u32,
     }
 }
 
@@ -374,6 +508,8 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
         depth2: vec![0.0; n],
         holes: vec![0; n],
         inpainted_pixels: s.inpainted_pixels,
+        backward: Default::default(),
+        clip: Vec::new(),
         skipped_sources: s.skipped_sources,
         provenance: s.provenance.clone(),
         intrinsics: s
@@ -394,7 +530,27 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
             })
             .unwrap_or_default(),
     };
+    let frames = (s.frames as usize).max(2);
+    if frames > crate::sample::config::MAX_FRAMES {
+        return Err(DecodeError { name: "frames".into(), message: format!("{frames} frames (at most 8)") });
+    }
+    if frames > 2 {
+        out.clip = (2..frames)
+            .map(|_| ClipFrame {
+                image: vec![0; n * 3],
+                forward: LinkFields { flow: vec![0.0; n * 2], valid: vec![0; n], occlusion: vec![0; n] },
+                mask: vec![0; n],
+                depth: vec![0.0; n],
+                holes: vec![0; n],
+                ..ClipFrame::default()
+            })
+            .collect();
+    }
     for t in &s.tensors {
+        if let Some(stack) = stacked(t.name.as_str()) {
+            from_stack(t, stack, &mut out, frames)?;
+            continue;
+        }
         let check = |len: usize, want: usize| {
             if len == want {
                 Ok(())
@@ -407,6 +563,20 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
                 let v = decode_f32(t)?;
                 check(v.len(), n * 2)?;
                 out.flow = v;
+            }
+            "flow_backward" => {
+                let v = decode_f32(t)?;
+                check(v.len(), n * 2)?;
+                out.backward.flow = v;
+            }
+            "valid_backward" | "occlusion_backward" => {
+                let v = decode_tensor(t)?;
+                check(v.len(), n)?;
+                if t.name == "valid_backward" {
+                    out.backward.valid = v;
+                } else {
+                    out.backward.occlusion = v;
+                }
             }
             // a disparity without a flow tensor gives the flow (u, v) = (-d, 0)
             "disparity" if !s.tensors.iter().any(|t| t.name == "flow") => {
@@ -441,6 +611,84 @@ pub fn from_proto(s: &pb::Sample) -> Result<Sample, DecodeError> {
         }
     }
     Ok(out)
+}
+
+/// What a stacked clip tensor holds.
+#[derive(Clone, Copy)]
+enum Stack {
+    Images,
+    Flow { backward: bool },
+    Mask { backward: bool, occlusion: bool },
+}
+
+fn stacked(name: &str) -> Option<Stack> {
+    Some(match name {
+        "images" => Stack::Images,
+        "flows" => Stack::Flow { backward: false },
+        "flows_backward" => Stack::Flow { backward: true },
+        "valids" => Stack::Mask { backward: false, occlusion: false },
+        "occlusions" => Stack::Mask { backward: false, occlusion: true },
+        "valids_backward" => Stack::Mask { backward: true, occlusion: false },
+        "occlusions_backward" => Stack::Mask { backward: true, occlusion: true },
+        _ => return None,
+    })
+}
+
+/// Unstacks a clip tensor into the sample's frames and pairs.
+fn from_stack(t: &pb::Tensor, stack: Stack, out: &mut Sample, frames: usize) -> Result<(), DecodeError> {
+    let n = out.width * out.height;
+    let bad = |message: String| DecodeError { name: t.name.clone(), message };
+    match stack {
+        Stack::Images => {
+            let v = decode_tensor(t)?;
+            if v.len() != frames * n * 3 {
+                return Err(bad(format!("{} values for {frames} frames of {n} pixels", v.len())));
+            }
+            let mut parts = v.chunks_exact(n * 3);
+            out.image1 = parts.next().unwrap_or_default().to_vec();
+            out.image2 = parts.next().unwrap_or_default().to_vec();
+            for (c, p) in out.clip.iter_mut().zip(parts) {
+                c.image = p.to_vec();
+            }
+        }
+        Stack::Flow { backward } => {
+            let v = decode_f32(t)?;
+            if v.len() != (frames - 1) * n * 2 {
+                return Err(bad(format!("{} values for {} pairs of {n} pixels", v.len(), frames - 1)));
+            }
+            for (pair, p) in v.chunks_exact(n * 2).enumerate() {
+                let slot = match (pair, backward) {
+                    (0, false) => &mut out.flow,
+                    (0, true) => &mut out.backward.flow,
+                    (q, false) => &mut out.clip[q - 1].forward.flow,
+                    (q, true) => &mut out.clip[q - 1].backward.flow,
+                };
+                *slot = p.to_vec();
+            }
+        }
+        Stack::Mask { backward, occlusion } => {
+            let v = decode_tensor(t)?;
+            if v.len() != (frames - 1) * n {
+                return Err(bad(format!("{} values for {} pairs of {n} pixels", v.len(), frames - 1)));
+            }
+            for (pair, p) in v.chunks_exact(n).enumerate() {
+                let l = match (pair, backward) {
+                    (0, false) => None,
+                    (0, true) => Some(&mut out.backward),
+                    (q, false) => Some(&mut out.clip[q - 1].forward),
+                    (q, true) => Some(&mut out.clip[q - 1].backward),
+                };
+                let slot = match (l, occlusion) {
+                    (None, false) => &mut out.valid,
+                    (None, true) => &mut out.occlusion,
+                    (Some(l), false) => &mut l.valid,
+                    (Some(l), true) => &mut l.occlusion,
+                };
+                *slot = p.to_vec();
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -487,6 +735,8 @@ mod tests {
             depth2: vec![1.0; n],
             holes: vec![0; n],
             inpainted_pixels: 0,
+            backward: Default::default(),
+            clip: Vec::new(),
             skipped_sources: 0,
             provenance: vec![],
             intrinsics: Intrinsics::reference_default(w, h),

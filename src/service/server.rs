@@ -142,7 +142,8 @@ impl State {
         let (rank, world, batch, prefetch) = validate::stream_shape(r, &self.config)?;
         let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
         validate::augment(&r.augment, &mut out, &self.config)?;
-        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        validate::frames(r.frames, &out, &mut o)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
         // the stream limit
@@ -200,7 +201,8 @@ impl State {
         let indices = validate::indices(&r.indices)?;
         let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
         validate::augment(&r.augment, &mut out, &self.config)?;
-        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        validate::frames(r.frames, &out, &mut o)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
         self.admit()?;
@@ -239,7 +241,8 @@ impl State {
         }
         let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
         validate::augment(&r.augment, &mut out, &self.config)?;
-        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        validate::frames(r.frames, &out, &mut o)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
         let spec = StreamSpec {

@@ -3,7 +3,7 @@
 
 use super::config::ServiceConfig;
 use super::dataset::Overrides;
-use super::encode::{CropSpec, OutputSpec, DEFAULT_FIELDS};
+use super::encode::{wants_backward, CropSpec, OutputSpec, DEFAULT_FIELDS};
 use super::error::ServiceError;
 use super::pb;
 use crate::failure::{echo, printable, ECHO_CHARS};
@@ -174,7 +174,25 @@ pub fn overrides(
         motion_ranges,
         max_objects: max_objects.map(|m| m as usize),
         motions_per_image: motions_per_image.map(u64::from),
+        frames: None,
+        backward: false,
     })
+}
+
+/// The `frames` of a request (0 = 2, else 2 to 8) and whether its fields ask for the backward
+/// flow, put into `o`. Clips and backward fields are not made with `augment`.
+pub fn frames(frames: u32, out: &OutputSpec, o: &mut Overrides) -> Result<(), ServiceError> {
+    use crate::sample::config::{MAX_FRAMES, MIN_FRAMES};
+    let k = if frames == 0 { MIN_FRAMES } else { frames as usize };
+    if !(MIN_FRAMES..=MAX_FRAMES).contains(&k) {
+        return Err(invalid("frames", format!("{frames} (expected {MIN_FRAMES} to {MAX_FRAMES}, or 0 for 2)")));
+    }
+    o.backward = wants_backward(&out.fields);
+    if out.augment.is_some() && (k > MIN_FRAMES || o.backward) {
+        return Err(invalid("augment", "is not made for clips (frames > 2) or the backward fields yet"));
+    }
+    o.frames = (k != MIN_FRAMES).then_some(k);
+    Ok(())
 }
 
 /// Rank, world size, start, count, batch size and prefetch of a stream request:

@@ -155,8 +155,10 @@ def build_request_fields(
     max_objects: Optional[int] = None,
     motions_per_image: Optional[int] = None,
     augment: Any = None,
+    frames: Optional[int] = None,
 ) -> Dict[str, Any]:
-    """The keyword arguments shared by StreamRequest and SampleRequest."""
+    """The keyword arguments shared by StreamRequest and SampleRequest. `frames` = K (2 to
+    8): K > 2 asks for a clip (stacked tensors, see decode.CLIP_NAMES)."""
     kw: Dict[str, Any] = dict(
         dataset=dataset or "",
         fingerprint=int(fingerprint or 0),
@@ -175,6 +177,8 @@ def build_request_fields(
         kw["max_objects"] = int(max_objects)
     if motions_per_image is not None:
         kw["motions_per_image"] = int(motions_per_image)
+    if frames is not None:
+        kw["frames"] = int(frames)
     return kw
 
 
@@ -500,6 +504,7 @@ class Client:
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
         augment: Any = None,
+        frames: Optional[int] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -521,6 +526,7 @@ class Client:
                 max_objects=max_objects,
                 motions_per_image=motions_per_image,
                 augment=augment,
+                frames=frames,
             ),
         )
         s = self._unary("GetSample", req, timeout, address)
@@ -551,6 +557,7 @@ class Client:
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
         augment: Any = None,
+        frames: Optional[int] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -580,6 +587,7 @@ class Client:
             max_objects=max_objects,
             motions_per_image=motions_per_image,
             augment=augment,
+            frames=frames,
         )
         limit = max(1, self.max_indices())
         out: List[Any] = []

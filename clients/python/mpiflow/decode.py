@@ -16,6 +16,7 @@ from ._proto import mpiflow_pb2 as pb
 
 __all__ = [
     "DEFAULT_FIELDS",
+    "CLIP_NAMES",
     "DecodeError",
     "Sample",
     "decode_sample",
@@ -49,10 +50,34 @@ _FIELD_NAMES = {
     pb.FIELD_DEPTH1: "depth1",
     pb.FIELD_DEPTH2: "depth2",
     pb.FIELD_HOLES: "holes",
+    pb.FIELD_FLOW_BACKWARD: "flow_backward",
+    pb.FIELD_VALID_BACKWARD: "valid_backward",
+    pb.FIELD_OCCLUSION_BACKWARD: "occlusion_backward",
     pb.FIELD_DISPARITY: "disparity",
 }
 _NAME_FIELDS = {v: k for k, v in _FIELD_NAMES.items()}
-_ALIASES = {"img1": "image1", "img2": "image2", "occ": "occlusion"}
+_ALIASES = {
+    "img1": "image1",
+    "img2": "image2",
+    "occ": "occlusion",
+    "flow_bw": "flow_backward",
+    "valid_bw": "valid_backward",
+    "occ_bw": "occlusion_backward",
+}
+
+# A clip (frames > 2) carries stacked tensors under these names instead (docs/outputs.md):
+# images [K, H, W, 3], flows / flows_backward [K-1, H, W, 2], valids, occlusions,
+# valids_backward, occlusions_backward [K-1, H, W]; the other fields are the first pair's.
+CLIP_NAMES = {
+    "image1": "images",
+    "image2": "images",
+    "flow": "flows",
+    "valid": "valids",
+    "occlusion": "occlusions",
+    "flow_backward": "flows_backward",
+    "valid_backward": "valids_backward",
+    "occlusion_backward": "occlusions_backward",
+}
 
 DEFAULT_FIELDS: Tuple[str, ...] = ("image1", "image2", "flow", "valid")
 
@@ -150,6 +175,8 @@ class Sample:
     skipped_sources: int = 0
     # what the server-side augmentation applied (the Sample's `augment` JSON); empty without it
     augment: str = ""
+    # frames held: 2 = a pair, more = a clip with stacked tensors (CLIP_NAMES)
+    frames: int = 2
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.tensors[name]
@@ -178,6 +205,7 @@ def decode_sample(s: "pb.Sample") -> Sample:
         timings=s.timings if s.HasField("timings") else None,
         skipped_sources=s.skipped_sources,
         augment=s.augment,
+        frames=max(2, int(s.frames)),
     )
 
 

@@ -20,6 +20,9 @@ class Field(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     FIELD_DEPTH1: _ClassVar[Field]
     FIELD_DEPTH2: _ClassVar[Field]
     FIELD_HOLES: _ClassVar[Field]
+    FIELD_FLOW_BACKWARD: _ClassVar[Field]
+    FIELD_VALID_BACKWARD: _ClassVar[Field]
+    FIELD_OCCLUSION_BACKWARD: _ClassVar[Field]
     FIELD_DISPARITY: _ClassVar[Field]
 
 class DType(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
@@ -57,6 +60,9 @@ FIELD_MASK2: Field
 FIELD_DEPTH1: Field
 FIELD_DEPTH2: Field
 FIELD_HOLES: Field
+FIELD_FLOW_BACKWARD: Field
+FIELD_VALID_BACKWARD: Field
+FIELD_OCCLUSION_BACKWARD: Field
 FIELD_DISPARITY: Field
 DTYPE_UNSPECIFIED: DType
 DTYPE_U8: DType
@@ -83,7 +89,7 @@ class OutputCrop(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., mode: _Optional[_Union[CropMode, str]] = ...) -> None: ...
 
 class StreamRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "rank", "world_size", "start_index", "count", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "batch_size", "prefetch", "augment")
+    __slots__ = ("dataset", "fingerprint", "seed", "rank", "world_size", "start_index", "count", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "batch_size", "prefetch", "augment", "frames")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -102,6 +108,7 @@ class StreamRequest(_message.Message):
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PREFETCH_FIELD_NUMBER: _ClassVar[int]
     AUGMENT_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -120,10 +127,11 @@ class StreamRequest(_message.Message):
     batch_size: int
     prefetch: int
     augment: str
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ..., augment: _Optional[str] = ...) -> None: ...
+    frames: int
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "index", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment")
+    __slots__ = ("dataset", "fingerprint", "seed", "index", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -137,6 +145,7 @@ class SampleRequest(_message.Message):
     MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
     MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
     AUGMENT_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -150,10 +159,11 @@ class SampleRequest(_message.Message):
     max_objects: int
     motions_per_image: int
     augment: str
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ...) -> None: ...
+    frames: int
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ...) -> None: ...
 
 class SamplesRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment")
+    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -167,6 +177,7 @@ class SamplesRequest(_message.Message):
     MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
     MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
     AUGMENT_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -180,7 +191,8 @@ class SamplesRequest(_message.Message):
     max_objects: int
     motions_per_image: int
     augment: str
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ...) -> None: ...
+    frames: int
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ...) -> None: ...
 
 class Tensor(_message.Message):
     __slots__ = ("name", "shape", "dtype", "compression", "raw_size", "data")
@@ -259,7 +271,7 @@ class Timings(_message.Message):
     def __init__(self, scene_ms: _Optional[float] = ..., render_ms: _Optional[float] = ..., objects_ms: _Optional[float] = ..., merge_ms: _Optional[float] = ..., inpaint_ms: _Optional[float] = ..., total_ms: _Optional[float] = ..., encode_ms: _Optional[float] = ...) -> None: ...
 
 class Sample(_message.Message):
-    __slots__ = ("index", "dataset", "fingerprint", "seed", "source_id", "width", "height", "tensors", "camera", "objects", "intrinsics", "timings", "skipped_sources", "crop_x", "crop_y", "inpainted_pixels", "provenance", "augment")
+    __slots__ = ("index", "dataset", "fingerprint", "seed", "source_id", "width", "height", "tensors", "camera", "objects", "intrinsics", "timings", "skipped_sources", "crop_x", "crop_y", "inpainted_pixels", "provenance", "augment", "frames")
     INDEX_FIELD_NUMBER: _ClassVar[int]
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
@@ -278,6 +290,7 @@ class Sample(_message.Message):
     INPAINTED_PIXELS_FIELD_NUMBER: _ClassVar[int]
     PROVENANCE_FIELD_NUMBER: _ClassVar[int]
     AUGMENT_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
     index: int
     dataset: str
     fingerprint: int
@@ -296,7 +309,8 @@ class Sample(_message.Message):
     inpainted_pixels: int
     provenance: _containers.RepeatedScalarFieldContainer[str]
     augment: str
-    def __init__(self, index: _Optional[int] = ..., dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., source_id: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., tensors: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., camera: _Optional[_Union[Motion, _Mapping]] = ..., objects: _Optional[_Iterable[_Union[ObjectMotion, _Mapping]]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., timings: _Optional[_Union[Timings, _Mapping]] = ..., skipped_sources: _Optional[int] = ..., crop_x: _Optional[int] = ..., crop_y: _Optional[int] = ..., inpainted_pixels: _Optional[int] = ..., provenance: _Optional[_Iterable[str]] = ..., augment: _Optional[str] = ...) -> None: ...
+    frames: int
+    def __init__(self, index: _Optional[int] = ..., dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., source_id: _Optional[str] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., tensors: _Optional[_Iterable[_Union[Tensor, _Mapping]]] = ..., camera: _Optional[_Union[Motion, _Mapping]] = ..., objects: _Optional[_Iterable[_Union[ObjectMotion, _Mapping]]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., timings: _Optional[_Union[Timings, _Mapping]] = ..., skipped_sources: _Optional[int] = ..., crop_x: _Optional[int] = ..., crop_y: _Optional[int] = ..., inpainted_pixels: _Optional[int] = ..., provenance: _Optional[_Iterable[str]] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ...) -> None: ...
 
 class SampleBatch(_message.Message):
     __slots__ = ("samples", "next_index", "resume_start_index")
