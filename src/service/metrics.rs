@@ -75,6 +75,10 @@ pub struct Metrics {
     /// Scenes actually built, by dataset (`mpiflow_scene_builds_total`), read from the datasets'
     /// generators at every scrape.
     pub scene_builds: Family<Labels, Counter>,
+    /// Inferences of the scene models, by role (`mpiflow_model_runs_total`), read from the
+    /// models at every scrape (warm-up runs excluded): 0 while every scene comes baked.
+    pub model_runs: Family<Labels, Counter>,
+    model_runs_seen: Mutex<BTreeMap<&'static str, u64>>,
     datasets: Mutex<Option<Arc<Datasets>>>,
     /// Per dataset name: the generator counted (its address) and the builds counted so far.
     builds_seen: Mutex<BTreeMap<String, (usize, u64)>>,
@@ -122,6 +126,8 @@ impl Metrics {
             cache_seen: Mutex::new((0, 0, 0)),
             cache: Mutex::new(None),
             scene_builds: Family::default(),
+            model_runs: Family::default(),
+            model_runs_seen: Mutex::new(BTreeMap::new()),
             datasets: Mutex::new(None),
             builds_seen: Mutex::new(BTreeMap::new()),
             skipped_by_dataset: Mutex::new(BTreeMap::new()),
@@ -160,6 +166,11 @@ impl Metrics {
         r.register("scene_cache_evictions", "Scenes evicted from the cache", m.cache_evictions.clone());
         r.register("scene_cache_bytes", "Bytes held by the scene cache", m.cache_bytes.clone());
         r.register("scene_builds", "Scenes actually built (models run), by dataset", m.scene_builds.clone());
+        r.register(
+            "model_runs",
+            "Inferences of the scene models (warm-up excluded), by role: depth, mpi, segment",
+            m.model_runs.clone(),
+        );
         Metrics { registry: r, ..m }
     }
 
@@ -176,6 +187,18 @@ impl Metrics {
     fn update_builds(&self) {
         let datasets = self.datasets.lock().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
         let Some(datasets) = datasets else { return };
+        {
+            let mut seen = self.model_runs_seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            for (role, runs) in datasets.stage.model_runs() {
+                let slot = seen.entry(role).or_insert(0);
+                // created at 0 so that a scrape shows every configured model
+                let c = self.model_runs.get_or_create(&label("role", role));
+                if runs > *slot {
+                    c.inc_by(runs - *slot);
+                    *slot = runs;
+                }
+            }
+        }
         let mut seen = self.builds_seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         for d in datasets.all() {
             let id = Arc::as_ptr(&d.generator) as usize;

@@ -322,6 +322,8 @@ impl State {
                     description: d.description.clone(),
                     is_default: i == 0,
                     skipped: self.metrics.skipped_of(&d.name),
+                    needs_models: d.loader.needs_models(),
+                    baked_with: d.source.baked_with().unwrap_or_default(),
                 })
                 .collect(),
             models,
