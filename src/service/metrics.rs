@@ -66,6 +66,8 @@ pub struct Metrics {
     pub workers: Gauge,
     /// Requests refused, by gRPC code.
     pub refused: Family<Labels, Counter>,
+    /// Seconds per scene build (load, models, MPI) (`mpiflow_scene_seconds`).
+    pub scene_seconds: Histogram,
     cache_hits: Counter,
     cache_misses: Counter,
     cache_evictions: Counter,
@@ -119,6 +121,8 @@ impl Metrics {
             busy_seconds: Counter::default(),
             workers: Gauge::default(),
             refused: Family::default(),
+            // 1 ms to ~2 min: a scene with real models takes tens of seconds
+            scene_seconds: Histogram::new(exponential_buckets(0.001, 2.0, 18)),
             cache_hits: Counter::default(),
             cache_misses: Counter::default(),
             cache_evictions: Counter::default(),
@@ -161,6 +165,11 @@ impl Metrics {
         r.register("worker_busy_seconds", "Worker seconds spent making samples", m.busy_seconds.clone());
         r.register("workers", "Generation threads", m.workers.clone());
         r.register("requests_refused", "Requests refused, by gRPC code", m.refused.clone());
+        r.register(
+            "scene_seconds",
+            "Seconds per scene build (source load, scene models, MPI), on the scene pool",
+            m.scene_seconds.clone(),
+        );
         r.register("scene_cache_hits", "Scene cache lookups answered from the cache", m.cache_hits.clone());
         r.register("scene_cache_misses", "Scene cache lookups that loaded the scene", m.cache_misses.clone());
         r.register("scene_cache_evictions", "Scenes evicted from the cache", m.cache_evictions.clone());
@@ -176,6 +185,8 @@ impl Metrics {
 
     /// Reports this cache's statistics at every scrape.
     pub fn watch_cache(&self, cache: Arc<SceneCache>) {
+        let h = self.scene_seconds.clone();
+        cache.observe_loads(Box::new(move |s| h.observe(s)));
         *self.cache.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Some(cache);
     }
 
