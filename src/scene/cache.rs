@@ -20,6 +20,10 @@
 //!   that were waiting for it retry the load themselves, one at a time, and a later call retries
 //!   too. (A source that fails keeps costing a load attempt per request; the caller sees every
 //!   error.)
+//! - [`SceneCache::load_absent`] is for builds ahead on the load pool itself (the service's
+//!   scene prefetch): it loads a key that is neither cached nor loading, on the calling thread,
+//!   and otherwise returns at once; it never waits, so no load-pool thread waits for a load
+//!   queued behind it.
 //! - The lock is held only for bookkeeping, never while a loader runs, so loads of different
 //!   keys proceed in parallel (up to the load pool's size).
 
