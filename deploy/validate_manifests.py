@@ -334,11 +334,33 @@ def negative_self_test(docs: list[tuple[str, dict]]) -> None:
         ok(f"negative self-test: rejected {len(caught)} broken manifests ({', '.join(caught)})")
 
 
+def check_bake_job(docs: list[tuple[str, dict]]) -> None:
+    """The bake Job: Indexed, and its --shard argument's N equal to its completions."""
+    job = one(docs, "Job", "mpiflow-bake")
+    if job is None:
+        fail("bake Job", "deploy/k8s/bake-job.yaml has no Job mpiflow-bake")
+        return
+    spec = job["spec"]
+    if spec.get("completionMode") != "Indexed":
+        fail("bake Job", f"completionMode {spec.get('completionMode')!r}, expected Indexed")
+        return
+    args = [a for c in spec["template"]["spec"]["containers"] for a in c.get("args", [])]
+    shard = [a for a in args if a.startswith("--shard")]
+    m = re.fullmatch(r"--shard[= ]\$\(JOB_COMPLETION_INDEX\)/(\d+)", shard[0]) if len(shard) == 1 else None
+    if args[:1] != ["bake"] or m is None:
+        fail("bake Job", f"args {args}: expected `bake ... --shard=$(JOB_COMPLETION_INDEX)/N`")
+    elif int(m.group(1)) != spec.get("completions"):
+        fail("bake Job", f"--shard .../{m.group(1)} but completions {spec.get('completions')}: items would be lost")
+    else:
+        ok(f"bake Job: Indexed, {spec['completions']} shards = completions, --shard from JOB_COMPLETION_INDEX")
+
+
 def main() -> int:
     print(f"kubernetes-validate schemas: {MIN_K8S.rsplit('.', 1)[0]} and {kv.latest_version().rsplit('.', 1)[0]}")
     docs = load_docs()
     check_schemas(docs)
     check_references(docs)
+    check_bake_job(docs)
     check_compose()
     if "--no-self-test" not in sys.argv:
         negative_self_test(docs)

@@ -775,7 +775,7 @@ async fn stalled_streams_hold_at_most_their_share_of_the_buffered_budget() {
     }
     let settled = |n: usize| {
         let st = s.state.scheduler.stats();
-        st.in_flight == 0 && st.eligible == 0 && st.per_stream.len() == n
+        st.in_flight == 0 && st.waiting_scene == 0 && st.eligible == 0 && st.per_stream.len() == n
     };
     until("the stalled streams settle", || settled(4)).await;
     let st = s.state.scheduler.stats();

@@ -1,5 +1,6 @@
 //! Argument definitions and dispatch of the `mpiflow` subcommands.
 
+mod bake;
 mod bench;
 mod bench_serve;
 mod bench_soak;
@@ -25,6 +26,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run the scene models once per source item and write a folder that serves with no model.
+    Bake(bake::BakeArgs),
     /// Render one novel view with its flow, depth and masks from an MPI (.npz) or an RGB-D pair.
     Render(render::RenderArgs),
     /// Benchmarks: render speed, and error against run time.
@@ -65,6 +68,7 @@ pub fn run() -> i32 {
         }
     };
     let result = match cli.command {
+        Command::Bake(a) => bake::run(a),
         Command::Render(a) => render::run(a),
         Command::Bench(b) => bench::run(b),
         Command::Generate(a) => generate::run(a),

@@ -58,6 +58,9 @@ pub struct ServeArgs {
     /// Scene cache budget in MiB.
     #[arg(long, value_name = "MIB")]
     cache_mb: Option<u64>,
+    /// Build the scenes of each stream's next indices ahead on the scene pool (true / false).
+    #[arg(long, value_name = "BOOL")]
+    prefetch_scenes: Option<bool>,
     /// Depth model (ONNX) for sources without depth.
     #[arg(long, value_name = "FILE.onnx")]
     depth_model: Option<PathBuf>,
@@ -125,6 +128,7 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
     set!(log_format => log_format);
     set!(log_level => log_level);
     set!(cache_mb => cache_mb);
+    set!(prefetch_scenes => prefetch_scenes);
     set!(planes => models.planes);
     set!(objects => sample.max_objects);
     set!(motions_per_image => sample.motions_per_image);

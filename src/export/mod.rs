@@ -29,6 +29,7 @@
 //! Encoding ([`fields::encode_sample`]) is pure and runs on any thread; an [`Exporter`] writes
 //! encoded samples in the order it is given them.
 
+pub mod bake;
 pub mod fields;
 pub mod layout;
 pub mod preview;

@@ -384,6 +384,15 @@ pub fn rgb_to_u8(img: &RgbImage) -> Vec<u8> {
     img.data.iter().map(|&v| unit_to_u8(v)).collect()
 }
 
+/// Rounds every value to what an 8-bit PNG of the image holds, as [`load_rgb`] reads it back
+/// (`rgb_to_u8(v) / 255`): saving the result with [`save_rgb_png`] and loading it gives the same
+/// values bit for bit.
+pub fn quantize_to_u8(img: &mut RgbImage) {
+    for v in &mut img.data {
+        *v = f32::from(unit_to_u8(*v)) / 255.0;
+    }
+}
+
 #[inline]
 fn unit_to_u8(v: f32) -> u8 {
     // `as` saturates and maps NaN to 0

@@ -147,3 +147,46 @@ pub fn load_npz_limited(path: &Path, max_values: u64) -> Result<Mpi, MpiError> {
     mpi.validate().map_err(|e| MpiError::Invalid(format!("{p}: {e}")))?;
     Ok(mpi)
 }
+
+/// Writes `mpi` as an `.npz` in the layout [`load_npz`] reads (and the reference writes):
+/// `mpi_rgb` f32 `[N, 3, H, W]`, `mpi_sigma` f32 `[N, 1, H, W]`, `disparity` f64 `[N]` (near to
+/// far, exactly as held), `K` f64 `[3, 3]` when the MPI has intrinsics, `G` f64 `[4, 4]` when it
+/// has a pose, and `mask_in` f32 `[N, C, H, W]` when it has extra channels. Lossless: loading the
+/// file gives back the same values bit for bit. Members are deflated, as NumPy's `savez_compressed`.
+pub fn save_npz<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W) -> std::io::Result<W> {
+    use npyz::WriterBuilder;
+    fn member<T: npyz::AutoSerialize + Copy, W: std::io::Write + std::io::Seek>(
+        npz: &mut npyz::npz::NpzWriter<W>,
+        name: &str,
+        shape: &[u64],
+        data: impl IntoIterator<Item = T>,
+    ) -> std::io::Result<()> {
+        let mut w = npz.array::<T>(name, Default::default())?.default_dtype().shape(shape).begin_nd()?;
+        w.extend(data)?;
+        w.finish()
+    }
+    let (n, h, w, hw) = (mpi.planes(), mpi.height, mpi.width, mpi.plane_len());
+    let (n64, h64, w64) = (n as u64, h as u64, w as u64);
+    let mut npz = npyz::npz::NpzWriter::new(writer);
+    let rgb = (0..n).flat_map(|i| (0..3).flat_map(move |c| (0..hw).map(move |j| mpi.plane_rgba(i)[4 * j + c])));
+    member(&mut npz, "mpi_rgb", &[n64, 3, h64, w64], rgb)?;
+    let sigma = (0..n).flat_map(|i| (0..hw).map(move |j| mpi.plane_rgba(i)[4 * j + 3]));
+    member(&mut npz, "mpi_sigma", &[n64, 1, h64, w64], sigma)?;
+    member(&mut npz, "disparity", &[n64], mpi.disparity.iter().copied())?;
+    if let Some(k) = mpi.intrinsics {
+        member(&mut npz, "K", &[3, 3], [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0])?;
+    }
+    if let Some(p) = mpi.pose {
+        let (r, t) = (p.rotation, p.translation);
+        let row = |i: usize| [r.col(0)[i], r.col(1)[i], r.col(2)[i], t[i]];
+        let g = [row(0), row(1), row(2), [0.0, 0.0, 0.0, 1.0]];
+        member(&mut npz, "G", &[4, 4], g.into_iter().flatten())?;
+    }
+    let c = mpi.extra_channels;
+    if c > 0 {
+        let extras =
+            (0..n).flat_map(|i| (0..c).flat_map(move |ch| (0..hw).map(move |j| mpi.extras[(i * hw + j) * c + ch])));
+        member(&mut npz, "mask_in", &[n64, c as u64, h64, w64], extras)?;
+    }
+    npz.zip_writer().finish().map_err(std::io::Error::other)
+}

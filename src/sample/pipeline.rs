@@ -272,15 +272,47 @@ impl Generator {
 
     /// The prepared scene of source item `item`, from the cache or loaded into it.
     pub fn scene(&self, item: usize) -> Result<Arc<Scene>, SampleError> {
-        self.cache.get_or_load(self.key(item), || {
-            self.builds.fetch_add(1, Ordering::Relaxed);
-            let scene = self.loader.load_scene(item).map_err(|e| SampleError::Scene {
-                item,
-                id: self.loader.id(item),
-                source: Box::new(e),
-            })?;
-            prepare_scene(scene, &self.config)
-        })
+        self.cache.get_or_load(self.key(item), || self.build(item))
+    }
+
+    /// Builds the prepared scene of `item` (counted in [`scene_builds`](Self::scene_builds)).
+    fn build(&self, item: usize) -> Result<Scene, SampleError> {
+        self.builds.fetch_add(1, Ordering::Relaxed);
+        let scene = self.loader.load_scene(item).map_err(|e| SampleError::Scene {
+            item,
+            id: self.loader.id(item),
+            source: Box::new(e),
+        })?;
+        prepare_scene(scene, &self.config)
+    }
+
+    /// Prepares the scene of sample `index` off the caller's thread: `true` when there is
+    /// nothing to wait for (the scene is cached, its item is known bad, or no scene pool can
+    /// run, or the builds in progress already fill half the cache budget: then the sample builds
+    /// its scene itself); otherwise starts the build on the scene pool
+    /// ([`crate::scene::cache::load_pool`], one build per scene however many samples ask),
+    /// returns `false` and calls `done` from that pool once the build finished or failed.
+    pub fn prepare(self: &Arc<Self>, index: u64, done: Box<dyn FnOnce() + Send>) -> bool {
+        let Some(item) = self.source_item(index) else { return true };
+        if self.cache.contains(&self.key(item)) || self.bad_items().contains_key(&item) {
+            return true;
+        }
+        let Some(pool) = crate::scene::cache::load_pool() else { return true };
+        // builds ahead are bounded by the cache: scenes built ahead must still be there when
+        // their samples run
+        let stats = self.cache.stats();
+        let per_scene = stats.bytes.checked_div(stats.entries).unwrap_or(0);
+        if per_scene > 0 && (self.cache.loading() + 1) * per_scene > stats.max_bytes / 2 {
+            return true;
+        }
+        let me = self.clone();
+        pool.spawn(move || {
+            // never waits for another load (that one may be queued behind this thread); an
+            // error is the sample's to report (it passes the bad item over)
+            let _ = me.cache.load_absent(me.key(item), || me.build(item));
+            done();
+        });
+        false
     }
 
     fn occupancy(&self, key: SceneKey, scene: &Arc<Scene>) -> Option<Arc<Occupancy>> {

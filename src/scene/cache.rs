@@ -20,6 +20,10 @@
 //!   that were waiting for it retry the load themselves, one at a time, and a later call retries
 //!   too. (A source that fails keeps costing a load attempt per request; the caller sees every
 //!   error.)
+//! - [`SceneCache::load_absent`] is for builds ahead on the load pool itself (the service's
+//!   scene prefetch): it loads a key that is neither cached nor loading, on the calling thread,
+//!   and otherwise returns at once; it never waits, so no load-pool thread waits for a load
+//!   queued behind it.
 //! - The lock is held only for bookkeeping, never while a loader runs, so loads of different
 //!   keys proceed in parallel (up to the load pool's size).
 
@@ -108,10 +112,14 @@ struct Inner {
     stats: CacheStats,
 }
 
+/// Called with the seconds of every load the cache ran (successful or not).
+pub type LoadObserver = Box<dyn Fn(f64) + Send + Sync>;
+
 /// A byte-bounded, least-recently-used cache of scenes, safe to share between threads.
 pub struct SceneCache {
     max_bytes: usize,
     inner: Mutex<Inner>,
+    observer: OnceLock<LoadObserver>,
 }
 
 impl std::fmt::Debug for SceneCache {
@@ -163,7 +171,23 @@ impl Drop for LoadGuard<'_> {
 impl SceneCache {
     /// A cache holding at most `max_bytes` of scenes.
     pub fn new(max_bytes: usize) -> Self {
-        Self { max_bytes, inner: Mutex::new(Inner::default()) }
+        Self { max_bytes, inner: Mutex::new(Inner::default()), observer: OnceLock::new() }
+    }
+
+    /// Sets the function told the duration of every load (once; later calls are ignored): the
+    /// service's `mpiflow_scene_seconds` histogram.
+    pub fn observe_loads(&self, observer: LoadObserver) {
+        let _ = self.observer.set(observer);
+    }
+
+    /// Whether the scene of `key` is cached now (no counter changes, no recency change).
+    pub fn contains(&self, key: &SceneKey) -> bool {
+        matches!(lock(&self.inner).map.get(key), Some(Slot::Ready { .. }))
+    }
+
+    /// Loads in progress now.
+    pub fn loading(&self) -> usize {
+        lock(&self.inner).map.values().filter(|s| matches!(s, Slot::Loading(_))).count()
     }
 
     pub fn max_bytes(&self) -> usize {
@@ -218,25 +242,60 @@ impl SceneCache {
             // The load, its insertion and the wake-up of the waiters all run on the load pool:
             // this thread may, while it waits for the pool, run a job of its own pool that waits
             // for this very key, and that wait must end without this thread's help.
-            let run = move || {
-                let mut guard = LoadGuard { cache: self, key, pending: pending.clone(), armed: true };
-                match f() {
-                    Ok(scene) => {
-                        guard.armed = false;
-                        let scene = Arc::new(scene);
-                        self.insert(key, &pending, scene.clone());
-                        pending.finish(Some(scene.clone()));
-                        Ok(scene)
-                    }
-                    // the guard removes the slot, counts the error and wakes the waiters
-                    Err(e) => Err(e),
-                }
-            };
+            let run = move || self.run_load(key, &pending, f);
             return match load_pool() {
                 Some(pool) if pool.current_thread_index().is_none() => pool.install(run),
                 _ => run(),
             };
         }
+    }
+
+    /// Runs the load of our `Loading` slot here, inserts the scene and wakes the waiters.
+    fn run_load<E>(
+        &self,
+        key: SceneKey,
+        pending: &Arc<Pending>,
+        f: impl FnOnce() -> Result<Scene, E>,
+    ) -> Result<Arc<Scene>, E> {
+        let mut guard = LoadGuard { cache: self, key, pending: pending.clone(), armed: true };
+        let t = std::time::Instant::now();
+        let result = f();
+        if let Some(o) = self.observer.get() {
+            o(t.elapsed().as_secs_f64());
+        }
+        match result {
+            Ok(scene) => {
+                guard.armed = false;
+                let scene = Arc::new(scene);
+                self.insert(key, pending, scene.clone());
+                pending.finish(Some(scene.clone()));
+                Ok(scene)
+            }
+            // the guard removes the slot, counts the error and wakes the waiters
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Loads the scene of `key` on this thread when it is neither cached nor being loaded (a
+    /// miss, as [`get_or_load`](Self::get_or_load) counts it); returns at once, without
+    /// waiting and without running `load`, when it is. For builds ahead on the load pool, whose
+    /// threads must never wait for a load queued behind them. Errors are not cached.
+    pub fn load_absent<E>(
+        &self,
+        key: SceneKey,
+        load: impl FnOnce() -> Result<Scene, E>,
+    ) -> Option<Result<Arc<Scene>, E>> {
+        let pending = {
+            let mut inner = lock(&self.inner);
+            if inner.map.contains_key(&key) {
+                return None;
+            }
+            let p = Arc::new(Pending::default());
+            inner.map.insert(key, Slot::Loading(p.clone()));
+            inner.stats.misses += 1;
+            p
+        };
+        Some(self.run_load(key, &pending, load))
     }
 
     /// Replaces our `Loading` slot by the scene (or drops it when the scene is over budget) and

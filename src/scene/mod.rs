@@ -80,6 +80,16 @@ pub trait DepthEstimator: Send + Sync {
         self.name()
     }
     fn estimate(&self, image: &RgbImage) -> Result<Disparity, SceneError>;
+    /// Inferences run so far (warm-up excluded), or `None` when this is not a model (a built-in
+    /// rule that costs no inference): what `mpiflow_model_runs_total` counts.
+    fn inference_runs(&self) -> Option<u64> {
+        None
+    }
+    /// The FNV-1a 64 ([`crate::hash::Fnv64`]) of the model file's bytes, `None` when not a model
+    /// file (bake provenance, `bake-report.json`).
+    fn content_hash(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// Lifts an image with its disparity into an MPI (planes near to far).
@@ -90,6 +100,16 @@ pub trait MpiBuilder: Send + Sync {
         self.name()
     }
     fn build(&self, image: &RgbImage, disparity: &Disparity, k: &Intrinsics) -> Result<Mpi, SceneError>;
+    /// Inferences run so far (warm-up excluded), or `None` when this is not a model (a built-in
+    /// rule that costs no inference): what `mpiflow_model_runs_total` counts.
+    fn inference_runs(&self) -> Option<u64> {
+        None
+    }
+    /// The FNV-1a 64 ([`crate::hash::Fnv64`]) of the model file's bytes, `None` when not a model
+    /// file (bake provenance, `bake-report.json`).
+    fn content_hash(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// Finds object instances in an image.
@@ -100,6 +120,16 @@ pub trait Segmenter: Send + Sync {
         self.name()
     }
     fn segment(&self, image: &RgbImage) -> Result<InstanceMasks, SceneError>;
+    /// Inferences run so far (warm-up excluded), or `None` when this is not a model (a built-in
+    /// rule that costs no inference): what `mpiflow_model_runs_total` counts.
+    fn inference_runs(&self) -> Option<u64> {
+        None
+    }
+    /// The FNV-1a 64 ([`crate::hash::Fnv64`]) of the model file's bytes, `None` when not a model
+    /// file (bake provenance, `bake-report.json`).
+    fn content_hash(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// Everything a source's samples reuse, computed once per source (and cached).

@@ -32,7 +32,7 @@ use super::{DepthEstimator, Disparity, MpiBuilder, Scene, SceneError, SceneLoade
 use crate::geometry::Intrinsics;
 use crate::mpi::planes::plane_gaps;
 use crate::mpi::Mpi;
-use crate::source::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
+use crate::source::{Carried, FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use std::sync::Arc;
 
 impl From<SourceError> for SceneError {
@@ -93,6 +93,34 @@ impl SceneStage {
             self.mpi.name(),
             self.segmenter.as_ref().map_or("none".into(), |s| s.name())
         )
+    }
+
+    /// Whether the scenes of a collection whose every item carries `carried` need a model to
+    /// run: a depth model for items without depth or MPI, an MPI network for items without an
+    /// MPI, a segmenter for items without masks (a built-in rule is not a model). A baked
+    /// folder carries what the models made, so its scenes need none.
+    pub fn needs_models(&self, carried: Carried) -> bool {
+        let model = |runs: Option<u64>| runs.is_some();
+        let depth = self.depth.as_ref().is_some_and(|d| model(d.inference_runs())) && !(carried.depth || carried.mpi);
+        let mpi = model(self.mpi.inference_runs()) && !carried.mpi;
+        let segment = self.segmenter.as_ref().is_some_and(|s| model(s.inference_runs())) && !carried.masks;
+        depth || mpi || segment
+    }
+
+    /// Inferences each configured model ran so far, as (role, runs): `depth`, `mpi`, `segment`
+    /// (built-in rules, which run no model, are left out).
+    pub fn model_runs(&self) -> Vec<(&'static str, u64)> {
+        let mut out = Vec::with_capacity(3);
+        if let Some(n) = self.depth.as_ref().and_then(|d| d.inference_runs()) {
+            out.push(("depth", n));
+        }
+        if let Some(n) = self.mpi.inference_runs() {
+            out.push(("mpi", n));
+        }
+        if let Some(n) = self.segmenter.as_ref().and_then(|s| s.inference_runs()) {
+            out.push(("segment", n));
+        }
+        out
     }
 
     /// A fingerprint of everything in the configuration that changes scenes: each part's
@@ -313,9 +341,17 @@ impl SourceScenes {
         SourceScenes { source, stage }
     }
 
-    /// `SOURCE; STAGE`.
+    /// `SOURCE; STAGE`, and `; baked: PROVENANCE` for a baked collection.
     pub fn describe(&self) -> String {
-        format!("{}; {}", self.source.describe(), self.stage.describe())
+        match self.source.baked_with() {
+            Some(b) => format!("{}; {}; baked: {b}", self.source.describe(), self.stage.describe()),
+            None => format!("{}; {}", self.source.describe(), self.stage.describe()),
+        }
+    }
+
+    /// Whether this collection's scenes need a model to run ([`SceneStage::needs_models`]).
+    pub fn needs_models(&self) -> bool {
+        self.stage.needs_models(self.source.carried())
     }
 }
 

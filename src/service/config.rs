@@ -148,6 +148,10 @@ pub struct ServiceConfig {
     pub size: Option<String>,
     /// Scene cache budget in MiB (a 640x480 scene with 32 planes takes about 160 MiB).
     pub cache_mb: u64,
+    /// Build the scenes of each stream's next indices (its prefetch window) on the scene pool
+    /// ahead of the samples, so that the workers only make samples of ready scenes; false =
+    /// a worker builds a missing scene itself (and waits for it).
+    pub prefetch_scenes: bool,
     /// How long a graceful shutdown may take before open streams are cut.
     pub drain_timeout_s: f64,
     /// Extra wait after the warm-up sample before health reports SERVING.
@@ -199,6 +203,7 @@ impl Default for ServiceConfig {
             max_upload_buffer_mb: 512,
             size: None,
             cache_mb: 2048,
+            prefetch_scenes: true,
             drain_timeout_s: 10.0,
             warmup_delay_ms: 0,
             log_format: LogFormat::Text,
@@ -281,6 +286,7 @@ impl ServiceConfig {
                 "MAX_UPLOAD_BUFFER_MB" => self.max_upload_buffer_mb = env_parse(&key, &value)?,
                 "SIZE" => self.size = (!value.trim().is_empty()).then(|| value.trim().to_string()),
                 "CACHE_MB" => self.cache_mb = env_parse(&key, &value)?,
+                "PREFETCH_SCENES" => self.prefetch_scenes = env_parse(&key, &value)?,
                 "DRAIN_TIMEOUT_S" => self.drain_timeout_s = env_parse(&key, &value)?,
                 "WARMUP_DELAY_MS" => self.warmup_delay_ms = env_parse(&key, &value)?,
                 "LOG_FORMAT" => self.log_format = env_parse(&key, &value)?,

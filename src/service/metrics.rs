@@ -66,6 +66,8 @@ pub struct Metrics {
     pub workers: Gauge,
     /// Requests refused, by gRPC code.
     pub refused: Family<Labels, Counter>,
+    /// Seconds per scene build (load, models, MPI) (`mpiflow_scene_seconds`).
+    pub scene_seconds: Histogram,
     cache_hits: Counter,
     cache_misses: Counter,
     cache_evictions: Counter,
@@ -75,6 +77,10 @@ pub struct Metrics {
     /// Scenes actually built, by dataset (`mpiflow_scene_builds_total`), read from the datasets'
     /// generators at every scrape.
     pub scene_builds: Family<Labels, Counter>,
+    /// Inferences of the scene models, by role (`mpiflow_model_runs_total`), read from the
+    /// models at every scrape (warm-up runs excluded): 0 while every scene comes baked.
+    pub model_runs: Family<Labels, Counter>,
+    model_runs_seen: Mutex<BTreeMap<&'static str, u64>>,
     datasets: Mutex<Option<Arc<Datasets>>>,
     /// Per dataset name: the generator counted (its address) and the builds counted so far.
     builds_seen: Mutex<BTreeMap<String, (usize, u64)>>,
@@ -115,6 +121,8 @@ impl Metrics {
             busy_seconds: Counter::default(),
             workers: Gauge::default(),
             refused: Family::default(),
+            // 1 ms to ~2 min: a scene with real models takes tens of seconds
+            scene_seconds: Histogram::new(exponential_buckets(0.001, 2.0, 18)),
             cache_hits: Counter::default(),
             cache_misses: Counter::default(),
             cache_evictions: Counter::default(),
@@ -122,6 +130,8 @@ impl Metrics {
             cache_seen: Mutex::new((0, 0, 0)),
             cache: Mutex::new(None),
             scene_builds: Family::default(),
+            model_runs: Family::default(),
+            model_runs_seen: Mutex::new(BTreeMap::new()),
             datasets: Mutex::new(None),
             builds_seen: Mutex::new(BTreeMap::new()),
             skipped_by_dataset: Mutex::new(BTreeMap::new()),
@@ -155,16 +165,28 @@ impl Metrics {
         r.register("worker_busy_seconds", "Worker seconds spent making samples", m.busy_seconds.clone());
         r.register("workers", "Generation threads", m.workers.clone());
         r.register("requests_refused", "Requests refused, by gRPC code", m.refused.clone());
+        r.register(
+            "scene_seconds",
+            "Seconds per scene build (source load, scene models, MPI), on the scene pool",
+            m.scene_seconds.clone(),
+        );
         r.register("scene_cache_hits", "Scene cache lookups answered from the cache", m.cache_hits.clone());
         r.register("scene_cache_misses", "Scene cache lookups that loaded the scene", m.cache_misses.clone());
         r.register("scene_cache_evictions", "Scenes evicted from the cache", m.cache_evictions.clone());
         r.register("scene_cache_bytes", "Bytes held by the scene cache", m.cache_bytes.clone());
         r.register("scene_builds", "Scenes actually built (models run), by dataset", m.scene_builds.clone());
+        r.register(
+            "model_runs",
+            "Inferences of the scene models (warm-up excluded), by role: depth, mpi, segment",
+            m.model_runs.clone(),
+        );
         Metrics { registry: r, ..m }
     }
 
     /// Reports this cache's statistics at every scrape.
     pub fn watch_cache(&self, cache: Arc<SceneCache>) {
+        let h = self.scene_seconds.clone();
+        cache.observe_loads(Box::new(move |s| h.observe(s)));
         *self.cache.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Some(cache);
     }
 
@@ -176,6 +198,18 @@ impl Metrics {
     fn update_builds(&self) {
         let datasets = self.datasets.lock().unwrap_or_else(std::sync::PoisonError::into_inner).clone();
         let Some(datasets) = datasets else { return };
+        {
+            let mut seen = self.model_runs_seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            for (role, runs) in datasets.stage.model_runs() {
+                let slot = seen.entry(role).or_insert(0);
+                // created at 0 so that a scrape shows every configured model
+                let c = self.model_runs.get_or_create(&label("role", role));
+                if runs > *slot {
+                    c.inc_by(runs - *slot);
+                    *slot = runs;
+                }
+            }
+        }
         let mut seen = self.builds_seen.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         for d in datasets.all() {
             let id = Arc::as_ptr(&d.generator) as usize;

@@ -18,6 +18,16 @@
 //! position `k` is then the list's `k`-th entry, in the list's order; everything else (prefetch
 //! window, in-flight bound, round-robin, back-pressure, drain) is the same.
 //!
+//! # Scenes are built off the workers
+//!
+//! A job whose scene is not ready is not handed to a worker: at dispatch the stream's
+//! [`Prepare`] starts the scene's build on the scene pool ([`crate::scene::cache::load_pool`])
+//! and the job waits, outside the in-flight bound, until the build reports back; then it goes to
+//! a worker before any new dispatch. So the workers (and the in-flight slots) only ever make
+//! samples of ready scenes, a sample of a ready scene never waits on a scene being built, and
+//! the stream's prefetch window is its scene lookahead: a stream asks for the scenes of its next
+//! `prefetch` indices while it sends the current ones.
+//!
 //! While draining, no new job starts; each stream sends what is finished and then ends with
 //! UNAVAILABLE and its resume cursor.
 //!
@@ -56,7 +66,27 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 /// Makes the sample of one index (runs on a worker).
-pub type Produce = Arc<dyn Fn(u64) -> Result<pb::Sample, ServiceError> + Send + Sync>;
+pub type Make = Arc<dyn Fn(u64) -> Result<pb::Sample, ServiceError> + Send + Sync>;
+
+/// Asked at dispatch whether the sample of an index can be made without waiting for a scene:
+/// `true` = ready (its scene is cached, or there is nothing to prepare); `false` = the scene is
+/// being built off the workers, and the callback is called (on another thread, never inside the
+/// call) once it is built or failed.
+pub type Prepare = Arc<dyn Fn(u64, Box<dyn FnOnce() + Send>) -> bool + Send + Sync>;
+
+/// The job of a stream: how a sample is made, and how its scene is prepared ahead.
+#[derive(Clone)]
+pub struct Produce {
+    pub make: Make,
+    pub prepare: Option<Prepare>,
+}
+
+impl Produce {
+    /// A job with nothing to prepare (every sample is made straight away on a worker).
+    pub fn new(make: Make) -> Self {
+        Produce { make, prepare: None }
+    }
+}
 
 /// The shape of one stream.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -193,6 +223,10 @@ struct Sched {
     max_in_flight_seen: usize,
     draining: bool,
     next_id: u64,
+    /// Jobs whose scene became ready, to hand to the workers first: (stream, k, reserved).
+    ready_jobs: std::collections::VecDeque<(Arc<StreamShared>, u64, u64)>,
+    /// Jobs waiting for their scene now.
+    waiting_scene: usize,
 }
 
 /// The rayon pool and the dispatch state shared by all streams.
@@ -237,8 +271,12 @@ pub struct SchedulerStats {
     pub per_stream: Vec<(u64, u64, u64, u64, usize)>,
     /// Per stream: bytes held against the budget.
     pub held: Vec<u64>,
-    /// Streams that may start a job now (0 with nothing in flight = production has settled).
+    /// Streams that may start a job now (0 with nothing in flight or waiting for a scene =
+    /// production has settled).
     pub eligible: usize,
+    /// Jobs dispatched whose scene is being built off the workers, or built and not yet handed to
+    /// a worker (they hold their reserved bytes like running jobs).
+    pub waiting_scene: usize,
 }
 
 impl Scheduler {
@@ -270,6 +308,8 @@ impl Scheduler {
                 max_in_flight_seen: 0,
                 draining: false,
                 next_id: 1,
+                ready_jobs: std::collections::VecDeque::new(),
+                waiting_scene: 0,
             }),
             metrics,
         }))
@@ -383,6 +423,15 @@ impl Scheduler {
     /// Starts jobs while there is room, one per eligible stream per turn.
     fn pump(self: &Arc<Self>) {
         let mut s = lock(&self.inner);
+        // jobs whose scene is ready go first (they were dispatched before any drain began)
+        while s.in_flight < self.capacity {
+            let Some((st, k, reserved)) = s.ready_jobs.pop_front() else { break };
+            s.in_flight += 1;
+            s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
+            self.metrics.set_in_flight(s.in_flight, self.capacity);
+            let me = self.clone();
+            self.pool.spawn(move || me.run_job(st, k, reserved));
+        }
         while s.in_flight < self.capacity && !s.draining {
             let n = s.streams.len();
             let share = self.share(n);
@@ -405,12 +454,30 @@ impl Scheduler {
                 }
             }
             let Some((st, k, reserved)) = picked else { break };
+            if let Some(prepare) = &st.produce.prepare {
+                let (me, st2) = (self.clone(), st.clone());
+                let done: Box<dyn FnOnce() + Send> = Box::new(move || me.scene_ready(st2, k, reserved));
+                if !prepare(st.index(k), done) {
+                    s.waiting_scene += 1;
+                    continue;
+                }
+            }
             s.in_flight += 1;
             s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
             self.metrics.set_in_flight(s.in_flight, self.capacity);
             let me = self.clone();
             self.pool.spawn(move || me.run_job(st, k, reserved));
         }
+    }
+
+    /// The scene of a waiting job is built (or failed): the job goes to the workers.
+    fn scene_ready(self: &Arc<Self>, st: Arc<StreamShared>, k: u64, reserved: u64) {
+        {
+            let mut s = lock(&self.inner);
+            s.waiting_scene -= 1;
+            s.ready_jobs.push_back((st, k, reserved));
+        }
+        self.pump();
     }
 
     /// A stream's fair share of the budget with `n` streams open.
@@ -451,7 +518,7 @@ impl Scheduler {
         } else {
             // the index exists: k < len
             let index = st.index(k);
-            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| (st.produce)(index)))
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| (st.produce.make)(index)))
                 .unwrap_or_else(|_| Err(ServiceError::Internal(format!("sample {index}: the worker panicked"))));
             Some(r.map(|s| {
                 let n = s.encoded_len();
@@ -556,6 +623,7 @@ impl Scheduler {
             max_buffered_seen: self.max_buffered_seen.load(Ordering::Acquire),
             dropped: self.dropped.load(Ordering::Acquire),
             held: s.streams.iter().map(|st| lock(&st.state).held).collect(),
+            waiting_scene: s.waiting_scene + s.ready_jobs.len(),
             eligible: {
                 let share = self.share(s.streams.len());
                 s.streams.iter().filter(|st| st.eligible(&lock(&st.state), share)).count()

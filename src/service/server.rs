@@ -67,7 +67,11 @@ impl State {
     /// The job of a stream: make the sample, crop it, encode it (on a worker).
     fn produce(&self, dataset: Arc<Dataset>, generator: Arc<Generator>, seed: u64, out: OutputSpec) -> Produce {
         let metrics = self.metrics.clone();
-        Arc::new(move |index| {
+        let prepare: Option<super::pool::Prepare> = self.config.prefetch_scenes.then(|| {
+            let g = generator.clone();
+            Arc::new(move |index: u64, done: Box<dyn FnOnce() + Send>| g.prepare(index, done)) as super::pool::Prepare
+        });
+        let make: super::pool::Make = Arc::new(move |index| {
             let s = generator.sample(seed, index).map_err(|source| {
                 metrics.observe_error(&source);
                 tracing::warn!(dataset = %dataset.name, index, error = %source, "sample failed");
@@ -113,7 +117,8 @@ impl State {
             p.augment = record;
             metrics.observe_sample(&timings, p.timings.as_ref().map_or(0.0, |t| t.encode_ms));
             Ok(p)
-        })
+        });
+        Produce { make, prepare }
     }
 
     /// Resolves the dataset, the generator of the request's overrides, and checks the fingerprint.
@@ -328,6 +333,8 @@ impl State {
                     description: d.description.clone(),
                     is_default: i == 0,
                     skipped: self.metrics.skipped_of(&d.name),
+                    needs_models: d.loader.needs_models(),
+                    baked_with: d.source.baked_with().unwrap_or_default(),
                 })
                 .collect(),
             models,

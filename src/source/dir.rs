@@ -13,10 +13,15 @@
 //!   - `depths/NAME.png`: the same as a 16-bit grey PNG (e.g. millimetres; 0 = unknown);
 //!   - `disps/NAME.png`: disparity in `[0, 1]`: an 8-bit grey PNG read as value / 255 (as the
 //!     reference reads it) or a 16-bit one read as value / 65535;
+//!   - `disps/NAME.npy`: disparity in `[0, 1]` as float (the shapes of `depths/NAME.npy`): what
+//!     `mpiflow bake` writes, the scene's disparity bit for bit (wins over a disparity PNG);
 //!   - `masks/NAME.png`: instance ids (0 = background; see
 //!     [`InstanceMasks::from_index_png`](crate::raster::InstanceMasks::from_index_png)),
 //!     or `masks/NAME.json`: COCO annotations (RLE or polygons);
 //!   - `mpis/NAME.npz`: a whole MPI in the reference's npz layout (see [`crate::mpi::npz`]).
+//!
+//!   - `bake.json` (one for the folder): the manifest of `mpiflow bake` ([`super::baked`]), shown
+//!     by [`Source::baked_with`].
 //!
 //!   When several depth files exist for one name, `.npy` wins over `.pfm` over `.png`; a depth file
 //!   wins over a disparity PNG (it gives exact geometry); `.png` masks win over `.json`.
@@ -55,13 +60,15 @@
 //! sizes in bytes, and the options that change what is loaded (resize, intrinsics). It does not
 //! depend on where the directory is (same files, same fingerprint on every machine), but a file
 //! edited in place to the same size keeps it unless [`SourceOptions::hash_contents`] is set
-//! (which reads every file once at open and hashes its bytes too).
+//! (which reads every file once at open and hashes its bytes too). A baked folder's fingerprint
+//! also covers its manifest's stage fingerprint (the models it was baked with).
 
+use super::baked::BakeManifest;
 use super::given::fit;
 pub use super::given::{
     depth_npy_from_bytes, disparity_png_from_bytes, read_depth, read_depth_npy, read_disparity_png, resize_rgb,
 };
-use super::{FailureKind, Fnv64, GivenDepth, SkippedItem, Source, SourceError, SourceItem};
+use super::{Carried, FailureKind, Fnv64, GivenDepth, SkippedItem, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits};
 use crate::mpi::{Mpi, MpiError};
@@ -204,6 +211,8 @@ pub struct DirSource {
     /// Folder entries left out when listed (not regular files, dangling links, links out of the
     /// folder), with their reasons.
     skipped: Vec<SkippedItem>,
+    /// The `bake.json` of a baked reference-layout folder.
+    baked: Option<BakeManifest>,
 }
 
 const IMAGE_EXTS: [&str; 3] = ["png", "jpg", "jpeg"];
@@ -388,7 +397,7 @@ impl DirSource {
                     .map(|f| (DepthFile::Npy, f))
                     .or_else(|| pick(&depths, "depths", &stem, "pfm").map(|f| (DepthFile::Pfm, f)))
                     .or_else(|| pick(&depths, "depths", &stem, "png").map(|f| (DepthFile::Png16, f)));
-                e.disparity = pick(&disps, "disps", &stem, "png");
+                e.disparity = pick(&disps, "disps", &stem, "npy").or_else(|| pick(&disps, "disps", &stem, "png"));
                 e.masks = pick(&masks, "masks", &stem, "png")
                     .map(|f| (MaskFile::IndexPng, f))
                     .or_else(|| pick(&masks, "masks", &stem, "json").map(|f| (MaskFile::CocoJson, f)));
@@ -408,7 +417,8 @@ impl DirSource {
         }
         let mut skipped = listing.skipped;
         skipped.sort_by(|a, b| a.item.cmp(&b.item));
-        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped };
+        let baked = if layout == Layout::Reference { BakeManifest::read(path)? } else { None };
+        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
     }
@@ -472,6 +482,9 @@ impl DirSource {
             }
         }
         self.options.hash_into(&mut h);
+        if let Some(m) = &self.baked {
+            h.str("baked").str(&m.stage_fingerprint);
+        }
         Ok(h.finish())
     }
 
@@ -490,7 +503,11 @@ impl DirSource {
             None => match &e.disparity {
                 Some(f) => {
                     let p = self.root.join(&f.rel);
-                    let (w, h, d) = read_disparity_png(&p, limits)?;
+                    let (w, h, d) = if f.rel.ends_with(".npy") {
+                        read_depth_npy(&p, limits)?
+                    } else {
+                        read_disparity_png(&p, limits)?
+                    };
                     Some(GivenDepth::Disparity(fit(d, w, h, w0, h0)))
                 }
                 None => None,
@@ -620,6 +637,19 @@ impl Source for DirSource {
 
     fn skipped(&self) -> Vec<SkippedItem> {
         self.skipped.clone()
+    }
+
+    fn carried(&self) -> Carried {
+        let all = |f: fn(&Entry) -> bool| self.entries.iter().all(f);
+        Carried {
+            depth: all(|e| e.depth.is_some() || e.disparity.is_some()),
+            masks: all(|e| e.masks.is_some()),
+            mpi: all(|e| e.mpi.is_some()),
+        }
+    }
+
+    fn baked_with(&self) -> Option<String> {
+        self.baked.as_ref().map(BakeManifest::describe)
     }
 
     fn describe(&self) -> String {

@@ -82,6 +82,25 @@ pub trait Source: Send + Sync {
     fn skipped(&self) -> Vec<SkippedItem> {
         Vec::new()
     }
+    /// What every item carries, known from the listing without loading (so which scene models
+    /// its scenes can skip). Default: nothing known.
+    fn carried(&self) -> Carried {
+        Carried::default()
+    }
+    /// The provenance of a baked collection ([`baked::BakeManifest::describe`]), `None` when it
+    /// was not made by `mpiflow bake`.
+    fn baked_with(&self) -> Option<String> {
+        None
+    }
+}
+
+/// What every item of a collection carries (each `true` only when all items do).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Carried {
+    /// Depth or disparity.
+    pub depth: bool,
+    pub masks: bool,
+    pub mpi: bool,
 }
 
 /// Something left out of a collection, and why.
@@ -103,6 +122,7 @@ pub fn fnv1a64(bytes: &[u8]) -> u64 {
     Fnv64::new().bytes(bytes).finish()
 }
 
+pub mod baked;
 pub mod builtin;
 pub mod dir;
 pub mod encoded;

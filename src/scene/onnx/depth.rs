@@ -148,6 +148,14 @@ pub(crate) fn normalize_disparity(raw: &[f32], floor: f32) -> Vec<f32> {
 }
 
 impl DepthEstimator for OnnxDepth {
+    fn inference_runs(&self) -> Option<u64> {
+        Some(self.model.stats().runs)
+    }
+
+    fn content_hash(&self) -> Option<u64> {
+        Some(self.model.content_hash())
+    }
+
     fn name(&self) -> String {
         self.model.short_name()
     }

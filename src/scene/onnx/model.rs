@@ -261,6 +261,11 @@ impl OnnxModel {
         &self.path
     }
 
+    /// FNV-1a 64 of the model file's bytes (the bytes the session was made from).
+    pub fn content_hash(&self) -> u64 {
+        self.content_hash
+    }
+
     /// `onnx:FILE_NAME`.
     pub fn short_name(&self) -> String {
         format!(

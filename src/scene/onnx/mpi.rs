@@ -210,6 +210,14 @@ impl OnnxMpi {
 }
 
 impl MpiBuilder for OnnxMpi {
+    fn inference_runs(&self) -> Option<u64> {
+        Some(self.model.stats().runs)
+    }
+
+    fn content_hash(&self) -> Option<u64> {
+        Some(self.model.content_hash())
+    }
+
     fn name(&self) -> String {
         self.model.short_name()
     }

@@ -191,6 +191,14 @@ impl OnnxSegmenter {
 }
 
 impl Segmenter for OnnxSegmenter {
+    fn inference_runs(&self) -> Option<u64> {
+        Some(self.model.stats().runs)
+    }
+
+    fn content_hash(&self) -> Option<u64> {
+        Some(self.model.content_hash())
+    }
+
     fn name(&self) -> String {
         self.model.short_name()
     }

@@ -353,7 +353,7 @@ class InfoRequest(_message.Message):
     def __init__(self) -> None: ...
 
 class DatasetInfo(_message.Message):
-    __slots__ = ("name", "fingerprint", "sources", "description", "is_default", "skipped")
+    __slots__ = ("name", "fingerprint", "sources", "description", "is_default", "skipped", "needs_models", "baked_with")
     class SkippedEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -367,13 +367,17 @@ class DatasetInfo(_message.Message):
     DESCRIPTION_FIELD_NUMBER: _ClassVar[int]
     IS_DEFAULT_FIELD_NUMBER: _ClassVar[int]
     SKIPPED_FIELD_NUMBER: _ClassVar[int]
+    NEEDS_MODELS_FIELD_NUMBER: _ClassVar[int]
+    BAKED_WITH_FIELD_NUMBER: _ClassVar[int]
     name: str
     fingerprint: int
     sources: int
     description: str
     is_default: bool
     skipped: _containers.ScalarMap[str, int]
-    def __init__(self, name: _Optional[str] = ..., fingerprint: _Optional[int] = ..., sources: _Optional[int] = ..., description: _Optional[str] = ..., is_default: _Optional[bool] = ..., skipped: _Optional[_Mapping[str, int]] = ...) -> None: ...
+    needs_models: bool
+    baked_with: str
+    def __init__(self, name: _Optional[str] = ..., fingerprint: _Optional[int] = ..., sources: _Optional[int] = ..., description: _Optional[str] = ..., is_default: _Optional[bool] = ..., skipped: _Optional[_Mapping[str, int]] = ..., needs_models: _Optional[bool] = ..., baked_with: _Optional[str] = ...) -> None: ...
 
 class ModelInfo(_message.Message):
     __slots__ = ("role", "name")

@@ -1,0 +1,135 @@
+//! `mpiflow bake`: the scene models run once per source item; the output folder (reference
+//! layout + `bake.json`) is served with no model (see [`mpiflow::export::bake`] and
+//! docs/deploy.md). Progress with ETA on stderr, `bake-report.json` at the end.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use clap::Args;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
+use mpiflow::export::bake::{Baker, Progress, Shard};
+use mpiflow::sample::pipeline::{open_source, parse_size, OpenOptions, SourceSpec};
+use mpiflow::scene::models::ModelConfig;
+
+use super::CliError;
+
+#[derive(Args, Debug)]
+pub struct BakeArgs {
+    /// Source photos: a folder of images, a folder in the reference layout, one image, a
+    /// WebDataset .tar shard or a folder of shards.
+    #[arg(long, value_name = "DIR|SHARDS")]
+    source: PathBuf,
+    /// Output folder (reference layout: images/, disps/, masks/, mpis/ and bake.json); shared by
+    /// all shards of one bake.
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Depth model (ONNX) for items without depth.
+    #[arg(long, value_name = "FILE.onnx")]
+    depth_model: Option<PathBuf>,
+    /// Instance segmentation model (ONNX) for items without masks.
+    #[arg(long, value_name = "FILE.onnx")]
+    segment_model: Option<PathBuf>,
+    /// MPI network (ONNX); its MPIs are baked into mpis/ (without it the server's built-in
+    /// layering lifts the baked disparity, which needs no model).
+    #[arg(long, value_name = "FILE.onnx")]
+    mpi_model: Option<PathBuf>,
+    /// MPI planes of the built-in layering (recorded; used to check items).
+    #[arg(long, value_name = "N", default_value_t = 32)]
+    planes: usize,
+    /// This job's part of the items: I of N (items whose id hashes to I mod N).
+    #[arg(long, value_name = "I/N", default_value = "0/1")]
+    shard: Shard,
+    /// Output layout. Only `reference` for now.
+    #[arg(long, value_name = "FORMAT", default_value = "reference", value_parser = ["reference"])]
+    format: String,
+    /// Resize every image to WxH before the models run (serve the result without --size).
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    size: Option<(usize, usize)>,
+    /// Bake at most N items in this run, then stop (a planned interruption; run again to go on).
+    #[arg(long, value_name = "N")]
+    limit: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+}
+
+fn progress_bar(total: usize, quiet: bool) -> ProgressBar {
+    if quiet || !std::io::stderr().is_terminal() {
+        return ProgressBar::hidden();
+    }
+    let pb = ProgressBar::with_draw_target(Some(total as u64), ProgressDrawTarget::stderr());
+    let style = ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} items, {rate}, ETA {eta} {msg}",
+    )
+    .unwrap_or_else(|_| ProgressStyle::default_bar())
+    .with_key("rate", |state: &ProgressState, w: &mut dyn std::fmt::Write| {
+        let _ = write!(w, "{:.2} items/s", state.per_sec());
+    });
+    pb.set_style(style);
+    pb.enable_steady_tick(Duration::from_millis(250));
+    pb
+}
+
+pub fn run(a: BakeArgs) -> Result<(), CliError> {
+    let options = OpenOptions { resize: a.size, ..OpenOptions::default() };
+    let source =
+        open_source(&SourceSpec::Path(a.source.clone()), &options).map_err(|e| CliError(format!("--source: {e}")))?;
+    for s in source.skipped() {
+        eprintln!("bake: left out {} ({}): {}", s.item, s.kind.as_str(), s.reason);
+    }
+    let models = ModelConfig {
+        planes: a.planes,
+        depth_model: a.depth_model.clone(),
+        mpi_model: a.mpi_model.clone(),
+        segment_model: a.segment_model.clone(),
+    };
+    let stage = Arc::new(models.build_stage().map_err(CliError)?);
+    let baker = Baker::new(source.clone(), stage.clone(), a.size, &a.out)?;
+    let total = baker.items(&a.shard).len();
+    eprintln!(
+        "bake: shard {} = {total} of {} items of {} into {} ({})",
+        a.shard,
+        source.len(),
+        source.describe(),
+        a.out.display(),
+        stage.describe()
+    );
+    let pb = progress_bar(total, a.quiet);
+    // without a terminal: one plain line every few seconds (logs of a batch job)
+    let plain = !a.quiet && !std::io::stderr().is_terminal();
+    let start = Instant::now();
+    let mut last_line = Instant::now();
+    let report = baker.run(&a.shard, a.limit, |p: Progress| {
+        pb.set_position(p.handled as u64);
+        pb.set_message(format!("({} failed)", p.failed));
+        if plain && (last_line.elapsed() >= Duration::from_secs(5) || p.handled == p.total) {
+            last_line = Instant::now();
+            let secs = start.elapsed().as_secs_f64();
+            let rate = p.handled as f64 / secs.max(1e-9);
+            let eta = (p.total - p.handled) as f64 / rate.max(1e-9);
+            eprintln!(
+                "bake: {}/{} items ({} baked, {} failed), {rate:.2} items/s, ETA {eta:.0} s",
+                p.handled, p.total, p.baked, p.failed
+            );
+        }
+    })?;
+    pb.finish_and_clear();
+    let path = baker.write_report(&a.shard, &report)?;
+    for f in &report.failures {
+        eprintln!("bake: failed {} ({}): {}", f.id, f.kind, f.reason);
+    }
+    eprintln!(
+        "bake: shard {}: {} baked, {} already done, {} failed, {} not reached, {:.2} items/s, peak {:.0} MiB; report {}",
+        a.shard,
+        report.baked,
+        report.already_done,
+        report.failed,
+        report.remaining,
+        report.timings.items_per_s,
+        report.peak_rss_mib.unwrap_or(0.0),
+        path.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,362 @@
+//! `mpiflow bake` end to end, with the tiny ONNX models of `tools/make_test_models.py` in real
+//! ONNX Runtime sessions and the real binary: N shards cover every item exactly once and give
+//! the bytes of one unsharded bake; an interrupted bake (a `--limit`, an item cut in the middle,
+//! leftover temporaries) restarted loses and repeats nothing; bad items are reported with their
+//! reason; a baked scene is the scene the models make (disparity, masks, image and MPI bit for
+//! bit); and a server over the baked folder runs no model (GetInfo says so, the model counters
+//! stay 0) while the same server over the raw photos does.
+//!
+//! Needs `MPIFLOW_PYTHON` (a Python with `onnx`) and `ORT_DYLIB_PATH`: run `bash tools/test.sh`,
+//! or `eval "$(bash tools/setup_python.sh)"` first.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::{Arc, OnceLock};
+
+use mpiflow::export::bake::{shard_of, Shard};
+use mpiflow::io::image::{load_rgb, save_rgb_png, ImageLimits};
+use mpiflow::scene::models::ModelConfig;
+use mpiflow::scene::stage::{SceneStage, SourceScenes};
+use mpiflow::scene::SceneLoader;
+use mpiflow::service::client::client_for;
+use mpiflow::service::config::DatasetConfig;
+use mpiflow::service::pb;
+use mpiflow::service::{start, ServiceConfig};
+use mpiflow::source::dir::resize_rgb;
+use mpiflow::source::dir::{DirSource, SourceOptions};
+use mpiflow::source::Source;
+use proptest::prelude::*;
+use tonic::transport::Endpoint;
+
+const HOW: &str = "run the tests with `bash tools/test.sh` (or `eval \"$(bash tools/setup_python.sh)\"` first)";
+const SIZE: &str = "64x48";
+
+fn tmp(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("bake_{name}_{}", std::process::id()));
+    std::fs::remove_dir_all(&d).ok();
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The generated test models (once per test process).
+fn models() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let python = std::env::var_os("MPIFLOW_PYTHON")
+            .filter(|v| !v.is_empty())
+            .unwrap_or_else(|| panic!("MPIFLOW_PYTHON is not set: {HOW}"));
+        assert!(std::env::var_os("ORT_DYLIB_PATH").is_some_and(|v| !v.is_empty()), "ORT_DYLIB_PATH is not set: {HOW}");
+        let dir = tmp("models");
+        let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/make_test_models.py");
+        let out = Command::new(&python).arg(&script).arg(&dir).output().expect("runs the model script");
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        dir
+    })
+}
+
+fn model(name: &str) -> PathBuf {
+    models().join(name)
+}
+
+/// A plain folder: the bundled photos as 64x48 8-bit PNGs, one twice under two names, one at
+/// 80x60 (the bake's `--size` brings it to 64x48), and a corrupt image.
+fn photos(name: &str) -> PathBuf {
+    let d = tmp(name);
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/photos");
+    for (f, to, (w, h)) in [
+        ("astronaut.png", "astronaut.png", (64, 48)),
+        ("chelsea.png", "chelsea.png", (64, 48)),
+        ("coffee.png", "coffee.png", (64, 48)),
+        ("coffee.png", "mug.png", (64, 48)),
+        ("rocket.jpg", "rocket.png", (80, 60)),
+    ] {
+        let img = load_rgb(&src.join(f), &ImageLimits::default()).unwrap();
+        save_rgb_png(&d.join(to), &resize_rgb(&img, w, h)).unwrap();
+    }
+    std::fs::write(d.join("broken.png"), b"\x89PNG\r\n\x1a\n not really a png").unwrap();
+    d
+}
+
+const GOOD: [&str; 5] = ["astronaut", "chelsea", "coffee", "mug", "rocket"];
+
+fn bake(source: &Path, out: &Path, extra: &[&str]) -> (serde_json::Value, String) {
+    let bin = env!("CARGO_BIN_EXE_mpiflow");
+    let mut cmd = Command::new(bin);
+    cmd.args(["bake", "--source"]).arg(source).arg("--out").arg(out);
+    cmd.arg("--depth-model").arg(model("depth.onnx")).arg("--segment-model").arg(model("seg.onnx"));
+    cmd.args(["--size", SIZE]).args(extra);
+    let o = cmd.output().expect("runs mpiflow bake");
+    let stderr = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(o.status.success(), "bake failed: {stderr}");
+    let shard = extra.iter().position(|a| *a == "--shard").map(|i| extra[i + 1].replace('/', "-of-"));
+    let report = match shard {
+        Some(tag) if tag != "0-of-1" => out.join(format!("bake-report.{tag}.json")),
+        _ => out.join("bake-report.json"),
+    };
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(report).expect("a report")).unwrap();
+    (r, stderr)
+}
+
+/// Every file under `dir` (relative path -> bytes), reports and hidden folders left out.
+fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    for sub in ["images", "disps", "masks", "mpis"] {
+        let Ok(rd) = std::fs::read_dir(dir.join(sub)) else { continue };
+        for e in rd {
+            let p = e.unwrap().path();
+            out.insert(format!("{sub}/{}", p.file_name().unwrap().to_string_lossy()), std::fs::read(&p).unwrap());
+        }
+    }
+    out.insert("bake.json".into(), std::fs::read(dir.join("bake.json")).unwrap());
+    out
+}
+
+fn ids_of(files: &BTreeMap<String, Vec<u8>>, sub: &str) -> BTreeSet<String> {
+    files
+        .keys()
+        .filter_map(|k| k.strip_prefix(&format!("{sub}/")))
+        .map(|n| n.rsplit_once('.').unwrap().0.to_string())
+        .collect()
+}
+
+fn n(v: &serde_json::Value, key: &str) -> u64 {
+    v[key].as_u64().unwrap_or_else(|| panic!("{key} in {v}"))
+}
+
+proptest! {
+    /// N shards partition any set of ids: every id is in exactly one shard.
+    #[test]
+    fn shards_cover_every_item_exactly_once(ids in proptest::collection::btree_set("[a-z0-9_.-]{1,12}", 0..60), count in 1u64..9) {
+        let shards: Vec<Shard> = (0..count).map(|index| Shard { index, count }).collect();
+        for id in &ids {
+            let owners = shards.iter().filter(|s| s.owns(id)).count();
+            prop_assert_eq!(owners, 1, "{} is in {} shards of {}", id, owners, count);
+            prop_assert!(shard_of(id, count) < count);
+        }
+    }
+}
+
+#[test]
+fn shard_spec_parses_and_refuses() {
+    assert_eq!("1/4".parse::<Shard>().unwrap(), Shard { index: 1, count: 4 });
+    for bad in ["4/4", "0/0", "x/2", "1", "-1/2"] {
+        assert!(bad.parse::<Shard>().is_err(), "{bad}");
+    }
+}
+
+#[test]
+fn two_shards_make_the_whole_bake_and_bad_items_are_reported() {
+    let src = photos("shards_src");
+    let (whole, sharded) = (tmp("whole"), tmp("sharded"));
+    let (r, _) = bake(&src, &whole, &[]);
+    assert_eq!((n(&r, "baked"), n(&r, "failed"), n(&r, "remaining")), (5, 1, 0), "{r}");
+    let f = &r["failures"][0];
+    assert_eq!(f["id"], "broken");
+    assert_eq!(f["kind"], "decode", "{f}");
+    assert!(f["reason"].as_str().unwrap().contains("broken.png"), "{f}");
+    assert_eq!(r["model_runs"]["depth"], 5);
+    assert_eq!(r["model_runs"]["segment"], 5);
+    let hash = r["models"][0]["content_hash"].as_str().unwrap().to_string();
+    assert_eq!(hash.len(), 16);
+
+    let (r0, _) = bake(&src, &sharded, &["--shard", "0/2"]);
+    let (r1, _) = bake(&src, &sharded, &["--shard", "1/2"]);
+    assert_eq!(n(&r0, "shard_items") + n(&r1, "shard_items"), 6);
+    assert_eq!(n(&r0, "baked") + n(&r1, "baked"), 5, "{r0}\n{r1}");
+    assert_eq!(n(&r0, "failed") + n(&r1, "failed"), 1);
+    let (a, b) = (files(&whole), files(&sharded));
+    let want: BTreeSet<String> = GOOD.iter().map(ToString::to_string).collect();
+    for sub in ["images", "disps", "masks"] {
+        assert_eq!(ids_of(&a, sub), want, "{sub}");
+    }
+    assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+    for (k, v) in &a {
+        assert!(b[k] == *v, "{k} differs between the whole and the sharded bake");
+    }
+    // the manifest names the models by content hash
+    assert!(String::from_utf8_lossy(&a["bake.json"]).contains(&hash));
+    // a second run of a finished shard does nothing
+    let (again, _) = bake(&src, &sharded, &["--shard", "1/2"]);
+    assert_eq!((n(&again, "baked"), n(&again, "already_done")), (0, n(&r1, "baked")));
+    assert_eq!(again["model_runs"]["depth"], 0);
+}
+
+#[test]
+fn an_interrupted_bake_restarted_loses_and_repeats_nothing() {
+    let src = photos("resume_src");
+    let (whole, cut) = (tmp("resume_whole"), tmp("resume_cut"));
+    bake(&src, &whole, &[]);
+    let (r, _) = bake(&src, &cut, &["--limit", "2"]);
+    assert_eq!(n(&r, "baked") + n(&r, "failed"), 2, "{r}");
+    assert!(n(&r, "remaining") > 0);
+    let first = ids_of(&files(&cut), "images");
+    assert_eq!(first.len() as u64, n(&r, "baked"));
+    // an item cut in the middle: its disparity renamed into place, its image not yet; and a
+    // temporary file of the killed run
+    let pending: Vec<&str> = GOOD.iter().copied().filter(|id| !first.contains(*id)).collect();
+    let half = pending[0];
+    std::fs::copy(whole.join(format!("disps/{half}.npy")), cut.join(format!("disps/{half}.npy"))).unwrap();
+    std::fs::create_dir_all(cut.join(".partial/0-of-1")).unwrap();
+    std::fs::write(cut.join(".partial/0-of-1/1234-x.png"), b"half written").unwrap();
+    // the half item is not served: the listing goes by images/
+    let listed = DirSource::open(&cut, &SourceOptions::default()).unwrap();
+    assert_eq!(listed.len(), first.len());
+
+    let (r2, _) = bake(&src, &cut, &[]);
+    assert_eq!(n(&r2, "already_done"), n(&r, "baked"), "{r2}");
+    assert_eq!(n(&r, "baked") + n(&r2, "baked"), 5, "every good item baked exactly once: {r}\n{r2}");
+    assert_eq!(r2["model_runs"]["depth"], n(&r2, "baked"));
+    assert!(!cut.join(".partial/0-of-1").exists(), "the leftover temporaries are cleared");
+    let (a, b) = (files(&whole), files(&cut));
+    assert_eq!(a.keys().collect::<Vec<_>>(), b.keys().collect::<Vec<_>>());
+    for (k, v) in &a {
+        assert!(b[k] == *v, "{k} differs from an uninterrupted bake");
+    }
+}
+
+#[test]
+fn a_folder_baked_with_other_models_is_refused() {
+    let src = photos("refuse_src");
+    let out = tmp("refuse");
+    bake(&src, &out, &["--limit", "1"]);
+    let o = Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+        .args(["bake", "--source"])
+        .arg(&src)
+        .arg("--out")
+        .arg(&out)
+        .arg("--depth-model")
+        .arg(model("depth_fixed.onnx"))
+        .args(["--size", SIZE])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("other models") && e.contains("bake.json"), "{e}");
+}
+
+fn stage(depth: bool, mpi: bool, seg: bool) -> Arc<SceneStage> {
+    let m = ModelConfig {
+        depth_model: depth.then(|| model("depth.onnx")),
+        mpi_model: mpi.then(|| model("mpi.onnx")),
+        segment_model: seg.then(|| model("seg.onnx")),
+        ..ModelConfig::default()
+    };
+    Arc::new(m.build_stage().unwrap())
+}
+
+/// The scenes of the raw photos through the models equal the scenes of the baked folder
+/// through no model, bit for bit (image, disparity, masks, MPI), with and without an MPI network.
+#[test]
+fn a_baked_scene_is_the_scene_the_models_make() {
+    let src = photos("scene_src");
+    for mpi_net in [false, true] {
+        let out = tmp(&format!("scene_{mpi_net}"));
+        let extra: &[&str] = if mpi_net { &["--mpi-model", "MPI"] } else { &[] };
+        let mpi_path = model("mpi.onnx").display().to_string();
+        let extra: Vec<&str> = extra.iter().map(|a| if *a == "MPI" { mpi_path.as_str() } else { a }).collect();
+        bake(&src, &out, &extra);
+        let opts = SourceOptions { resize: Some((64, 48)), ..SourceOptions::default() };
+        let raw = SourceScenes::new(Arc::new(DirSource::open(&src, &opts).unwrap()), stage(true, mpi_net, true));
+        let baked_src = Arc::new(DirSource::open(&out, &SourceOptions::default()).unwrap());
+        assert!(baked_src.baked_with().unwrap().contains("onnx:depth.onnx"));
+        // the baked folder through a stage with every model configured still runs none
+        let baked = SourceScenes::new(baked_src, stage(true, mpi_net, true));
+        assert!(raw.needs_models() && !baked.needs_models());
+        let before = baked.stage.model_runs();
+        let mut compared = 0;
+        for i in 0..raw.len() {
+            // rocket is resized by --size: the bake ran the models on its image quantised to
+            // the 8 bits it stores, the raw path on the unquantised one
+            if raw.id(i) == "rocket" {
+                continue;
+            }
+            let Ok(a) = raw.load_scene(i) else { continue };
+            let j = (0..baked.len()).find(|&j| baked.id(j) == a.id).expect("baked");
+            let b = baked.load_scene(j).unwrap();
+            assert!(a.image == b.image, "{}: image", a.id);
+            assert_eq!(a.masks.masks.len(), b.masks.masks.len(), "{}: instances", a.id);
+            for (ma, mb) in a.masks.masks.iter().zip(&b.masks.masks) {
+                assert_eq!(ma.mask, mb.mask, "{}: mask {}", a.id, ma.id);
+            }
+            assert_eq!(a.mpi.disparity, b.mpi.disparity, "{}: planes", a.id);
+            assert!(a.mpi.rgba == b.mpi.rgba, "{}: MPI values", a.id);
+            if !mpi_net {
+                assert!(a.disparity == b.disparity, "{}: disparity", a.id);
+            }
+            compared += 1;
+        }
+        assert_eq!(compared, 4);
+        assert_eq!(baked.stage.model_runs(), before, "loading baked scenes ran a model");
+    }
+}
+
+async fn http_get(addr: &str, path: &str) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut sock = tokio::net::TcpStream::connect(addr).await.unwrap();
+    sock.write_all(format!("GET {path} HTTP/1.1\r\nHost: x\r\n\r\n").as_bytes()).await.unwrap();
+    let mut out = String::new();
+    sock.read_to_string(&mut out).await.unwrap();
+    out
+}
+
+/// The value of a metric line `NAME{LABELS} VALUE` in an OpenMetrics text.
+fn metric(text: &str, name_and_labels: &str) -> Option<f64> {
+    text.lines().find_map(|l| l.strip_prefix(name_and_labels)?.trim().parse().ok())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn serving_a_baked_folder_runs_no_model() {
+    let src = photos("serve_src");
+    let out = tmp("serve_baked");
+    bake(&src, &out, &[]);
+    let models = ModelConfig {
+        depth_model: Some(model("depth.onnx")),
+        segment_model: Some(model("seg.onnx")),
+        ..ModelConfig::default()
+    };
+    let dataset =
+        |name: &str, p: &Path| DatasetConfig { name: Some(name.into()), path: p.display().to_string(), sample: None };
+    let config = ServiceConfig {
+        addr: "127.0.0.1:0".into(),
+        metrics_addr: Some("127.0.0.1:0".into()),
+        workers: 2,
+        log_level: "warn".into(),
+        models,
+        datasets: vec![dataset("baked", &out), dataset("raw", &src)],
+        ..ServiceConfig::default()
+    };
+    // the raw photos are served at the baked size
+    let config = ServiceConfig { size: Some(SIZE.into()), ..config };
+    let s = start(config).await.expect("server starts");
+    let ch = Endpoint::from_shared(format!("http://{}", s.addr)).unwrap().connect().await.unwrap();
+    let mut c = client_for(ch);
+    let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    let baked = info.datasets.iter().find(|d| d.name == "baked").unwrap();
+    let raw = info.datasets.iter().find(|d| d.name == "raw").unwrap();
+    assert!(!baked.needs_models && raw.needs_models, "{baked:?}\n{raw:?}");
+    assert!(baked.baked_with.contains("mpiflow bake v1") && baked.baked_with.contains("onnx:seg.onnx"), "{baked:?}");
+    assert!(baked.description.contains("baked: "), "{}", baked.description);
+    assert!(raw.baked_with.is_empty());
+    assert_eq!(baked.sources, 5);
+
+    let metrics = s.metrics_addr.unwrap().to_string();
+    let pull = |dataset: &str| pb::StreamRequest { dataset: dataset.into(), seed: 3, count: 6, ..Default::default() };
+    let mut got = 0;
+    let mut st = c.stream_samples(pull("baked")).await.unwrap().into_inner();
+    while let Some(b) = st.message().await.unwrap() {
+        got += b.samples.len();
+    }
+    assert_eq!(got, 6);
+    let m = http_get(&metrics, "/metrics").await;
+    assert_eq!(metric(&m, "mpiflow_model_runs_total{role=\"depth\"}"), Some(0.0), "{m}");
+    assert_eq!(metric(&m, "mpiflow_model_runs_total{role=\"segment\"}"), Some(0.0), "{m}");
+    assert!(metric(&m, "mpiflow_scene_builds_total{dataset=\"baked\"}").unwrap() >= 5.0);
+
+    // the raw photos through the same server do run the models (the counter counts)
+    let mut st = c.stream_samples(pull("raw")).await.unwrap().into_inner();
+    while st.message().await.unwrap().is_some() {}
+    let m = http_get(&metrics, "/metrics").await;
+    assert!(metric(&m, "mpiflow_model_runs_total{role=\"depth\"}").unwrap() > 0.0, "{m}");
+    s.shutdown(std::time::Duration::from_secs(5)).await;
+}
