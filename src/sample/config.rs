@@ -8,7 +8,7 @@ use super::merge::{LabelRule, MergeRule};
 use super::motion::{MotionPreset, MotionRanges};
 use super::object::ObjectChoice;
 use super::recipe::SampleError;
-use crate::render::{Mode, Skip};
+use crate::render::{Mode, Resample, Skip};
 
 /// The motion laws: a preset name or explicit ranges. In JSON: `"paper-kitti"` or a
 /// [`MotionRanges`] object.
@@ -103,6 +103,9 @@ pub struct SampleConfig {
     /// Pre-blend the MPI with the source photo when the scene is loaded (for network MPIs;
     /// [`super::preblend`]). Default false.
     pub preblend: bool,
+    /// Colour kernel of the exact-mode target renders ([`crate::render::resample`]; the
+    /// reference mode is always bilinear). Default `bspline3` (measurements in docs/quality.md).
+    pub resample: Resample,
 }
 
 impl Default for SampleConfig {
@@ -123,6 +126,7 @@ impl Default for SampleConfig {
             skip: Skip::DEFAULT,
             windowed: true,
             preblend: false,
+            resample: Resample::default(),
         }
     }
 }
@@ -162,9 +166,15 @@ impl SampleConfig {
         Ok(())
     }
 
-    /// The word of the cache key for what [`prepare_scene`] changes.
+    /// The word of the cache key for what [`prepare_scene`] changes (the pre-blend, and the
+    /// B-spline coefficients a `bspline3` render needs).
     pub fn scene_variant(&self) -> u64 {
-        u64::from(self.preblend)
+        u64::from(self.preblend) | u64::from(self.needs_prefilter()) << 1
+    }
+
+    /// Whether the scene's MPI needs its B-spline coefficients ([`crate::mpi::Mpi::bspline3_rgb`]).
+    pub fn needs_prefilter(&self) -> bool {
+        self.mode == Mode::Exact && self.resample.needs_prefilter()
     }
 
     /// The source item of sample `index` in a collection of `len` items.

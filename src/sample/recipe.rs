@@ -67,7 +67,7 @@ pub use super::pipeline::Generator;
 use super::preblend::{preblend, PreblendError};
 use super::rng::{Purpose, SampleRng};
 use super::{ObjectRecord, Sample, SampleAddress, StageTimings};
-use crate::render::{render, Fields, Mode, Occupancy, RenderError, RenderOutput, RenderParams};
+use crate::render::{render, Fields, Mode, Occupancy, RenderError, RenderOutput, RenderParams, Resample};
 use crate::scene::{Scene, SceneError};
 use crate::source::FailureKind;
 
@@ -131,6 +131,11 @@ pub fn prepare_scene(mut scene: Scene, config: &SampleConfig) -> Result<Scene, S
         preblend(mpi, &scene.image.data, &scene.intrinsics)
             .map_err(|source| SampleError::Preblend { id: scene.id.clone(), source })?;
         scene.provenance.push("preblend: reference (T_src * photo + (1 - T_src) * rgb)".into());
+    }
+    if config.needs_prefilter() && scene.mpi.bspline3_rgb.is_none() {
+        // once per scene: the cached scene carries the coefficients every sample samples
+        let coefficients = Arc::new(crate::render::resample::bspline3_coefficients(&scene.mpi));
+        Arc::make_mut(&mut scene.mpi).bspline3_rgb = Some(coefficients);
     }
     Ok(scene)
 }
@@ -275,6 +280,7 @@ fn assemble_merged_sample(
     let mut params = RenderParams::new(k, cam_pose);
     params.mode = config.mode;
     params.skip = config.skip;
+    params.resample = config.resample;
     params.fields = Fields { target: true, flow: true, occlusion: false };
     // the scene MPI's tile occupancy, shared by the scene render and the windowed renders
     let t = Instant::now();
@@ -308,7 +314,7 @@ fn assemble_merged_sample(
         (Some(u), false) => {
             // the reference's scene render: a full copy with the channel 1 - U
             let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
-            let r = render_full_with_mask(mpi, &k, &cam_pose, &inv, config.mode, config.skip, params.fields)
+            let r = render_full_with_mask(mpi, &k, &cam_pose, &inv, config.mode, config.skip, config.resample, params.fields)
                 .map_err(render_err("scene"))?;
             let mut out = r.out;
             let mask = std::mem::take(&mut out.extras);
@@ -325,7 +331,8 @@ fn assemble_merged_sample(
     if let (None, Some(u)) = (&full_mask, &union) {
         if let Some(support) = support_rect(u, w, h) {
             let win = scene_mask_window(mpi, &k, &cam_pose, &support);
-            let r = render_mask_window(mpi, occupancy, &k, &cam_pose, &win, u, config.skip, false)
+            // only coverage and the mask channel are used, which no colour kernel changes
+            let r = render_mask_window(mpi, occupancy, &k, &cam_pose, &win, u, config.skip, Resample::Bilinear, false)
                 .map_err(render_err("scene mask"))?;
             let patch = r.out.coverage.iter().zip(&r.out.extras).map(|(c, m)| c - m).collect();
             mask_patch = Some((win, patch));
@@ -339,9 +346,9 @@ fn assemble_merged_sample(
         let r = match (windowed, support_rect(mask, w, h)) {
             (true, Some(support)) => {
                 let win = object_window(mpi, &k, pose, &support);
-                render_mask_window(mpi, occupancy, &k, pose, &win, mask, config.skip, true)
+                render_mask_window(mpi, occupancy, &k, pose, &win, mask, config.skip, config.resample, true)
             }
-            _ => render_full_with_mask(mpi, &k, pose, mask, config.mode, config.skip, params.fields),
+            _ => render_full_with_mask(mpi, &k, pose, mask, config.mode, config.skip, config.resample, params.fields),
         }
         .map_err(render_err("object"))?;
         renders.push(r);
