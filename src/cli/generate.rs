@@ -66,6 +66,9 @@ pub struct GenerateArgs {
     /// How object and scene renders are merged: reference or depth-aware.
     #[arg(long, value_name = "RULE", default_value = "depth-aware")]
     merge: MergeRule,
+    /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
+    #[arg(long, value_name = "KERNEL", default_value_t = mpiflow::render::Resample::default())]
+    resample: mpiflow::render::Resample,
     /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
@@ -192,6 +195,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         max_objects: usize::from(a.objects),
         merge: a.merge,
         motions_per_image: a.motions_per_image,
+        resample: a.resample,
         ..SampleConfig::with_preset(a.preset)
     };
     let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));

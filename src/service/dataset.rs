@@ -49,6 +49,7 @@ pub struct Overrides {
     pub motion_ranges: Option<MotionRanges>,
     pub max_objects: Option<usize>,
     pub motions_per_image: Option<u64>,
+    pub resample: Option<crate::render::Resample>,
 }
 
 impl Overrides {
@@ -121,6 +122,9 @@ impl Dataset {
         }
         if let Some(m) = o.motions_per_image {
             config.motions_per_image = m;
+        }
+        if let Some(r) = o.resample {
+            config.resample = r;
         }
         if let Err(e) = config.validate() {
             // the default configuration was valid, so the field at fault is an overridden one,

@@ -142,7 +142,8 @@ impl State {
         let (rank, world, batch, prefetch) = validate::stream_shape(r, &self.config)?;
         let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
         validate::augment(&r.augment, &mut out, &self.config)?;
-        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         // the stream limit
         self.admit()?;
@@ -199,7 +200,8 @@ impl State {
         let indices = validate::indices(&r.indices)?;
         let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
         validate::augment(&r.augment, &mut out, &self.config)?;
-        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         self.admit()?;
         // as many made ahead as keep every worker busy (within max_prefetch)
@@ -237,7 +239,8 @@ impl State {
         }
         let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
         validate::augment(&r.augment, &mut out, &self.config)?;
-        let o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
+        o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         let spec = StreamSpec {
             start_index: r.index,

@@ -155,6 +155,7 @@ def build_request_fields(
     max_objects: Optional[int] = None,
     motions_per_image: Optional[int] = None,
     augment: Any = None,
+    resample: Optional[str] = None,
 ) -> Dict[str, Any]:
     """The keyword arguments shared by StreamRequest and SampleRequest."""
     kw: Dict[str, Any] = dict(
@@ -167,6 +168,7 @@ def build_request_fields(
         motion_preset=motion_preset or "",
         motion_ranges_json=motion_ranges_json or "",
         augment=_augment(augment),
+        resample=resample or "",
     )
     c = _crop(crop, crop_mode)
     if c is not None:
@@ -500,6 +502,7 @@ class Client:
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
         augment: Any = None,
+        resample: Optional[str] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -521,6 +524,7 @@ class Client:
                 max_objects=max_objects,
                 motions_per_image=motions_per_image,
                 augment=augment,
+                resample=resample,
             ),
         )
         s = self._unary("GetSample", req, timeout, address)
@@ -551,6 +555,7 @@ class Client:
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
         augment: Any = None,
+        resample: Optional[str] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -580,6 +585,7 @@ class Client:
             max_objects=max_objects,
             motions_per_image=motions_per_image,
             augment=augment,
+            resample=resample,
         )
         limit = max(1, self.max_indices())
         out: List[Any] = []

@@ -70,6 +70,7 @@ class FlowStream:
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
         augment: Any = None,
+        resample: Optional[str] = None,
         batch_size: int = 1,
         server_prefetch: int = 0,
         retry_timeout: float = 120.0,
@@ -109,6 +110,7 @@ class FlowStream:
             max_objects=max_objects,
             motions_per_image=motions_per_image,
             augment=augment,
+            resample=resample,
         )
         self._call = None
         self._lock = threading.Lock()
