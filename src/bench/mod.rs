@@ -70,9 +70,7 @@ pub struct RenderBenchConfig {
 /// timed runs (as the scene cache keeps it).
 pub fn bench_render(cfg: &RenderBenchConfig) -> Timing {
     let mut mpi = bench_mpi(cfg.width, cfg.height, cfg.planes);
-    if cfg.resample.needs_prefilter() {
-        mpi.bspline3_rgb = Some(std::sync::Arc::new(crate::render::resample::bspline3_coefficients(&mpi)));
-    }
+    crate::render::resample::prefilter(&mut mpi, cfg.resample);
     let k = Intrinsics::reference_default(cfg.width, cfg.height);
     let mut p = RenderParams::new(k, bench_pose());
     p.mode = cfg.mode;

@@ -29,7 +29,7 @@
 //! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
 
 use super::occupancy::Occupancy;
-use super::resample::{bspline3_coefficients, sample_rgb, Bspline3, Kernel, Keys, Lanczos3, Resample};
+use super::resample::{bspline_coefficients, sample_rgb, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample};
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap};
 use crate::mpi::planes::{plane_depth, plane_gaps, DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
@@ -138,18 +138,24 @@ pub(super) fn target_view<T: Real>(
             let s = HighOrder::<Lanczos3, 6, 4> { rgba, src, w, h, kernel: std::marker::PhantomData };
             target_view_with::<T, _>(mpi, p, occ, win, channels, out, &s)
         }
-        Resample::Bspline3 => {
+        Resample::Bspline3 | Resample::Bspline5 => {
+            let degree = if p.resample == Resample::Bspline3 { 3 } else { 5 };
             let owned;
-            let coef: &[f32] = match &mpi.bspline3_rgb {
-                Some(c) => c,
-                None => {
-                    owned = bspline3_coefficients(mpi);
+            let coef: &[f32] = match &mpi.bspline_rgb {
+                Some(c) if c.degree == degree => &c.coefficients,
+                _ => {
+                    owned = bspline_coefficients(mpi, degree);
                     &owned
                 }
             };
             let (rgba, src) = high(coef, 3);
-            let s = HighOrder::<Bspline3, 4, 3> { rgba, src, w, h, kernel: std::marker::PhantomData };
-            target_view_with::<T, _>(mpi, p, occ, win, channels, out, &s)
+            if degree == 3 {
+                let s = HighOrder::<Bspline3, 4, 3> { rgba, src, w, h, kernel: std::marker::PhantomData };
+                target_view_with::<T, _>(mpi, p, occ, win, channels, out, &s)
+            } else {
+                let s = HighOrder::<Bspline5, 6, 3> { rgba, src, w, h, kernel: std::marker::PhantomData };
+                target_view_with::<T, _>(mpi, p, occ, win, channels, out, &s)
+            }
         }
     }
 }

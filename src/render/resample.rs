@@ -1,5 +1,5 @@
 //! Resampling kernels for the colour of the exact-mode target render ([`Resample`]) and the cubic
-//! B-spline prefilter ([`bspline3_coefficients`]).
+//! B-spline prefilters ([`bspline_coefficients`]).
 //!
 //! Every target ray samples each plane it meets at a sub-pixel point q. Bilinear interpolation
 //! (the public reference's choice) is a low-pass filter: one bilinear resampling at a random
@@ -13,11 +13,13 @@
 //!   reproduces quadratics, rings slightly (lobes of -1/16).
 //! - [`Resample::Bspline3`]: cubic B-spline *interpolation*: the plane's colour is first turned
 //!   into B-spline coefficients by the recursive prefilter of Unser (pole sqrt(3) - 2, mirror
-//!   boundaries; [`bspline3_coefficients`]) and then evaluated with the B-spline basis. Much
+//!   boundaries; [`bspline_coefficients`]) and then evaluated with the B-spline basis. Much
 //!   closer to the ideal reconstruction than bicubic convolution; the prefilter is computed once
-//!   per scene and kept with the MPI ([`crate::mpi::Mpi::bspline3_rgb`], set by
-//!   `sample::recipe::prepare_scene`, so it lives in the scene cache); a render of an MPI without
-//!   it computes it for that render.
+//!   per scene and kept with the MPI ([`crate::mpi::Mpi::bspline_rgb`], set by
+//!   `sample::recipe::prepare_scene` through [`prefilter_arc`], so it lives in the scene cache);
+//!   a render of an MPI without it computes it for that render.
+//! - [`Resample::Bspline5`]: quintic B-spline interpolation over 6 x 6 taps (prefilter poles
+//!   -0.4306 and -0.0431), sharper still.
 //! - [`Resample::Lanczos3`]: windowed sinc over 6 x 6 taps, weights normalised to sum 1.
 //!
 //! Only colour uses the kernel. Density (and so alpha, coverage and depth) and the extra
@@ -45,25 +47,34 @@ pub enum Resample {
     /// 4 x 4 cubic B-spline interpolation (prefiltered coefficients); the default.
     #[default]
     Bspline3,
+    /// 6 x 6 quintic B-spline interpolation (prefiltered coefficients).
+    Bspline5,
     /// 6 x 6 Lanczos-3 (normalised windowed sinc).
     Lanczos3,
 }
 
 impl Resample {
-    pub const ALL: [Resample; 4] = [Resample::Bilinear, Resample::Bicubic, Resample::Bspline3, Resample::Lanczos3];
+    pub const ALL: [Resample; 5] =
+        [Resample::Bilinear, Resample::Bicubic, Resample::Bspline3, Resample::Bspline5, Resample::Lanczos3];
 
     pub fn name(self) -> &'static str {
         match self {
             Resample::Bilinear => "bilinear",
             Resample::Bicubic => "bicubic",
             Resample::Bspline3 => "bspline3",
+            Resample::Bspline5 => "bspline5",
             Resample::Lanczos3 => "lanczos3",
         }
     }
 
-    /// Whether the kernel samples prefiltered coefficients instead of the colours themselves.
-    pub fn needs_prefilter(self) -> bool {
-        self == Resample::Bspline3
+    /// The B-spline degree of a kernel that samples prefiltered coefficients instead of the
+    /// colours themselves.
+    pub fn bspline_degree(self) -> Option<u32> {
+        match self {
+            Resample::Bspline3 => Some(3),
+            Resample::Bspline5 => Some(5),
+            _ => None,
+        }
     }
 }
 
@@ -79,7 +90,7 @@ impl std::str::FromStr for Resample {
         Resample::ALL
             .into_iter()
             .find(|r| r.name() == s)
-            .ok_or_else(|| format!("unknown resample kernel `{s}` (expected bilinear, bicubic, bspline3 or lanczos3)"))
+            .ok_or_else(|| format!("unknown resample kernel `{s}` (expected bilinear, bicubic, bspline3, bspline5 or lanczos3)"))
     }
 }
 
@@ -92,6 +103,31 @@ pub(crate) trait Kernel<const N: usize>: Sync {
 pub(crate) struct Keys;
 pub(crate) struct Bspline3;
 pub(crate) struct Lanczos3;
+pub(crate) struct Bspline5;
+
+impl Kernel<6> for Bspline5 {
+    #[inline(always)]
+    fn weights<T: Real>(t: T) -> [T; 6] {
+        // beta5 at the distances |t + 2 - k| of the taps k = 0..5
+        let b = |x: T| -> T {
+            let x = x.abs();
+            let (x2, x4) = (x * x, x * x * x * x);
+            if x < T::one() {
+                T::of(11.0 / 20.0) - x2 * T::of(0.5) + x4 * T::of(0.25) - x4 * x / T::of(12.0)
+            } else if x < T::of(2.0) {
+                T::of(17.0 / 40.0) + x * T::of(5.0 / 8.0) - x2 * T::of(7.0 / 4.0) + x2 * x * T::of(5.0 / 4.0)
+                    - x4 * T::of(3.0 / 8.0)
+                    + x4 * x / T::of(24.0)
+            } else if x < T::of(3.0) {
+                let u = T::of(3.0) - x;
+                u * u * u * u * u / T::of(120.0)
+            } else {
+                T::zero()
+            }
+        };
+        std::array::from_fn(|k| b(t + T::of(2.0) - T::of(k as f64)))
+    }
+}
 
 impl Kernel<4> for Keys {
     #[inline(always)]
@@ -148,17 +184,15 @@ impl Kernel<6> for Lanczos3 {
     }
 }
 
+/// Index `i` of the whole-sample symmetric extension of a line of `n` (period 2n - 2).
 #[inline(always)]
 fn mirror(i: isize, n: usize) -> usize {
+    if n < 2 {
+        return 0;
+    }
     let last = n as isize - 1;
-    let j = if i < 0 {
-        -i
-    } else if i > last {
-        2 * last - i
-    } else {
-        i
-    };
-    j.clamp(0, last) as usize
+    let j = i.rem_euclid(2 * last);
+    (if j > last { 2 * last - j } else { j }) as usize
 }
 
 /// Colour of one plane at `(qx, qy)` (clamped to [0, W-1] x [0, H-1]) with kernel `K`, from
@@ -213,12 +247,44 @@ pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
     acc.map(|v| v.max(T::zero()).min(T::one()))
 }
 
-/// Cubic B-spline interpolation coefficients of the rgb channels of every plane of `mpi`
-/// (N x H x W x 3, plane-major, row-major, interleaved): the exact inverse of sampling the
+/// Computes the B-spline coefficients `resample` needs (if any, and if `mpi` does not hold them
+/// already) and keeps them in [`Mpi::bspline_rgb`].
+pub fn prefilter(mpi: &mut Mpi, resample: Resample) {
+    if let Some(degree) = resample.bspline_degree() {
+        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
+            let coefficients = std::sync::Arc::new(bspline_coefficients(mpi, degree));
+            mpi.bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
+        }
+    }
+}
+
+/// [`prefilter`] of a shared MPI (copied first only when it needs the coefficients and others
+/// hold it).
+pub fn prefilter_arc(mpi: &mut std::sync::Arc<Mpi>, resample: Resample) {
+    if let Some(degree) = resample.bspline_degree() {
+        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
+            let coefficients = std::sync::Arc::new(bspline_coefficients(mpi, degree));
+            std::sync::Arc::make_mut(mpi).bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
+        }
+    }
+}
+
+/// The poles of the B-spline interpolation prefilter of `degree` (3 or 5).
+fn poles(degree: u32) -> &'static [f64] {
+    if degree == 3 {
+        &[-0.267_949_192_431_122_7]
+    } else {
+        &[-0.430_575_347_099_973_8, -0.043_096_288_203_264_65]
+    }
+}
+
+/// B-spline interpolation coefficients (degree 3 or 5) of the rgb channels of every plane of
+/// `mpi` (N x H x W x 3, plane-major, row-major, interleaved): the exact inverse of sampling the
 /// B-spline at the pixel centres, with mirror boundaries (Unser, "Fast B-spline transforms for
 /// continuous image representation and interpolation", 1991). Computed in f64 per line.
-pub fn bspline3_coefficients(mpi: &Mpi) -> Vec<f32> {
+pub fn bspline_coefficients(mpi: &Mpi, degree: u32) -> Vec<f32> {
     let (w, h) = (mpi.width, mpi.height);
+    let z = poles(degree);
     let plane = w * h * 3;
     let mut out = vec![0.0f32; plane * mpi.planes()];
     out.par_chunks_mut(plane.max(1)).enumerate().for_each(|(i, dst)| {
@@ -233,7 +299,7 @@ pub fn bspline3_coefficients(mpi: &Mpi) -> Vec<f32> {
                 for x in 0..w {
                     line[x] = buf[3 * (y * w + x) + c];
                 }
-                prefilter_line(&mut line[..w]);
+                prefilter_line(&mut line[..w], z);
                 for x in 0..w {
                     buf[3 * (y * w + x) + c] = line[x];
                 }
@@ -244,7 +310,7 @@ pub fn bspline3_coefficients(mpi: &Mpi) -> Vec<f32> {
                 for y in 0..h {
                     line[y] = buf[3 * (y * w + x) + c];
                 }
-                prefilter_line(&mut line[..h]);
+                prefilter_line(&mut line[..h], z);
                 for y in 0..h {
                     buf[3 * (y * w + x) + c] = line[y];
                 }
@@ -257,67 +323,82 @@ pub fn bspline3_coefficients(mpi: &Mpi) -> Vec<f32> {
     out
 }
 
-/// In-place cubic B-spline prefilter of one line (mirror boundaries).
-fn prefilter_line(c: &mut [f64]) {
+/// In-place B-spline prefilter of one line with the given poles (mirror boundaries).
+fn prefilter_line(c: &mut [f64], poles: &[f64]) {
     let n = c.len();
     if n < 2 {
         return;
     }
-    let z = 3f64.sqrt() - 2.0;
-    let lambda = (1.0 - z) * (1.0 - 1.0 / z);
+    let lambda: f64 = poles.iter().map(|&z| (1.0 - z) * (1.0 - 1.0 / z)).product();
     for v in c.iter_mut() {
         *v *= lambda;
     }
-    // causal initialisation: sum_k c[k] z^k over the mirrored signal, truncated where |z|^k < 1e-12
+    for &z in poles {
+        c[0] = causal_init(c, z);
+        for k in 1..n {
+            c[k] += z * c[k - 1];
+        }
+        c[n - 1] = (z / (z * z - 1.0)) * (c[n - 1] + z * c[n - 2]);
+        for k in (0..n - 1).rev() {
+            c[k] = z * (c[k + 1] - c[k]);
+        }
+    }
+}
+
+/// `sum_k c[k] z^k` over the mirrored signal: truncated where `|z|^k < 1e-12`, exact for short lines.
+fn causal_init(c: &[f64], z: f64) -> f64 {
+    let n = c.len();
     let horizon = ((1e-12f64).ln() / z.abs().ln()).ceil() as usize;
-    let mut zk = 1.0;
-    let mut sum = 0.0;
     if horizon < n {
+        let mut zk = 1.0;
+        let mut sum = 0.0;
         for v in c.iter().take(horizon) {
             sum += zk * v;
             zk *= z;
         }
-    } else {
-        // exact for short lines: the mirrored signal has period 2n - 2
-        let iz = 1.0 / z;
-        let mut z2n = z.powi(n as i32 - 1);
-        sum = c[0] + z2n * c[n - 1];
-        z2n *= z2n * iz;
-        for v in c.iter().take(n - 1).skip(1) {
-            sum += (zk * z + z2n) * v;
-            zk *= z;
-            z2n *= iz;
-        }
-        sum /= 1.0 - z.powi(2 * n as i32 - 2);
+        return sum;
     }
-    c[0] = sum;
-    for k in 1..n {
-        c[k] += z * c[k - 1];
+    // the mirrored signal has period 2n - 2
+    let iz = 1.0 / z;
+    let mut zk = z;
+    let mut z2n = z.powi(n as i32 - 1);
+    let mut sum = c[0] + z2n * c[n - 1];
+    z2n *= z2n * iz;
+    for v in c.iter().take(n - 1).skip(1) {
+        sum += (zk + z2n) * v;
+        zk *= z;
+        z2n *= iz;
     }
-    c[n - 1] = (z / (z * z - 1.0)) * (c[n - 1] + z * c[n - 2]);
-    for k in (0..n - 1).rev() {
-        c[k] = z * (c[k + 1] - c[k]);
-    }
+    sum / (1.0 - zk * zk)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn eval_line(c: &[f64], x: f64) -> f64 {
+    fn eval_line(c: &[f64], x: f64, degree: u32) -> f64 {
         let x0 = x.floor();
-        let wts = Bspline3::weights(x - x0);
-        (0..4).map(|k| wts[k] * c[mirror(x0 as isize + k as isize - 1, c.len())]).sum()
+        let at = |k: isize| c[mirror(x0 as isize + k, c.len())];
+        if degree == 3 {
+            let wts = Bspline3::weights(x - x0);
+            (0..4).map(|k| wts[k] * at(k as isize - 1)).sum()
+        } else {
+            let wts = Bspline5::weights(x - x0);
+            (0..6).map(|k| wts[k] * at(k as isize - 2)).sum()
+        }
     }
 
     #[test]
     fn prefilter_interpolates_at_the_samples() {
-        for n in [2usize, 3, 5, 17, 40, 100] {
-            let s: Vec<f64> = (0..n).map(|i| ((i * 7919) % 13) as f64 / 13.0).collect();
-            let mut c = s.clone();
-            prefilter_line(&mut c);
-            for (i, &v) in s.iter().enumerate() {
-                assert!((eval_line(&c, i as f64) - v).abs() < 1e-9, "n {n} i {i}");
+        for degree in [3, 5] {
+            for n in [2usize, 3, 4, 5, 17, 40, 100] {
+                let s: Vec<f64> = (0..n).map(|i| ((i * 7919) % 13) as f64 / 13.0).collect();
+                let mut c = s.clone();
+                prefilter_line(&mut c, poles(degree));
+                for (i, &v) in s.iter().enumerate() {
+                    let got = eval_line(&c, i as f64, degree);
+                    assert!((got - v).abs() < 1e-9, "degree {degree} n {n} i {i}: {got} vs {v}");
+                }
             }
         }
     }
@@ -329,6 +410,7 @@ mod tests {
             assert!((Keys::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
             assert!((Bspline3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
             assert!((Lanczos3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            assert!((Bspline5::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
         }
     }
 

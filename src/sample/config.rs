@@ -169,12 +169,11 @@ impl SampleConfig {
     /// The word of the cache key for what [`prepare_scene`] changes (the pre-blend, and the
     /// B-spline coefficients a `bspline3` render needs).
     pub fn scene_variant(&self) -> u64 {
-        u64::from(self.preblend) | u64::from(self.needs_prefilter()) << 1
-    }
-
-    /// Whether the scene's MPI needs its B-spline coefficients ([`crate::mpi::Mpi::bspline3_rgb`]).
-    pub fn needs_prefilter(&self) -> bool {
-        self.mode == Mode::Exact && self.resample.needs_prefilter()
+        let degree = match self.mode {
+            Mode::Exact => self.resample.bspline_degree().unwrap_or(0),
+            Mode::Reference => 0,
+        };
+        u64::from(self.preblend) | u64::from(degree) << 1
     }
 
     /// The source item of sample `index` in a collection of `len` items.

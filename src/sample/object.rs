@@ -183,7 +183,7 @@ pub fn mpi_with_mask(mpi: &Mpi, mask: &[f32]) -> Mpi {
     out.extras.par_chunks_mut(mpi.plane_len()).for_each(|dst| dst.copy_from_slice(mask));
     out.intrinsics = mpi.intrinsics;
     out.pose = mpi.pose;
-    out.bspline3_rgb = mpi.bspline3_rgb.clone();
+    out.bspline_rgb = mpi.bspline_rgb.clone();
     out
 }
 

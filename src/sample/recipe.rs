@@ -132,10 +132,9 @@ pub fn prepare_scene(mut scene: Scene, config: &SampleConfig) -> Result<Scene, S
             .map_err(|source| SampleError::Preblend { id: scene.id.clone(), source })?;
         scene.provenance.push("preblend: reference (T_src * photo + (1 - T_src) * rgb)".into());
     }
-    if config.needs_prefilter() && scene.mpi.bspline3_rgb.is_none() {
+    if config.mode == Mode::Exact {
         // once per scene: the cached scene carries the coefficients every sample samples
-        let coefficients = Arc::new(crate::render::resample::bspline3_coefficients(&scene.mpi));
-        Arc::make_mut(&mut scene.mpi).bspline3_rgb = Some(coefficients);
+        crate::render::resample::prefilter_arc(&mut scene.mpi, config.resample);
     }
     Ok(scene)
 }
