@@ -63,6 +63,7 @@ fn sample_request(r: &pb::SamplesRequest, index: u64) -> pb::SampleRequest {
         max_objects: r.max_objects,
         motions_per_image: r.motions_per_image,
         augment: r.augment.clone(),
+        resample: r.resample.clone(),
     }
 }
 

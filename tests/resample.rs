@@ -31,7 +31,13 @@ fn checker_mpi(w: usize, h: usize) -> Mpi {
                 let o = (i * h * w + y * w + x) * 4;
                 let v = ((x + y + i) % 2) as f32;
                 m.rgba[o..o + 3].copy_from_slice(&[v, 1.0 - v, v]);
-                m.rgba[o + 3] = if i == 1 { 1e3 } else if (x / 5 + y / 3) % 2 == 0 { 40.0 } else { 0.0 };
+                m.rgba[o + 3] = if i == 1 {
+                    1e3
+                } else if (x / 5 + y / 3) % 2 == 0 {
+                    40.0
+                } else {
+                    0.0
+                };
                 m.extras[i * h * w + y * w + x] = ((x / 4 + y / 4) % 2) as f32;
             }
         }
@@ -127,7 +133,12 @@ fn every_kernel_reproduces_constants_and_linear_ramps() {
             for x in margin..w - margin {
                 for k in 0..3 {
                     let i = 3 * (y * w + x) + k;
-                    assert!((out.image[i] - lin.image[i]).abs() < tol, "{r} at ({x}, {y}): {} vs {}", out.image[i], lin.image[i]);
+                    assert!(
+                        (out.image[i] - lin.image[i]).abs() < tol,
+                        "{r} at ({x}, {y}): {} vs {}",
+                        out.image[i],
+                        lin.image[i]
+                    );
                 }
             }
         }

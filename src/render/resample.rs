@@ -87,10 +87,9 @@ impl std::fmt::Display for Resample {
 impl std::str::FromStr for Resample {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Resample::ALL
-            .into_iter()
-            .find(|r| r.name() == s)
-            .ok_or_else(|| format!("unknown resample kernel `{s}` (expected bilinear, bicubic, bspline3, bspline5 or lanczos3)"))
+        Resample::ALL.into_iter().find(|r| r.name() == s).ok_or_else(|| {
+            format!("unknown resample kernel `{s}` (expected bilinear, bicubic, bspline3, bspline5 or lanczos3)")
+        })
     }
 }
 
@@ -363,7 +362,7 @@ fn causal_init(c: &[f64], z: f64) -> f64 {
     let mut zk = z;
     let mut z2n = z.powi(n as i32 - 1);
     let mut sum = c[0] + z2n * c[n - 1];
-    z2n *= z2n * iz;
+    z2n = z2n * z2n * iz;
     for v in c.iter().take(n - 1).skip(1) {
         sum += (zk + z2n) * v;
         zk *= z;

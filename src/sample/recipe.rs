@@ -313,8 +313,17 @@ fn assemble_merged_sample(
         (Some(u), false) => {
             // the reference's scene render: a full copy with the channel 1 - U
             let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
-            let r = render_full_with_mask(mpi, &k, &cam_pose, &inv, config.mode, config.skip, config.resample, params.fields)
-                .map_err(render_err("scene"))?;
+            let r = render_full_with_mask(
+                mpi,
+                &k,
+                &cam_pose,
+                &inv,
+                config.mode,
+                config.skip,
+                config.resample,
+                params.fields,
+            )
+            .map_err(render_err("scene"))?;
             let mut out = r.out;
             let mask = std::mem::take(&mut out.extras);
             (out, Some(mask))
