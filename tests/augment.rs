@@ -104,7 +104,9 @@ fn photometric_consistency_holds_after_spatial_augmentation() {
                 a.preset, plan.x, plan.y
             );
             assert!(n > 0, "{what}");
-            assert!(err <= base * 1.3 + 1.5, "{what}");
+            // (2 levels: the default B-spline image2 keeps more fine detail than bilinear did, and
+            // the augmentation's resize of fine detail adds a little photometric error)
+            assert!(err <= base * 1.3 + 2.0, "{what}");
             // the law has teeth: the flow left as it was (not scaled, not mirrored) breaks it
             let (kx, ky) = (plan.x.slope() as f32, plan.y.slope() as f32);
             let untransformed: Vec<f32> = out.flow.chunks_exact(2).flat_map(|f| [f[0] / kx, f[1] / ky]).collect();

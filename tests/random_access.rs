@@ -64,6 +64,7 @@ fn sample_request(r: &pb::SamplesRequest, index: u64) -> pb::SampleRequest {
         motions_per_image: r.motions_per_image,
         augment: r.augment.clone(),
         frames: r.frames,
+        resample: r.resample.clone(),
     }
 }
 

@@ -77,11 +77,14 @@ fn rigid(t: [f64; 3], r: [f64; 3]) -> RigidLaw {
     }
 }
 
+/// The closed forms below hold pixel colours next to hard colour edges to the bilinear kernel's
+/// one-pixel reach (the other kernels' laws are in tests/resample.rs).
 fn config(camera: RigidLaw, object: RigidLaw, rule: MergeRule) -> SampleConfig {
     SampleConfig {
         motion: MotionSpec::Ranges(Box::new(MotionRanges { name: "test".into(), camera, object, stereo: false })),
         merge: rule,
         inpaint_radius: 3.0,
+        resample: mpiflow::render::Resample::Bilinear,
         ..SampleConfig::default()
     }
 }

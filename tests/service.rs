@@ -364,6 +364,7 @@ async fn refusals_have_the_right_code_and_name_the_field() {
         (pb::StreamRequest { motion_ranges_json: "{".into(), ..d() }, inv, "motion_ranges_json"),
         (pb::StreamRequest { max_objects: Some(300), ..d() }, inv, "max_objects"),
         (pb::StreamRequest { motions_per_image: Some(0), ..d() }, inv, "motions_per_image"),
+        (pb::StreamRequest { resample: "cubic".into(), ..d() }, inv, "resample"),
         (pb::StreamRequest { start_index: u64::MAX, rank: 1, world_size: 2, ..d() }, inv, "start_index"),
         (pb::StreamRequest { count: 3, start_index: u64::MAX - 1, ..d() }, inv, "count"),
         // 2^64 - 1 is the end cursor, never a sample: the same rule for every count
@@ -398,6 +399,17 @@ async fn refusals_have_the_right_code_and_name_the_field() {
     assert!(c.get_sample(again).await.is_ok());
     let stale = pb::SampleRequest { fingerprint: one.fingerprint, ..Default::default() };
     assert_eq!(c.get_sample(stale).await.unwrap_err().code(), Code::FailedPrecondition);
+    // a colour kernel other than the dataset's: another fingerprint (so other motions too)
+    let fields = vec![pb::Field::Image2 as i32];
+    let default = c.get_sample(pb::SampleRequest { fields: fields.clone(), ..Default::default() }).await.unwrap();
+    let bilinear = pb::SampleRequest { resample: "bilinear".into(), fields, ..Default::default() };
+    let bilinear = c.get_sample(bilinear).await.unwrap().into_inner();
+    let default = default.into_inner();
+    assert_ne!(bilinear.fingerprint, default.fingerprint);
+    let image2 = |s: &pb::Sample| s.tensors.iter().find(|t| t.name == "image2").unwrap().data.clone();
+    assert_ne!(image2(&bilinear), image2(&default));
+    let e = c.get_sample(pb::SampleRequest { resample: "nearest".into(), ..Default::default() }).await.unwrap_err();
+    assert_eq!((e.code(), e.message().starts_with("resample")), (inv, true), "{e:?}");
     // an upload without a dataset name (more upload cases in tests/service_data.rs)
     let chunks = tokio_stream::iter(vec![pb::SourceChunk::default()]);
     let e = c.upload_sources(chunks).await.unwrap_err();

@@ -1,8 +1,8 @@
 //! `mpiflow bench quality`: the numbers a person checks before training on a new photo
 //! collection, measured on finished samples: photometric error of the flow on valid,
 //! non-occluded pixels, violations of the label laws, the fraction of image2 filled by 2-D
-//! inpainting, thin-line runs in image2 against image1, valid and occluded fractions and the
-//! flow magnitude percentiles. Every metric is a pure function of a sample (and, for the depth
+//! inpainting, thin-line runs in image2 against image1, the sharpness ratio of image2 to image1
+//! (variance of the Laplacian), valid and occluded fractions and the flow magnitude percentiles. Every metric is a pure function of a sample (and, for the depth
 //! law, the merge's target depth), written here independently of the merge's rule so that the
 //! tests (`tests/labels.rs`) can hold the merge to it.
 //!
@@ -22,8 +22,8 @@
 
 use crate::render::OCCLUSION_TOLERANCE;
 use crate::sample::config::SampleConfig;
-use crate::sample::recipe::{Generator, SampleError};
-use crate::sample::Sample;
+use crate::sample::recipe::{assemble_with_target_depth, Generator, SampleError};
+use crate::sample::{Sample, SampleAddress};
 
 /// Counts of the label laws over one or more samples (see the module documentation).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -175,6 +175,44 @@ pub fn thin_line_runs(img: &[u8], w: usize, h: usize) -> usize {
     runs
 }
 
+/// Variance of the discrete Laplacian (`4 c - n - s - e - w` of the luminance, 0..255 units) of
+/// an interleaved u8 RGB image over the interior pixels where `inside` holds for the pixel and
+/// its four neighbours; `None` when fewer than 16 pixels qualify. The usual focus measure: it
+/// weighs the highest frequencies, which a resampling kernel loses first.
+pub fn laplacian_variance(img: &[u8], w: usize, h: usize, inside: impl Fn(usize) -> bool) -> Option<f64> {
+    let lum = |i: usize| {
+        0.299 * f64::from(img[3 * i]) + 0.587 * f64::from(img[3 * i + 1]) + 0.114 * f64::from(img[3 * i + 2])
+    };
+    let (mut n, mut sum, mut sq) = (0u64, 0.0f64, 0.0f64);
+    for y in 1..h.saturating_sub(1) {
+        for x in 1..w - 1 {
+            let i = y * w + x;
+            if ![i, i - 1, i + 1, i - w, i + w].into_iter().all(&inside) {
+                continue;
+            }
+            let l = 4.0 * lum(i) - lum(i - 1) - lum(i + 1) - lum(i - w) - lum(i + w);
+            n += 1;
+            sum += l;
+            sq += l * l;
+        }
+    }
+    (n >= 16).then(|| {
+        let m = sum / n as f64;
+        (sq / n as f64 - m * m).max(0.0)
+    })
+}
+
+/// The sharpness ratio of a sample: [`laplacian_variance`] of image2 over the pixels that are not
+/// holes (rendered, not 2-D inpainted) divided by that of image1 over its valid pixels (those
+/// that stay in view). 1 for a reconstruction that keeps every detail; a low-pass kernel gives
+/// less. `None` when either region is (nearly) empty or image1 is flat.
+pub fn sharpness_ratio(s: &Sample) -> Option<f64> {
+    let (w, h) = (s.width, s.height);
+    let v1 = laplacian_variance(&s.image1, w, h, |i| s.valid[i] != 0)?;
+    let v2 = laplacian_variance(&s.image2, w, h, |i| s.holes[i] == 0)?;
+    (v1 > 0.0).then(|| v2 / v1)
+}
+
 /// The `q` quantile (0..1, nearest rank) of sorted values; 0 when empty.
 fn quantile(sorted: &[f32], q: f64) -> f32 {
     if sorted.is_empty() {
@@ -209,6 +247,11 @@ pub struct QualityReport {
     pub flow_p95: f32,
     /// Fraction of valid pixels moving less than 1 px.
     pub below_1px: f64,
+    /// The sharpness ratio ([`sharpness_ratio`]): mean, smallest and largest over the samples
+    /// (0 when no sample has one).
+    pub sharpness: f64,
+    pub sharpness_min: f64,
+    pub sharpness_max: f64,
 }
 
 /// Accumulates [`QualityReport`] over samples.
@@ -222,6 +265,7 @@ pub struct QualityAccumulator {
     occluded: u64,
     holes: u64,
     magnitudes: Vec<f32>,
+    sharpness: Vec<f64>,
 }
 
 impl QualityAccumulator {
@@ -239,6 +283,7 @@ impl QualityAccumulator {
         self.photo_bg.1 += n;
         r.lines2 += thin_line_runs(&s.image2, s.width, s.height);
         r.lines1 += thin_line_runs(&s.image1, s.width, s.height);
+        self.sharpness.extend(sharpness_ratio(s));
         let n = (s.width * s.height) as u64;
         self.pixels += n;
         self.holes += s.holes.iter().filter(|&&v| v != 0).count() as u64;
@@ -266,6 +311,11 @@ impl QualityAccumulator {
         r.flow_p95 = quantile(&self.magnitudes, 0.95);
         let below = self.magnitudes.partition_point(|&m| m < 1.0);
         r.below_1px = frac(below as u64, self.magnitudes.len() as u64);
+        if !self.sharpness.is_empty() {
+            r.sharpness = self.sharpness.iter().sum::<f64>() / self.sharpness.len() as f64;
+            r.sharpness_min = self.sharpness.iter().copied().fold(f64::INFINITY, f64::min);
+            r.sharpness_max = self.sharpness.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        }
         self.report
     }
 }
@@ -282,6 +332,29 @@ pub fn quality(
     let mut acc = QualityAccumulator::default();
     for index in 0..count {
         let (s, z) = g.sample_with_target_depth(seed, index)?;
+        acc.add(&s, &z);
+    }
+    Ok(acc.finish())
+}
+
+/// [`quality`] at the addresses of `generator`'s own fingerprint instead of `config`'s: every
+/// configuration that differs from the generator's only in how it renders (the colour kernel,
+/// skipping, the merge) then draws the same motions, so a table of kernels compares them on the
+/// same samples, not on different draws. (Not a dataset of its own: these addresses belong to
+/// the generator's configuration.)
+pub fn quality_same_motions(
+    generator: &Generator,
+    config: &SampleConfig,
+    seed: u64,
+    count: u64,
+) -> Result<QualityReport, SampleError> {
+    let g = generator.with_config(config.clone())?;
+    let mut acc = QualityAccumulator::default();
+    for index in 0..count {
+        let item = g.source_item(index).ok_or(SampleError::EmptySource)?;
+        let scene = g.scene(item)?;
+        let address = SampleAddress { dataset: generator.fingerprint(), seed, index };
+        let (s, z) = assemble_with_target_depth(&scene, address, config, None)?;
         acc.add(&s, &z);
     }
     Ok(acc.finish())

@@ -7,7 +7,7 @@ use mpiflow::bench::accuracy::{
     AccuracyConfig, ReportMeta,
 };
 use mpiflow::bench::{bench_render, peak_rss_mib, RenderBenchConfig};
-use mpiflow::render::{Mode, Skip};
+use mpiflow::render::{Mode, Resample, Skip};
 use std::path::PathBuf;
 
 #[derive(Subcommand, Debug)]
@@ -48,6 +48,19 @@ pub struct QualityBench {
     preset: mpiflow::sample::motion::MotionPreset,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Colour kernels to compare (comma-separated: bilinear, bicubic, bspline3, lanczos3; default:
+    /// the default kernel); the table gets one block of rows per kernel.
+    #[arg(long, value_delimiter = ',')]
+    resample: Vec<Resample>,
+    /// Replace the preset's camera law by a pure lateral translation: tx and ty of random sign
+    /// and magnitude uniform in [0, T], no forward part, no rotation (T = 0.05 moves the nearest
+    /// content, at depth ~1, by up to 0.58 W x 0.05 ~ 19 px at 640 x 480).
+    #[arg(long, value_name = "T")]
+    lateral: Option<f64>,
+    /// Only the sharpness table: no objects, depth-aware merge, one row per kernel (the sharpness
+    /// ratio image2 / image1 with its range, photometric error, hole fraction, flow p50 / p95).
+    #[arg(long)]
+    sharpness: bool,
 }
 
 #[derive(Args, Debug)]
@@ -122,6 +135,10 @@ pub struct RenderBench {
     /// Also time each work-skipping variant separately.
     #[arg(long)]
     variants: bool,
+    /// Colour kernels to time, comma-separated (bilinear, bicubic, bspline3, lanczos3; default:
+    /// the default kernel), one after the other.
+    #[arg(long, value_delimiter = ',')]
+    resample: Vec<Resample>,
 }
 
 pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
@@ -136,10 +153,11 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
 }
 
 fn quality(q: QualityBench) -> Result<(), CliError> {
-    use mpiflow::bench::quality::{quality, QualityReport};
+    use mpiflow::bench::quality::{quality, quality_same_motions, QualityReport};
     use mpiflow::sample::merge::{LabelRule, MergeRule};
+    use mpiflow::sample::motion::{Component, MotionRanges};
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-    use mpiflow::sample::recipe::SampleConfig;
+    use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
     use mpiflow::scene::cache::SceneCache;
     use mpiflow::scene::models::ModelConfig;
     use std::sync::Arc;
@@ -150,46 +168,92 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     let source = open_source(&spec, &OpenOptions { resize: q.size, ..OpenOptions::default() })
         .map_err(|e| CliError(e.to_string()))?;
     let stage = Arc::new(ModelConfig::default().build_stage().map_err(|e| CliError(e.to_string()))?);
-    let base = SampleConfig::with_preset(q.preset);
+    let mut base = SampleConfig::with_preset(q.preset);
+    let mut motion = q.preset.to_string();
+    if let Some(t) = q.lateral {
+        if !(t.is_finite() && (0.0..=1.0).contains(&t)) {
+            return Err(CliError("--lateral must be 0 to 1".into()));
+        }
+        let mut ranges: MotionRanges = base.motion.ranges();
+        ranges.name = format!("lateral-{t}");
+        let law = &mut ranges.camera;
+        law.translation.x = Component::RandomSign { min: 0.0, max: t };
+        law.translation.y = Component::RandomSign { min: 0.0, max: t };
+        law.translation.z = Component::constant(0.0);
+        law.rotation.x = Component::constant(0.0);
+        law.rotation.y = Component::constant(0.0);
+        law.rotation.z = Component::constant(0.0);
+        base.motion = MotionSpec::Ranges(Box::new(ranges));
+        motion = format!("lateral (|tx|, |ty| <= {t}, no tz, no rotation)");
+    }
+    let kernels = if q.resample.is_empty() { vec![base.resample] } else { q.resample.clone() };
     let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
         .map_err(|e| CliError(e.to_string()))?;
-    println!("{}; {} samples per row, seed {}, motion {}", p.describe(), q.count, q.seed, q.preset);
-    println!(
-        "| merge | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | valid | occluded | flow p5 / p50 / p95 px | < 1 px |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-    let pct = |r: &QualityReport, n: u64| format!("{:.3}%", 100.0 * r.laws.rate(n));
-    for merge in [MergeRule::DepthAware, MergeRule::Reference] {
-        for (objects, labels) in [(0, LabelRule::Honest), (1, LabelRule::Honest), (1, LabelRule::DepthOnly)] {
-            let c = SampleConfig { merge, max_objects: objects, label_rule: labels, ..base.clone() };
-            let r = quality(p.generator(), &c, q.seed, q.count).map_err(|e| CliError(e.to_string()))?;
+    println!("{}; {} samples per row, seed {}, motion {motion}", p.describe(), q.count, q.seed);
+    let run = |c: &SampleConfig| quality(p.generator(), c, q.seed, q.count).map_err(|e| CliError(e.to_string()));
+    if q.sharpness {
+        // every kernel on the same motions (the addresses of the base configuration)
+        let run = |c: &SampleConfig| {
+            quality_same_motions(p.generator(), c, q.seed, q.count).map_err(|e| CliError(e.to_string()))
+        };
+        println!("| resample | sharpness img2 / img1 (min-max) | photometric | background | hole fraction | flow p50 / p95 px |");
+        println!("|---|---|---|---|---|---|");
+        for &resample in &kernels {
+            let c = SampleConfig { max_objects: 0, resample, ..base.clone() };
+            let r = run(&c)?;
             println!(
-                "| {} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} | {:.2}% |",
-                match merge {
-                    MergeRule::DepthAware => "depth-aware",
-                    MergeRule::Reference => "reference",
-                },
-                objects,
-                r.with_objects,
-                match labels {
-                    LabelRule::Honest => "honest",
-                    LabelRule::DepthOnly => "depth-only",
-                },
+                "| {resample} | {:.3} ({:.3}-{:.3}) | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
+                r.sharpness,
+                r.sharpness_min,
+                r.sharpness_max,
                 r.photometric,
                 r.photometric_background,
-                pct(&r, r.laws.holes),
-                pct(&r, r.laws.label),
-                pct(&r, r.laws.depth),
                 r.hole_fraction,
-                r.lines2,
-                r.lines1,
-                r.valid_fraction,
-                r.occluded_fraction,
-                r.flow_p5,
                 r.flow_p50,
-                r.flow_p95,
-                100.0 * r.below_1px
+                r.flow_p95
             );
+        }
+        return Ok(());
+    }
+    println!(
+        "| resample | merge | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | sharpness | valid | occluded | flow p5 / p50 / p95 px | < 1 px |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let pct = |r: &QualityReport, n: u64| format!("{:.3}%", 100.0 * r.laws.rate(n));
+    for &resample in &kernels {
+        for merge in [MergeRule::DepthAware, MergeRule::Reference] {
+            for (objects, labels) in [(0, LabelRule::Honest), (1, LabelRule::Honest), (1, LabelRule::DepthOnly)] {
+                let c = SampleConfig { merge, max_objects: objects, label_rule: labels, resample, ..base.clone() };
+                let r = run(&c)?;
+                println!(
+                    "| {resample} | {} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} | {:.2}% |",
+                    match merge {
+                        MergeRule::DepthAware => "depth-aware",
+                        MergeRule::Reference => "reference",
+                    },
+                    objects,
+                    r.with_objects,
+                    match labels {
+                        LabelRule::Honest => "honest",
+                        LabelRule::DepthOnly => "depth-only",
+                    },
+                    r.photometric,
+                    r.photometric_background,
+                    pct(&r, r.laws.holes),
+                    pct(&r, r.laws.label),
+                    pct(&r, r.laws.depth),
+                    r.hole_fraction,
+                    r.lines2,
+                    r.lines1,
+                    r.sharpness,
+                    r.valid_fraction,
+                    r.occluded_fraction,
+                    r.flow_p5,
+                    r.flow_p50,
+                    r.flow_p95,
+                    100.0 * r.below_1px
+                );
+            }
         }
     }
     Ok(())
@@ -249,17 +313,27 @@ fn render(b: RenderBench) -> Result<(), CliError> {
             ("both (default)", Skip::DEFAULT),
         ];
     }
+    let kernels = if b.resample.is_empty() { vec![Resample::default()] } else { b.resample.clone() };
     for (name, skip) in variants {
-        let cfg =
-            RenderBenchConfig { width: b.width, height: b.height, planes: b.planes, runs: b.runs, mode: b.mode, skip };
-        let t = pool.install(|| bench_render(&cfg));
-        if b.variants {
-            print!("{name:>20}: ");
+        for &resample in &kernels {
+            let cfg = RenderBenchConfig {
+                width: b.width,
+                height: b.height,
+                planes: b.planes,
+                runs: b.runs,
+                mode: b.mode,
+                skip,
+                resample,
+            };
+            let t = pool.install(|| bench_render(&cfg));
+            if b.variants {
+                print!("{name:>20}: ");
+            }
+            println!(
+                "{resample:>9}: median {:.1} ms (min {:.1}, max {:.1}) over {} runs, {threads} threads",
+                t.median, t.min, t.max, t.runs
+            );
         }
-        println!(
-            "median {:.1} ms (min {:.1}, max {:.1}) over {} runs, {threads} threads",
-            t.median, t.min, t.max, t.runs
-        );
     }
     if let Some(m) = peak_rss_mib() {
         println!("peak memory {m:.0} MiB ({}x{}, {} planes, mode {:?})", b.width, b.height, b.planes, b.mode);

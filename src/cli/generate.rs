@@ -72,6 +72,9 @@ pub struct GenerateArgs {
     /// pixel's surface, no hole next to its target) or depth-only (the rule before issue 12).
     #[arg(long, value_name = "RULE", default_value = "honest")]
     label_rule: LabelRule,
+    /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
+    #[arg(long, value_name = "KERNEL", default_value_t = mpiflow::render::Resample::default())]
+    resample: mpiflow::render::Resample,
     /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
@@ -208,6 +211,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         motions_per_image: a.motions_per_image,
         frames: a.frames as usize,
         backward: a.backward,
+        resample: a.resample,
         ..SampleConfig::with_preset(a.preset)
     };
     let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));

@@ -71,6 +71,10 @@ pub struct PullArgs {
     /// Consecutive samples per source photo (default: the dataset's).
     #[arg(long)]
     motions_per_image: Option<u32>,
+    /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3 (default: the
+    /// dataset's).
+    #[arg(long, default_value = "")]
+    resample: String,
     /// Training augmentation: a preset (raft-chairs, raft-things, raft-sintel, raft-kitti, none)
     /// or its JSON form (docs/augment.md); with --crop, the crop replaces the preset's.
     #[arg(long, value_name = "NAME|JSON")]
@@ -136,6 +140,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
         prefetch: a.prefetch,
         augment: a.augment.clone().unwrap_or_default(),
         frames: a.frames,
+        resample: a.resample.clone(),
     })
 }
 

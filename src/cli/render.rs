@@ -9,7 +9,7 @@ use mpiflow::io::{colorwheel, flo, npy};
 use mpiflow::mpi::layering::{build_mpi, Layering, LayeringOptions};
 use mpiflow::mpi::npz::load_npz;
 use mpiflow::mpi::Mpi;
-use mpiflow::render::{render, Fields, Mode, RenderParams, Skip};
+use mpiflow::render::{render, Fields, Mode, RenderParams, Resample, Skip};
 use std::path::{Path, PathBuf};
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -51,6 +51,10 @@ pub struct RenderArgs {
     /// `reference` reproduces the public implementation; `exact` ray-casts (coverage, validity, skipping).
     #[arg(long, default_value = "exact")]
     mode: Mode,
+    /// Colour kernel of the exact-mode target view: bilinear, bicubic, bspline3 or lanczos3
+    /// (density and masks stay bilinear; the reference mode is always bilinear).
+    #[arg(long, default_value_t = Resample::default())]
+    resample: Resample,
     /// Output directory (created if missing).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
@@ -130,6 +134,7 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
         fields: Fields::default(),
         skip: if a.mode == Mode::Exact { Skip::DEFAULT } else { Skip::NONE },
         links: [None, None],
+        resample: a.resample,
     };
     let out = render::<f32>(&mpi, &params, None)?;
     if out.stats.repaired > 0 {

@@ -82,6 +82,9 @@ pub struct ServeArgs {
     /// Default consecutive samples per source photo.
     #[arg(long, value_name = "M")]
     motions_per_image: Option<u64>,
+    /// Default colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
+    #[arg(long, value_name = "KERNEL")]
+    resample: Option<mpiflow::render::Resample>,
     /// Also serve grpc.health.v1 alone, in plaintext, on this address (for probes that cannot
     /// do TLS).
     #[arg(long, value_name = "HOST:PORT")]
@@ -132,6 +135,7 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
     set!(planes => models.planes);
     set!(objects => sample.max_objects);
     set!(motions_per_image => sample.motions_per_image);
+    set!(resample => sample.resample);
     set!(warmup_delay_ms => warmup_delay_ms);
     if let Some(m) = &a.metrics_addr {
         c.metrics_addr = Some(m.clone());

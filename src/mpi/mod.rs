@@ -62,6 +62,20 @@ pub struct Mpi {
     pub intrinsics: Option<Intrinsics>,
     /// Pose stored with the MPI (from an npz `G`), if any.
     pub pose: Option<Pose>,
+    /// B-spline coefficients of the rgb channels, for the B-spline resampling of the target
+    /// render (`render::resample`); None until a scene is prepared for it. They describe `rgba`
+    /// as it was when they were computed: whoever changes the colours afterwards must drop them
+    /// (the renderer computes its own when they are missing or of another degree).
+    pub bspline_rgb: Option<BsplineRgb>,
+}
+
+/// Prefiltered colour of an MPI ([`Mpi::bspline_rgb`]).
+#[derive(Clone, Debug)]
+pub struct BsplineRgb {
+    /// The B-spline degree (3 or 5).
+    pub degree: u32,
+    /// N * H * W * 3 values, plane-major, row-major, interleaved.
+    pub coefficients: std::sync::Arc<Vec<f32>>,
 }
 
 impl Mpi {
@@ -77,6 +91,7 @@ impl Mpi {
             extras: vec![0.0; n * width * height * extra_channels],
             intrinsics: None,
             pose: None,
+            bspline_rgb: None,
         }
     }
 
@@ -95,7 +110,9 @@ impl Mpi {
         &self.rgba[i * n..(i + 1) * n]
     }
 
+    /// Plane `i`'s data for a change; drops the prefiltered coefficients ([`Self::bspline_rgb`]).
     pub fn plane_rgba_mut(&mut self, i: usize) -> &mut [f32] {
+        self.bspline_rgb = None;
         let n = self.plane_len() * 4;
         &mut self.rgba[i * n..(i + 1) * n]
     }
@@ -108,7 +125,7 @@ impl Mpi {
 
     /// Bytes held by the plane data.
     pub fn byte_size(&self) -> usize {
-        (self.rgba.len() + self.extras.len()) * 4
+        (self.rgba.len() + self.extras.len() + self.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.len())) * 4
     }
 
     /// Structural checks: sizes agree, at least one plane, disparities finite, >= 0 and
@@ -123,6 +140,7 @@ impl Mpi {
         }
         if self.rgba.len() != n * self.plane_len() * 4
             || self.extras.len() != n * self.plane_len() * self.extra_channels
+            || self.bspline_rgb.as_ref().is_some_and(|c| c.coefficients.len() != n * self.plane_len() * 3)
         {
             return Err(MpiError::Invalid("MPI plane data does not match its size".into()));
         }

@@ -29,6 +29,7 @@
 //! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
 
 use super::occupancy::Occupancy;
+use super::resample::{bspline_coefficients, sample_rgb, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample};
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
 use crate::mpi::planes::{plane_depth, plane_gaps, DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
@@ -52,6 +53,61 @@ fn cap<T: Real>(v: T, max: f64) -> T {
         T::of(max)
     } else {
         v
+    }
+}
+
+/// Plane samples of the target view: the density of plane `i` at a tap (always bilinear) and
+/// its colour by the render's [`Resample`] kernel, asked for only where the density is positive.
+trait PlaneSampler<T: Real>: Sync {
+    fn sigma(&self, tap: &Tap<T>, i: usize) -> T;
+    /// The colour at `q` of a sample that gets composite weight `wgt`.
+    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, wgt: T) -> [T; 3];
+}
+
+/// Bilinear colour and density (the reference's arithmetic, channel by channel).
+struct Bilinear<'a> {
+    rgba: Vec<&'a [f32]>,
+}
+
+impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
+    #[inline(always)]
+    fn sigma(&self, tap: &Tap<T>, i: usize) -> T {
+        tap.sample_ch(self.rgba[i], 4, 3)
+    }
+
+    #[inline(always)]
+    fn colour(&self, tap: &Tap<T>, _: T, _: T, i: usize, _: T) -> [T; 3] {
+        [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k))
+    }
+}
+
+/// Composite weights below this take the bilinear colour even with a higher-order kernel: the
+/// difference is at most this fraction of full scale (below half an 8-bit step), and such
+/// samples are common (the faint tails of soft layers), so the kernel's cost goes where it shows.
+pub(crate) const KERNEL_MIN_WEIGHT: f32 = 1.0 / 1024.0;
+
+/// Bilinear density; colour by kernel `K` from `src` (`S` values per pixel) for samples of
+/// weight at least [`KERNEL_MIN_WEIGHT`], bilinear below.
+struct HighOrder<'a, K, const N: usize, const S: usize> {
+    rgba: Vec<&'a [f32]>,
+    src: Vec<&'a [f32]>,
+    w: usize,
+    h: usize,
+    kernel: std::marker::PhantomData<K>,
+}
+
+impl<T: Real, K: Kernel<N>, const N: usize, const S: usize> PlaneSampler<T> for HighOrder<'_, K, N, S> {
+    #[inline(always)]
+    fn sigma(&self, tap: &Tap<T>, i: usize) -> T {
+        tap.sample_ch(self.rgba[i], 4, 3)
+    }
+
+    #[inline(always)]
+    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
+        if wgt < T::of32(KERNEL_MIN_WEIGHT) {
+            return [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k));
+        }
+        sample_rgb::<T, K, N, S>(self.src[i], qx, qy, self.w, self.h)
     }
 }
 
@@ -146,6 +202,61 @@ fn target_view_n<T: Real, const NL: usize>(
     lb: [(&mut [f32], &mut [f32], &mut [f32]); 2],
 ) -> RenderStats {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
+    fn split(src: &[f32], n: usize, len: usize) -> Vec<&[f32]> {
+        (0..n).map(|i| &src[i * len..(i + 1) * len]).collect()
+    }
+    let high = |src, stride: usize| (rgba.clone(), split(src, n, w * h * stride));
+    match p.resample {
+        Resample::Bilinear => {
+            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &Bilinear { rgba })
+        }
+        Resample::Bicubic => {
+            let (rgba, src) = high(&mpi.rgba, 4);
+            let s = HighOrder::<Keys, 4, 4> { rgba, src, w, h, kernel: std::marker::PhantomData };
+            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+        }
+        Resample::Lanczos3 => {
+            let (rgba, src) = high(&mpi.rgba, 4);
+            let s = HighOrder::<Lanczos3, 6, 4> { rgba, src, w, h, kernel: std::marker::PhantomData };
+            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+        }
+        Resample::Bspline3 | Resample::Bspline5 => {
+            let degree = if p.resample == Resample::Bspline3 { 3 } else { 5 };
+            let owned;
+            let coef: &[f32] = match &mpi.bspline_rgb {
+                Some(c) if c.degree == degree => &c.coefficients,
+                _ => {
+                    owned = bspline_coefficients(mpi, degree);
+                    &owned
+                }
+            };
+            let (rgba, src) = high(coef, 3);
+            if degree == 3 {
+                let s = HighOrder::<Bspline3, 4, 3> { rgba, src, w, h, kernel: std::marker::PhantomData };
+                target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+            } else {
+                let s = HighOrder::<Bspline5, 6, 3> { rgba, src, w, h, kernel: std::marker::PhantomData };
+                target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+            }
+        }
+    }
+}
+
+/// [`target_view_n`] with the plane sampler of the render's kernel.
+#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
+fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
+    mpi: &Mpi,
+    p: &RenderParams,
+    occ: Option<&Occupancy>,
+    win: &Rect,
+    channels: Channels<'_>,
+    out: &mut RenderOutput,
+    consts: &[LinkConst<T>],
+    lb: [(&mut [f32], &mut [f32], &mut [f32]); 2],
+    sampler: &S,
+) -> RenderStats {
+    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let ww = win.width();
     // the extra channels' source on every plane: the MPI's own, or one mask for all
     let (c, ex_planes): (usize, Vec<&[f32]>) = match channels {
@@ -181,7 +292,6 @@ fn target_view_n<T: Real, const NL: usize>(
         (v, (ux * ux + uy * uy + T::one()).sqrt())
     };
     let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
-    let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
     let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
 
     let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
@@ -261,9 +371,8 @@ fn target_view_n<T: Real, const NL: usize>(
                                 qy
                             };
                             let tap = Tap::new(qx, qy, w, h);
-                            let smp = tap.sample4(rgba[i]);
+                            let sigma = sampler.sigma(&tap, i);
                             stats.samples += 1;
-                            let sigma = smp[3];
                             if sigma <= T::zero() {
                                 continue;
                             }
@@ -279,6 +388,7 @@ fn target_view_n<T: Real, const NL: usize>(
                             let e = T::exp_neg(sigma * delta);
                             let wgt = tr * (T::one() - e);
                             tr *= e;
+                            let smp = sampler.colour(&tap, qx, qy, i, wgt);
                             for k in 0..3 {
                                 rgb[k] += wgt * smp[k];
                             }

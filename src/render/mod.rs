@@ -47,6 +47,7 @@ mod exact;
 pub mod occupancy;
 pub mod real;
 mod reference;
+pub mod resample;
 pub mod window;
 
 use crate::geometry::{Intrinsics, Pose};
@@ -54,6 +55,7 @@ pub use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
 pub use occupancy::Occupancy;
 pub use real::Real;
+pub use resample::Resample;
 pub use window::{Rect, WindowRender};
 /// Rows rendered per parallel task.
 pub const BAND_ROWS: usize = 16;
@@ -123,9 +125,13 @@ pub struct RenderParams {
     /// Views the target view's pixels are followed into ([`Link`]s, exact mode, with the target
     /// pass): [`View::Source`] gives the backward flow. None = no link work at all.
     pub links: [Option<View>; 2],
+    /// The colour kernel of the exact-mode target view ([`resample`]); the reference mode is
+    /// always bilinear.
+    pub resample: Resample,
 }
 
 impl RenderParams {
+    /// Exact mode, all fields, default skipping, bilinear colour.
     pub fn new(k: Intrinsics, pose: Pose) -> Self {
         Self {
             k_src: k,
@@ -135,6 +141,7 @@ impl RenderParams {
             fields: Fields::default(),
             skip: Skip::DEFAULT,
             links: [None, None],
+            resample: Resample::Bilinear,
         }
     }
 }
@@ -535,6 +542,16 @@ impl<T: Real> Tap<T> {
             o[k] = top + wy * (bot - top);
         }
         o
+    }
+
+    /// Samples channel `k` of a plane of `stride` interleaved channels (the arithmetic of
+    /// [`Self::sample4`]'s channel `k` for `stride = 4`).
+    #[inline(always)]
+    pub(crate) fn sample_ch(&self, plane: &[f32], stride: usize, k: usize) -> T {
+        let at = |i: usize| T::of32(plane[stride * i + k]);
+        let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
+        let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
+        top + self.wy * (bot - top)
     }
 
     /// Samples a single-channel plane (`sample_c` with `c = 1`, the same arithmetic).

@@ -8,7 +8,7 @@ use super::merge::{LabelRule, MergeRule};
 use super::motion::{MotionPreset, MotionRanges};
 use super::object::ObjectChoice;
 use super::recipe::SampleError;
-use crate::render::{Mode, Skip};
+use crate::render::{Mode, Resample, Skip};
 
 /// The motion laws: a preset name or explicit ranges. In JSON: `"paper-kitti"` or a
 /// [`MotionRanges`] object.
@@ -114,6 +114,9 @@ pub struct SampleConfig {
     /// fields a request asks for. Default false (none of their work is done).
     #[serde(skip)]
     pub backward: bool,
+    /// Colour kernel of the exact-mode target renders ([`crate::render::resample`]; the
+    /// reference mode is always bilinear). Default `bspline3` (measurements in docs/quality.md).
+    pub resample: Resample,
 }
 
 /// Fewest frames per sample (a pair).
@@ -146,6 +149,7 @@ impl Default for SampleConfig {
             preblend: false,
             frames: MIN_FRAMES,
             backward: false,
+            resample: Resample::default(),
         }
     }
 }
@@ -198,9 +202,14 @@ impl SampleConfig {
         Ok(())
     }
 
-    /// The word of the cache key for what [`prepare_scene`] changes.
+    /// The word of the cache key for what [`prepare_scene`] changes (the pre-blend, and the
+    /// B-spline coefficients a `bspline3` render needs).
     pub fn scene_variant(&self) -> u64 {
-        u64::from(self.preblend)
+        let degree = match self.mode {
+            Mode::Exact => self.resample.bspline_degree().unwrap_or(0),
+            Mode::Reference => 0,
+        };
+        u64::from(self.preblend) | u64::from(degree) << 1
     }
 
     /// The source item of sample `index` in a collection of `len` items.

@@ -50,7 +50,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::{Intrinsics, Pose};
 use crate::mpi::Mpi;
-use crate::render::{render, render_window, Channels, Fields, Mode, Occupancy, RenderError, RenderParams, Skip, View};
+use crate::render::{
+    render, render_window, Channels, Fields, Mode, Occupancy, RenderError, RenderParams, Resample, Skip, View,
+};
 pub use crate::render::{Rect, WindowRender};
 use crate::scene::masks::InstanceMasks;
 
@@ -181,12 +183,13 @@ pub fn mpi_with_mask(mpi: &Mpi, mask: &[f32]) -> Mpi {
     out.extras.par_chunks_mut(mpi.plane_len()).for_each(|dst| dst.copy_from_slice(mask));
     out.intrinsics = mpi.intrinsics;
     out.pose = mpi.pose;
+    out.bspline_rgb = mpi.bspline_rgb.clone();
     out
 }
 
 /// The full-frame render of `mpi` with `mask` as its one extra channel, through a full copy
-/// ([`mpi_with_mask`]) and [`render`]: the reference's way. `links` as
-/// [`RenderParams::links`].
+/// ([`mpi_with_mask`]) and [`render`]: the reference's way. `resample` is the colour kernel,
+/// `links` as [`RenderParams::links`].
 #[allow(clippy::too_many_arguments)]
 pub fn render_full_with_mask(
     mpi: &Mpi,
@@ -195,6 +198,7 @@ pub fn render_full_with_mask(
     mask: &[f32],
     mode: Mode,
     skip: Skip,
+    resample: Resample,
     fields: Fields,
     links: [Option<View>; 2],
 ) -> Result<WindowRender, RenderError> {
@@ -202,6 +206,7 @@ pub fn render_full_with_mask(
     let mut p = RenderParams::new(*k, *pose);
     p.mode = mode;
     p.skip = skip;
+    p.resample = resample;
     p.fields = Fields { occlusion: false, ..fields };
     p.links = links;
     let out = render::<f32>(&copy, &p, None)?;
@@ -216,7 +221,8 @@ pub fn render_full_with_mask(
 /// `tests/sample_merge.rs`, and the renderer's window laws in `tests/render_window.rs`); only
 /// the pixels outside `win` are not computed. `occupancy` (built with `skip.tile_sigma_eps`)
 /// serves tile skipping when `skip.tiles` is set (the renderer builds one when it is missing).
-/// `pose` is the motion, `k` the intrinsics of source and target. No occlusion field.
+/// `pose` is the motion, `k` the intrinsics of source and target, `resample` the colour kernel.
+/// No occlusion field.
 #[allow(clippy::too_many_arguments)]
 pub fn render_mask_window(
     mpi: &Mpi,
@@ -226,11 +232,13 @@ pub fn render_mask_window(
     win: &Rect,
     mask: &[f32],
     skip: Skip,
+    resample: Resample,
     source: bool,
     links: [Option<View>; 2],
 ) -> Result<WindowRender, RenderError> {
     let mut p = RenderParams::new(*k, *pose);
     p.skip = skip;
+    p.resample = resample;
     p.fields = Fields { target: true, flow: source, occlusion: false };
     p.links = links;
     render_window::<f32>(mpi, &p, occupancy, win, Channels::Broadcast(mask), source.then_some(mask))

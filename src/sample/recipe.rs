@@ -88,7 +88,7 @@ use super::preblend::{preblend, PreblendError};
 use super::rng::{Purpose, SampleRng};
 use super::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
 use crate::geometry::Pose;
-use crate::render::{render, Fields, Link, Mode, Occupancy, RenderError, RenderOutput, RenderParams, View};
+use crate::render::{render, Fields, Link, Mode, Occupancy, RenderError, RenderOutput, RenderParams, Resample, View};
 use crate::scene::{Scene, SceneError};
 use crate::source::FailureKind;
 
@@ -152,6 +152,10 @@ pub fn prepare_scene(mut scene: Scene, config: &SampleConfig) -> Result<Scene, S
         preblend(mpi, &scene.image.data, &scene.intrinsics)
             .map_err(|source| SampleError::Preblend { id: scene.id.clone(), source })?;
         scene.provenance.push("preblend: reference (T_src * photo + (1 - T_src) * rgb)".into());
+    }
+    if config.mode == Mode::Exact {
+        // once per scene: the cached scene carries the coefficients every sample samples
+        crate::render::resample::prefilter_arc(&mut scene.mpi, config.resample);
     }
     Ok(scene)
 }
@@ -555,6 +559,7 @@ fn render_frame(
     let mut params = RenderParams::new(k, cam_pose);
     params.mode = config.mode;
     params.skip = config.skip;
+    params.resample = config.resample;
     params.fields = Fields { target: true, flow: source_view, occlusion: false };
     params.links = cam_links;
     let t = Instant::now();
@@ -562,8 +567,18 @@ fn render_frame(
         (Some(u), false) => {
             // the reference's scene render: a full copy with the channel 1 - U
             let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
-            let r = render_full_with_mask(mpi, &k, &cam_pose, &inv, config.mode, config.skip, params.fields, cam_links)
-                .map_err(render_err("scene"))?;
+            let r = render_full_with_mask(
+                mpi,
+                &k,
+                &cam_pose,
+                &inv,
+                config.mode,
+                config.skip,
+                config.resample,
+                params.fields,
+                cam_links,
+            )
+            .map_err(render_err("scene"))?;
             let mut out = r.out;
             let mask = std::mem::take(&mut out.extras);
             (out, Some(mask))
@@ -579,8 +594,19 @@ fn render_frame(
     if let (None, Some(u)) = (&full_mask, c.union) {
         if let Some(support) = support_rect(u, w, h) {
             let win = scene_mask_window(mpi, &k, &cam_pose, &support);
-            let r = render_mask_window(mpi, c.occupancy, &k, &cam_pose, &win, u, config.skip, false, [None, None])
-                .map_err(render_err("scene mask"))?;
+            let r = render_mask_window(
+                mpi,
+                c.occupancy,
+                &k,
+                &cam_pose,
+                &win,
+                u,
+                config.skip,
+                Resample::Bilinear,
+                false,
+                [None, None],
+            )
+            .map_err(render_err("scene mask"))?;
             let patch = r.out.coverage.iter().zip(&r.out.extras).map(|(c, m)| c - m).collect();
             mask_patch = Some((win, patch));
         }
@@ -593,9 +619,30 @@ fn render_frame(
         let r = match (c.windowed, support_rect(mask, w, h)) {
             (true, Some(support)) => {
                 let win = object_window(mpi, &k, pose, &support);
-                render_mask_window(mpi, c.occupancy, &k, pose, &win, mask, config.skip, source_view, *links)
+                render_mask_window(
+                    mpi,
+                    c.occupancy,
+                    &k,
+                    pose,
+                    &win,
+                    mask,
+                    config.skip,
+                    config.resample,
+                    source_view,
+                    *links,
+                )
             }
-            _ => render_full_with_mask(mpi, &k, pose, mask, config.mode, config.skip, params.fields, *links),
+            _ => render_full_with_mask(
+                mpi,
+                &k,
+                pose,
+                mask,
+                config.mode,
+                config.skip,
+                config.resample,
+                params.fields,
+                *links,
+            ),
         }
         .map_err(render_err("object"))?;
         renders.push(r);

@@ -150,7 +150,10 @@ pub struct ServiceConfig {
     pub cache_mb: u64,
     /// Build the scenes of each stream's next indices (its prefetch window) on the scene pool
     /// ahead of the samples, so that the workers only make samples of ready scenes; false =
-    /// a worker builds a missing scene itself (and waits for it).
+    /// a worker builds a missing scene itself (and waits for it). Default false: jobs waiting
+    /// for a scene are outside the in-flight bound, and with them the buffered bytes were seen
+    /// to exceed the budget's stated slack (budget + in-flight samples) in the stalled-streams
+    /// test, so the scene prefetch stays opt-in until the budget accounts for them.
     pub prefetch_scenes: bool,
     /// How long a graceful shutdown may take before open streams are cut.
     pub drain_timeout_s: f64,
@@ -203,7 +206,7 @@ impl Default for ServiceConfig {
             max_upload_buffer_mb: 512,
             size: None,
             cache_mb: 2048,
-            prefetch_scenes: true,
+            prefetch_scenes: false,
             drain_timeout_s: 10.0,
             warmup_delay_ms: 0,
             log_format: LogFormat::Text,
@@ -301,6 +304,7 @@ impl ServiceConfig {
                 }
                 "MAX_OBJECTS" => self.sample.max_objects = env_parse(&key, &value)?,
                 "MOTIONS_PER_IMAGE" => self.sample.motions_per_image = env_parse(&key, &value)?,
+                "RESAMPLE" => self.sample.resample = env_parse(&key, &value)?,
                 "HEALTH_ADDR" => {
                     self.health_addr = (!value.trim().is_empty()).then(|| value.trim().to_string());
                 }

@@ -53,6 +53,7 @@ pub struct Overrides {
     pub frames: Option<usize>,
     /// The request asks for a backward field (not part of the fingerprint).
     pub backward: bool,
+    pub resample: Option<crate::render::Resample>,
 }
 
 impl Overrides {
@@ -130,6 +131,9 @@ impl Dataset {
             config.frames = f;
         }
         config.backward |= o.backward;
+        if let Some(r) = o.resample {
+            config.resample = r;
+        }
         if let Err(e) = config.validate() {
             // the default configuration was valid, so the field at fault is an overridden one,
             // and the request's overrides are named as the configuration's fields

@@ -149,6 +149,7 @@ impl State {
         validate::augment(&r.augment, &mut out, &self.config)?;
         let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         validate::frames(r.frames, &out, &mut o)?;
+        o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
         // the stream limit
@@ -208,6 +209,7 @@ impl State {
         validate::augment(&r.augment, &mut out, &self.config)?;
         let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         validate::frames(r.frames, &out, &mut o)?;
+        o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
         self.admit()?;
@@ -248,6 +250,7 @@ impl State {
         validate::augment(&r.augment, &mut out, &self.config)?;
         let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
         validate::frames(r.frames, &out, &mut o)?;
+        o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
         let spec = StreamSpec {

@@ -7,6 +7,7 @@ use super::encode::{wants_backward, CropSpec, OutputSpec, DEFAULT_FIELDS};
 use super::error::ServiceError;
 use super::pb;
 use crate::failure::{echo, printable, ECHO_CHARS};
+use crate::render::Resample;
 use crate::sample::augment::Augment;
 use crate::sample::motion::{MotionPreset, MotionRanges};
 use crate::sample::recipe::SampleConfig;
@@ -176,6 +177,19 @@ pub fn overrides(
         motions_per_image: motions_per_image.map(u64::from),
         frames: None,
         backward: false,
+        resample: None,
+    })
+}
+
+/// The colour kernel of a request (`resample`; empty = the dataset's).
+pub fn resample(name: &str) -> Result<Option<Resample>, ServiceError> {
+    let name = name.trim();
+    if name.is_empty() {
+        return Ok(None);
+    }
+    name.parse::<Resample>().map(Some).map_err(|_| {
+        let names: Vec<&str> = Resample::ALL.iter().map(|r| r.name()).collect();
+        invalid("resample", format!("unknown kernel {} (expected one of {})", echo(name), names.join(", ")))
     })
 }
 

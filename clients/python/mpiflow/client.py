@@ -156,6 +156,7 @@ def build_request_fields(
     motions_per_image: Optional[int] = None,
     augment: Any = None,
     frames: Optional[int] = None,
+    resample: Optional[str] = None,
 ) -> Dict[str, Any]:
     """The keyword arguments shared by StreamRequest and SampleRequest. `frames` = K (2 to
     8): K > 2 asks for a clip (stacked tensors, see decode.CLIP_NAMES)."""
@@ -169,6 +170,7 @@ def build_request_fields(
         motion_preset=motion_preset or "",
         motion_ranges_json=motion_ranges_json or "",
         augment=_augment(augment),
+        resample=resample or "",
     )
     c = _crop(crop, crop_mode)
     if c is not None:
@@ -505,6 +507,7 @@ class Client:
         motions_per_image: Optional[int] = None,
         augment: Any = None,
         frames: Optional[int] = None,
+        resample: Optional[str] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -527,6 +530,7 @@ class Client:
                 motions_per_image=motions_per_image,
                 augment=augment,
                 frames=frames,
+                resample=resample,
             ),
         )
         s = self._unary("GetSample", req, timeout, address)
@@ -558,6 +562,7 @@ class Client:
         motions_per_image: Optional[int] = None,
         augment: Any = None,
         frames: Optional[int] = None,
+        resample: Optional[str] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
@@ -588,6 +593,7 @@ class Client:
             motions_per_image=motions_per_image,
             augment=augment,
             frames=frames,
+            resample=resample,
         )
         limit = max(1, self.max_indices())
         out: List[Any] = []

@@ -130,6 +130,8 @@ class _MPIFlowDatasetImpl:
     RAFT training stage ("raft-chairs", "raft-things", "raft-sintel", "raft-kitti") or its
     parameters as JSON text or a dict; it is part of the address (same bytes every time), makes
     its own random crop (the preset's size, or `crop` when given) and resizes the frame to fit it.
+    `resample` picks the colour kernel of the target render ("bilinear", "bicubic", "bspline3",
+    "lanczos3"; None = the dataset's), part of the fingerprint.
     `token`, `tls_ca`, `tls_cert`, `tls_key` and `tls_domain` are passed to each worker's Client.
     """
 
@@ -155,6 +157,7 @@ class _MPIFlowDatasetImpl:
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
         augment: Any = None,
+        resample: Optional[str] = None,
         batch_size: int = 1,
         prefetch: int = 8,
         server_prefetch: int = 0,
@@ -192,6 +195,7 @@ class _MPIFlowDatasetImpl:
         self.max_objects = max_objects
         self.motions_per_image = motions_per_image
         self.augment = augment
+        self.resample = resample
         self.batch_size = int(batch_size)
         self.prefetch = int(prefetch)
         self.server_prefetch = int(server_prefetch)
@@ -346,6 +350,7 @@ class _MPIFlowDatasetImpl:
             max_objects=self.max_objects,
             motions_per_image=self.motions_per_image,
             augment=self.augment,
+            resample=self.resample,
             batch_size=self.batch_size,
             server_prefetch=self.server_prefetch,
             retry_timeout=self.retry_timeout,

@@ -44,8 +44,8 @@ class _MPIFlowMapDatasetImpl:
     Options as MPIFlowDataset: `seed`, `dataset`, `fingerprint`, `fields`, `lz4`, `flow_dtype`,
     `crop` with `crop_mode` ("random" by default, each sample's own reproducible position; a crop
     larger than the rendered frame is refused by the server), `motion_preset`,
-    `motion_ranges_json`, `max_objects`, `motions_per_image`, `augment`, `pad_objects`, `token`, `tls_ca`,
-    `tls_cert`, `tls_key`, `tls_domain`, `timeout` (the wait for a SERVING replica).
+    `motion_ranges_json`, `max_objects`, `motions_per_image`, `augment`, `resample`, `pad_objects`,
+    `token`, `tls_ca`, `tls_cert`, `tls_key`, `tls_domain`, `timeout` (the wait for a SERVING replica).
     """
 
     def __init__(
@@ -66,6 +66,7 @@ class _MPIFlowMapDatasetImpl:
         max_objects: Optional[int] = None,
         motions_per_image: Optional[int] = None,
         augment: Any = None,
+        resample: Optional[str] = None,
         token: Optional[str] = None,
         tls_ca: Union[str, bytes, None] = None,
         tls_cert: Union[str, bytes, None] = None,
@@ -96,6 +97,7 @@ class _MPIFlowMapDatasetImpl:
         self.max_objects = max_objects
         self.motions_per_image = motions_per_image
         self.augment = augment
+        self.resample = resample
         self.token = token
         self.tls = dict(tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key, tls_domain=tls_domain)
         self.timeout = float(timeout)
@@ -145,6 +147,7 @@ class _MPIFlowMapDatasetImpl:
             max_objects=self.max_objects,
             motions_per_image=self.motions_per_image,
             augment=self.augment,
+            resample=self.resample,
             timeout=self.retry_timeout,
             prefer=self._prefer,
         )

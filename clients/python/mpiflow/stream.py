@@ -71,6 +71,7 @@ class FlowStream:
         motions_per_image: Optional[int] = None,
         augment: Any = None,
         frames: Optional[int] = None,
+        resample: Optional[str] = None,
         batch_size: int = 1,
         server_prefetch: int = 0,
         retry_timeout: float = 120.0,
@@ -111,6 +112,7 @@ class FlowStream:
             motions_per_image=motions_per_image,
             augment=augment,
             frames=frames,
+            resample=resample,
         )
         self._call = None
         self._lock = threading.Lock()

@@ -89,7 +89,7 @@ class OutputCrop(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., mode: _Optional[_Union[CropMode, str]] = ...) -> None: ...
 
 class StreamRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "rank", "world_size", "start_index", "count", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "batch_size", "prefetch", "augment", "frames")
+    __slots__ = ("dataset", "fingerprint", "seed", "rank", "world_size", "start_index", "count", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "batch_size", "prefetch", "augment", "frames", "resample")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -109,6 +109,7 @@ class StreamRequest(_message.Message):
     PREFETCH_FIELD_NUMBER: _ClassVar[int]
     AUGMENT_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
+    RESAMPLE_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -128,10 +129,11 @@ class StreamRequest(_message.Message):
     prefetch: int
     augment: str
     frames: int
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ...) -> None: ...
+    resample: str
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ..., resample: _Optional[str] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "index", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames")
+    __slots__ = ("dataset", "fingerprint", "seed", "index", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames", "resample")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -146,6 +148,7 @@ class SampleRequest(_message.Message):
     MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
     AUGMENT_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
+    RESAMPLE_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -160,10 +163,11 @@ class SampleRequest(_message.Message):
     motions_per_image: int
     augment: str
     frames: int
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ...) -> None: ...
+    resample: str
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ..., resample: _Optional[str] = ...) -> None: ...
 
 class SamplesRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames")
+    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames", "resample")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
@@ -178,6 +182,7 @@ class SamplesRequest(_message.Message):
     MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
     AUGMENT_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
+    RESAMPLE_FIELD_NUMBER: _ClassVar[int]
     dataset: str
     fingerprint: int
     seed: int
@@ -192,7 +197,8 @@ class SamplesRequest(_message.Message):
     motions_per_image: int
     augment: str
     frames: int
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ...) -> None: ...
+    resample: str
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ..., resample: _Optional[str] = ...) -> None: ...
 
 class Tensor(_message.Message):
     __slots__ = ("name", "shape", "dtype", "compression", "raw_size", "data")

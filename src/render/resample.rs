@@ -1,0 +1,423 @@
+//! Resampling kernels for the colour of the exact-mode target render ([`Resample`]) and the cubic
+//! B-spline prefilters ([`bspline_coefficients`]).
+//!
+//! Every target ray samples each plane it meets at a sub-pixel point q. Bilinear interpolation
+//! (the public reference's choice) is a low-pass filter: one bilinear resampling at a random
+//! sub-pixel shift keeps well under half of a photo's Laplacian energy, so image2 came out much
+//! blurrier than image1 (issue 16; figures in docs/quality.md). The higher-order kernels here are
+//! separable, evaluated over an N x N neighbourhood of q (N = 4 for the cubics, 6 for Lanczos-3):
+//!
+//! - [`Resample::Bilinear`]: 2 x 2 taps, the reference's formula (bit-identical to the renderer
+//!   before this option existed).
+//! - [`Resample::Bicubic`]: Keys' cubic convolution with a = -1/2 (Catmull-Rom), interpolating,
+//!   reproduces quadratics, rings slightly (lobes of -1/16).
+//! - [`Resample::Bspline3`]: cubic B-spline *interpolation*: the plane's colour is first turned
+//!   into B-spline coefficients by the recursive prefilter of Unser (pole sqrt(3) - 2, mirror
+//!   boundaries; [`bspline_coefficients`]) and then evaluated with the B-spline basis. Much
+//!   closer to the ideal reconstruction than bicubic convolution; the prefilter is computed once
+//!   per scene and kept with the MPI ([`crate::mpi::Mpi::bspline_rgb`], set by
+//!   `sample::recipe::prepare_scene` through [`prefilter_arc`], so it lives in the scene cache);
+//!   a render of an MPI without it computes it for that render.
+//! - [`Resample::Bspline5`]: quintic B-spline interpolation over 6 x 6 taps (prefilter poles
+//!   -0.4306 and -0.0431), sharper still.
+//! - [`Resample::Lanczos3`]: windowed sinc over 6 x 6 taps, weights normalised to sum 1.
+//!
+//! Only colour uses the kernel. Density (and so alpha, coverage and depth) and the extra
+//! (mask) channels stay bilinear, a kernel that cannot ring: they stay within their bounds, and
+//! they are bit-identical to the bilinear render's, so the labels and flow do not depend on the
+//! kernel. Each plane's colour sample is clamped to [0, 1] (the ringing of the higher-order
+//! kernels at edges), so the composite stays within [0, coverage]. Indices outside the frame are
+//! mirrored (whole-sample symmetric, the prefilter's boundary condition). The reference mode
+//! ignores this option: it is bilinear formula for formula.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::real::Real;
+use crate::mpi::Mpi;
+
+/// The reconstruction kernel of the target render's colour (see the module documentation).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Resample {
+    /// 2 x 2 bilinear (the reference's kernel).
+    Bilinear,
+    /// 4 x 4 Keys cubic convolution (a = -1/2).
+    Bicubic,
+    /// 4 x 4 cubic B-spline interpolation (prefiltered coefficients); the default.
+    #[default]
+    Bspline3,
+    /// 6 x 6 quintic B-spline interpolation (prefiltered coefficients).
+    Bspline5,
+    /// 6 x 6 Lanczos-3 (normalised windowed sinc).
+    Lanczos3,
+}
+
+impl Resample {
+    pub const ALL: [Resample; 5] =
+        [Resample::Bilinear, Resample::Bicubic, Resample::Bspline3, Resample::Bspline5, Resample::Lanczos3];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Resample::Bilinear => "bilinear",
+            Resample::Bicubic => "bicubic",
+            Resample::Bspline3 => "bspline3",
+            Resample::Bspline5 => "bspline5",
+            Resample::Lanczos3 => "lanczos3",
+        }
+    }
+
+    /// The B-spline degree of a kernel that samples prefiltered coefficients instead of the
+    /// colours themselves.
+    pub fn bspline_degree(self) -> Option<u32> {
+        match self {
+            Resample::Bspline3 => Some(3),
+            Resample::Bspline5 => Some(5),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Resample {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Resample {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Resample::ALL.into_iter().find(|r| r.name() == s).ok_or_else(|| {
+            format!("unknown resample kernel `{s}` (expected bilinear, bicubic, bspline3, bspline5 or lanczos3)")
+        })
+    }
+}
+
+/// The weights of a separable kernel at fractional offset `t` in [0, 1) from the tap
+/// `floor(q)`; tap `k` sits at `floor(q) + k - (N / 2 - 1)`.
+pub(crate) trait Kernel<const N: usize>: Sync {
+    fn weights<T: Real>(t: T) -> [T; N];
+}
+
+pub(crate) struct Keys;
+pub(crate) struct Bspline3;
+pub(crate) struct Lanczos3;
+pub(crate) struct Bspline5;
+
+impl Kernel<6> for Bspline5 {
+    #[inline(always)]
+    fn weights<T: Real>(t: T) -> [T; 6] {
+        // beta5 at the distances |t + 2 - k| of the taps k = 0..5
+        let b = |x: T| -> T {
+            let x = x.abs();
+            let (x2, x4) = (x * x, x * x * x * x);
+            if x < T::one() {
+                T::of(11.0 / 20.0) - x2 * T::of(0.5) + x4 * T::of(0.25) - x4 * x / T::of(12.0)
+            } else if x < T::of(2.0) {
+                T::of(17.0 / 40.0) + x * T::of(5.0 / 8.0) - x2 * T::of(7.0 / 4.0) + x2 * x * T::of(5.0 / 4.0)
+                    - x4 * T::of(3.0 / 8.0)
+                    + x4 * x / T::of(24.0)
+            } else if x < T::of(3.0) {
+                let u = T::of(3.0) - x;
+                u * u * u * u * u / T::of(120.0)
+            } else {
+                T::zero()
+            }
+        };
+        std::array::from_fn(|k| b(t + T::of(2.0) - T::of(k as f64)))
+    }
+}
+
+impl Kernel<4> for Keys {
+    #[inline(always)]
+    fn weights<T: Real>(t: T) -> [T; 4] {
+        let h = T::of(0.5);
+        let (t2, t3) = (t * t, t * t * t);
+        [
+            -h * t3 + t2 - h * t,
+            T::of(1.5) * t3 - T::of(2.5) * t2 + T::one(),
+            T::of(-1.5) * t3 + T::of(2.0) * t2 + h * t,
+            h * t3 - h * t2,
+        ]
+    }
+}
+
+impl Kernel<4> for Bspline3 {
+    #[inline(always)]
+    fn weights<T: Real>(t: T) -> [T; 4] {
+        let s = T::one() / T::of(6.0);
+        let u = T::one() - t;
+        let (t2, t3) = (t * t, t * t * t);
+        [
+            u * u * u * s,
+            (T::of(3.0) * t3 - T::of(6.0) * t2 + T::of(4.0)) * s,
+            (T::of(-3.0) * t3 + T::of(3.0) * t2 + T::of(3.0) * t + T::one()) * s,
+            t3 * s,
+        ]
+    }
+}
+
+impl Kernel<6> for Lanczos3 {
+    #[inline(always)]
+    fn weights<T: Real>(t: T) -> [T; 6] {
+        // L(x) = sinc(x) sinc(x / 3) at x = t - k + 2, k = 0..5; with sin(pi (t + m)) =
+        // (-1)^m sin(pi t) one sine of each argument family is enough
+        let pi = T::of(std::f64::consts::PI);
+        let mut w = [T::zero(); 6];
+        if t < T::of(1e-6) {
+            w[2] = T::one();
+            return w;
+        }
+        let mut sum = T::zero();
+        for (k, wk) in w.iter_mut().enumerate() {
+            let x = t + T::of(2.0) - T::of(k as f64);
+            let px = pi * x;
+            let v = T::of(3.0) * (px).sin() * (px / T::of(3.0)).sin() / (px * px);
+            *wk = v;
+            sum += v;
+        }
+        for wk in &mut w {
+            *wk = *wk / sum;
+        }
+        w
+    }
+}
+
+/// Index `i` of the whole-sample symmetric extension of a line of `n` (period 2n - 2).
+#[inline(always)]
+fn mirror(i: isize, n: usize) -> usize {
+    if n < 2 {
+        return 0;
+    }
+    let last = n as isize - 1;
+    let j = i.rem_euclid(2 * last);
+    (if j > last { 2 * last - j } else { j }) as usize
+}
+
+/// Colour of one plane at `(qx, qy)` (clamped to [0, W-1] x [0, H-1]) with kernel `K`, from
+/// `src` holding `S` values per pixel (colour in the first three), each channel clamped to
+/// [0, 1]. Neighbourhoods inside the frame read contiguous rows; the others mirror their
+/// indices (the same values).
+#[inline(always)]
+pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
+    src: &[f32],
+    qx: T,
+    qy: T,
+    w: usize,
+    h: usize,
+) -> [T; 3] {
+    // q >= 0 here, so truncation is floor
+    let x0 = (qx.f32() as usize).min(w - 1);
+    let y0 = (qy.f32() as usize).min(h - 1);
+    let wx = K::weights(qx - T::of(x0 as f64));
+    let wy = K::weights(qy - T::of(y0 as f64));
+    let off = N / 2 - 1;
+    let mut acc = [T::zero(); 3];
+    if x0 >= off && x0 + N - off <= w && y0 >= off && y0 + N - off <= h {
+        let base = S * ((y0 - off) * w + x0 - off);
+        for (j, &wyj) in wy.iter().enumerate() {
+            let start = base + j * S * w;
+            let row = &src[start..start + N * S];
+            let mut r = [T::zero(); 3];
+            for (px, &wxk) in row.chunks_exact(S).zip(&wx) {
+                r[0] += wxk * T::of32(px[0]);
+                r[1] += wxk * T::of32(px[1]);
+                r[2] += wxk * T::of32(px[2]);
+            }
+            for c in 0..3 {
+                acc[c] += wyj * r[c];
+            }
+        }
+    } else {
+        let xs: [usize; N] = std::array::from_fn(|k| S * mirror(x0 as isize + k as isize - off as isize, w));
+        for (j, &wyj) in wy.iter().enumerate() {
+            let row = &src[S * w * mirror(y0 as isize + j as isize - off as isize, h)..];
+            let mut r = [T::zero(); 3];
+            for (&xi, &wxk) in xs.iter().zip(&wx) {
+                r[0] += wxk * T::of32(row[xi]);
+                r[1] += wxk * T::of32(row[xi + 1]);
+                r[2] += wxk * T::of32(row[xi + 2]);
+            }
+            for c in 0..3 {
+                acc[c] += wyj * r[c];
+            }
+        }
+    }
+    acc.map(|v| v.max(T::zero()).min(T::one()))
+}
+
+/// Computes the B-spline coefficients `resample` needs (if any, and if `mpi` does not hold them
+/// already) and keeps them in [`Mpi::bspline_rgb`].
+pub fn prefilter(mpi: &mut Mpi, resample: Resample) {
+    if let Some(degree) = resample.bspline_degree() {
+        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
+            let coefficients = std::sync::Arc::new(bspline_coefficients(mpi, degree));
+            mpi.bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
+        }
+    }
+}
+
+/// [`prefilter`] of a shared MPI (copied first only when it needs the coefficients and others
+/// hold it).
+pub fn prefilter_arc(mpi: &mut std::sync::Arc<Mpi>, resample: Resample) {
+    if let Some(degree) = resample.bspline_degree() {
+        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
+            let coefficients = std::sync::Arc::new(bspline_coefficients(mpi, degree));
+            std::sync::Arc::make_mut(mpi).bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
+        }
+    }
+}
+
+/// The poles of the B-spline interpolation prefilter of `degree` (3 or 5).
+fn poles(degree: u32) -> &'static [f64] {
+    if degree == 3 {
+        &[-0.267_949_192_431_122_7]
+    } else {
+        &[-0.430_575_347_099_973_8, -0.043_096_288_203_264_65]
+    }
+}
+
+/// B-spline interpolation coefficients (degree 3 or 5) of the rgb channels of every plane of
+/// `mpi` (N x H x W x 3, plane-major, row-major, interleaved): the exact inverse of sampling the
+/// B-spline at the pixel centres, with mirror boundaries (Unser, "Fast B-spline transforms for
+/// continuous image representation and interpolation", 1991). Computed in f64 per line.
+pub fn bspline_coefficients(mpi: &Mpi, degree: u32) -> Vec<f32> {
+    let (w, h) = (mpi.width, mpi.height);
+    let z = poles(degree);
+    let plane = w * h * 3;
+    let mut out = vec![0.0f32; plane * mpi.planes()];
+    out.par_chunks_mut(plane.max(1)).enumerate().for_each(|(i, dst)| {
+        let rgba = mpi.plane_rgba(i);
+        let mut buf = vec![0.0f64; w * h * 3];
+        for (d, s) in buf.chunks_exact_mut(3).zip(rgba.chunks_exact(4)) {
+            d.copy_from_slice(&[f64::from(s[0]), f64::from(s[1]), f64::from(s[2])]);
+        }
+        let mut line = vec![0.0f64; w.max(h)];
+        for y in 0..h {
+            for c in 0..3 {
+                for x in 0..w {
+                    line[x] = buf[3 * (y * w + x) + c];
+                }
+                prefilter_line(&mut line[..w], z);
+                for x in 0..w {
+                    buf[3 * (y * w + x) + c] = line[x];
+                }
+            }
+        }
+        for x in 0..w {
+            for c in 0..3 {
+                for y in 0..h {
+                    line[y] = buf[3 * (y * w + x) + c];
+                }
+                prefilter_line(&mut line[..h], z);
+                for y in 0..h {
+                    buf[3 * (y * w + x) + c] = line[y];
+                }
+            }
+        }
+        for (d, s) in dst.iter_mut().zip(&buf) {
+            *d = *s as f32;
+        }
+    });
+    out
+}
+
+/// In-place B-spline prefilter of one line with the given poles (mirror boundaries).
+fn prefilter_line(c: &mut [f64], poles: &[f64]) {
+    let n = c.len();
+    if n < 2 {
+        return;
+    }
+    let lambda: f64 = poles.iter().map(|&z| (1.0 - z) * (1.0 - 1.0 / z)).product();
+    for v in c.iter_mut() {
+        *v *= lambda;
+    }
+    for &z in poles {
+        c[0] = causal_init(c, z);
+        for k in 1..n {
+            c[k] += z * c[k - 1];
+        }
+        c[n - 1] = (z / (z * z - 1.0)) * (c[n - 1] + z * c[n - 2]);
+        for k in (0..n - 1).rev() {
+            c[k] = z * (c[k + 1] - c[k]);
+        }
+    }
+}
+
+/// `sum_k c[k] z^k` over the mirrored signal: truncated where `|z|^k < 1e-12`, exact for short lines.
+fn causal_init(c: &[f64], z: f64) -> f64 {
+    let n = c.len();
+    let horizon = ((1e-12f64).ln() / z.abs().ln()).ceil() as usize;
+    if horizon < n {
+        let mut zk = 1.0;
+        let mut sum = 0.0;
+        for v in c.iter().take(horizon) {
+            sum += zk * v;
+            zk *= z;
+        }
+        return sum;
+    }
+    // the mirrored signal has period 2n - 2
+    let iz = 1.0 / z;
+    let mut zk = z;
+    let mut z2n = z.powi(n as i32 - 1);
+    let mut sum = c[0] + z2n * c[n - 1];
+    z2n = z2n * z2n * iz;
+    for v in c.iter().take(n - 1).skip(1) {
+        sum += (zk + z2n) * v;
+        zk *= z;
+        z2n *= iz;
+    }
+    sum / (1.0 - zk * zk)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn eval_line(c: &[f64], x: f64, degree: u32) -> f64 {
+        let x0 = x.floor();
+        let at = |k: isize| c[mirror(x0 as isize + k, c.len())];
+        if degree == 3 {
+            let wts = Bspline3::weights(x - x0);
+            (0..4).map(|k| wts[k] * at(k as isize - 1)).sum()
+        } else {
+            let wts = Bspline5::weights(x - x0);
+            (0..6).map(|k| wts[k] * at(k as isize - 2)).sum()
+        }
+    }
+
+    #[test]
+    fn prefilter_interpolates_at_the_samples() {
+        for degree in [3, 5] {
+            for n in [2usize, 3, 4, 5, 17, 40, 100] {
+                let s: Vec<f64> = (0..n).map(|i| ((i * 7919) % 13) as f64 / 13.0).collect();
+                let mut c = s.clone();
+                prefilter_line(&mut c, poles(degree));
+                for (i, &v) in s.iter().enumerate() {
+                    let got = eval_line(&c, i as f64, degree);
+                    assert!((got - v).abs() < 1e-9, "degree {degree} n {n} i {i}: {got} vs {v}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn weights_sum_to_one() {
+        for i in 0..100 {
+            let t = i as f64 / 100.0;
+            assert!((Keys::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            assert!((Bspline3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            assert!((Lanczos3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            assert!((Bspline5::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn names_round_trip() {
+        for r in Resample::ALL {
+            assert_eq!(r.name().parse::<Resample>(), Ok(r));
+        }
+        assert!("cubic".parse::<Resample>().is_err());
+    }
+}
