@@ -248,7 +248,9 @@ async fn scrape(addr: &str) -> Option<String> {
 
 /// Every field there is (`pb::Field` values but `FIELD_UNSPECIFIED`).
 fn all_fields() -> Vec<i32> {
-    (1..64).filter(|&v| pb::Field::try_from(v).is_ok_and(|f| f != pb::Field::Unspecified)).collect()
+    // every field of a pair of the default law (the disparity needs a stereo law)
+    let of_a_pair = |f: pb::Field| f != pb::Field::Unspecified && f != pb::Field::Disparity;
+    (1..64).filter(|&v| pb::Field::try_from(v).is_ok_and(of_a_pair)).collect()
 }
 
 /// What the clients share: counters and the error table.
