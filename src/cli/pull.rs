@@ -192,7 +192,7 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
     let written = written.map_err(CliError)?;
     println!("pull: {}", report.summary());
     if let Some(dir) = &a.out {
-        println!("pull: wrote {written} samples to {} (flo layout, previews in previews/)", dir.display());
+        println!("pull: wrote {written} samples to {} ({} layout, previews in previews/)", dir.display(), a.format);
     }
     if let Some(status) = &report.error {
         let cursor = cursor_of(status)
