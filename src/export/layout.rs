@@ -8,7 +8,7 @@ use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use super::fields::EncodedSample;
+use super::fields::{EncodedSample, Field};
 use super::ExportError;
 
 /// Writes `bytes` to `path` through a temporary file in the same directory and a rename.
@@ -37,9 +37,18 @@ pub(crate) fn temp_path(path: &Path) -> PathBuf {
 /// Writes one encoded sample into `dir` as separate files, the JSON record last. Returns the
 /// paths written.
 pub fn write_files(dir: &Path, sample: &EncodedSample) -> Result<Vec<PathBuf>, ExportError> {
+    write_fields(sample, |field| Ok(dir.join(field.file_name(&sample.key))))
+}
+
+/// Writes each field of `sample`, in order, atomically to the path `path_of` gives it (the one
+/// loop of every file layout). Returns the paths written.
+pub(crate) fn write_fields(
+    sample: &EncodedSample,
+    mut path_of: impl FnMut(&Field) -> Result<PathBuf, ExportError>,
+) -> Result<Vec<PathBuf>, ExportError> {
     let mut written = Vec::with_capacity(sample.fields.len());
     for field in &sample.fields {
-        let path = dir.join(field.file_name(&sample.key));
+        let path = path_of(field)?;
         write_atomic(&path, &field.bytes)?;
         written.push(path);
     }
@@ -51,9 +60,8 @@ pub fn write_files(dir: &Path, sample: &EncodedSample) -> Result<Vec<PathBuf>, E
 /// record to `dir/training/<key>.json` (last). Returns the paths written.
 pub fn write_sintel(dir: &Path, sample: &EncodedSample) -> Result<Vec<PathBuf>, ExportError> {
     let root = dir.join("training");
-    let mut written = Vec::with_capacity(sample.fields.len());
-    for field in &sample.fields {
-        let path = match field.name.split_once('/') {
+    write_fields(sample, |field| {
+        Ok(match field.name.split_once('/') {
             Some((kind, frame)) => {
                 let folder = root.join(kind).join(&sample.key);
                 fs::create_dir_all(&folder).map_err(|source| ExportError::Io { path: folder.clone(), source })?;
@@ -63,9 +71,6 @@ pub fn write_sintel(dir: &Path, sample: &EncodedSample) -> Result<Vec<PathBuf>, 
                 fs::create_dir_all(&root).map_err(|source| ExportError::Io { path: root.clone(), source })?;
                 root.join(field.file_name(&sample.key))
             }
-        };
-        write_atomic(&path, &field.bytes)?;
-        written.push(path);
-    }
-    Ok(written)
+        })
+    })
 }

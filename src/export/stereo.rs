@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use ::image::ExtendedColorType;
 
 use super::fields::{binary_png, check_sample, encode_png, finish_record, EncodedSample, Field, FlowEncoding};
-use super::layout::write_atomic;
+use super::layout::write_fields;
 use super::ExportError;
 use crate::sample::Sample;
 use crate::source::pfm::encode_pfm;
@@ -67,11 +67,5 @@ pub const FOLDERS: [&str; 7] = ["left", "right", "disparity", "occlusion", "vali
 
 /// Writes one encoded pair into the layout (each file atomically, the record last).
 pub fn write_stereo(dir: &Path, sample: &EncodedSample) -> Result<Vec<PathBuf>, ExportError> {
-    let mut written = Vec::with_capacity(sample.fields.len());
-    for field in &sample.fields {
-        let path = stereo_path(dir, &sample.key, field);
-        write_atomic(&path, &field.bytes)?;
-        written.push(path);
-    }
-    Ok(written)
+    write_fields(sample, |field| Ok(stereo_path(dir, &sample.key, field)))
 }
