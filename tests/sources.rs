@@ -622,7 +622,7 @@ fn dump_builtin_scenes() {
 /// A folder's entries that are not photos it can read are left out with a reason, never
 /// silently: a FIFO, a dangling symbolic link, a directory named `x.png` and links out of the
 /// source folder (to `/dev/zero`, to a photo elsewhere: not followed). A link to a photo inside
-/// the folder is a photo.
+/// the folder is a photo. With `follow_links` the link to the photo elsewhere is followed.
 #[cfg(unix)]
 #[test]
 fn folder_entries_left_out_are_reported_and_links_stay_inside() {
@@ -652,6 +652,25 @@ fn folder_entries_left_out_are_reported_and_links_stay_inside() {
         [
             ("d.png".to_string(), FailureKind::OutsideRoot),
             ("e.png".to_string(), FailureKind::OutsideRoot),
+            ("f.png".to_string(), FailureKind::DanglingLink),
+            ("g.png".to_string(), FailureKind::NotAFile),
+            ("h.png".to_string(), FailureKind::NotAFile),
+        ]
+    );
+
+    // `follow_source_links`: the link to a photo outside is followed and read; a link to a
+    // device is still not a file, a dangling link still nothing
+    let follow = SourceOptions { follow_links: true, ..SourceOptions::default() };
+    let src = DirSource::open(&dir, &follow).unwrap();
+    let ids: Vec<String> = (0..src.len()).map(|i| src.id(i)).collect();
+    assert_eq!(ids, ["a", "b", "c", "d"], "the link out of the folder is followed");
+    let d = src.load(3).unwrap();
+    assert_eq!((d.image.width, d.image.height), (20, 10), "the photo outside the folder is read");
+    let skipped: Vec<(String, FailureKind)> = src.skipped().into_iter().map(|s| (s.item, s.kind)).collect();
+    assert_eq!(
+        skipped,
+        [
+            ("e.png".to_string(), FailureKind::NotAFile),
             ("f.png".to_string(), FailureKind::DanglingLink),
             ("g.png".to_string(), FailureKind::NotAFile),
             ("h.png".to_string(), FailureKind::NotAFile),

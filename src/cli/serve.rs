@@ -46,6 +46,9 @@ pub struct ServeArgs {
     /// Resize every source image to WxH (the bundled scenes are 640x480).
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
+    /// Follow symbolic links in folder sources that lead out of the source folder (true / false).
+    #[arg(long, value_name = "BOOL")]
+    follow_source_links: Option<bool>,
     /// Seconds a graceful shutdown may take (default 10).
     #[arg(long, value_name = "S")]
     drain_timeout_s: Option<f64>,
@@ -131,6 +134,7 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
     set!(log_format => log_format);
     set!(log_level => log_level);
     set!(cache_mb => cache_mb);
+    set!(follow_source_links => follow_source_links);
     set!(prefetch_scenes => prefetch_scenes);
     set!(planes => models.planes);
     set!(objects => sample.max_objects);

@@ -76,6 +76,8 @@ pub struct OpenOptions {
     pub intrinsics: Option<IntrinsicsSpec>,
     /// Limits on each image, checked before decoding.
     pub limits: ImageLimits,
+    /// Follow symbolic links out of a folder source's root (see [`SourceOptions::follow_links`]).
+    pub follow_links: bool,
 }
 
 /// Opens the source of `spec` with `options`.
@@ -99,6 +101,7 @@ pub fn open_source(spec: &SourceSpec, options: &OpenOptions) -> Result<Arc<dyn S
                 resize: options.resize,
                 intrinsics: options.intrinsics,
                 limits: options.limits,
+                follow_links: options.follow_links,
                 ..SourceOptions::default()
             };
             crate::source::open_source(path, &o)

@@ -146,6 +146,9 @@ pub struct ServiceConfig {
     /// Resize every source image to `WxH` (e.g. `"640x480"`); none = keep sizes (the bundled
     /// scenes are 640x480).
     pub size: Option<String>,
+    /// Follow symbolic links in folder sources that lead out of the source folder (default
+    /// false: they are left out as `outside-root`; links that stay inside are always followed).
+    pub follow_source_links: bool,
     /// Scene cache budget in MiB (a 640x480 scene with 32 planes takes about 160 MiB).
     pub cache_mb: u64,
     /// Build the scenes of each stream's next indices (its prefetch window) on the scene pool
@@ -205,6 +208,7 @@ impl Default for ServiceConfig {
             max_concurrent_uploads: 4,
             max_upload_buffer_mb: 512,
             size: None,
+            follow_source_links: false,
             cache_mb: 2048,
             prefetch_scenes: false,
             drain_timeout_s: 10.0,
@@ -288,6 +292,7 @@ impl ServiceConfig {
                 "IDLE_CONNECTION_TIMEOUT_S" => self.idle_connection_timeout_s = env_parse(&key, &value)?,
                 "MAX_UPLOAD_BUFFER_MB" => self.max_upload_buffer_mb = env_parse(&key, &value)?,
                 "SIZE" => self.size = (!value.trim().is_empty()).then(|| value.trim().to_string()),
+                "FOLLOW_SOURCE_LINKS" => self.follow_source_links = env_parse(&key, &value)?,
                 "CACHE_MB" => self.cache_mb = env_parse(&key, &value)?,
                 "PREFETCH_SCENES" => self.prefetch_scenes = env_parse(&key, &value)?,
                 "DRAIN_TIMEOUT_S" => self.drain_timeout_s = env_parse(&key, &value)?,

@@ -2,7 +2,9 @@
 //! (more are closed as they arrive), and a connection must send its first bytes within
 //! `idle_connection_timeout_s` or it is closed. Both hold on the plaintext and the TLS port
 //! alike (the TLS handshake runs over these connections); HTTP/2 keepalive pings
-//! (`Server::http2_keepalive_*`) then close connections whose peer stops answering.
+//! (`Server::http2_keepalive_*`) then close connections whose peer stops answering, and TCP
+//! keepalive (probes after `idle_connection_timeout_s` of silence, every such interval, 3 tries)
+//! lets the kernel drop connections whose peer vanished without a FIN (the cable, the node).
 
 use std::io;
 use std::pin::Pin;
@@ -67,8 +69,20 @@ impl Connected for Guarded {
 pub struct ConnLimits {
     /// Most connections open at once (waiting for their first bytes included).
     pub max_connections: usize,
-    /// How long a new connection may stay silent before it is closed.
+    /// How long a new connection may stay silent before it is closed; also the TCP keepalive
+    /// idle time and probe interval.
     pub first_bytes_timeout: Duration,
+}
+
+/// Probes a silent peer gets before the kernel drops the connection.
+const KEEPALIVE_RETRIES: u32 = 3;
+
+/// Turns TCP keepalive on for `stream`: the first probe after `every` of silence, then one
+/// every `every`, [`KEEPALIVE_RETRIES`] of them.
+fn set_keepalive(stream: &TcpStream, every: Duration) -> io::Result<()> {
+    let every = every.max(Duration::from_secs(1));
+    let ka = socket2::TcpKeepalive::new().with_time(every).with_interval(every).with_retries(KEEPALIVE_RETRIES);
+    socket2::SockRef::from(stream).set_tcp_keepalive(&ka)
 }
 
 /// The accepted connections of `listener` under `limits`, as a stream for tonic's
@@ -100,6 +114,9 @@ pub fn incoming(
                 continue;
             };
             let _ = stream.set_nodelay(true);
+            if let Err(e) = set_keepalive(&stream, limits.first_bytes_timeout) {
+                tracing::debug!(error = %e, "TCP keepalive not set");
+            }
             let tx = tx.clone();
             tokio::spawn(async move {
                 // the first bytes within the deadline, or the connection is closed
@@ -114,4 +131,30 @@ pub fn incoming(
         }
     });
     tokio_stream::wrappers::ReceiverStream::new(rx)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::AsyncWriteExt;
+    use tokio_stream::StreamExt;
+
+    /// An accepted connection carries TCP keepalive with the configured idle time and interval.
+    #[tokio::test]
+    async fn accepted_connections_have_tcp_keepalive() {
+        let listener = TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let limits = ConnLimits { max_connections: 4, first_bytes_timeout: Duration::from_secs(7) };
+        let mut conns = incoming(listener, limits);
+        let mut client = TcpStream::connect(addr).await.unwrap();
+        client.write_all(b"x").await.unwrap();
+        let accepted = conns.next().await.unwrap().unwrap();
+        let sock = socket2::SockRef::from(&accepted.inner);
+        assert!(sock.keepalive().unwrap());
+        assert_eq!(sock.tcp_keepalive_time().unwrap(), Duration::from_secs(7));
+        assert_eq!(sock.tcp_keepalive_interval().unwrap(), Duration::from_secs(7));
+        assert_eq!(sock.tcp_keepalive_retries().unwrap(), KEEPALIVE_RETRIES);
+        // the client's own socket is untouched: the option is the server's doing
+        assert!(!socket2::SockRef::from(&client).keepalive().unwrap());
+    }
 }

@@ -187,7 +187,12 @@ impl Datasets {
         let cache_bytes = usize::try_from(config.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX);
         let cache = Arc::new(SceneCache::new(cache_bytes));
         let resize = config.resize()?;
-        let open = OpenOptions { resize, limits: config.image_limits(), ..OpenOptions::default() };
+        let open = OpenOptions {
+            resize,
+            limits: config.image_limits(),
+            follow_links: config.follow_source_links,
+            ..OpenOptions::default()
+        };
         let builtin = [DatasetConfig { name: None, path: "builtin".into(), sample: None }];
         let specs: &[DatasetConfig] = if config.datasets.is_empty() { &builtin } else { &config.datasets };
         let mut list = Vec::with_capacity(specs.len());

@@ -50,7 +50,7 @@
 //! Listing a folder leaves out, each with its [`FailureKind`] in [`Source::skipped`] (so in
 //! `GetInfo` and `mpiflow_skipped_sources`): names that are not UTF-8, unreadable entries,
 //! dangling symbolic links (`dangling-link`), links that lead out of the source folder, which are
-//! not followed (`outside-root`), and entries with a source file's extension that are not regular
+//! not followed (`outside-root`) unless [`SourceOptions::follow_links`], and entries with a source file's extension that are not regular
 //! files (`not-a-file`: FIFOs, devices, a directory named `x.png`). Links inside the folder are
 //! followed.
 //!
@@ -116,6 +116,10 @@ pub struct SourceOptions {
     pub intrinsics: Option<IntrinsicsSpec>,
     /// Also hash every file's bytes into the fingerprint (reads all files once at open).
     pub hash_contents: bool,
+    /// Follow symbolic links that lead out of a folder source's root (default false: they are
+    /// left out as `outside-root`). Links inside the root are followed either way; dangling links
+    /// and links to what is not a regular file are left out either way.
+    pub follow_links: bool,
 }
 
 impl SourceOptions {
@@ -143,6 +147,7 @@ impl Default for SourceOptions {
             max_mpi_bytes: 4 << 30,
             intrinsics: None,
             hash_contents: false,
+            follow_links: false,
         }
     }
 }
@@ -250,8 +255,11 @@ const SOURCE_EXTENSIONS: [&str; 8] = ["png", "jpg", "jpeg", "npy", "pfm", "npz",
 
 /// A folder listing: regular files as (name, size), sorted by name, and what was left out.
 struct Listing<'a> {
-    /// The canonical source root: symbolic links that lead out of it are not followed.
+    /// The canonical source root: symbolic links that lead out of it are not followed, unless
+    /// `follow_links`.
     root: &'a Path,
+    /// Follow links out of `root` too.
+    follow_links: bool,
     /// Entries left out, with their reason (in listing order, sorted at the end).
     skipped: Vec<SkippedItem>,
 }
@@ -288,7 +296,7 @@ impl Listing<'_> {
                         skip(FailureKind::DanglingLink, "a symbolic link to nothing");
                         continue;
                     }
-                    Ok(target) if !target.starts_with(self.root) => {
+                    Ok(target) if !self.follow_links && !target.starts_with(self.root) => {
                         skip(FailureKind::OutsideRoot, "a symbolic link out of the source folder (not followed)");
                         continue;
                     }
@@ -372,7 +380,7 @@ impl DirSource {
     pub fn open(path: &Path, options: &SourceOptions) -> Result<Self, SourceError> {
         let meta = std::fs::metadata(path).map_err(|e| io_err(path, &e, FailureKind::Decode))?;
         let canonical = std::fs::canonicalize(path).map_err(|e| io_err(path, &e, FailureKind::Decode))?;
-        let mut listing = Listing { root: &canonical, skipped: Vec::new() };
+        let mut listing = Listing { root: &canonical, follow_links: options.follow_links, skipped: Vec::new() };
         let (root, layout, entries) = if meta.is_file() {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
             let entries = image_entries(&[(name.clone(), meta.len())], "");
