@@ -1275,6 +1275,8 @@ fn regression_npz_member_header_length_is_checked_before_allocating() {
 /// echoed short (`failure::echo`).
 #[test]
 fn regression_long_motion_preset_is_echoed_short() {
+    // (serial: the allocation peaks other tests measure are process-wide)
+    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
     let long = "p".repeat(15_000);
     let e = mpiflow::service::validate::overrides(&long, "", None, None).unwrap_err();
     let text = e.to_string();
@@ -1285,6 +1287,8 @@ fn regression_long_motion_preset_is_echoed_short() {
 /// character (DEL, escape) was quoted raw in the error by the JSON parser; it is made printable.
 #[test]
 fn regression_motion_ranges_json_error_quotes_no_control_characters() {
+    // (serial: the allocation peaks other tests measure are process-wide)
+    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
     let json = serde_json::to_string(&mpiflow::sample::motion::MotionRanges::default()).unwrap();
     let bad = json.replacen("\"camera\"", "\"cam\u{7f}\u{1b}[2Jera\"", 1);
     assert_ne!(bad, json);
@@ -1299,6 +1303,8 @@ fn saved(name: &str) -> Vec<u8> {
 /// `png_jpeg` case 128: a damaged JPEG's decoder error ended in a newline.
 #[test]
 fn regression_png_jpeg_case_128_decoder_error_is_one_printable_line() {
+    // (serial: the allocation peaks other tests measure are process-wide)
+    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
     let e = load_rgb_from_bytes(&saved("png_jpeg-case-128.bin"), &PHOTO_LIMITS).map(drop).expect_err("a damaged JPEG");
     check_image_error("photo", &e).unwrap();
 }
@@ -1306,6 +1312,8 @@ fn regression_png_jpeg_case_128_decoder_error_is_one_printable_line() {
 /// `npy_depth` case 1: the `.npy` header parser's error was several lines quoting the header.
 #[test]
 fn regression_npy_depth_case_1_parser_error_is_one_printable_line() {
+    // (serial: the allocation peaks other tests measure are process-wide)
+    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
     let (kind, m) =
         depth_npy_from_bytes(&saved("npy_depth-case-1.bin"), &DEPTH_LIMITS).map(drop).expect_err("a damaged header");
     assert_eq!(kind, FailureKind::Depth);
@@ -1315,6 +1323,8 @@ fn regression_npy_depth_case_1_parser_error_is_one_printable_line() {
 /// `webdataset_shard` case 94: a damaged tar header's error quoted its raw bytes.
 #[test]
 fn regression_webdataset_shard_case_94_tar_error_is_printable() {
+    // (serial: the allocation peaks other tests measure are process-wide)
+    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
     let dir = failure_dir().join("regression-shard");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("case-94.tar");

@@ -296,7 +296,14 @@ fn every_inpainting_method_fills_the_holes_as_the_whole_frame_call_does() {
     for method in
         [InpaintMethod::Telea, InpaintMethod::TeleaKnownOnly, InpaintMethod::TeleaZeroOrder, InpaintMethod::TeleaOpencv]
     {
-        let config = SampleConfig { inpaint_method: method, inpaint_radius: 5.0, ..SampleConfig::default() };
+        // (every hole to Telea: with `background = "planes"` the MPI's planes would fill the
+        // holes this motion opens next to the moved object)
+        let config = SampleConfig {
+            inpaint_method: method,
+            inpaint_radius: 5.0,
+            background: mpiflow::sample::background::Background::Inpaint,
+            ..SampleConfig::default()
+        };
         let g = generator(Procedural::new(2), config.clone());
         let s = g.sample(0, 1).unwrap();
         // the same address up to the merge: image2 before inpainting, and its holes

@@ -154,6 +154,7 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
 
 fn quality(q: QualityBench) -> Result<(), CliError> {
     use mpiflow::bench::quality::{quality, quality_same_motions, QualityReport};
+    use mpiflow::sample::background::Background;
     use mpiflow::sample::merge::{LabelRule, MergeRule};
     use mpiflow::sample::motion::{Component, MotionRanges};
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
@@ -216,17 +217,29 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         return Ok(());
     }
     println!(
-        "| resample | merge | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | sharpness | valid | occluded | flow p5 / p50 / p95 px | < 1 px |"
+        "| resample | merge | fill | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | sharpness | valid | occluded | flow p5 / p50 / p95 px | < 1 px |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     let pct = |r: &QualityReport, n: u64| format!("{:.3}%", 100.0 * r.laws.rate(n));
     for &resample in &kernels {
-        for merge in [MergeRule::DepthAware, MergeRule::Reference] {
+        let rules = [
+            (MergeRule::DepthAware, Background::Planes),
+            (MergeRule::DepthAware, Background::Inpaint),
+            (MergeRule::Reference, Background::Inpaint),
+        ];
+        for (merge, background) in rules {
             for (objects, labels) in [(0, LabelRule::Honest), (1, LabelRule::Honest), (1, LabelRule::DepthOnly)] {
-                let c = SampleConfig { merge, max_objects: objects, label_rule: labels, resample, ..base.clone() };
+                let c = SampleConfig {
+                    merge,
+                    background,
+                    max_objects: objects,
+                    label_rule: labels,
+                    resample,
+                    ..base.clone()
+                };
                 let r = run(&c)?;
                 println!(
-                    "| {resample} | {} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} | {:.2}% |",
+                    "| {resample} | {} | {background} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} | {:.2}% |",
                     match merge {
                         MergeRule::DepthAware => "depth-aware",
                         MergeRule::Reference => "reference",

@@ -72,6 +72,10 @@ pub struct GenerateArgs {
     /// pixel's surface, no hole next to its target) or depth-only (the rule before issue 12).
     #[arg(long, value_name = "RULE", default_value = "honest")]
     label_rule: LabelRule,
+    /// What fills image2's holes before 2-D inpainting with the depth-aware merge: inpaint (Telea
+    /// alone, the paper's rule) or planes (what the MPI holds behind a moved object's place).
+    #[arg(long, value_name = "FILL", default_value = "inpaint")]
+    background: mpiflow::sample::background::Background,
     /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
     #[arg(long, value_name = "KERNEL", default_value_t = mpiflow::render::Resample::default())]
     resample: mpiflow::render::Resample,
@@ -208,6 +212,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         max_objects: usize::from(a.objects),
         merge: a.merge,
         label_rule: a.label_rule,
+        background: a.background,
         motions_per_image: a.motions_per_image,
         frames: a.frames as usize,
         backward: a.backward,

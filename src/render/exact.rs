@@ -600,3 +600,54 @@ pub(super) fn source_view<T: Real>(
     out.source_depth_in_target = zexp;
     out.source_depth = src_depth;
 }
+
+/// A density cut ([`crate::render::cut::DensityCut`]) over a bilinear sampler: plane `i`'s
+/// density at a tap is scaled by `1 - c`, `c` the bilinear mean of the cut's mask over the tap's
+/// four pixels, each counted only where plane `i` is one it cuts there.
+struct CutSampler<'a> {
+    inner: Bilinear<'a>,
+    cut: &'a super::cut::DensityCut<'a>,
+}
+
+impl<T: Real> PlaneSampler<T> for CutSampler<'_> {
+    #[inline(always)]
+    fn sigma(&self, tap: &Tap<T>, i: usize) -> T {
+        let sigma: T = self.inner.sigma(tap, i);
+        if sigma <= T::zero() {
+            return sigma;
+        }
+        let cut = tap.sample_where(self.cut.mask, |p| usize::from(self.cut.last[p]) >= i && self.cut.mask[p] > 0.0);
+        sigma * (T::one() - cut).max(T::zero())
+    }
+
+    #[inline(always)]
+    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
+        self.inner.colour(tap, qx, qy, i, wgt)
+    }
+}
+
+/// The target view of `mpi` with the density cut `cut`, bilinear, without links or extra
+/// channels (image, depth and coverage of `out`, window-sized).
+pub(super) fn target_view_cut<T: Real>(
+    mpi: &Mpi,
+    p: &RenderParams,
+    occ: Option<&Occupancy>,
+    win: &Rect,
+    cut: &super::cut::DensityCut<'_>,
+    out: &mut RenderOutput,
+) -> RenderStats {
+    let n = mpi.planes();
+    let sampler = CutSampler { inner: Bilinear { rgba: (0..n).map(|i| mpi.plane_rgba(i)).collect() }, cut };
+    let none: [LinkConst<T>; 0] = [];
+    target_view_with::<T, _, 0>(
+        mpi,
+        p,
+        occ,
+        win,
+        Channels::Broadcast(cut.mask),
+        out,
+        &none,
+        [empty3(), empty3()],
+        &sampler,
+    )
+}

@@ -43,6 +43,7 @@
 //! The plane spacing rule ([`DELTA_LAST`], [`DEPTH_MAX`], the gaps) belongs to
 //! [`crate::mpi::planes`] and is re-exported here.
 
+pub mod cut;
 mod exact;
 pub mod occupancy;
 pub mod real;
@@ -558,6 +559,16 @@ impl<T: Real> Tap<T> {
     #[inline(always)]
     pub(crate) fn sample1(&self, plane: &[f32]) -> T {
         let at = |i: usize| T::of32(plane[i]);
+        let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
+        let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
+        top + self.wy * (bot - top)
+    }
+
+    /// Samples a single-channel plane counting only the pixels where `keep` holds (the others
+    /// as 0), with the arithmetic of [`Self::sample1`].
+    #[inline(always)]
+    pub(crate) fn sample_where(&self, plane: &[f32], keep: impl Fn(usize) -> bool) -> T {
+        let at = |i: usize| if keep(i) { T::of32(plane[i]) } else { T::zero() };
         let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
         let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
         top + self.wy * (bot - top)

@@ -4,6 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::background::Background;
 use super::merge::{LabelRule, MergeRule};
 use super::motion::{MotionPreset, MotionRanges};
 use super::object::ObjectChoice;
@@ -84,6 +85,12 @@ pub struct SampleConfig {
     pub merge: MergeRule,
     /// Which valid pixels are marked occluded ([`LabelRule`]). Default `honest`.
     pub label_rule: LabelRule,
+    /// What fills image2's holes before 2-D inpainting with the depth-aware merge
+    /// ([`Background`]: the MPI's planes behind the moved objects, or Telea alone); the reference
+    /// merge always inpaints, as the paper. Default `inpaint`; part of the fingerprint when not
+    /// `inpaint` (so samples keep the addresses they had before the option).
+    #[serde(skip_serializing_if = "is_inpaint")]
+    pub background: Background,
     /// The mask threshold of the merge (the reference's 0.99).
     pub mask_threshold: f32,
     /// Telea neighbourhood radius in pixels. Default 3 (the reference's inpainting radius).
@@ -125,6 +132,10 @@ pub const MIN_FRAMES: usize = 2;
 pub const MAX_FRAMES: usize = 8;
 
 #[allow(clippy::trivially_copy_pass_by_ref)]
+fn is_inpaint(b: &Background) -> bool {
+    *b == Background::Inpaint
+}
+
 fn is_pair(frames: &usize) -> bool {
     *frames == MIN_FRAMES
 }
@@ -139,6 +150,7 @@ impl Default for SampleConfig {
             objects_follow_camera: false,
             merge: MergeRule::DepthAware,
             label_rule: LabelRule::Honest,
+            background: Background::Inpaint,
             mask_threshold: 0.99,
             inpaint_radius: 3.0,
             inpaint_method: InpaintMethod::TeleaKnownOnly,

@@ -2,6 +2,7 @@
 //! holes, and the deterministic recipe that ties a sample to its address.
 
 pub mod augment;
+pub mod background;
 pub mod config;
 pub mod holes;
 pub mod inpaint;

@@ -75,9 +75,12 @@ use std::borrow::Cow;
 use std::sync::Arc;
 use std::time::Instant;
 
+use super::background::{cut_planes, fill_from_planes, Background, Frame};
 pub use super::config::{InpaintMethod, MotionSpec, SampleConfig};
 pub use super::holes::inpaint_holes;
-use super::merge::{merge, merge_link, merge_target, unit_to_u8, ObjectView, OtherFrame, SceneView, TargetSide};
+use super::merge::{
+    merge, merge_link, merge_target, unit_to_u8, MergeRule, ObjectView, OtherFrame, SceneView, TargetSide,
+};
 use super::motion::MotionError;
 use super::object::{
     choose_objects, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect, Rect,
@@ -370,8 +373,43 @@ fn assemble_merged_sample(
         source_depth: source_depth_in_target,
     };
     let views1 = object_views(scene, &chosen, &first.objects);
-    let merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold);
+    let mut merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold);
     drop(image);
+    // ---- the MPI's planes behind the moved objects fill what they can of the holes
+    // (super::background); the links keep the holes as the renders left them
+    let cut: Option<(&[f32], Vec<u8>)> = match union.as_deref() {
+        Some(u)
+            if config.background == Background::Planes
+                && config.merge == MergeRule::DepthAware
+                && config.mode == Mode::Exact
+                && scene.disparity.data.len() == w * h =>
+        {
+            Some((u, cut_planes(scene, u)))
+        }
+        _ => None,
+    };
+    let fill = |pose: Pose, image: &mut [u8], hole: &mut [u8], depth: &mut [f32]| -> Result<u64, SampleError> {
+        let Some((u, last)) = &cut else { return Ok(0) };
+        fill_from_planes(
+            scene,
+            &scene.intrinsics,
+            occupancy,
+            config.skip,
+            u,
+            last,
+            config.mask_threshold,
+            Frame { pose, image, hole, depth },
+        )
+        .map_err(|source| SampleError::Render {
+            id: scene.id.clone(),
+            stage: "background",
+            source: Box::new(source),
+        })
+    };
+    let rendered_hole2 = cut.as_ref().map(|_| merged.hole.clone());
+    let filled = fill(cam_traj[1], &mut merged.image2, &mut merged.hole, &mut merged.depth2)?;
+    merged.holes -= filled;
+    let hole2_for_links: &[u8] = rendered_hole2.as_deref().unwrap_or(&merged.hole);
     // what frame 2 shows (inf at holes), for the links that land in it
     let shown2: Vec<f32> = if frames > 2 {
         merged.depth2.iter().zip(&merged.hole).map(|(&d, &o)| if o != 0 { f32::INFINITY } else { d }).collect()
@@ -379,7 +417,9 @@ fn assemble_merged_sample(
         Vec::new()
     };
     let mut later: Vec<(TargetSide, [Link; 2])> = Vec::with_capacity(renders.len());
-    for r in &mut renders {
+    // the holes of the later frames as their renders left them, for the links
+    let mut rendered_holes: Vec<Vec<u8>> = Vec::with_capacity(renders.len());
+    for (j, r) in renders.iter_mut().enumerate() {
         let links = std::mem::take(&mut r.scene.links);
         let views = object_views(scene, &chosen, &r.objects);
         let depth = std::mem::take(&mut r.scene.depth);
@@ -394,6 +434,10 @@ fn assemble_merged_sample(
             config.merge,
             config.mask_threshold,
         );
+        let mut target = target;
+        rendered_holes.push(target.hole.clone());
+        let n = fill(cam_traj[j + 2], &mut target.image, &mut target.hole, &mut target.shown_depth)?;
+        target.holes -= n;
         later.push((target, links));
     }
 
@@ -409,7 +453,7 @@ fn assemble_merged_sample(
     };
     let backward = if config.backward {
         let other = OtherFrame { depth: &source_depth, labels: image1_labels };
-        merge_link(0, &scene_links[0], &views1, &merged.mask2, &merged.hole, other, w, h, config.label_rule)
+        merge_link(0, &scene_links[0], &views1, &merged.mask2, hole2_for_links, other, w, h, config.label_rule)
     } else {
         LinkFields::default()
     };
@@ -418,16 +462,16 @@ fn assemble_merged_sample(
         // frame f = j + 2 (0-based): its previous frame is f - 1
         let f = j + 2;
         let (prev_links, prev_mask, prev_hole, prev_views) = if f == 2 {
-            (&scene_links, &merged.mask2, &merged.hole, object_views(scene, &chosen, &first.objects))
+            (&scene_links, &merged.mask2, hole2_for_links, object_views(scene, &chosen, &first.objects))
         } else {
             let (pt, pl) = &later[j - 1];
-            (pl, &pt.mask, &pt.hole, object_views(scene, &chosen, &renders[j - 1].objects))
+            (pl, &pt.mask, rendered_holes[j - 1].as_slice(), object_views(scene, &chosen, &renders[j - 1].objects))
         };
         let forward =
             merge_link(1, &prev_links[1], &prev_views, prev_mask, prev_hole, frame_of(f), w, h, config.label_rule);
         let backward = if config.backward {
             let views = object_views(scene, &chosen, &renders[j].objects);
-            merge_link(0, &links[0], &views, &target.mask, &target.hole, frame_of(f - 1), w, h, config.label_rule)
+            merge_link(0, &links[0], &views, &target.mask, &rendered_holes[j], frame_of(f - 1), w, h, config.label_rule)
         } else {
             LinkFields::default()
         };

@@ -1,0 +1,79 @@
+//! Rendering an MPI with part of it taken out: a [`DensityCut`] removes the front planes of the
+//! source pixels under a mask, so that the target view shows what the MPI holds *behind* them
+//! (the background of a moved object's place: the built-in layering's hidden colours, an MPI
+//! network's back planes). The render is the exact renderer's target pass, bilinear, with the
+//! density of plane `i` at a tap scaled by `1 - c`, where `c` is the bilinear mean over the tap's
+//! four pixels of `mask`, each pixel counted only on the planes it cuts (`i <= last`).
+
+use super::{exact, Mode, Occupancy, Real, Rect, RenderError, RenderOutput, RenderParams, WindowRender};
+use crate::mpi::Mpi;
+
+/// Which planes are taken out where: at source pixel `p` with `mask[p] > 0`, planes
+/// `0..=last[p]` (the nearest first) keep `1 - mask[p]` of their density; the planes behind
+/// `last[p]` and every plane elsewhere are untouched.
+#[derive(Clone, Copy, Debug)]
+pub struct DensityCut<'a> {
+    /// H x W, in [0, 1].
+    pub mask: &'a [f32],
+    /// H x W: the farthest plane cut at each pixel.
+    pub last: &'a [u8],
+}
+
+/// The target view (image premultiplied by coverage, depth, coverage) of `window` of `mpi`
+/// with `cut` applied, in exact mode with bilinear sampling whatever `params.resample` says;
+/// no flow, links or extra channels (`extras` holds the rendered cut mask). Errors as
+/// [`super::render_window`], and for a cut of the wrong size, a reference-mode `params` or links.
+pub fn render_cut<T: Real>(
+    mpi: &Mpi,
+    params: &RenderParams,
+    occupancy: Option<&Occupancy>,
+    window: &Rect,
+    cut: &DensityCut<'_>,
+) -> Result<WindowRender, RenderError> {
+    mpi.validate()?;
+    let (w, h) = (mpi.width, mpi.height);
+    for (which, k) in [("source", params.k_src), ("target", params.k_tgt)] {
+        if !k.is_valid() {
+            return Err(RenderError::Intrinsics { which, k });
+        }
+    }
+    if !params.pose.is_finite() {
+        return Err(RenderError::Pose);
+    }
+    let bad = |m: String| Err(RenderError::Request(m));
+    if cut.mask.len() != w * h || cut.last.len() != w * h {
+        return bad(format!(
+            "the density cut has {} / {} values, the MPI is {w} x {h}",
+            cut.mask.len(),
+            cut.last.len()
+        ));
+    }
+    if params.mode != Mode::Exact || params.links.iter().any(Option::is_some) {
+        return bad("a density cut renders in exact mode without links".into());
+    }
+    let (ww, wh) = (window.width(), window.height());
+    let mut out = RenderOutput { width: ww, height: wh, extra_channels: 1, ..Default::default() };
+    if window.is_empty() {
+        return Ok(WindowRender { win: *window, out });
+    }
+    if window.x1 > w || window.y1 > h {
+        return bad(format!("window {window:?} is not inside the {w} x {h} frame"));
+    }
+    let built;
+    let occ = match (params.skip.tiles, occupancy) {
+        (true, Some(o)) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
+        (true, _) => {
+            built = Occupancy::build(mpi, params.skip.tile_sigma_eps);
+            Some(&built)
+        }
+        (false, _) => None,
+    };
+    out.image = vec![0.0; ww * wh * 3];
+    out.depth = vec![0.0; ww * wh];
+    out.coverage = vec![0.0; ww * wh];
+    out.extras = vec![0.0; ww * wh];
+    let stats = exact::target_view_cut::<T>(mpi, params, occ, window, cut, &mut out);
+    out.stats += stats;
+    out.stats.repaired += super::repair_nonfinite(&mut out);
+    Ok(WindowRender { win: *window, out })
+}
