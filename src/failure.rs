@@ -84,28 +84,43 @@ pub const ECHO_CHARS: usize = 200;
 /// non-printable bytes as `\n`, `\u{1b}`, ...) and cut to [`ECHO_CHARS`] characters with the
 /// number of characters left out, so an error never grows with the input or prints raw bytes.
 pub fn echo(input: &str) -> String {
-    let n = input.chars().count();
-    let shown: String = input.chars().take(ECHO_CHARS).collect();
-    if n > ECHO_CHARS {
-        format!("{:?}... ({} more characters)", shown, n - ECHO_CHARS)
+    // cut by the escaped length: one control character escapes to up to 10
+    let (shown, rest) = cut_escaped(input, ECHO_CHARS, |c| {
+        let q = format!("{:?}", c.to_string());
+        q[1..q.len() - 1].to_string()
+    });
+    if rest > 0 {
+        format!("\"{shown}\"... ({rest} more characters)")
     } else {
-        format!("{shown:?}")
+        format!("\"{shown}\"")
     }
+}
+
+/// The longest prefix of `input` whose escaped form (`escape` of each character) has at most
+/// `max_chars` characters, escaped, and the number of input characters left out.
+fn cut_escaped(input: &str, max_chars: usize, escape: impl Fn(char) -> String) -> (String, usize) {
+    let mut out = String::with_capacity(input.len().min(max_chars + 32));
+    let mut len = 0usize;
+    let mut chars = input.chars();
+    while let Some(c) = chars.next() {
+        let piece = escape(c);
+        let n = piece.chars().count();
+        if len + n > max_chars {
+            return (out, 1 + chars.count());
+        }
+        len += n;
+        out.push_str(&piece);
+    }
+    (out, 0)
 }
 
 /// A whole message made safe to print or send: control characters escaped (newlines and tabs
 /// too: one line), cut to `max_chars` characters with the number left out.
 pub fn printable(message: &str, max_chars: usize) -> String {
-    let mut out = String::with_capacity(message.len().min(max_chars + 32));
-    let mut chars = message.chars();
-    for c in chars.by_ref().take(max_chars) {
-        if c.is_control() {
-            out.extend(c.escape_debug());
-        } else {
-            out.push(c);
-        }
-    }
-    let rest = chars.count();
+    // cut by the escaped length (fuzz `npz_mpi` case 28955: 300 characters of control bytes
+    // escaped to 910)
+    let (mut out, rest) =
+        cut_escaped(message, max_chars, |c| if c.is_control() { c.escape_debug().to_string() } else { c.to_string() });
     if rest > 0 {
         out.push_str(&format!("... ({rest} more characters)"));
     }
@@ -123,6 +138,16 @@ mod tests {
         let long = "x".repeat(15_000);
         let e = echo(&long);
         assert!(e.len() < 260 && e.ends_with("(14800 more characters)"), "{e}");
+    }
+
+    #[test]
+    fn escaped_messages_are_cut_by_their_escaped_length() {
+        let controls = "\u{10}".repeat(1000);
+        let p = printable(&controls, 300);
+        assert!(p.chars().count() <= 300 + 32 && p.ends_with("(950 more characters)"), "{p}");
+        let e = echo(&controls);
+        assert!(e.chars().count() <= ECHO_CHARS + 40, "{} characters", e.chars().count());
+        assert_eq!(echo("a\"b"), "\"a\\\"b\"");
     }
 
     #[test]

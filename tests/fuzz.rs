@@ -1344,3 +1344,17 @@ fn regression_npy_depth_case_17955_header_length_bomb_is_refused_before_allocati
     assert_eq!(kind, FailureKind::Depth, "{m}");
     assert!(peak < 64 << 10, "refusing it allocated {peak} bytes");
 }
+
+/// `npz_mpi` case 28955 (the 150-second run): an `.npz` whose `K` member's header holds control
+/// bytes; the parser's error was cut to 300 characters and then escaped, 910 characters in all.
+/// Messages are now cut by their escaped length (`failure::printable`, `failure::echo`).
+#[test]
+fn regression_npz_mpi_case_28955_escaped_error_is_cut() {
+    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
+    let dir = failure_dir().join("regression-npz-28955");
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("case-28955.npz");
+    std::fs::write(&path, saved("npz_mpi-case-28955.bin")).unwrap();
+    let e = mpiflow::mpi::npz::load_npz_limited(&path, 1 << 20).map(drop).expect_err("a damaged header");
+    printable_error("npz", &e.to_string()).unwrap();
+}
