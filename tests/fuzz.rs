@@ -65,8 +65,13 @@ static ALLOC: Cap<PeakAlloc> = Cap::new(PeakAlloc, 1536 << 20);
 /// `failure::ECHO_CHARS` characters of input).
 const MAX_ERROR_CHARS: usize = 600;
 
-/// Allocation peaks are global: the targets run one at a time.
+/// Allocation peaks are global: every test of this file runs alone (its first line takes this
+/// lock), so that no other test's allocations land in a peak it measures.
 static SERIAL: Mutex<()> = Mutex::new(());
+
+fn serial() -> std::sync::MutexGuard<'static, ()> {
+    SERIAL.lock().unwrap_or_else(PoisonError::into_inner)
+}
 
 const MIB: usize = 1 << 20;
 
@@ -101,7 +106,6 @@ fn fuzz(
     bound: impl Fn(&[u8]) -> usize,
     check: impl Fn(&[u8]) -> Result<(), String>,
 ) {
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
     let seconds = env_u64("MPIFLOW_FUZZ_SECONDS");
     let (first, cases) = match env_u64("MPIFLOW_FUZZ_CASE") {
         Some(i) => (i, 1),
@@ -452,6 +456,7 @@ fn check_image_error(what: &str, e: &ImageError) -> Result<(), String> {
 
 #[test]
 fn fuzz_png_jpeg_photos() {
+    let _serial = serial();
     let seeds = image_seeds();
     let l = PHOTO_LIMITS;
     fuzz(
@@ -485,6 +490,7 @@ fn fuzz_png_jpeg_photos() {
 
 #[test]
 fn fuzz_mask_and_disparity_pngs() {
+    let _serial = serial();
     let mut seeds = image_seeds();
     seeds.extend([png_gray16_ids(64, 64, 900), png_gray8(64, 32, 200)]);
     let l = MASK_LIMITS;
@@ -558,6 +564,7 @@ fn npy_seeds() -> Vec<Vec<u8>> {
 
 #[test]
 fn fuzz_npy_depth() {
+    let _serial = serial();
     let seeds = npy_seeds();
     let l = DEPTH_LIMITS;
     let p = l.max_pixels as usize;
@@ -621,6 +628,7 @@ const NPZ_MAX_VALUES: u64 = 1 << 20;
 
 #[test]
 fn fuzz_npz_mpi() {
+    let _serial = serial();
     let seeds = vec![npz(&mpi_members(2, 3, 4)), npz(&mpi_members(3, 5, 2))];
     let dir = failure_dir().join("npz-work");
     std::fs::create_dir_all(&dir).unwrap();
@@ -667,6 +675,7 @@ fn fuzz_npz_mpi() {
 
 #[test]
 fn fuzz_pfm() {
+    let _serial = serial();
     let seeds = vec![
         encode_pfm(5, 3, 1, &[1.5; 15], true),
         encode_pfm(2, 2, 3, &[0.25; 12], false),
@@ -751,6 +760,7 @@ fn shard_options() -> SourceOptions {
 
 #[test]
 fn fuzz_webdataset_shards() {
+    let _serial = serial();
     let payloads = member_payloads();
     let keyed = |keys: &[&str]| -> Vec<(String, Vec<u8>)> {
         keys.iter().flat_map(|k| payloads.iter().take(7).map(move |(f, d)| (format!("{k}.{f}"), d.clone()))).collect()
@@ -1009,6 +1019,7 @@ fn upload_seed_programs() -> Vec<Vec<u8>> {
 
 #[test]
 fn fuzz_upload_chunk_sequences() {
+    let _serial = serial();
     let payloads = upload_payloads();
     let seeds = upload_seed_programs();
     let l = upload_options().limits;
@@ -1089,6 +1100,7 @@ fn check_service_error(what: &str, e: mpiflow::service::ServiceError) -> Result<
 
 #[test]
 fn fuzz_requests() {
+    let _serial = serial();
     let config = mpiflow::service::ServiceConfig::default();
     let seeds = request_seeds();
     fuzz(
@@ -1192,7 +1204,6 @@ fn fuzz_requests() {
 
 /// Peak bytes allocated while `f` runs (above what was held before), one test at a time.
 fn peak_of<T>(f: impl FnOnce() -> T) -> (T, usize) {
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
     let base = PeakAlloc.current_usage();
     PeakAlloc.reset_peak_usage();
     let out = f();
@@ -1204,6 +1215,7 @@ fn peak_of<T>(f: impl FnOnce() -> T) -> (T, usize) {
 /// refused; the shape is now checked from the header first.
 #[test]
 fn regression_npy_depth_over_the_pixel_limit_is_refused_before_its_data_is_read() {
+    let _serial = serial();
     let l = DEPTH_LIMITS;
     let bytes = npy_raw("|u1", false, "(1024, 1000)", &vec![3u8; 1024 * 1000]);
     let (r, peak) = peak_of(|| depth_npy_from_bytes(&bytes, &l));
@@ -1218,6 +1230,7 @@ fn regression_npy_depth_over_the_pixel_limit_is_refused_before_its_data_is_read(
 /// limit, before they are allocated.
 #[test]
 fn regression_mask_png_with_many_instances_is_refused_before_its_masks_are_made() {
+    let _serial = serial();
     let l = MASK_LIMITS;
     let bytes = png_gray16_ids(256, 256, 1024);
     let (r, peak) = peak_of(|| InstanceMasks::from_index_png_bytes(&bytes, "many.png", &l).map(|m| m.masks.len()));
@@ -1237,6 +1250,7 @@ fn regression_mask_png_with_many_instances_is_refused_before_its_masks_are_made(
 /// shape before their data is read.
 #[test]
 fn regression_npz_zip_bomb_is_refused_by_its_shapes() {
+    let _serial = serial();
     let dir = failure_dir().join("regression-npz");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("bomb.npz");
@@ -1254,6 +1268,7 @@ fn regression_npz_zip_bomb_is_refused_by_its_shapes() {
 /// size and the 64 KiB header limit first (as `.npy` depth files already were).
 #[test]
 fn regression_npz_member_header_length_is_checked_before_allocating() {
+    let _serial = serial();
     let dir = failure_dir().join("regression-npz-header");
     std::fs::create_dir_all(&dir).unwrap();
     for claimed in [0xFFFF_FFF0u32, 1 << 20] {
@@ -1275,8 +1290,7 @@ fn regression_npz_member_header_length_is_checked_before_allocating() {
 /// echoed short (`failure::echo`).
 #[test]
 fn regression_long_motion_preset_is_echoed_short() {
-    // (serial: the allocation peaks other tests measure are process-wide)
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
+    let _serial = serial();
     let long = "p".repeat(15_000);
     let e = mpiflow::service::validate::overrides(&long, "", None, None).unwrap_err();
     let text = e.to_string();
@@ -1287,8 +1301,7 @@ fn regression_long_motion_preset_is_echoed_short() {
 /// character (DEL, escape) was quoted raw in the error by the JSON parser; it is made printable.
 #[test]
 fn regression_motion_ranges_json_error_quotes_no_control_characters() {
-    // (serial: the allocation peaks other tests measure are process-wide)
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
+    let _serial = serial();
     let json = serde_json::to_string(&mpiflow::sample::motion::MotionRanges::default()).unwrap();
     let bad = json.replacen("\"camera\"", "\"cam\u{7f}\u{1b}[2Jera\"", 1);
     assert_ne!(bad, json);
@@ -1303,8 +1316,7 @@ fn saved(name: &str) -> Vec<u8> {
 /// `png_jpeg` case 128: a damaged JPEG's decoder error ended in a newline.
 #[test]
 fn regression_png_jpeg_case_128_decoder_error_is_one_printable_line() {
-    // (serial: the allocation peaks other tests measure are process-wide)
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
+    let _serial = serial();
     let e = load_rgb_from_bytes(&saved("png_jpeg-case-128.bin"), &PHOTO_LIMITS).map(drop).expect_err("a damaged JPEG");
     check_image_error("photo", &e).unwrap();
 }
@@ -1312,8 +1324,7 @@ fn regression_png_jpeg_case_128_decoder_error_is_one_printable_line() {
 /// `npy_depth` case 1: the `.npy` header parser's error was several lines quoting the header.
 #[test]
 fn regression_npy_depth_case_1_parser_error_is_one_printable_line() {
-    // (serial: the allocation peaks other tests measure are process-wide)
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
+    let _serial = serial();
     let (kind, m) =
         depth_npy_from_bytes(&saved("npy_depth-case-1.bin"), &DEPTH_LIMITS).map(drop).expect_err("a damaged header");
     assert_eq!(kind, FailureKind::Depth);
@@ -1323,8 +1334,7 @@ fn regression_npy_depth_case_1_parser_error_is_one_printable_line() {
 /// `webdataset_shard` case 94: a damaged tar header's error quoted its raw bytes.
 #[test]
 fn regression_webdataset_shard_case_94_tar_error_is_printable() {
-    // (serial: the allocation peaks other tests measure are process-wide)
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
+    let _serial = serial();
     let dir = failure_dir().join("regression-shard");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("case-94.tar");
@@ -1338,6 +1348,7 @@ fn regression_webdataset_shard_case_94_tar_error_is_printable() {
 /// the file's size first (`io::npy::check_header_len`).
 #[test]
 fn regression_npy_depth_case_17955_header_length_bomb_is_refused_before_allocating() {
+    let _serial = serial();
     let bytes = saved("npy_depth-case-17955.bin");
     let (r, peak) = peak_of(|| depth_npy_from_bytes(&bytes, &DEPTH_LIMITS).map(drop));
     let (kind, m) = r.expect_err("a header longer than the file");
@@ -1350,7 +1361,7 @@ fn regression_npy_depth_case_17955_header_length_bomb_is_refused_before_allocati
 /// Messages are now cut by their escaped length (`failure::printable`, `failure::echo`).
 #[test]
 fn regression_npz_mpi_case_28955_escaped_error_is_cut() {
-    let _serial = SERIAL.lock().unwrap_or_else(PoisonError::into_inner);
+    let _serial = serial();
     let dir = failure_dir().join("regression-npz-28955");
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("case-28955.npz");

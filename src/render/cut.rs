@@ -30,16 +30,8 @@ pub fn render_cut<T: Real>(
     window: &Rect,
     cut: &DensityCut<'_>,
 ) -> Result<WindowRender, RenderError> {
-    mpi.validate()?;
+    super::check_inputs(mpi, params)?;
     let (w, h) = (mpi.width, mpi.height);
-    for (which, k) in [("source", params.k_src), ("target", params.k_tgt)] {
-        if !k.is_valid() {
-            return Err(RenderError::Intrinsics { which, k });
-        }
-    }
-    if !params.pose.is_finite() {
-        return Err(RenderError::Pose);
-    }
     let bad = |m: String| Err(RenderError::Request(m));
     if cut.mask.len() != w * h || cut.last.len() != w * h {
         return bad(format!(
@@ -59,15 +51,8 @@ pub fn render_cut<T: Real>(
     if window.x1 > w || window.y1 > h {
         return bad(format!("window {window:?} is not inside the {w} x {h} frame"));
     }
-    let built;
-    let occ = match (params.skip.tiles, occupancy) {
-        (true, Some(o)) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
-        (true, _) => {
-            built = Occupancy::build(mpi, params.skip.tile_sigma_eps);
-            Some(&built)
-        }
-        (false, _) => None,
-    };
+    let mut built = None;
+    let occ = super::tile_occupancy(mpi, params, occupancy, &mut built);
     out.image = vec![0.0; ww * wh * 3];
     out.depth = vec![0.0; ww * wh];
     out.coverage = vec![0.0; ww * wh];

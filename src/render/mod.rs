@@ -263,6 +263,38 @@ pub fn render<T: Real>(
     render_window::<T>(mpi, params, occupancy, &full, Channels::PerPlane, None).map(|r| r.out)
 }
 
+/// The checks every render makes of its inputs: a valid MPI, valid intrinsics, a finite pose.
+pub(crate) fn check_inputs(mpi: &Mpi, params: &RenderParams) -> Result<(), RenderError> {
+    mpi.validate()?;
+    if !params.k_src.is_valid() {
+        return Err(RenderError::Intrinsics { which: "source", k: params.k_src });
+    }
+    if !params.k_tgt.is_valid() {
+        return Err(RenderError::Intrinsics { which: "target", k: params.k_tgt });
+    }
+    if !params.pose.is_finite() {
+        return Err(RenderError::Pose);
+    }
+    Ok(())
+}
+
+/// The tile occupancy an exact render with tile skipping uses: `given` when it was built with
+/// the render's threshold, else one built into `built`; none in reference mode or without tiles.
+pub(crate) fn tile_occupancy<'a>(
+    mpi: &Mpi,
+    params: &RenderParams,
+    given: Option<&'a Occupancy>,
+    built: &'a mut Option<Occupancy>,
+) -> Option<&'a Occupancy> {
+    if params.mode != Mode::Exact || !params.skip.tiles {
+        return None;
+    }
+    match given {
+        Some(o) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
+        _ => Some(built.insert(Occupancy::build(mpi, params.skip.tile_sigma_eps))),
+    }
+}
+
 /// Renders the pixels of `window` (target view and source view alike) with scalar type `T`.
 ///
 /// - `channels`: the extra channels, per plane from the MPI or one broadcast mask (H x W).
@@ -285,16 +317,7 @@ pub fn render_window<T: Real>(
     channels: Channels<'_>,
     flow_where: Option<&[f32]>,
 ) -> Result<WindowRender, RenderError> {
-    mpi.validate()?;
-    if !params.k_src.is_valid() {
-        return Err(RenderError::Intrinsics { which: "source", k: params.k_src });
-    }
-    if !params.k_tgt.is_valid() {
-        return Err(RenderError::Intrinsics { which: "target", k: params.k_tgt });
-    }
-    if !params.pose.is_finite() {
-        return Err(RenderError::Pose);
-    }
+    check_inputs(mpi, params)?;
     let (w, h) = (mpi.width, mpi.height);
     let bad = |m: String| Err(RenderError::Request(m));
     for (what, mask) in [("broadcast channel", broadcast(channels)), ("flow_where mask", flow_where)] {
@@ -328,15 +351,8 @@ pub fn render_window<T: Real>(
     if window.x1 > w || window.y1 > h {
         return bad(format!("window {window:?} is not inside the {w} x {h} frame"));
     }
-    let built;
-    let occ = match (params.mode, params.skip.tiles, occupancy) {
-        (Mode::Exact, true, Some(o)) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
-        (Mode::Exact, true, _) => {
-            built = Occupancy::build(mpi, params.skip.tile_sigma_eps);
-            Some(&built)
-        }
-        _ => None,
-    };
+    let mut built = None;
+    let occ = tile_occupancy(mpi, params, occupancy, &mut built);
     if fields.target {
         out.image = vec![0.0; ww * wh * 3];
         out.depth = vec![0.0; ww * wh];
