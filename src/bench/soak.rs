@@ -105,12 +105,19 @@ pub struct SoakReport {
     pub uploads: u64,
     /// The mix's length as it ran, seconds.
     pub mix_s: f64,
+    /// Kinds of client that were in the mix and got nothing done (a starved client).
+    pub idle_kinds: Vec<&'static str>,
 }
 
 impl SoakReport {
-    /// No index lost or repeated, no unexpected error, and the fast clients got samples.
+    /// No index lost or repeated, no unexpected error, the fast clients got samples and every
+    /// other kind of client in the mix got something done.
     pub fn passed(&self) -> bool {
-        self.lost == 0 && self.repeated == 0 && self.unexpected == 0 && self.fast_samples > 0
+        self.lost == 0
+            && self.repeated == 0
+            && self.unexpected == 0
+            && self.fast_samples > 0
+            && self.idle_kinds.is_empty()
     }
 
     /// The closing summary, one fact a line.
@@ -137,6 +144,9 @@ impl SoakReport {
             ),
             format!("errors by code: {errors}; unexpected: {}", self.unexpected),
         ];
+        if !self.idle_kinds.is_empty() {
+            out.push(format!("clients that got nothing done: {}", self.idle_kinds.join(", ")));
+        }
         out.extend(self.unexpected_examples.iter().map(|e| format!("  unexpected: {e}")));
         out.push(if self.passed() { "soak: PASS".into() } else { "soak: FAIL".into() });
         out
@@ -708,6 +718,17 @@ async fn mix(
     report.stalled_streams = sh.stalled_streams.load(Ordering::Relaxed);
     report.cancelled_streams = sh.cancelled_streams.load(Ordering::Relaxed);
     report.uploads = sh.uploads.load(Ordering::Relaxed);
+    // each stalled client opens a stream at least once; the others get something every round
+    for (kind, clients, done) in [
+        ("stalled", cfg.stalled, report.stalled_streams / cfg.stalled.max(1) as u64),
+        ("slow", cfg.slow, report.slow_samples),
+        ("cancelling", cfg.cancelling, report.cancelled_streams),
+        ("uploading", cfg.uploading, report.uploads),
+    ] {
+        if clients > 0 && done == 0 {
+            report.idle_kinds.push(kind);
+        }
+    }
     for s in [&solo, &sh] {
         let e = s.errors.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         for (k, n) in &e.0 {
@@ -722,6 +743,16 @@ async fn mix(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_kind_of_client_that_got_nothing_done_fails_the_soak() {
+        let mut r = SoakReport { fast_samples: 10, ..SoakReport::default() };
+        assert!(r.passed());
+        r.idle_kinds.push("slow");
+        assert!(!r.passed());
+        assert!(r.summary().iter().any(|l| l == "clients that got nothing done: slow"), "{:?}", r.summary());
+        assert_eq!(r.summary().last().map(String::as_str), Some("soak: FAIL"));
+    }
 
     #[test]
     fn metric_values_are_summed_over_labels_and_absent_ones_are_none() {

@@ -309,7 +309,7 @@ impl Generator {
             return true;
         }
         let me = self.clone();
-        pool.spawn(move || {
+        pool.spawn_fifo(move || {
             // never waits for another load (that one may be queued behind this thread); an
             // error is the sample's to report (it passes the bad item over)
             let _ = me.cache.load_absent(me.key(item), || me.build(item));

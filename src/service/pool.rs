@@ -1,8 +1,15 @@
-//! The worker pool: samples are made on a rayon pool (never on tokio threads), each stream keeps
-//! a bounded queue (its prefetch depth), the total number of samples being made is bounded, and
-//! free slots go to the streams in round-robin order.
+//! The worker pool: samples are made on worker threads (never on tokio threads) that take their
+//! jobs in the order they were started, each stream keeps a bounded queue (its prefetch depth),
+//! the total number of samples being made is bounded, and free slots go to the streams in
+//! round-robin order.
 //!
 //! # How it works
+//!
+//! Each worker is a rayon pool of one thread: a sample's own parallel loops run on its worker's
+//! thread, one sample per worker at a time, and the workers take jobs from one FIFO queue. (On
+//! one shared rayon pool a thread whose `join` waits runs other jobs nested on its stack, and the
+//! waiting job cannot finish before they do: under a steady feed of new jobs an old one could
+//! stay buried for as long as the feed lasted, and its stream got nothing.)
 //!
 //! Each stream has a cursor `k` over its indices `start + rank + k * world_size`. A job for the
 //! next `k` may start when the stream has fewer than `prefetch` samples dispatched but not yet
@@ -44,7 +51,9 @@
 //! newest finished samples (made again, byte for byte, when the stream reads on) and make no
 //! more ahead until they send a message, so a stalled stream never keeps more than its share,
 //! does not refill and drop again as other streams come and go, and the fast streams keep
-//! their share. In all at most `budget` plus one message per stream is held.
+//! their share. A stream may always make the samples of the batch it is filling (and never
+//! drops them), so a batch larger than the share is still sent. In all at most `budget` plus,
+//! per stream, one batch being filled and one message in the transport is held.
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
@@ -201,7 +210,11 @@ impl StreamShared {
 
     fn eligible(&self, s: &StreamState, share: u64) -> bool {
         let holds_nothing = s.held == 0 && s.running == 0;
-        let within_share = holds_nothing || (!s.trimmed && s.estimate > 0 && s.held + s.estimate <= share);
+        // the samples of the batch being filled are always made: a batch larger than the share
+        // would otherwise wait for ever for its last samples
+        let fills_batch = s.dispatched < s.delivered + self.spec.batch_size as u64;
+        let within_share =
+            holds_nothing || fills_batch || (!s.trimmed && s.estimate > 0 && s.held + s.estimate <= share);
         !s.closed
             && !s.draining
             && s.dispatched < self.len
@@ -229,9 +242,83 @@ struct Sched {
     waiting_scene: usize,
 }
 
-/// The rayon pool and the dispatch state shared by all streams.
+type Job = Box<dyn FnOnce() + Send>;
+
+/// The workers: each is a rayon pool of one thread, and all take their jobs from one FIFO
+/// queue. A sample's own parallel loops run on its worker's thread; a worker never runs
+/// another job nested inside a waiting one (as the threads of a shared rayon pool do while a
+/// `join` waits, which buried an old job under a feed of new ones: a stream's sample could
+/// wait for as long as other streams kept the workers busy).
+struct Workers {
+    queue: Arc<JobQueue>,
+    _pools: Vec<rayon::ThreadPool>,
+}
+
+#[derive(Default)]
+struct JobQueue {
+    /// (jobs in the order they were handed in, closed)
+    jobs: Mutex<(std::collections::VecDeque<Job>, bool)>,
+    more: std::sync::Condvar,
+}
+
+impl JobQueue {
+    fn push(&self, job: Job) {
+        lock(&self.jobs).0.push_back(job);
+        self.more.notify_one();
+    }
+
+    /// A worker's loop: the oldest job, until the queue is closed and empty.
+    fn run(&self) {
+        loop {
+            let job = {
+                let mut g = lock(&self.jobs);
+                loop {
+                    if let Some(job) = g.0.pop_front() {
+                        break job;
+                    }
+                    if g.1 {
+                        return;
+                    }
+                    g = self.more.wait(g).unwrap_or_else(std::sync::PoisonError::into_inner);
+                }
+            };
+            job();
+        }
+    }
+}
+
+impl Workers {
+    fn new(n: usize) -> Result<Self, ServiceError> {
+        let queue = Arc::new(JobQueue::default());
+        let mut pools = Vec::with_capacity(n);
+        for i in 0..n {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(1)
+                .thread_name(move |_| format!("mpiflow-worker-{i}"))
+                .build()
+                .map_err(|e| ServiceError::Config(format!("cannot start {n} worker threads: {e}")))?;
+            let q = queue.clone();
+            pool.spawn(move || q.run());
+            pools.push(pool);
+        }
+        Ok(Self { queue, _pools: pools })
+    }
+
+    fn spawn(&self, job: impl FnOnce() + Send + 'static) {
+        self.queue.push(Box::new(job));
+    }
+}
+
+impl Drop for Workers {
+    fn drop(&mut self) {
+        lock(&self.queue.jobs).1 = true;
+        self.queue.more.notify_all();
+    }
+}
+
+/// The workers and the dispatch state shared by all streams.
 pub struct Scheduler {
-    pool: rayon::ThreadPool,
+    pool: Workers,
     workers: usize,
     capacity: usize,
     /// Bytes of made-but-unsent samples over all streams (see the module docs).
@@ -284,11 +371,7 @@ impl Scheduler {
     /// `budget` bytes of made-but-unsent samples (see the module docs).
     pub fn new(workers: usize, capacity: usize, budget: u64, metrics: Arc<Metrics>) -> Result<Arc<Self>, ServiceError> {
         let workers = workers.max(1);
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(workers)
-            .thread_name(|i| format!("mpiflow-worker-{i}"))
-            .build()
-            .map_err(|e| ServiceError::Config(format!("cannot start {workers} worker threads: {e}")))?;
+        let pool = Workers::new(workers)?;
         metrics.workers.set(workers as i64);
         metrics.set_in_flight(0, capacity.max(1));
         metrics.set_buffered(0, budget.max(1));
@@ -336,11 +419,6 @@ impl Scheduler {
         };
         self.max_buffered_seen.fetch_max(now, Ordering::AcqRel);
         self.metrics.set_buffered(now, self.budget);
-    }
-
-    /// Runs `f` on the worker pool (for work outside streams, e.g. benchmarks).
-    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
-        self.pool.install(f)
     }
 
     /// Opens a stream; its samples are made as the returned stream is polled.
@@ -490,7 +568,8 @@ impl Scheduler {
     /// running job there stops it) and will make it again, byte for byte, when it reads on.
     fn trim(&self, st: &StreamShared, g: &mut StreamState, share: u64) {
         let mut freed = 0u64;
-        while g.held > share && g.dispatched > g.delivered {
+        // never the batch being filled (it is always made, see `eligible`)
+        while g.held > share && g.dispatched > g.delivered + st.spec.batch_size as u64 {
             let top = g.dispatched - 1;
             let Some(item) = g.ready.remove(&top) else { break }; // still running
             let size = match &item {

@@ -1,0 +1,130 @@
+//! No stream waits behind another: while one client reads a stream as fast as it comes (every
+//! worker busy), clients that open streams and GetSamples calls and drop them after 0 to 3
+//! messages each get every message they wait for within a bounded number of the busy stream's
+//! samples. Real server on loopback, real clients; counted in samples, not seconds.
+//!
+//! Found by the soak: on one shared rayon pool a worker whose `join` waited (the renderer's
+//! parallel loops) ran newer jobs nested on its stack, and the older job could not finish before
+//! them, so under a steady feed a stream's sample stayed buried for as long as the feed lasted
+//! (a client got nothing for 20 s). The workers are now one-thread pools fed in FIFO order.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+
+use mpiflow::service::client::client_for;
+use mpiflow::service::pb;
+use mpiflow::service::{start, ServiceConfig};
+use tonic::transport::Endpoint;
+
+/// More busy-stream samples than this while a client waits for one message is a starved client:
+/// its job is dispatched at the next free slot and runs after at most the in-flight jobs started
+/// before it (4 here), each worth one busy sample, plus what the busy stream had made ahead.
+const BOUND: u64 = 64;
+/// The busy stream's length: a starved client gets its message when the feed ends (so the test
+/// ends either way), far above what the busy stream receives in the clients' rounds.
+const FEED: u64 = 20_000;
+
+/// Opens and drops `rounds` streams and GetSamples calls; returns the most busy-stream samples
+/// seen while it waited for one message, with the round.
+async fn cancelling(addr: String, seed: u64, rounds: u64, busy: Arc<AtomicU64>) -> (u64, u64) {
+    let mut c = client_for(Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap());
+    let mut worst = (0, 0);
+    let wait = |worst: &mut (u64, u64), before: u64, round: u64| {
+        let waited = busy.load(Ordering::SeqCst) - before;
+        if waited > worst.0 {
+            *worst = (waited, round);
+        }
+    };
+    for round in 1..=rounds {
+        if round % 2 == 0 {
+            let req = pb::SamplesRequest { seed, indices: vec![round, round + 7, round * 3], ..Default::default() };
+            let before = busy.load(Ordering::SeqCst);
+            let mut s = c.get_samples(req).await.unwrap().into_inner();
+            assert!(s.message().await.unwrap().is_some());
+            wait(&mut worst, before, round);
+        } else {
+            let req = pb::StreamRequest { seed, start_index: round * 100, ..Default::default() };
+            let mut s = c.stream_samples(req).await.unwrap().into_inner();
+            for _ in 0..round % 4 {
+                let before = busy.load(Ordering::SeqCst);
+                assert!(s.message().await.unwrap().is_some());
+                wait(&mut worst, before, round);
+            }
+        }
+        if worst.0 > BOUND {
+            break;
+        }
+    }
+    worst
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_that_open_and_drop_streams_are_not_starved_by_a_busy_stream() {
+    let s = start(ServiceConfig {
+        addr: "127.0.0.1:0".into(),
+        size: Some("160x120".into()),
+        workers: 2,
+        log_level: "warn".into(),
+        ..ServiceConfig::default()
+    })
+    .await
+    .expect("server starts");
+    let addr = s.addr.to_string();
+    let busy = Arc::new(AtomicU64::new(0));
+    let b = busy.clone();
+    let mut c = client_for(Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap());
+    let mut stream =
+        c.stream_samples(pb::StreamRequest { seed: 3, count: FEED, ..Default::default() }).await.unwrap().into_inner();
+    let reader = tokio::spawn(async move {
+        while let Ok(Some(m)) = stream.message().await {
+            b.fetch_add(m.samples.len() as u64, Ordering::SeqCst);
+        }
+    });
+    let rounds = 300;
+    let a = tokio::spawn(cancelling(addr.clone(), 7, rounds, busy.clone()));
+    let bb = tokio::spawn(cancelling(addr.clone(), 11, rounds, busy.clone()));
+    let (wa, wb) = (a.await.unwrap(), bb.await.unwrap());
+    let total = busy.load(Ordering::SeqCst);
+    reader.abort();
+    s.shutdown(std::time::Duration::from_secs(5)).await;
+    assert!(total > 100 && total < FEED, "the busy stream kept the workers busy ({total} samples)");
+    for (seed, (waited, round)) in [(7, wa), (11, wb)] {
+        assert!(
+            waited <= BOUND,
+            "client {seed}, round {round}: waited for one message while the busy stream got {waited} samples"
+        );
+    }
+}
+
+/// A batch larger than a stream's share of the byte budget still completes: the stream may
+/// always make the samples of the batch it is filling (the budget is exceeded by at most one
+/// message per stream, as the pool's documentation states).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_batch_larger_than_the_share_of_the_budget_is_still_sent() {
+    use mpiflow::service::metrics::Metrics;
+    use mpiflow::service::pool::{Make, Produce, Scheduler, StreamSpec};
+    use tokio_stream::StreamExt;
+    // ~1 kB samples, a 2.5 kB budget, batches of 4
+    let sched = Scheduler::new(2, 4, 2_500, Arc::new(Metrics::new())).unwrap();
+    let make: Make = Arc::new(|i| Ok(pb::Sample { index: i, source_id: "x".repeat(1_000), ..Default::default() }));
+    let spec = StreamSpec {
+        start_index: 0,
+        rank: 0,
+        world_size: 1,
+        count: 12,
+        batch_size: 4,
+        prefetch: 8,
+        max_message_bytes: 1 << 20,
+    };
+    let mut st = sched.open(spec, Produce::new(make)).unwrap();
+    let mut got = Vec::new();
+    let mut batches = 0;
+    while let Some(b) =
+        tokio::time::timeout(std::time::Duration::from_secs(60), st.next()).await.expect("the stream stalled")
+    {
+        got.extend(b.unwrap().samples.into_iter().map(|s| s.index));
+        batches += 1;
+    }
+    assert_eq!(got, (0..12).collect::<Vec<_>>());
+    assert_eq!(batches, 3);
+}
