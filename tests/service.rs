@@ -835,3 +835,33 @@ async fn stalled_streams_hold_at_most_their_share_of_the_buffered_budget() {
     assert_eq!(s.state.scheduler.stats().buffered, 0);
     s.shutdown(Duration::from_millis(500)).await;
 }
+
+/// The value of a metric without labels (or summed over them) in a /metrics text.
+fn metric_sum(text: &str, name: &str) -> f64 {
+    text.lines()
+        .filter(|l| l.starts_with(name) && l[name.len()..].starts_with([' ', '{']))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
+}
+
+/// The server on the built-in default (640x480 bundled scenes, the default cache) keeps every
+/// scene it builds: two samples of each of the 8 scenes build each once and evict nothing.
+/// (With a cache of 2048 MiB the 8 scenes, ~270 MiB each, did not fit and most samples rebuilt
+/// their scene.)
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_default_cache_holds_every_bundled_scene() {
+    let s = server(ServiceConfig { size: None, metrics_addr: Some("127.0.0.1:0".into()), ..config() }).await;
+    let mut c = client(s.addr).await;
+    let p = pull_all(&mut c, req(5, 0, 16)).await;
+    assert!(p.end.is_none(), "{:?}", p.end);
+    let ids: std::collections::BTreeSet<_> = p.samples.iter().map(|x| x.source_id.clone()).collect();
+    assert_eq!((p.samples.len(), ids.len()), (16, 8), "two epochs of the 8 bundled scenes");
+    assert!(p.samples.iter().all(|x| (x.width, x.height) == (640, 480)));
+    let body = http_get(&s.metrics_addr.unwrap().to_string(), "/metrics").await;
+    let builds = metric_sum(&body, "mpiflow_scene_builds_total");
+    assert_eq!(builds, ids.len() as f64, "one build per scene used:\n{body}");
+    assert_eq!(metric_sum(&body, "mpiflow_scene_cache_evictions_total"), 0.0, "{body}");
+    let bytes = metric_sum(&body, "mpiflow_scene_cache_bytes");
+    assert!(bytes > 0.0 && bytes <= (mpiflow::service::config::DEFAULT_CACHE_MB << 20) as f64, "{body}");
+    s.shutdown(Duration::from_secs(5)).await;
+}
