@@ -63,6 +63,8 @@ pub struct RenderBenchConfig {
     pub mode: Mode,
     pub skip: Skip,
     pub resample: Resample,
+    /// Which passes to time: the target view (image2), the source view (forward flow), or both.
+    pub fields: Fields,
 }
 
 /// Renders the synthetic benchmark MPI (image + flow + depth; the occlusion pass is left out)
@@ -76,7 +78,7 @@ pub fn bench_render(cfg: &RenderBenchConfig) -> Timing {
     p.mode = cfg.mode;
     p.skip = cfg.skip;
     p.resample = cfg.resample;
-    p.fields = Fields { target: true, flow: true, occlusion: false };
+    p.fields = cfg.fields;
     // the occupancy belongs to the MPI (built once per cached MPI in the service)
     let occ = Occupancy::build(&mpi, cfg.skip.tile_sigma_eps);
     time_runs(cfg.runs, || {

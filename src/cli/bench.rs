@@ -139,6 +139,10 @@ pub struct RenderBench {
     /// the default kernel), one after the other.
     #[arg(long, value_delimiter = ',')]
     resample: Vec<Resample>,
+    /// The passes to time: `both` (image2 and the forward flow, the default), `target` (image2,
+    /// its depth and coverage) or `source` (the forward flow and its validity).
+    #[arg(long, default_value = "both", value_parser = ["both", "target", "source"])]
+    pass: String,
 }
 
 pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
@@ -337,14 +341,24 @@ fn render(b: RenderBench) -> Result<(), CliError> {
                 mode: b.mode,
                 skip,
                 resample,
+                fields: mpiflow::render::Fields {
+                    target: b.pass != "source",
+                    flow: b.pass != "target",
+                    occlusion: false,
+                },
             };
             let t = pool.install(|| bench_render(&cfg));
             if b.variants {
                 print!("{name:>20}: ");
             }
             println!(
-                "{resample:>9}: median {:.1} ms (min {:.1}, max {:.1}) over {} runs, {threads} threads",
-                t.median, t.min, t.max, t.runs
+                "{resample:>9}: median {:.1} ms (min {:.1}, max {:.1}) over {} runs, {threads} threads, {} pass{}",
+                t.median,
+                t.min,
+                t.max,
+                t.runs,
+                b.pass,
+                if b.pass == "both" { "es" } else { "" }
             );
         }
     }
