@@ -146,6 +146,27 @@ fn given_depth_skips_the_depth_model_and_given_masks_the_segmenter() {
     assert_eq!(s.provenance[0], "depth: given disparity");
 }
 
+/// `parts(item, false)` (what `mpiflow bake` asks without an MPI network) runs the depth model
+/// and the segmenter but not the MPI builder, and gives the disparity, masks, intrinsics and
+/// image of the full scene bit for bit; an item's own MPI is still kept.
+#[test]
+fn parts_without_the_mpi_skip_the_builder_and_keep_everything_else() {
+    let m = Models::new();
+    let full = m.stage().scene(item(None, None, None)).unwrap();
+    assert_eq!(m.counts(), (1, 1, 1));
+    let p = m.stage().parts(item(None, None, None), false).unwrap();
+    assert_eq!(m.counts(), (2, 1, 2), "the builder did not run");
+    assert!(p.mpi.is_none());
+    assert_eq!(p.disparity.data, full.disparity.data);
+    assert_eq!(p.masks, full.masks);
+    assert_eq!(p.intrinsics, full.intrinsics);
+    assert_eq!(p.image.data, full.image.data);
+    assert_eq!(p.provenance, vec!["depth: fake-depth", "masks: fake-seg (1 instances)"]);
+    let p = m.stage().parts(item(None, None, Some(full.mpi.as_ref().clone())), false).unwrap();
+    assert_eq!(p.mpi.map(|x| x.planes()), Some(8), "a given MPI is kept");
+    assert_eq!(m.counts(), (2, 1, 3));
+}
+
 #[test]
 fn given_mpi_skips_depth_and_mpi() {
     let m = Models::new();

@@ -13,6 +13,10 @@
 //! | `bake.json` | the manifest: models and their content hashes, stage fingerprint, source | written by the first shard, checked by the others |
 //! | `bake-report.json` (`bake-report.I-of-N.json` for a shard) | counts, failures with reasons, model hashes and runs, timings | per run |
 //!
+//! Without an MPI network the bake does not build the built-in MPI ([`SceneStage::parts`]): the
+//! server's layering builds it from the baked disparity, so building it here was wasted (it was
+//! most of an item's time).
+//!
 //! An item whose MPI came from a network is served from its `mpis/` file, so its served
 //! disparity is the MPI's own composite (the rule for every given MPI, see
 //! [`crate::scene::stage`]), not the depth model's map.
@@ -37,8 +41,8 @@ use serde::Serialize;
 use crate::hash::Fnv64;
 use crate::io::image::{quantize_to_u8, save_rgb_png};
 use crate::mpi::npz::save_npz;
-use crate::scene::stage::SceneStage;
-use crate::scene::{Scene, SceneError};
+use crate::scene::stage::{SceneParts, SceneStage};
+use crate::scene::SceneError;
 use crate::source::baked::{BakeManifest, BakedModel, FORMAT, MANIFEST};
 use crate::source::{FailureKind, Source};
 
@@ -306,17 +310,17 @@ impl Baker {
     }
 
     /// Writes the baked files of one scene (the image last).
-    fn write_scene(&self, shard: &Shard, scene: &Scene, item_has_mpi: bool) -> Result<(), BakeError> {
+    fn write_scene(&self, shard: &Shard, scene: &SceneParts, item_has_mpi: bool) -> Result<(), BakeError> {
         let id = &scene.id;
         let d = &scene.disparity;
         self.atomic(shard, &self.path("disps", id, "npy"), |p| {
             crate::io::npy::write_f32(p, &[d.height as u64, d.width as u64], &d.data)
         })?;
         self.atomic(shard, &self.path("masks", id, "png"), |p| scene.masks.save_index_png(p))?;
-        if self.manifest.has("mpis") || item_has_mpi {
+        if let Some(mpi) = scene.mpi.as_ref().filter(|_| self.manifest.has("mpis") || item_has_mpi) {
             let dir = self.out.join("mpis");
             std::fs::create_dir_all(&dir).map_err(|e| io_err(&dir, e))?;
-            let mut mpi = (*scene.mpi).clone();
+            let mut mpi = (**mpi).clone();
             mpi.intrinsics = Some(scene.intrinsics);
             self.atomic(shard, &self.path("mpis", id, "npz"), |p| -> std::io::Result<()> {
                 let f = std::fs::File::create(p)?;
@@ -371,7 +375,9 @@ impl Baker {
                 let has_mpi = item.mpi.is_some();
                 // the models see exactly the image that is stored (and served)
                 quantize_to_u8(&mut item.image);
-                self.stage.scene(item).map(|s| (s, has_mpi))
+                // the MPI only when it is stored (a network's, or the item's own)
+                let build = self.manifest.has("mpis");
+                self.stage.parts(item, build).map(|s| (s, has_mpi))
             });
             let (scene, has_mpi) = match loaded {
                 Ok(s) => s,

@@ -16,7 +16,8 @@
 //! 3. **Otherwise** the depth model runs (its output must already be in the scene scale, see
 //!    [`DepthEstimator`]); with no depth model the item is an error: "source X has no depth and no
 //!    depth model is configured".
-//! 4. Without a given MPI, the MPI builder lifts image + disparity into an MPI.
+//! 4. Without a given MPI, the MPI builder lifts image + disparity into an MPI (unless the
+//!    caller does not need it: [`SceneStage::parts`], for `mpiflow bake`).
 //! 5. **Masks given**: used (resized to the image by nearest neighbour if needed); the segmenter
 //!    does not run. No masks and no segmenter: no instances (objects simply do not move).
 //! 6. **Intrinsics**: the item's, else the given MPI's `K`, else the reference default
@@ -30,6 +31,7 @@ use super::masks::InstanceMasks;
 use super::scale::{self, DISPARITY_FLOOR};
 use super::{DepthEstimator, Disparity, MpiBuilder, Scene, SceneError, SceneLoader, Segmenter};
 use crate::geometry::Intrinsics;
+use crate::io::image::RgbImage;
 use crate::mpi::planes::plane_gaps;
 use crate::mpi::Mpi;
 use crate::source::{Carried, FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
@@ -161,6 +163,19 @@ impl SceneStage {
 
     /// Builds the scene of one item (see the module documentation for which parts are computed).
     pub fn scene(&self, item: SourceItem) -> Result<Scene, SceneError> {
+        let p = self.parts(item, true)?;
+        let Some(mpi) = p.mpi else {
+            return Err(SceneError::Invalid(format!("source {}: no MPI was built", p.id)));
+        };
+        let SceneParts { id, image, disparity, masks, intrinsics, provenance, .. } = p;
+        Ok(Scene { id, image, disparity, mpi, masks, intrinsics, provenance })
+    }
+
+    /// The parts of one item's scene as [`Self::scene`] makes them, with the MPI only when the
+    /// item carries one or `build_mpi` holds: `mpiflow bake` without an MPI network stores the
+    /// disparity and masks, and the server's layering rebuilds the MPI from them, so the bake
+    /// does not build it (it was most of a baked item's time).
+    pub fn parts(&self, item: SourceItem, build_mpi: bool) -> Result<SceneParts, SceneError> {
         let SourceItem { id, image, depth, masks, mpi, intrinsics } = item;
         let (w, h) = (image.width, image.height);
         if w == 0 || h == 0 || Some(image.data.len()) != w.checked_mul(h).and_then(|n| n.checked_mul(3)) {
@@ -177,7 +192,7 @@ impl SceneStage {
             let disparity = composite_disparity(&mpi);
             provenance.push("depth: composited from the given MPI".to_string());
             provenance.push(format!("mpi: given ({} planes{note})", mpi.planes()));
-            (disparity, Arc::new(mpi), k)
+            (disparity, Some(Arc::new(mpi)), k)
         } else {
             let disparity = match depth {
                 Some(GivenDepth::Depth(d)) => {
@@ -214,17 +229,22 @@ impl SceneStage {
                 },
             };
             let k = intrinsics.unwrap_or_else(|| Intrinsics::reference_default(w, h));
-            let mpi = self.mpi.build(&image, &disparity, &k)?;
-            if (mpi.width, mpi.height) != (w, h) {
-                return Err(SceneError::Invalid(format!(
-                    "MPI builder {} made a {} x {} MPI for the {w} x {h} image of source {id}",
-                    self.mpi.name(),
-                    mpi.width,
-                    mpi.height
-                )));
-            }
-            provenance.push(format!("mpi: {}", self.mpi.name()));
-            (disparity, Arc::new(mpi), k)
+            let mpi = if build_mpi {
+                let mpi = self.mpi.build(&image, &disparity, &k)?;
+                if (mpi.width, mpi.height) != (w, h) {
+                    return Err(SceneError::Invalid(format!(
+                        "MPI builder {} made a {} x {} MPI for the {w} x {h} image of source {id}",
+                        self.mpi.name(),
+                        mpi.width,
+                        mpi.height
+                    )));
+                }
+                provenance.push(format!("mpi: {}", self.mpi.name()));
+                Some(Arc::new(mpi))
+            } else {
+                None
+            };
+            (disparity, mpi, k)
         };
 
         let masks = match masks {
@@ -256,8 +276,20 @@ impl SceneStage {
             },
         };
 
-        Ok(Scene { id, image, disparity, mpi, masks, intrinsics, provenance })
+        Ok(SceneParts { id, image, disparity, mpi, masks, intrinsics, provenance })
     }
+}
+
+/// A scene's parts ([`SceneStage::parts`]): a [`Scene`] whose MPI may not be built.
+pub struct SceneParts {
+    pub id: String,
+    pub image: RgbImage,
+    pub disparity: Disparity,
+    /// The item's own MPI or the builder's; `None` when it was not asked for.
+    pub mpi: Option<Arc<Mpi>>,
+    pub masks: InstanceMasks,
+    pub intrinsics: Intrinsics,
+    pub provenance: Vec<String>,
 }
 
 fn in_source(id: &str, e: SceneError) -> SceneError {
