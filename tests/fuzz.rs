@@ -1356,6 +1356,62 @@ fn regression_npy_depth_case_17955_header_length_bomb_is_refused_before_allocati
     assert!(peak < 64 << 10, "refusing it allocated {peak} bytes");
 }
 
+/// `npy_depth` cases 985645 and 1258446 (the 8-minute run): 176- and 565-byte `.npy` files whose
+/// headers nest 13 and 15 `{`: the header parser backtracked over them and allocated 100 MB and
+/// 25 MB (each further level multiplies it: a few more would take the machine). Headers nested
+/// deeper than 4 brackets or holding a second dict are refused before the parser sees them
+/// (`io::npy::check_header`), for depth files, uploads and `.npz` members alike.
+#[test]
+fn regression_npy_depth_case_985645_nested_header_is_refused_before_the_parser() {
+    let _serial = serial();
+    for case in ["npy_depth-case-985645.bin", "npy_depth-case-1258446.bin"] {
+        let bytes = saved(case);
+        let (r, peak) = peak_of(|| depth_npy_from_bytes(&bytes, &DEPTH_LIMITS).map(drop));
+        let (kind, m) = r.expect_err("a nested header");
+        assert_eq!(kind, FailureKind::Depth, "{case}: {m}");
+        assert!(m.contains("deeper than") || m.contains("more than one dict"), "{case}: {m}");
+        printable_error("depth", &m).unwrap();
+        assert!(peak < 64 << 10, "{case}: refusing it allocated {peak} bytes");
+    }
+    // 40 nested levels in an `.npz` member: refused, nothing large allocated
+    let dir = failure_dir().join("regression-npz-nested");
+    std::fs::create_dir_all(&dir).unwrap();
+    let header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {}1, }}", "(".repeat(40));
+    let mut member = b"\x93NUMPY\x01\x00".to_vec();
+    member.extend((header.len() as u16).to_le_bytes());
+    member.extend(header.as_bytes());
+    member.extend([0u8; 4]);
+    let path = dir.join("nested.npz");
+    std::fs::write(&path, npz(&[("mpi_rgb", member)])).unwrap();
+    let (r, peak) = peak_of(|| mpiflow::mpi::npz::load_npz_limited(&path, NPZ_MAX_VALUES).map(drop));
+    let e = r.unwrap_err().to_string();
+    assert!(e.contains("mpi_rgb") && e.contains("deeper than"), "{e}");
+    assert!(peak < 4 * MIB, "refusing it allocated {peak} bytes");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `npz_mpi` cases 308105 and 336076 (the 8-minute run): `.npz` MPIs whose disparities (1e301,
+/// 1e-300) do not decrease; the error printed them with `{}`, 300 digits each, 639 characters in
+/// all. They are printed in the shortest round-trip form (`9.37e300`).
+#[test]
+fn regression_npz_mpi_case_308105_huge_disparity_is_printed_short() {
+    let _serial = serial();
+    let dir = failure_dir().join("regression-npz-308105");
+    std::fs::create_dir_all(&dir).unwrap();
+    for case in ["npz_mpi-case-308105.bin", "npz_mpi-case-336076.bin"] {
+        let path = dir.join(case.replace(".bin", ".npz"));
+        std::fs::write(&path, saved(case)).unwrap();
+        let e = mpiflow::mpi::npz::load_npz_limited(&path, 1 << 20)
+            .and_then(|m| m.validate().map(|()| m))
+            .map(drop)
+            .expect_err("disparities that do not decrease");
+        let m = e.to_string();
+        assert!(m.contains("must decrease strictly") && m.len() < 400, "{case}: {} characters: {m}", m.len());
+        printable_error("npz", &m).unwrap();
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// `npz_mpi` case 28955 (the 150-second run): an `.npz` whose `K` member's header holds control
 /// bytes; the parser's error was cut to 300 characters and then escaped, 910 characters in all.
 /// Messages are now cut by their escaped length (`failure::printable`, `failure::echo`).

@@ -34,21 +34,72 @@ fn bad(msg: String) -> io::Error {
 /// every version 1 header, whose length is a u16, fits).
 pub const MAX_HEADER_LEN: u64 = 64 << 10;
 
-/// Refuses an `.npy` whose header claims more bytes than the whole file holds (`total_len`) or
-/// more than [`MAX_HEADER_LEN`], from its first 12 bytes, before a parser allocates a buffer of
-/// that claimed length (a version 2/3 header length is a u32: 4 GiB from a 100-byte file).
-pub fn check_header_len(prefix: &[u8], total_len: u64) -> io::Result<()> {
-    if !prefix.starts_with(b"\x93NUMPY") || prefix.len() < 12 || !matches!(prefix[6], 2 | 3) {
+/// Deepest nesting of brackets (`{`, `(`, `[` together) accepted in an `.npy` header. A NumPy
+/// header is one dict holding a tuple (the shape), 2 levels; a structured dtype's list of tuples
+/// adds 2 more. The header parser (`npyz`) backtracks over nested brackets: 13 nested `{` in a
+/// 176-byte file made it allocate 100 MB (fuzz `npy_depth` case 985645), and every further level
+/// multiplies that, so deeper headers are refused before it sees them.
+pub const MAX_HEADER_NESTING: usize = 4;
+
+/// Checks an `.npy` header before a parser reads it, from the stream's start (`r` is left
+/// after the header): refuses a header that claims more bytes than the whole file holds
+/// (`total_len`) or more than [`MAX_HEADER_LEN`] (a version 2/3 header length is a u32: a parser
+/// would allocate 4 GiB for a 100-byte file), and one nested deeper than
+/// [`MAX_HEADER_NESTING`] or holding more than one dict. Streams that do not start like an
+/// `.npy` pass: the parser says what is wrong with them.
+pub fn check_header<R: Read>(r: &mut R, total_len: u64) -> io::Result<()> {
+    let mut prefix = [0u8; 12];
+    let got = read_up_to(r, &mut prefix)?;
+    let prefix = &prefix[..got];
+    if !prefix.starts_with(b"\x93NUMPY") || got < 10 {
         return Ok(());
     }
-    let n = u64::from(u32::from_le_bytes([prefix[8], prefix[9], prefix[10], prefix[11]]));
-    if 12 + n > total_len {
+    let (n, start) = match prefix[6] {
+        1 => (u64::from(u16::from_le_bytes([prefix[8], prefix[9]])), 10),
+        2 | 3 if got >= 12 => (u64::from(u32::from_le_bytes([prefix[8], prefix[9], prefix[10], prefix[11]])), 12),
+        _ => return Ok(()),
+    };
+    if start as u64 + n > total_len {
         return Err(bad(format!("header of {n} bytes is longer than the {total_len} bytes of the file")));
     }
     if n > MAX_HEADER_LEN {
         return Err(bad(format!("header of {n} bytes is longer than the limit of {MAX_HEADER_LEN} bytes")));
     }
+    let mut header = prefix[start..].to_vec();
+    r.take(n - header.len() as u64).read_to_end(&mut header)?;
+    header.truncate(n as usize);
+    let (mut depth, mut dicts) = (0usize, 0usize);
+    for &c in &header {
+        match c {
+            b'{' | b'(' | b'[' => {
+                depth += 1;
+                dicts += usize::from(c == b'{');
+                if depth > MAX_HEADER_NESTING {
+                    return Err(bad(format!("header nests brackets deeper than {MAX_HEADER_NESTING} levels")));
+                }
+                if dicts > 1 {
+                    return Err(bad("header holds more than one dict".into()));
+                }
+            }
+            b'}' | b')' | b']' => depth = depth.saturating_sub(1),
+            _ => {}
+        }
+    }
     Ok(())
+}
+
+/// Reads until `buf` is full or the stream ends; the bytes read.
+fn read_up_to<R: Read>(r: &mut R, buf: &mut [u8]) -> io::Result<usize> {
+    let mut got = 0;
+    while got < buf.len() {
+        match r.read(&mut buf[got..]) {
+            Ok(0) => break,
+            Ok(k) => got += k,
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(got)
 }
 
 /// Reads an npy stream of any float (f4, f8), integer or bool dtype as f64.
@@ -85,7 +136,10 @@ pub fn read_array<R: Read>(npy: NpyFile<R>) -> io::Result<Array> {
 
 /// Reads a `.npy` file.
 pub fn read_npy_file(path: &Path) -> io::Result<Array> {
-    let f = std::fs::File::open(path)?;
+    let mut f = std::fs::File::open(path)?;
+    let len = f.metadata()?.len();
+    check_header(&mut f, len)?;
+    io::Seek::rewind(&mut f)?;
     read_array(NpyFile::new(io::BufReader::new(f))?)
 }
 
@@ -131,5 +185,46 @@ mod tests {
         std::fs::write(&p, b"\x93NUMPY garbage").unwrap();
         assert!(read_npy_file(&p).is_err());
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// A header per NumPy (2 levels), one with a structured dtype (4 levels) pass; 5 levels, a
+    /// second dict, and lengths over the file or the limit are refused; the stream is left after
+    /// the header.
+    #[test]
+    fn headers_are_checked_for_length_and_nesting() {
+        let npy = |v: u8, h: &str| {
+            let mut b = b"\x93NUMPY".to_vec();
+            b.extend([v, 0]);
+            if v == 1 {
+                b.extend((h.len() as u16).to_le_bytes());
+            } else {
+                b.extend((h.len() as u32).to_le_bytes());
+            }
+            b.extend(h.as_bytes());
+            b.extend([7u8; 8]);
+            b
+        };
+        let check = |b: &[u8]| check_header(&mut &b[..], b.len() as u64);
+        let plain = "{'descr': '<f4', 'fortran_order': False, 'shape': (3, 2), }\n";
+        let structured = "{'descr': [('a', '<f4'), ('b', '<f4', (2,))], 'shape': (3,), }\n";
+        for v in [1, 2, 3] {
+            check(&npy(v, plain)).unwrap();
+            check(&npy(v, structured)).unwrap();
+        }
+        let b = npy(1, plain);
+        let mut r = &b[..];
+        check_header(&mut r, b.len() as u64).unwrap();
+        assert_eq!(r, &[7u8; 8], "left after the header");
+        let deep = "{'descr': '<f4', 'shape': ((((3,),),),), }";
+        assert!(check(&npy(1, deep)).unwrap_err().to_string().contains("deeper than 4"));
+        let two = "{'descr': '<f4', 'shape': {}, }";
+        assert!(check(&npy(2, two)).unwrap_err().to_string().contains("more than one dict"));
+        let mut long = npy(2, plain);
+        long.truncate(40);
+        assert!(check(&long).unwrap_err().to_string().contains("longer than the 40 bytes"));
+        let mut huge = b"\x93NUMPY\x02\x00".to_vec();
+        huge.extend(((MAX_HEADER_LEN + 1) as u32).to_le_bytes());
+        assert!(check_header(&mut &huge[..], u64::MAX).unwrap_err().to_string().contains("limit of"));
+        check(b"not an npy at all").unwrap();
     }
 }

@@ -8,18 +8,6 @@ use crate::geometry::{Intrinsics, Pose};
 use crate::io::npy::{read_array, Array};
 use std::path::Path;
 
-/// Reads up to `buf.len()` bytes (fewer at the end of the stream or on an error).
-fn read_prefix(r: &mut impl std::io::Read, buf: &mut [u8]) -> usize {
-    let mut got = 0;
-    while got < buf.len() {
-        match r.read(&mut buf[got..]) {
-            Ok(0) | Err(_) => break,
-            Ok(n) => got += n,
-        }
-    }
-    got
-}
-
 /// Loads an MPI. Values are not sanitised here; call [`Mpi::sanitize`].
 pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
     load_npz_limited(path, u64::MAX)
@@ -48,9 +36,7 @@ pub fn load_npz_limited(path: &Path, max_values: u64) -> Result<Mpi, MpiError> {
         let member = npyz::npz::file_name_from_array_name(key);
         if let Ok(mut z) = npz.zip_archive().by_name(&member) {
             let size = z.size();
-            let mut prefix = [0u8; 12];
-            let got = read_prefix(&mut z, &mut prefix);
-            crate::io::npy::check_header_len(&prefix[..got], size).map_err(|e| bad(&e))?;
+            crate::io::npy::check_header(&mut z, size).map_err(|e| bad(&e))?;
         }
         match npz.by_name(key) {
             Ok(Some(f)) => {

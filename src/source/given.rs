@@ -51,9 +51,7 @@ pub fn read_depth_npy(p: &Path, limits: &ImageLimits) -> Result<(usize, usize, V
         }
     };
     let mut f = std::fs::File::open(p).map_err(not_valid)?;
-    let mut prefix = [0u8; 12];
-    let got = std::io::Read::read(&mut f, &mut prefix).map_err(not_valid)?;
-    crate::io::npy::check_header_len(&prefix[..got], size).map_err(not_valid)?;
+    crate::io::npy::check_header(&mut f, size).map_err(not_valid)?;
     std::io::Seek::rewind(&mut f).map_err(not_valid)?;
     let npy = npyz::NpyFile::new(std::io::BufReader::new(f)).map_err(not_valid)?;
     // the shape from the header against the limits before any data is read
@@ -75,7 +73,8 @@ pub fn depth_npy_from_bytes(
     if bytes.len() as u64 > limits.max_bytes {
         return Err((FailureKind::TooLarge, over_limit(bytes.len() as u64, limits)));
     }
-    crate::io::npy::check_header_len(bytes, bytes.len() as u64).map_err(|e| (FailureKind::Depth, not_a_depth(&e)))?;
+    crate::io::npy::check_header(&mut &bytes[..], bytes.len() as u64)
+        .map_err(|e| (FailureKind::Depth, not_a_depth(&e)))?;
     let npy = npyz::NpyFile::new(bytes).map_err(|e| (FailureKind::Depth, not_a_depth(&e)))?;
     // the shape from the header against the limits before any data is read
     depth_dims(npy.shape(), limits)?;
