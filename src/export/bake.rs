@@ -310,14 +310,15 @@ impl Baker {
     }
 
     /// Writes the baked files of one scene (the image last).
-    fn write_scene(&self, shard: &Shard, scene: &SceneParts, item_has_mpi: bool) -> Result<(), BakeError> {
+    fn write_scene(&self, shard: &Shard, scene: &SceneParts) -> Result<(), BakeError> {
         let id = &scene.id;
         let d = &scene.disparity;
         self.atomic(shard, &self.path("disps", id, "npy"), |p| {
             crate::io::npy::write_f32(p, &[d.height as u64, d.width as u64], &d.data)
         })?;
         self.atomic(shard, &self.path("masks", id, "png"), |p| scene.masks.save_index_png(p))?;
-        if let Some(mpi) = scene.mpi.as_ref().filter(|_| self.manifest.has("mpis") || item_has_mpi) {
+        // an MPI is there only when it is stored: a network's (asked for below), or the item's own
+        if let Some(mpi) = &scene.mpi {
             let dir = self.out.join("mpis");
             std::fs::create_dir_all(&dir).map_err(|e| io_err(&dir, e))?;
             let mut mpi = (**mpi).clone();
@@ -372,14 +373,12 @@ impl Baker {
             }
             let t = Instant::now();
             let loaded = self.source.load(i).map_err(SceneError::from).and_then(|mut item| {
-                let has_mpi = item.mpi.is_some();
                 // the models see exactly the image that is stored (and served)
                 quantize_to_u8(&mut item.image);
-                // the MPI only when it is stored (a network's, or the item's own)
-                let build = self.manifest.has("mpis");
-                self.stage.parts(item, build).map(|s| (s, has_mpi))
+                // the built-in MPI is not stored, so it is not built
+                self.stage.parts(item, self.manifest.has("mpis"))
             });
-            let (scene, has_mpi) = match loaded {
+            let scene = match loaded {
                 Ok(s) => s,
                 Err(e @ SceneError::Runtime(_)) => return Err(BakeError::Runtime(e)),
                 Err(e) => {
@@ -393,7 +392,7 @@ impl Baker {
             scene_ms.push(t.elapsed().as_secs_f64() * 1e3);
             let t = Instant::now();
             // the output folder failing (full, read-only) stops the run: no item could be written
-            self.write_scene(shard, &scene, has_mpi)?;
+            self.write_scene(shard, &scene)?;
             write_ms += t.elapsed().as_secs_f64() * 1e3;
             p.baked += 1;
             progress(p);
