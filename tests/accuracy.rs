@@ -151,6 +151,13 @@ fn tiny_sweep_writes_markdown_and_a_png() {
     assert_eq!(report.rows.len(), 3 * 2 * 2);
     assert!(report.rows.iter().all(|r| r.m.epe.is_finite() && r.m.image.mae.is_finite() && r.m.time.median >= 0.0));
     assert_eq!(report.precision.len(), 3);
+    assert_eq!(report.storage.len(), 3);
+    for r in &report.storage {
+        // f16 keeps 11 significant bits: colours within about 5e-4 of the f32 ones
+        assert!(r.image_diff.0 > 0.0 && r.image_diff.0 < 1e-2, "{}: {:?}", r.scene, r.image_diff);
+        assert!(r.flow_diff.0.is_finite() && r.flow_diff.1 < 1e-2, "{}: {:?}", r.scene, r.flow_diff);
+        assert!(r.bytes.1 < r.bytes.0, "{}: {:?}", r.scene, r.bytes);
+    }
     assert_eq!(report.reference_mode.len(), 3);
     assert!(!report.skips.is_empty());
     // skipping that is exact by construction changes nothing

@@ -3,7 +3,8 @@
 //! the bytes of one unsharded bake; an interrupted bake (a `--limit`, an item cut in the middle,
 //! leftover temporaries) restarted loses and repeats nothing; bad items are reported with their
 //! reason; a baked scene is the scene the models make (disparity, masks, image and MPI bit for
-//! bit); and a server over the baked folder runs no model (GetInfo says so, the model counters
+//! bit); the WebDataset layout holds the same files as tar members, sharded and resumed the
+//! same way; and a server over the baked folder or shards runs no model (GetInfo says so, the model counters
 //! stay 0) while the same server over the raw photos does.
 //!
 //! Needs `MPIFLOW_PYTHON` (a Python with `onnx`) and `ORT_DYLIB_PATH`: run `bash tools/test.sh`,
@@ -291,6 +292,269 @@ fn a_baked_scene_is_the_scene_the_models_make() {
     }
 }
 
+/// `--mpi-dtype f16`: the stored MPI is the f32 bake's rounded to f16 in a smaller file, the
+/// other files are the same bytes, the manifest and the served description say so, the served
+/// fingerprint differs, and a folder baked in f32 is not continued in f16.
+#[test]
+fn an_f16_bake_stores_the_f32_mpi_rounded() {
+    let src = photos("f16_src");
+    let mpi_path = model("mpi.onnx").display().to_string();
+    let (a, b) = (tmp("f16_a"), tmp("f16_b"));
+    bake(&src, &a, &["--mpi-model", &mpi_path]);
+    bake(&src, &b, &["--mpi-model", &mpi_path, "--mpi-dtype", "f16"]);
+    let (fa, fb) = (files(&a), files(&b));
+    let manifest: serde_json::Value = serde_json::from_slice(&fb["bake.json"]).unwrap();
+    assert_eq!(manifest["mpi_dtype"], "f16");
+    let (sa, sb) = (
+        DirSource::open(&a, &SourceOptions::default()).unwrap(),
+        DirSource::open(&b, &SourceOptions::default()).unwrap(),
+    );
+    assert_ne!(sa.fingerprint(), sb.fingerprint());
+    assert!(sb.baked_with().unwrap().contains("MPIs stored as f16"), "{:?}", sb.baked_with());
+    assert!(!sa.baked_with().unwrap().contains("MPIs stored as"));
+    for key in GOOD {
+        let name = format!("mpis/{key}.npz");
+        assert!(fb[&name].len() < fa[&name].len(), "{key}: {} >= {} bytes", fb[&name].len(), fa[&name].len());
+        let ma = mpiflow::mpi::npz::load_npz(&a.join(&name)).unwrap();
+        let mb = mpiflow::mpi::npz::load_npz(&b.join(&name)).unwrap();
+        assert_eq!(ma.disparity, mb.disparity, "{key}");
+        let want: Vec<f32> = ma.rgba.iter().map(|&v| half::f16::from_f32(v.min(65504.0)).to_f32()).collect();
+        assert!(mb.rgba == want, "{key}: not the f32 values rounded to f16");
+        assert!(ma.rgba != mb.rgba, "{key}: rounding changed nothing (the test would not see f32 stored)");
+    }
+    for (k, v) in fa.iter().filter(|(k, _)| !k.starts_with("mpis/") && *k != "bake.json") {
+        assert!(fb[k] == *v, "{k} differs");
+    }
+    let o = Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+        .args(["bake", "--source"])
+        .arg(&src)
+        .arg("--out")
+        .arg(&a)
+        .arg("--depth-model")
+        .arg(model("depth.onnx"))
+        .arg("--segment-model")
+        .arg(model("seg.onnx"))
+        .arg("--mpi-model")
+        .arg(model("mpi.onnx"))
+        .args(["--size", SIZE, "--mpi-dtype", "f16"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("stores MPIs as f32"), "{e}");
+}
+
+/// A sample's members: field -> bytes.
+type Fields = BTreeMap<String, Vec<u8>>;
+
+/// Every sample of every `*.tar` in `dir`: key -> field -> bytes, and how often each key occurs.
+fn tar_samples(dir: &Path) -> (BTreeMap<String, Fields>, BTreeMap<String, usize>) {
+    use std::io::Read;
+    let (mut out, mut seen) = (BTreeMap::new(), BTreeMap::new());
+    let mut tars: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "tar"))
+        .collect();
+    tars.sort();
+    for t in tars {
+        let mut keys = BTreeSet::new();
+        let mut a = tar::Archive::new(std::fs::File::open(&t).unwrap());
+        for e in a.entries().unwrap() {
+            let mut e = e.unwrap();
+            let name = e.path().unwrap().to_string_lossy().to_string();
+            let (key, field) = name.split_once('.').unwrap();
+            let (key, field) = (key.to_string(), field.to_string());
+            let mut bytes = Vec::new();
+            e.read_to_end(&mut bytes).unwrap();
+            keys.insert(key.clone());
+            let fields: &mut Fields = out.entry(key).or_default();
+            assert!(fields.insert(field, bytes).is_none(), "{name} twice in {}", t.display());
+        }
+        for k in keys {
+            *seen.entry(k).or_insert(0) += 1;
+        }
+    }
+    (out, seen)
+}
+
+/// A WebDataset bake (two shards, 2 items per tar) holds exactly the reference bake's files as
+/// members, every item once; its scenes are the reference bake's scenes through no model.
+#[test]
+fn a_webdataset_bake_holds_the_reference_bake_member_for_member() {
+    let src = photos("wds_src");
+    for mpi_net in [false, true] {
+        webdataset_against_reference(&src, mpi_net);
+    }
+}
+
+fn webdataset_against_reference(src: &Path, mpi_net: bool) {
+    let src = src.to_path_buf();
+    let (whole, wds) = (tmp(&format!("wds_whole_{mpi_net}")), tmp(&format!("wds_{mpi_net}")));
+    let mpi_path = model("mpi.onnx").display().to_string();
+    let net: Vec<&str> = if mpi_net { vec!["--mpi-model", &mpi_path] } else { vec![] };
+    bake(&src, &whole, &net);
+    let wd = [&net[..], &["--format", "webdataset", "--items-per-shard", "2"]].concat();
+    let (r0, _) = bake(&src, &wds, &[&wd[..], &["--shard", "0/2"]].concat());
+    let (r1, _) = bake(&src, &wds, &[&wd[..], &["--shard", "1/2"]].concat());
+    assert_eq!(n(&r0, "baked") + n(&r1, "baked"), 5, "{r0}\n{r1}");
+    assert_eq!(n(&r0, "failed") + n(&r1, "failed"), 1);
+    let (samples, seen) = tar_samples(&wds);
+    assert!(seen.values().all(|&c| c == 1), "a key in two shards: {seen:?}");
+    let want: BTreeSet<String> = GOOD.iter().map(ToString::to_string).collect();
+    assert_eq!(samples.keys().cloned().collect::<BTreeSet<_>>(), want);
+    let reference = files(&whole);
+    for (key, fields) in &samples {
+        let names: Vec<&str> = fields.keys().map(String::as_str).collect();
+        let want: &[&str] =
+            if mpi_net { &["disp.npy", "mask.png", "mpi.npz", "png"] } else { &["disp.npy", "mask.png", "png"] };
+        assert_eq!(names, want, "{key}");
+        for (field, sub) in [
+            ("disp.npy", "disps/KEY.npy"),
+            ("mask.png", "masks/KEY.png"),
+            ("mpi.npz", "mpis/KEY.npz"),
+            ("png", "images/KEY.png"),
+        ] {
+            if let Some(bytes) = fields.get(field) {
+                assert!(*bytes == reference[&sub.replace("KEY", key)], "{key}.{field} differs from {sub}");
+            }
+        }
+    }
+    // at most 2 items per tar, one series of tars per shard
+    let tars: Vec<String> = std::fs::read_dir(&wds)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .filter(|n| n.ends_with(".tar"))
+        .collect();
+    assert!(tars.iter().all(|t| t.starts_with("bake-0-of-2-") || t.starts_with("bake-1-of-2-")), "{tars:?}");
+    assert_eq!(tars.len() as u64, n(&r0, "baked").div_ceil(2) + n(&r1, "baked").div_ceil(2), "{tars:?}");
+    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(wds.join("bake.json")).unwrap()).unwrap();
+    assert_eq!(manifest["layout"], "webdataset");
+
+    // served: the shards are a baked collection whose scenes are the reference bake's
+    let shards = Arc::new(mpiflow::source::shard::ShardSource::open(&wds, &SourceOptions::default()).unwrap());
+    assert!(shards.baked_with().unwrap().contains("onnx:depth.onnx"));
+    let a = SourceScenes::new(
+        Arc::new(DirSource::open(&whole, &SourceOptions::default()).unwrap()),
+        stage(true, mpi_net, true),
+    );
+    let b = SourceScenes::new(shards, stage(true, mpi_net, true));
+    assert!(!a.needs_models() && !b.needs_models());
+    let before = b.stage.model_runs();
+    assert_eq!(b.len(), 5);
+    for j in 0..b.len() {
+        let sb = b.load_scene(j).unwrap();
+        let key = sb.id.rsplit('/').next().unwrap().to_string();
+        let i = (0..a.len()).find(|&i| a.id(i) == key).expect("in the reference bake");
+        let sa = a.load_scene(i).unwrap();
+        assert!(sa.image == sb.image && sa.disparity == sb.disparity, "{key}");
+        assert_eq!(sa.mpi.width, sb.mpi.width);
+        assert!(sa.mpi.rgba == sb.mpi.rgba && sa.mpi.disparity == sb.mpi.disparity, "{key}: MPI");
+        assert_eq!(sa.masks.masks.len(), sb.masks.masks.len(), "{key}: instances");
+    }
+    assert_eq!(b.stage.model_runs(), before, "loading baked shards ran a model");
+
+    if mpi_net {
+        return;
+    }
+    // a folder of one layout is not continued in the other
+    let o = Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+        .args(["bake", "--source"])
+        .arg(&src)
+        .arg("--out")
+        .arg(&wds)
+        .arg("--depth-model")
+        .arg(model("depth.onnx"))
+        .arg("--segment-model")
+        .arg(model("seg.onnx"))
+        .args(["--size", SIZE])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("webdataset bake"), "{e}");
+    assert!(!wds.join("images").exists(), "the refused bake left an images/ folder");
+
+    // the shards re-baked into the reference layout: ids `SHARD/KEY` name files `SHARD-KEY`,
+    // the bytes are the reference bake's, and the baked parts are carried, not recomputed
+    let again = tmp("wds_rebaked");
+    let (r, _) = bake(&wds, &again, &[]);
+    assert_eq!((n(&r, "baked"), n(&r, "failed")), (5, 0), "{r}");
+    let rebaked = files(&again);
+    let keys = ids_of(&rebaked, "images");
+    assert_eq!(keys.len(), 5, "{keys:?}");
+    for name in &keys {
+        let (shard, key) = name.rsplit_once('-').unwrap();
+        assert!(shard.starts_with("bake-") && seen.contains_key(key), "{name}");
+        for sub in ["images/KEY.png", "disps/KEY.npy", "masks/KEY.png"] {
+            let (x, y) = (sub.replace("KEY", name), sub.replace("KEY", key));
+            assert!(rebaked[&x] == reference[&y], "{x} differs from {y}");
+        }
+    }
+}
+
+/// A WebDataset bake stopped by `--limit`, then killed inside a shard (one complete sample and
+/// one cut in its image), restarted: the complete sample is kept, the cut one redone, and every
+/// item ends up in exactly one shard with the bytes of an uninterrupted bake.
+#[test]
+fn an_interrupted_webdataset_bake_restarted_loses_and_repeats_nothing() {
+    let src = photos("wds_resume_src");
+    let (whole, cut) = (tmp("wds_resume_whole"), tmp("wds_resume_cut"));
+    bake(&src, &whole, &[]);
+    let wd = ["--format", "webdataset", "--items-per-shard", "10"];
+    let (r, _) = bake(&src, &cut, &[&wd[..], &["--limit", "2"]].concat());
+    let (first, _) = tar_samples(&cut);
+    assert_eq!(first.len() as u64, n(&r, "baked"));
+    // the shard a killed run was writing: one complete sample, then one cut inside its image
+    let reference = files(&whole);
+    let pending: Vec<&str> = GOOD.iter().copied().filter(|id| !first.contains_key(*id)).collect();
+    assert!(pending.len() >= 2, "{pending:?}");
+    let member = |id: &str, sub: &str, ext: &str| reference[&format!("{sub}/{id}.{ext}")].clone();
+    let partial = cut.join(".partial/0-of-1");
+    std::fs::create_dir_all(&partial).unwrap();
+    let killed = partial.join("bake-0-of-1-000001.tar");
+    {
+        let mut b = tar::Builder::new(std::fs::File::create(&killed).unwrap());
+        for id in &pending[..2] {
+            for (sub, ext, field) in
+                [("disps", "npy", "disp.npy"), ("masks", "png", "mask.png"), ("images", "png", "png")]
+            {
+                let bytes = member(id, sub, ext);
+                let mut h = tar::Header::new_gnu();
+                h.set_size(bytes.len() as u64);
+                h.set_mode(0o444);
+                h.set_cksum();
+                b.append_data(&mut h, format!("{id}.{field}"), bytes.as_slice()).unwrap();
+            }
+        }
+        b.into_inner().unwrap();
+    }
+    // cut inside the second sample's image (and no end-of-archive block)
+    let len = std::fs::metadata(&killed).unwrap().len();
+    let image = member(pending[1], "images", "png").len() as u64;
+    let f = std::fs::OpenOptions::new().write(true).open(&killed).unwrap();
+    f.set_len(len - 1024 - image.div_ceil(512) * 512 + 100).unwrap();
+    drop(f);
+
+    let (r2, _) = bake(&src, &cut, &wd);
+    assert_eq!(n(&r2, "already_done"), n(&r, "baked") + 1, "the complete sample is kept: {r2}");
+    assert_eq!(n(&r, "baked") + 1 + n(&r2, "baked"), 5, "every good item baked once: {r}\n{r2}");
+    assert_eq!(r2["model_runs"]["depth"], n(&r2, "baked"));
+    assert!(!partial.exists(), "the killed run's shard is cleared");
+    let (samples, seen) = tar_samples(&cut);
+    assert!(seen.values().all(|&c| c == 1), "a key in two shards: {seen:?}");
+    let want: BTreeSet<String> = GOOD.iter().map(ToString::to_string).collect();
+    assert_eq!(samples.keys().cloned().collect::<BTreeSet<_>>(), want);
+    for (key, fields) in &samples {
+        assert!(fields["png"] == member(key, "images", "png"), "{key}: image");
+        assert!(fields["disp.npy"] == member(key, "disps", "npy"), "{key}: disparity");
+        assert!(fields["mask.png"] == member(key, "masks", "png"), "{key}: masks");
+    }
+    // the restarted shard is indexable in full: the source serves all five
+    let shards = mpiflow::source::shard::ShardSource::open(&cut, &SourceOptions::default()).unwrap();
+    assert_eq!((shards.len(), shards.skipped().len()), (5, 0), "{:?}", shards.skipped());
+}
+
 async fn http_get(addr: &str, path: &str) -> String {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let mut sock = tokio::net::TcpStream::connect(addr).await.unwrap();
@@ -310,6 +574,8 @@ async fn serving_a_baked_folder_runs_no_model() {
     let src = photos("serve_src");
     let out = tmp("serve_baked");
     bake(&src, &out, &[]);
+    let wds = tmp("serve_baked_wds");
+    bake(&src, &wds, &["--format", "webdataset"]);
     let models = ModelConfig {
         depth_model: Some(model("depth.onnx")),
         segment_model: Some(model("seg.onnx")),
@@ -323,7 +589,7 @@ async fn serving_a_baked_folder_runs_no_model() {
         workers: 2,
         log_level: "warn".into(),
         models,
-        datasets: vec![dataset("baked", &out), dataset("raw", &src)],
+        datasets: vec![dataset("baked", &out), dataset("raw", &src), dataset("shards", &wds)],
         ..ServiceConfig::default()
     };
     // the raw photos are served at the baked size
@@ -339,11 +605,20 @@ async fn serving_a_baked_folder_runs_no_model() {
     assert!(baked.description.contains("baked: "), "{}", baked.description);
     assert!(raw.baked_with.is_empty());
     assert_eq!(baked.sources, 5);
+    let shards = info.datasets.iter().find(|d| d.name == "shards").unwrap();
+    assert!(!shards.needs_models && shards.baked_with.contains("onnx:seg.onnx"), "{shards:?}");
+    assert_eq!(shards.sources, 5);
 
     let metrics = s.metrics_addr.unwrap().to_string();
     let pull = |dataset: &str| pb::StreamRequest { dataset: dataset.into(), seed: 3, count: 6, ..Default::default() };
     let mut got = 0;
     let mut st = c.stream_samples(pull("baked")).await.unwrap().into_inner();
+    while let Some(b) = st.message().await.unwrap() {
+        got += b.samples.len();
+    }
+    assert_eq!(got, 6);
+    let mut st = c.stream_samples(pull("shards")).await.unwrap().into_inner();
+    let mut got = 0;
     while let Some(b) = st.message().await.unwrap() {
         got += b.samples.len();
     }

@@ -127,3 +127,39 @@ fn flo_kitti_and_png_files_round_trip() {
     assert_eq!(rgb_to_u8(&back), colours);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+proptest::proptest! {
+    /// An MPI written as `.npz` reads back bit for bit in f32 and as the f16 rounding of every
+    /// colour and density in f16 (densities above the largest f16 capped at it); either way the
+    /// zip members are dated 1980-01-01, so the bytes do not depend on when they were written.
+    #[test]
+    fn mpi_npz_round_trips_exactly_in_f32_and_as_the_f16_rounding(
+        values in proptest::collection::vec(
+            proptest::prop_oneof![0.0f32..1.0, 0.0f32..1e3, 6.0e4f32..1e9, proptest::num::f32::POSITIVE | proptest::num::f32::ZERO],
+            2 * 3 * 2 * 4,
+        ),
+        extra in proptest::bool::ANY,
+    ) {
+        use mpiflow::mpi::npz::{load_npz_bytes_limited, save_npz_as, MpiDtype};
+        let mut mpi = mpiflow::mpi::Mpi::new(3, 2, vec![0.9, 0.1], usize::from(extra));
+        mpi.rgba.copy_from_slice(&values);
+        for (i, e) in mpi.extras.iter_mut().enumerate() {
+            *e = i as f32 / 7.0;
+        }
+        for dtype in [MpiDtype::F32, MpiDtype::F16] {
+            let bytes = save_npz_as(&mpi, std::io::Cursor::new(Vec::new()), dtype).unwrap().into_inner();
+            // the first local file header: its DOS time and date (1980-01-01 00:00:00)
+            proptest::prop_assert_eq!(&bytes[..4], b"PK\x03\x04");
+            proptest::prop_assert_eq!(&bytes[10..14], &[0u8, 0, 0x21, 0]);
+            let back = load_npz_bytes_limited(&bytes, "test", u64::MAX).unwrap();
+            proptest::prop_assert_eq!(&back.disparity, &mpi.disparity);
+            proptest::prop_assert!(back.extras == mpi.extras);
+            let want: Vec<f32> = match dtype {
+                MpiDtype::F32 => mpi.rgba.clone(),
+                MpiDtype::F16 => mpi.rgba.iter().map(|&v| half::f16::from_f32(v.min(65504.0)).to_f32()).collect(),
+            };
+            proptest::prop_assert!(back.rgba == want, "{:?}: {:?} != {:?}", dtype, back.rgba, want);
+            proptest::prop_assert!(back.rgba.iter().all(|v| v.is_finite()));
+        }
+    }
+}

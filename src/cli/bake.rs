@@ -9,7 +9,8 @@ use std::time::{Duration, Instant};
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
-use mpiflow::export::bake::{Baker, Progress, Shard};
+use mpiflow::export::bake::{BakeLayout, Baker, Progress, Shard};
+use mpiflow::mpi::npz::MpiDtype;
 use mpiflow::sample::pipeline::{open_source, parse_size, OpenOptions, SourceSpec};
 use mpiflow::scene::models::ModelConfig;
 
@@ -21,8 +22,8 @@ pub struct BakeArgs {
     /// WebDataset .tar shard or a folder of shards.
     #[arg(long, value_name = "DIR|SHARDS")]
     source: PathBuf,
-    /// Output folder (reference layout: images/, disps/, masks/, mpis/ and bake.json); shared by
-    /// all shards of one bake.
+    /// Output folder (images/, disps/, masks/, mpis/ or tar shards, and bake.json); shared by all
+    /// shards of one bake.
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
     /// Depth model (ONNX) for items without depth.
@@ -41,9 +42,18 @@ pub struct BakeArgs {
     /// This job's part of the items: I of N (items whose id hashes to I mod N).
     #[arg(long, value_name = "I/N", default_value = "0/1")]
     shard: Shard,
-    /// Output layout. Only `reference` for now.
-    #[arg(long, value_name = "FORMAT", default_value = "reference", value_parser = ["reference"])]
+    /// Output layout: `reference` (images/, disps/, masks/, mpis/) or `webdataset` (tar shards
+    /// bake-I-of-N-SSSSSS.tar with the members ID.png, ID.disp.npy, ID.mask.png, ID.mpi.npz).
+    #[arg(long, value_name = "FORMAT", default_value = "reference", value_parser = ["reference", "webdataset"])]
     format: String,
+    /// Items per tar shard with `--format webdataset` (a killed run redoes at most the items of
+    /// the shard it was writing that were not complete).
+    #[arg(long, value_name = "N", default_value_t = 100, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
+    items_per_shard: u64,
+    /// Element type of the stored MPIs' colours and densities (with --mpi-model): `f32`
+    /// (lossless) or `f16` (half the bytes; its render error: docs/accuracy.md "MPI stored as f16").
+    #[arg(long, value_name = "DTYPE", default_value = "f32", value_parser = ["f32", "f16"])]
+    mpi_dtype: String,
     /// Resize every image to WxH before the models run (serve the result without --size).
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     size: Option<(usize, usize)>,
@@ -86,7 +96,12 @@ pub fn run(a: BakeArgs) -> Result<(), CliError> {
         segment_model: a.segment_model.clone(),
     };
     let stage = Arc::new(models.build_stage().map_err(CliError)?);
-    let baker = Baker::new(source.clone(), stage.clone(), a.size, &a.out)?;
+    let layout = match a.format.as_str() {
+        "webdataset" => BakeLayout::WebDataset { items_per_shard: a.items_per_shard as usize },
+        _ => BakeLayout::Reference,
+    };
+    let mpi_dtype = if a.mpi_dtype == "f16" { MpiDtype::F16 } else { MpiDtype::F32 };
+    let baker = Baker::new(source.clone(), stage.clone(), a.size, &a.out, layout, mpi_dtype)?;
     let total = baker.items(&a.shard).len();
     eprintln!(
         "bake: shard {} = {total} of {} items of {} into {} ({})",

@@ -119,6 +119,7 @@ pub fn read_array<R: Read>(npy: NpyFile<R>) -> io::Result<Array> {
     let data: Vec<f64> = match (ts.type_char(), ts.size_field()) {
         (TypeChar::Float, 8) => npy.into_vec::<f64>()?,
         (TypeChar::Float, 4) => npy.into_vec::<f32>()?.into_iter().map(f64::from).collect(),
+        (TypeChar::Float, 2) => npy.into_vec::<half::f16>()?.into_iter().map(f64::from).collect(),
         (TypeChar::Uint, 1) | (TypeChar::Bool, 1) => npy.into_vec::<u8>()?.into_iter().map(f64::from).collect(),
         (TypeChar::Uint, 2) => npy.into_vec::<u16>()?.into_iter().map(f64::from).collect(),
         (TypeChar::Uint, 4) => npy.into_vec::<u32>()?.into_iter().map(f64::from).collect(),

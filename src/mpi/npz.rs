@@ -18,9 +18,22 @@ pub fn load_npz(path: &Path) -> Result<Mpi, MpiError> {
 /// zeros).
 pub fn load_npz_limited(path: &Path, max_values: u64) -> Result<Mpi, MpiError> {
     let p = path.display().to_string();
+    let file = std::fs::File::open(path).map_err(|e| MpiError::Io { path: p.clone(), source: e })?;
+    load_npz_from(std::io::BufReader::new(file), &p, max_values)
+}
+
+/// [`load_npz_limited`] of an `.npz` held in memory (a shard member); `name` is what errors call
+/// it.
+pub fn load_npz_bytes_limited(bytes: &[u8], name: &str, max_values: u64) -> Result<Mpi, MpiError> {
+    load_npz_from(std::io::Cursor::new(bytes), name, max_values)
+}
+
+/// [`load_npz_limited`] of any seekable reader; `p` names it in errors.
+fn load_npz_from<R: std::io::Read + std::io::Seek>(reader: R, p: &str, max_values: u64) -> Result<Mpi, MpiError> {
+    let p = p.to_string();
     // the archive's and parser's messages as one printable line
     let reason = |e: &dyn std::fmt::Display| crate::failure::printable(&e.to_string(), 300);
-    let mut npz = npyz::npz::NpzArchive::open(path).map_err(|e| match e.kind() {
+    let mut npz = npyz::npz::NpzArchive::new(reader).map_err(|e| match e.kind() {
         std::io::ErrorKind::NotFound | std::io::ErrorKind::PermissionDenied => {
             MpiError::Io { path: p.clone(), source: e }
         }
@@ -134,12 +147,40 @@ pub fn load_npz_limited(path: &Path, max_values: u64) -> Result<Mpi, MpiError> {
     Ok(mpi)
 }
 
+/// The element type of the colour and density arrays an `.npz` is written with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MpiDtype {
+    /// float32: lossless.
+    F32,
+    /// float16 (half the bytes): colours rounded to 11 significant bits, densities too and
+    /// capped at 65504 (the largest finite f16; an opacity of 1 - exp(-65504 d) is 1 for any
+    /// plane spacing d the layerings make). The cost: `mpiflow bench accuracy`, "MPI stored as
+    /// f16".
+    F16,
+}
+
+impl MpiDtype {
+    /// The name `bake.json` records (`f32` / `f16`).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            MpiDtype::F32 => "f32",
+            MpiDtype::F16 => "f16",
+        }
+    }
+}
+
 /// Writes `mpi` as an `.npz` in the layout [`load_npz`] reads (and the reference writes):
 /// `mpi_rgb` f32 `[N, 3, H, W]`, `mpi_sigma` f32 `[N, 1, H, W]`, `disparity` f64 `[N]` (near to
 /// far, exactly as held), `K` f64 `[3, 3]` when the MPI has intrinsics, `G` f64 `[4, 4]` when it
 /// has a pose, and `mask_in` f32 `[N, C, H, W]` when it has extra channels. Lossless: loading the
-/// file gives back the same values bit for bit. Members are deflated, as NumPy's `savez_compressed`.
+/// file gives back the same values bit for bit. Members are deflated, as NumPy's `savez_compressed`,
+/// and dated 1980-01-01: the bytes depend on the MPI only, not on when it was written.
 pub fn save_npz<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W) -> std::io::Result<W> {
+    save_npz_as(mpi, writer, MpiDtype::F32)
+}
+
+/// [`save_npz`] with `mpi_rgb` and `mpi_sigma` in `dtype` (the rest as there).
+pub fn save_npz_as<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W, dtype: MpiDtype) -> std::io::Result<W> {
     use npyz::WriterBuilder;
     fn member<T: npyz::AutoSerialize + Copy, W: std::io::Write + std::io::Seek>(
         npz: &mut npyz::npz::NpzWriter<W>,
@@ -147,7 +188,10 @@ pub fn save_npz<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W) -> std:
         shape: &[u64],
         data: impl IntoIterator<Item = T>,
     ) -> std::io::Result<()> {
-        let mut w = npz.array::<T>(name, Default::default())?.default_dtype().shape(shape).begin_nd()?;
+        // a fixed member time (1980-01-01, zip's epoch), not the clock: the same MPI gives the
+        // same bytes at any time
+        let options = npyz::zip::write::FileOptions::default().last_modified_time(npyz::zip::DateTime::default());
+        let mut w = npz.array::<T>(name, options)?.default_dtype().shape(shape).begin_nd()?;
         w.extend(data)?;
         w.finish()
     }
@@ -155,9 +199,21 @@ pub fn save_npz<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W) -> std:
     let (n64, h64, w64) = (n as u64, h as u64, w as u64);
     let mut npz = npyz::npz::NpzWriter::new(writer);
     let rgb = (0..n).flat_map(|i| (0..3).flat_map(move |c| (0..hw).map(move |j| mpi.plane_rgba(i)[4 * j + c])));
-    member(&mut npz, "mpi_rgb", &[n64, 3, h64, w64], rgb)?;
     let sigma = (0..n).flat_map(|i| (0..hw).map(move |j| mpi.plane_rgba(i)[4 * j + 3]));
-    member(&mut npz, "mpi_sigma", &[n64, 1, h64, w64], sigma)?;
+    let (rgb_shape, sigma_shape) = ([n64, 3, h64, w64], [n64, 1, h64, w64]);
+    match dtype {
+        MpiDtype::F32 => {
+            member(&mut npz, "mpi_rgb", &rgb_shape, rgb)?;
+            member(&mut npz, "mpi_sigma", &sigma_shape, sigma)?;
+        }
+        MpiDtype::F16 => {
+            // a sanitised MPI holds finite values; NaN would stay NaN, so it is made 0 here too
+            let half = |v: f32, cap: f32| half::f16::from_f32(if v.is_nan() { 0.0 } else { v.clamp(-cap, cap) });
+            let max = half::f16::MAX.to_f32();
+            member(&mut npz, "mpi_rgb", &rgb_shape, rgb.map(|v| half(v, max)))?;
+            member(&mut npz, "mpi_sigma", &sigma_shape, sigma.map(|v| half(v, max)))?;
+        }
+    }
     member(&mut npz, "disparity", &[n64], mpi.disparity.iter().copied())?;
     if let Some(k) = mpi.intrinsics {
         member(&mut npz, "K", &[3, 3], [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0])?;

@@ -1,5 +1,6 @@
 //! Baked collections: the `bake.json` manifest that `mpiflow bake` writes beside the reference
-//! layout it produces, read back by the directory source so that a served dataset says what
+//! layout or the WebDataset shards it produces, read back by the directory and the shard
+//! sources so that a served dataset says what
 //! its scenes were baked with (`GetInfo` `baked_with`, the dataset description) and whether any
 //! scene model still has to run.
 //!
@@ -56,9 +57,14 @@ pub struct BakeManifest {
     /// The members every baked item has: `images`, `disps`, `masks`, and `mpis` when an MPI
     /// network ran.
     pub members: Vec<String>,
-    /// The element type of the baked MPIs (`f32`), when there are any.
+    /// The element type of the baked MPIs' colours and densities (`f32` or `f16`), when there
+    /// are any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mpi_dtype: Option<String>,
+    /// `webdataset` when the items are in tar shards beside the manifest (members `KEY.png`,
+    /// `KEY.disp.npy`, `KEY.mask.png`, `KEY.mpi.npz`); absent for the reference layout.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layout: Option<String>,
 }
 
 impl BakeManifest {
@@ -106,8 +112,12 @@ impl BakeManifest {
                 None => format!("{} {}", m.role, m.name),
             })
             .collect();
+        let dtype = match self.mpi_dtype.as_deref() {
+            Some(d) if d != "f32" => format!("; MPIs stored as {d}"),
+            _ => String::new(),
+        };
         format!(
-            "{} of {} (fingerprint {}) with {}; stage {}",
+            "{} of {} (fingerprint {}) with {}; stage {}{dtype}",
             self.format,
             self.source,
             self.source_fingerprint,

@@ -492,6 +492,10 @@ impl DirSource {
         self.options.hash_into(&mut h);
         if let Some(m) = &self.baked {
             h.str("baked").str(&m.stage_fingerprint);
+            // f32 bakes keep the fingerprint they had before f16 was offered
+            if let Some(d) = m.mpi_dtype.as_deref().filter(|d| *d != "f32") {
+                h.str("mpi dtype").str(d);
+            }
         }
         Ok(h.finish())
     }
@@ -595,7 +599,7 @@ impl DirSource {
     }
 }
 
-fn mpi_message(e: MpiError) -> String {
+pub(crate) fn mpi_message(e: MpiError) -> String {
     match e {
         MpiError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => "not found".into(),
         MpiError::Io { source, .. } => source.to_string(),

@@ -14,6 +14,9 @@ pub enum DepthEncoding {
     Npy,
     /// A grey PNG disparity in [0, 1]: 8-bit / 255, 16-bit / 65535 (as `disps/NAME.png`).
     DisparityPng,
+    /// A `.npy` float disparity in the scene scale (as `disps/NAME.npy`; what `mpiflow bake`
+    /// writes).
+    DisparityNpy,
 }
 
 /// Sniffs a depth file's encoding from its first bytes (`.npy` magic or PNG signature).
@@ -62,6 +65,10 @@ pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<Sou
         Some((DepthEncoding::Npy, f)) => {
             let (w, h, d) = depth_npy_from_bytes(f.bytes, limits).map_err(|(kind, m)| err(&f.name, kind, m))?;
             Some(GivenDepth::Depth(fit(d, w, h)))
+        }
+        Some((DepthEncoding::DisparityNpy, f)) => {
+            let (w, h, d) = depth_npy_from_bytes(f.bytes, limits).map_err(|(kind, m)| err(&f.name, kind, m))?;
+            Some(GivenDepth::Disparity(fit(d, w, h)))
         }
         Some((DepthEncoding::DisparityPng, f)) => {
             let (w, h, d) = disparity_png_from_bytes(f.bytes, &f.name, limits)?;

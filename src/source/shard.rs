@@ -12,13 +12,19 @@
 //! |---|---|
 //! | `jpg`, `jpeg`, `png` | the photo (required; the first of them in the shard's order) |
 //! | `depth.npy` | float depth `[H, W]` (or `[1, H, W]`, `[H, W, 1]`, `[1, 1, H, W]`), any linear unit; non-finite or `<= 0` = unknown |
+//! | `disp.npy` | float disparity `[H, W]` in the scene scale (as `disps/NAME.npy`; what `mpiflow bake --format webdataset` writes) |
 //! | `depth.png`, `disp.png` | disparity in [0, 1]: 8-bit grey / 255 or 16-bit / 65535 (as `disps/NAME.png` of a directory) |
 //! | `mask.png` | instance ids, 0 = background (as `masks/NAME.png`) |
+//! | `mpi.npz` | a whole MPI in the reference npz layout (as `mpis/NAME.npz`; at most [`SourceOptions::max_mpi_bytes`]); not resized, so it must match the image's size |
 //! | `json` | optional intrinsics `{"fx", "fy", "cx", "cy"}` in pixels of the stored image; other keys ignored |
 //!
-//! `depth.npy` wins over `depth.png` over `disp.png`. Sizes, resizing and intrinsics follow
+//! `depth.npy` wins over `disp.npy` over `depth.png` over `disp.png`. Sizes, resizing and intrinsics follow
 //! [`SourceOptions`] exactly as for a directory (the options' intrinsics win over a sample's
 //! `json`; those are scaled with a resize).
+//!
+//! A directory of shards with a `bake.json` ([`super::baked`], written by `mpiflow bake --format
+//! webdataset`) is a baked collection: its description and `GetInfo` say what it was baked with,
+//! and its fingerprint covers the bake's stage fingerprint.
 //!
 //! # Index, limits and damage
 //!
@@ -45,9 +51,10 @@
 //! fields and sizes, and the options that change what is loaded (resize, intrinsics), plus every
 //! member's bytes with [`SourceOptions::hash_contents`].
 
-use super::dir::SourceOptions;
+use super::baked::BakeManifest;
+use super::dir::{mpi_message, SourceOptions};
 use super::encoded::{decode_item, intrinsics_from_json, DepthEncoding, Encoded, EncodedItem};
-use super::{FailureKind, Fnv64, SkippedItem, Source, SourceError, SourceItem};
+use super::{Carried, FailureKind, Fnv64, SkippedItem, Source, SourceError, SourceItem};
 use crate::failure::printable;
 use std::collections::HashSet;
 use std::fs::File;
@@ -227,6 +234,7 @@ struct Entry {
     image: Member,
     depth: Option<(DepthEncoding, Member)>,
     masks: Option<Member>,
+    mpi: Option<Member>,
     json: Option<Member>,
 }
 
@@ -241,6 +249,8 @@ pub struct ShardSource {
     skipped: Vec<SkippedItem>,
     options: SourceOptions,
     fingerprint: u64,
+    /// The `bake.json` of a baked directory of shards.
+    baked: Option<BakeManifest>,
 }
 
 fn field_is(m: &Member, name: &str) -> bool {
@@ -325,6 +335,7 @@ impl ShardSource {
                 };
                 let depth = find("depth.npy")
                     .map(|m| (DepthEncoding::Npy, m))
+                    .or_else(|| find("disp.npy").map(|m| (DepthEncoding::DisparityNpy, m)))
                     .or_else(|| find("depth.png").map(|m| (DepthEncoding::DisparityPng, m)))
                     .or_else(|| find("disp.png").map(|m| (DepthEncoding::DisparityPng, m)));
                 entries.push(Entry {
@@ -334,6 +345,7 @@ impl ShardSource {
                     image,
                     depth,
                     masks: find("mask.png"),
+                    mpi: find("mpi.npz"),
                     json: find("json"),
                 });
             }
@@ -347,8 +359,17 @@ impl ShardSource {
                 if why.is_empty() { String::new() } else { format!(" ({})", why.join("; ")) }
             )));
         }
-        let mut src =
-            ShardSource { root, from_dir: prefixed, shards, entries, skipped, options: *options, fingerprint: 0 };
+        let baked = if meta.is_dir() { BakeManifest::read(path)? } else { None };
+        let mut src = ShardSource {
+            root,
+            from_dir: prefixed,
+            shards,
+            entries,
+            skipped,
+            options: *options,
+            fingerprint: 0,
+            baked,
+        };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
     }
@@ -381,7 +402,7 @@ impl ShardSource {
     /// ([`FailureKind::Decode`] for the image and JSON, `Depth`, `Mask`).
     fn read_member(&self, file: &mut File, e: &Entry, m: &Member, part: FailureKind) -> Result<Vec<u8>, SourceError> {
         let name = self.member_name(e, m);
-        let max = self.options.limits.max_bytes;
+        let max = if part == FailureKind::Mpi { self.options.max_mpi_bytes } else { self.options.limits.max_bytes };
         if m.size > max {
             let message = format!("{} bytes is larger than the limit of {max} bytes", m.size);
             return Err(SourceError::file(name, FailureKind::TooLarge, message));
@@ -410,7 +431,8 @@ impl ShardSource {
         let mut open: Option<(usize, File)> = None;
         for e in &self.entries {
             h.str(&e.id).u64(e.shard as u64);
-            let members = [Some(&e.image), e.depth.as_ref().map(|(_, m)| m), e.masks.as_ref(), e.json.as_ref()];
+            let members =
+                [Some(&e.image), e.depth.as_ref().map(|(_, m)| m), e.masks.as_ref(), e.mpi.as_ref(), e.json.as_ref()];
             for m in members.into_iter().flatten() {
                 h.str(&m.field).u64(m.size);
                 if self.options.hash_contents {
@@ -428,6 +450,13 @@ impl ShardSource {
             }
         }
         self.options.hash_into(&mut h);
+        if let Some(m) = &self.baked {
+            h.str("baked").str(&m.stage_fingerprint);
+            // f32 bakes keep the fingerprint they had before f16 was offered
+            if let Some(d) = m.mpi_dtype.as_deref().filter(|d| *d != "f32") {
+                h.str("mpi dtype").str(d);
+            }
+        }
         Ok(h.finish())
     }
 }
@@ -469,7 +498,19 @@ impl Source for ShardSource {
             }
             None => None,
         };
-        decode_item(
+        let mpi = match &e.mpi {
+            Some(m) => {
+                let bytes = self.read_member(&mut file, e, m, FailureKind::Mpi)?;
+                let name = self.member_name(e, m);
+                let bad =
+                    |err: crate::mpi::MpiError| SourceError::file(name.clone(), FailureKind::Mpi, mpi_message(err));
+                let mpi = crate::mpi::npz::load_npz_bytes_limited(&bytes, &name, self.options.max_mpi_bytes / 4)
+                    .map_err(bad)?;
+                Some(mpi)
+            }
+            None => None,
+        };
+        let mut item = decode_item(
             EncodedItem {
                 id: e.id.clone(),
                 image: Encoded { name: self.member_name(e, &e.image), bytes: &image },
@@ -478,7 +519,23 @@ impl Source for ShardSource {
                 intrinsics,
             },
             &self.options,
-        )
+        )?;
+        if let Some(m) = mpi {
+            if (m.width, m.height) != (item.image.width, item.image.height) {
+                let name = self.member_name(e, e.mpi.as_ref().expect("read above"));
+                let message = format!(
+                    "the MPI is {} x {} but its image is {} x {}{}; MPIs are not resized",
+                    m.width,
+                    m.height,
+                    item.image.width,
+                    item.image.height,
+                    if self.options.resize.is_some() { " after resizing" } else { "" }
+                );
+                return Err(SourceError::file(name, FailureKind::Mpi, message));
+            }
+            item.mpi = Some(m);
+        }
+        Ok(item)
     }
 
     fn fingerprint(&self) -> u64 {
@@ -501,5 +558,14 @@ impl Source for ShardSource {
 
     fn skipped(&self) -> Vec<SkippedItem> {
         self.skipped.clone()
+    }
+
+    fn baked_with(&self) -> Option<String> {
+        self.baked.as_ref().map(BakeManifest::describe)
+    }
+
+    fn carried(&self) -> Carried {
+        let all = |f: fn(&Entry) -> bool| self.entries.iter().all(f);
+        Carried { depth: all(|e| e.depth.is_some()), masks: all(|e| e.masks.is_some()), mpi: all(|e| e.mpi.is_some()) }
     }
 }

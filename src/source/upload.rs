@@ -197,6 +197,7 @@ impl UploadSource {
                 h.str(match enc {
                     DepthEncoding::Npy => "depth npy",
                     DepthEncoding::DisparityPng => "disparity png",
+                    DepthEncoding::DisparityNpy => "disparity npy",
                 });
                 h.u64(p.bytes.len() as u64).u64(p.hash);
             }

@@ -26,6 +26,7 @@ use crate::bench::{time_runs, Timing};
 use crate::geometry::{Intrinsics, Pose};
 use crate::io::image::{ImageError, RgbImage};
 use crate::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions, ALPHA_MAX};
+use crate::mpi::npz::{load_npz_bytes_limited, save_npz_as, MpiDtype};
 use crate::mpi::{Mpi, MpiError};
 use crate::render::{render, Fields, Mode, Occupancy, Real, RenderError, RenderOutput, RenderParams, Skip, DELTA_LAST};
 use glam::DVec3;
@@ -141,6 +142,23 @@ pub struct PrecisionRow {
     pub flow_diff: (f64, f64),
 }
 
+/// One soft MPI rendered as held (f32) and after a round trip through an `.npz` with f16
+/// colours and densities ([`crate::mpi::npz::MpiDtype::F16`], what `mpiflow bake --mpi-dtype
+/// f16` stores).
+#[derive(Clone, Debug)]
+pub struct StorageRow {
+    pub scene: String,
+    pub planes: usize,
+    pub f32: Measurement,
+    pub f16: Measurement,
+    /// (max, mean) |image from the f16 file - image from the f32 MPI|.
+    pub image_diff: (f64, f64),
+    /// (max, mean) end-point difference between the two flows.
+    pub flow_diff: (f64, f64),
+    /// Bytes of the `.npz` written with f32 and with f16.
+    pub bytes: (usize, usize),
+}
+
 #[derive(Clone, Debug)]
 pub struct ReferenceModeRow {
     pub scene: String,
@@ -178,6 +196,7 @@ pub struct AccuracyReport {
     pub rows: Vec<SweepRow>,
     pub skips: Vec<SkipRow>,
     pub precision: Vec<PrecisionRow>,
+    pub storage: Vec<StorageRow>,
     pub reference_mode: Vec<ReferenceModeRow>,
 }
 
@@ -263,6 +282,7 @@ pub fn run_accuracy(
         rows: Vec::new(),
         skips: Vec::new(),
         precision: Vec::new(),
+        storage: Vec::new(),
         reference_mode: Vec::new(),
     };
     for scene in scenes {
@@ -377,6 +397,19 @@ fn details(
         flow_diff: flow_diff(&out_none.flow, &out64.flow),
     });
     progress(&format!("{}: N={n} f32 against f64", scene.name));
+    let (f32_bytes, _) = npz_round_trip(mpi, MpiDtype::F32)?;
+    let (f16_bytes, stored) = npz_round_trip(mpi, MpiDtype::F16)?;
+    let (m16, out16) = measure::<f32>(ctx, &stored, &none_params, None, cfg.runs)?;
+    report.storage.push(StorageRow {
+        scene: scene.name.clone(),
+        planes: n,
+        f32: m_none,
+        f16: m16,
+        image_diff: abs_diff(&out16.image, &out_none.image),
+        flow_diff: flow_diff(&out16.flow, &out_none.flow),
+        bytes: (f32_bytes, f16_bytes),
+    });
+    progress(&format!("{}: N={n} MPI stored as f16", scene.name));
     let p = params_for(scene, cfg.pose, Skip::NONE, Mode::Reference);
     let (m_ref, _) = measure::<f32>(ctx, mpi, &p, None, cfg.runs)?;
     let exact = report
@@ -389,6 +422,16 @@ fn details(
     report.reference_mode.push(ReferenceModeRow { scene: scene.name.clone(), planes: n, exact, reference: m_ref });
     progress(&format!("{}: N={n} reference mode", scene.name));
     Ok(())
+}
+
+/// `mpi` written to an in-memory `.npz` with `dtype` and read back (sanitised, as a source loads
+/// it): the file's size and what a reader gets.
+fn npz_round_trip(mpi: &Mpi, dtype: MpiDtype) -> Result<(usize, Mpi), AccuracyError> {
+    let bad = |e: &dyn std::fmt::Display| AccuracyError::Invalid(format!("MPI npz round trip: {e}"));
+    let bytes = save_npz_as(mpi, std::io::Cursor::new(Vec::new()), dtype).map_err(|e| bad(&e))?.into_inner();
+    let mut back = load_npz_bytes_limited(&bytes, "round trip", u64::MAX).map_err(|e| bad(&e))?;
+    back.sanitize();
+    Ok((bytes.len(), back))
 }
 
 pub fn layering_name(l: Layering) -> &'static str {
