@@ -3,6 +3,7 @@
 //! the renderer, file formats and benchmarks; the `mpiflow` binary is a thin CLI over it.
 
 pub mod bench;
+pub mod buf;
 pub mod export;
 pub mod failure;
 pub mod geometry;

@@ -6,7 +6,7 @@ use std::path::Path;
 
 /// The levels, from the leaves up (see docs/design.md and the README's "Layout").
 const LEVELS: &[&[&str]] = &[
-    &["failure", "geometry", "hash", "rng"],
+    &["buf", "failure", "geometry", "hash", "rng"],
     &["io"],
     &["raster"],
     &["mpi"],

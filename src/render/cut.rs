@@ -53,10 +53,10 @@ pub fn render_cut<T: Real>(
     }
     let mut built = None;
     let occ = super::tile_occupancy(mpi, params, occupancy, &mut built);
-    out.image = vec![0.0; ww * wh * 3];
-    out.depth = vec![0.0; ww * wh];
-    out.coverage = vec![0.0; ww * wh];
-    out.extras = vec![0.0; ww * wh];
+    out.image = crate::buf::zeros(ww * wh * 3);
+    out.depth = crate::buf::zeros(ww * wh);
+    out.coverage = crate::buf::zeros(ww * wh);
+    out.extras = crate::buf::zeros(ww * wh);
     let stats = exact::target_view_cut::<T>(mpi, params, occ, window, cut, &mut out);
     out.stats += stats;
     out.stats.repaired += super::repair_nonfinite(&mut out);

@@ -152,7 +152,7 @@ pub(super) fn target_view<T: Real>(
     let consts: Vec<LinkConst<T>> = p.links.iter().flatten().map(|v| LinkConst::new(v, p)).collect();
     let mut links = std::mem::take(&mut out.links);
     let ww = win.width();
-    let mut fronts: Vec<Vec<f32>> = slots.iter().map(|_| vec![0.0f32; ww * win.height()]).collect();
+    let mut fronts: Vec<Vec<f32>> = slots.iter().map(|_| crate::buf::zeros::<f32>(ww * win.height())).collect();
     let stats = {
         let mut bufs: Vec<(&mut [f32], &mut [f32], &mut [f32])> = Vec::new();
         let mut lv = links.iter_mut();
@@ -519,7 +519,7 @@ pub(super) fn source_view<T: Real>(
     let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
     let mut flow = std::mem::take(&mut out.flow);
     let mut zexp = std::mem::take(&mut out.source_depth_in_target);
-    let mut front = vec![0.0f32; ww * win.height()];
+    let mut front = crate::buf::zeros::<f32>(ww * win.height());
     // the source camera's own depth, only when a link needs it (allocated by the caller)
     let mut src_depth = std::mem::take(&mut out.source_depth);
     let want_sd = !src_depth.is_empty();

@@ -354,14 +354,14 @@ pub fn render_window<T: Real>(
     let mut built = None;
     let occ = tile_occupancy(mpi, params, occupancy, &mut built);
     if fields.target {
-        out.image = vec![0.0; ww * wh * 3];
-        out.depth = vec![0.0; ww * wh];
-        out.coverage = vec![0.0; ww * wh];
-        out.extras = vec![0.0; ww * wh * c];
+        out.image = crate::buf::zeros(ww * wh * 3);
+        out.depth = crate::buf::zeros(ww * wh);
+        out.coverage = crate::buf::zeros(ww * wh);
+        out.extras = crate::buf::zeros(ww * wh * c);
         for (link, view) in out.links.iter_mut().zip(&links) {
             if view.is_some() {
-                link.flow = vec![0.0; ww * wh * 2];
-                link.depth = vec![0.0; ww * wh];
+                link.flow = crate::buf::zeros(ww * wh * 2);
+                link.depth = crate::buf::zeros(ww * wh);
             }
         }
         let stats = match params.mode {
@@ -371,11 +371,11 @@ pub fn render_window<T: Real>(
         out.stats += stats;
     }
     if fields.flow {
-        out.flow = vec![0.0; ww * wh * 2];
-        out.source_depth_in_target = vec![0.0; ww * wh];
-        out.valid = vec![0; ww * wh];
+        out.flow = crate::buf::zeros(ww * wh * 2);
+        out.source_depth_in_target = crate::buf::zeros(ww * wh);
+        out.valid = crate::buf::zeros(ww * wh);
         if links.contains(&Some(View::Source)) {
-            out.source_depth = vec![0.0; ww * wh];
+            out.source_depth = crate::buf::zeros(ww * wh);
         }
         match params.mode {
             Mode::Reference => reference::source_view::<T>(mpi, params, &mut out),
@@ -406,7 +406,7 @@ pub const OCCLUSION_TOLERANCE: f32 = 0.02;
 fn occlusion_mask(out: &RenderOutput) -> Vec<u8> {
     let (w, h) = (out.width, out.height);
     use rayon::prelude::*;
-    let mut occ = vec![0u8; w * h];
+    let mut occ = crate::buf::zeros::<u8>(w * h);
     occ.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
         for (x, o) in row.iter_mut().enumerate() {
             let i = y * w + x;
@@ -505,7 +505,7 @@ where
 pub(crate) fn mark_valid(win: &Rect, w: usize, h: usize, flow: &[f32], front_fraction: &[f32]) -> Vec<u8> {
     use rayon::prelude::*;
     let ww = win.width();
-    let mut valid = vec![0u8; ww * win.height()];
+    let mut valid = crate::buf::zeros::<u8>(ww * win.height());
     valid.par_chunks_mut(ww.max(1)).enumerate().for_each(|(ry, row)| {
         let y = win.y0 + ry;
         for (rx, v) in row.iter_mut().enumerate() {

@@ -852,8 +852,8 @@ fn dense_flow(s: &Sample, plan: &Plan, xt: &[(usize, usize, f32)], yt: &[(usize,
 fn sparse_flow(s: &Sample, plan: &Plan) -> (Vec<f32>, Vec<u8>) {
     let (ow, oh) = (plan.x.out, plan.y.out);
     let (kx, ky) = (plan.x.slope() as f32, plan.y.slope() as f32);
-    let mut flow = vec![0.0f32; 2 * ow * oh];
-    let mut valid = vec![0u8; ow * oh];
+    let mut flow = crate::buf::zeros::<f32>(2 * ow * oh);
+    let mut valid = crate::buf::zeros::<u8>(ow * oh);
     let xs: Vec<Option<usize>> = (0..s.width).map(|x| plan.x.scatter(x)).collect();
     for y in 0..s.height {
         let Some(oy) = plan.y.scatter(y) else { continue };
@@ -1015,7 +1015,7 @@ mod tests {
     /// valid except a band, and label/depth planes that name their pixel.
     fn sample(w: usize, h: usize, index: u64) -> Sample {
         let n = w * h;
-        let mut flow = vec![0.0f32; 2 * n];
+        let mut flow = crate::buf::zeros::<f32>(2 * n);
         let mut valid = vec![1u8; n];
         for y in 0..h {
             for x in 0..w {

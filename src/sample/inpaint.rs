@@ -517,7 +517,7 @@ fn paper(img: &mut [f32], w: usize, h: usize, c: usize, is_hole: &[bool], radius
     for (rank, &p) in order.iter().enumerate().filter(|_| propagate) {
         slot[p as usize] = rank as u32;
     }
-    let mut grads = vec![0.0f32; if propagate { order.len() * c * 2 } else { 0 }];
+    let mut grads = crate::buf::zeros::<f32>(if propagate { order.len() * c * 2 } else { 0 });
     let mut acc = vec![0.0f64; c * 3];
     for (rank, &p) in order.iter().enumerate() {
         let p = p as usize;

@@ -240,8 +240,8 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
     // ---- source side: mask1, flow, valid, occlusion
     // the scene's flow and valid are read and then replaced, pixel by pixel
     let (mut flow, mut valid, mut target_depth) = (flow, valid, source_depth);
-    let mut occlusion = vec![0u8; n];
-    let mut mask1 = vec![0u8; n];
+    let mut occlusion = crate::buf::zeros::<u8>(n);
+    let mut mask1 = crate::buf::zeros::<u8>(n);
     flow.par_chunks_mut(2 * w)
         .zip(valid.par_chunks_mut(w))
         .zip(occlusion.par_chunks_mut(w))
@@ -330,11 +330,11 @@ pub fn merge_target(
     let n = w * h;
     assert!(image.len() == 3 * n && depth.len() == n && scene_mask.len() == n);
     // ---- target side: image2, mask2, depth of what is shown (inf = hole), holes
-    let mut image2 = vec![0u8; 3 * n];
-    let mut mask2 = vec![0u8; n];
+    let mut image2 = crate::buf::zeros::<u8>(3 * n);
+    let mut mask2 = crate::buf::zeros::<u8>(n);
     // D_t is read and then replaced, pixel by pixel, by the depth of what image2 shows
     let mut shown_depth = depth;
-    let mut hole = vec![0u8; n];
+    let mut hole = crate::buf::zeros::<u8>(n);
     let holes: u64 = image2
         .par_chunks_mut(3 * w)
         .zip(mask2.par_chunks_mut(w))
@@ -481,9 +481,9 @@ pub fn merge_link(
     let n = w * h;
     assert!(scene.flow.len() == 2 * n && scene.depth.len() == n && scene.valid.len() == n);
     assert!(mask2.len() == n && hole.len() == n && other.depth.len() == n && other.labels.len() == n);
-    let mut flow = vec![0.0f32; 2 * n];
-    let mut valid = vec![0u8; n];
-    let mut occlusion = vec![0u8; n];
+    let mut flow = crate::buf::zeros::<f32>(2 * n);
+    let mut valid = crate::buf::zeros::<u8>(n);
+    let mut occlusion = crate::buf::zeros::<u8>(n);
     flow.par_chunks_mut(2 * w).zip(valid.par_chunks_mut(w)).zip(occlusion.par_chunks_mut(w)).enumerate().for_each(
         |(y, ((fl, va), oc))| {
             for x in 0..w {

@@ -319,7 +319,7 @@ fn assemble_merged_sample(
         [] => None,
         [one] => Some(Cow::Borrowed(&scene.masks.masks[*one].mask)),
         many => {
-            let mut u = vec![0.0f32; w * h];
+            let mut u = crate::buf::zeros::<f32>(w * h);
             for &idx in many {
                 for (a, &b) in u.iter_mut().zip(&scene.masks.masks[idx].mask) {
                     *a = a.max(b);
@@ -496,7 +496,7 @@ fn assemble_merged_sample(
     // buffer already in memory costs no page faults)
     let mut depth1 = coverage;
     if depth1.len() != w * h {
-        depth1 = vec![0.0; w * h];
+        depth1 = crate::buf::zeros(w * h);
     }
     {
         use rayon::prelude::*;
