@@ -213,6 +213,42 @@ pub fn sharpness_ratio(s: &Sample) -> Option<f64> {
     (v1 > 0.0).then(|| v2 / v1)
 }
 
+/// Immerkaer's fast noise estimate ("Fast Noise Variance Estimation", CVIU 1996): the standard
+/// deviation, in 8-bit levels, of white Gaussian noise on the luminance of an interleaved u8 RGB
+/// image, from `sqrt(pi / 2) / 6` times the mean absolute response to the mask
+/// `[1 -2 1; -2 4 -2; 1 -2 1]` (the difference of two Laplacians, which cancels every
+/// polynomial of degree two, so smooth shading adds nothing), over the interior pixels whose
+/// 3x3 neighbourhood satisfies `inside`. Edges and fine texture add to it as the estimator's
+/// known bias, the same on both images of a pair; `None` when fewer than 16 pixels qualify.
+pub fn noise_sigma(img: &[u8], w: usize, h: usize, inside: impl Fn(usize) -> bool) -> Option<f64> {
+    let lum = |i: usize| {
+        0.299 * f64::from(img[3 * i]) + 0.587 * f64::from(img[3 * i + 1]) + 0.114 * f64::from(img[3 * i + 2])
+    };
+    const M: [[f64; 3]; 3] = [[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]];
+    let (mut n, mut sum) = (0u64, 0.0f64);
+    for y in 1..h.saturating_sub(1) {
+        for x in 1..w.saturating_sub(1) {
+            let at = |dx: usize, dy: usize| (y + dy - 1) * w + x + dx - 1;
+            if !(0..9).all(|k| inside(at(k % 3, k / 3))) {
+                continue;
+            }
+            let r: f64 = (0..9).map(|k| M[k / 3][k % 3] * lum(at(k % 3, k / 3))).sum();
+            n += 1;
+            sum += r.abs();
+        }
+    }
+    (n >= 16).then(|| (std::f64::consts::FRAC_PI_2).sqrt() * sum / (6.0 * n as f64))
+}
+
+/// The noise estimates ([`noise_sigma`]) of a sample's image1 over its valid pixels and image2
+/// over its pixels that are not holes (the regions of [`sharpness_ratio`]).
+pub fn noise_pair(s: &Sample) -> Option<(f64, f64)> {
+    let (w, h) = (s.width, s.height);
+    let n1 = noise_sigma(&s.image1, w, h, |i| s.valid[i] != 0)?;
+    let n2 = noise_sigma(&s.image2, w, h, |i| s.holes[i] == 0)?;
+    Some((n1, n2))
+}
+
 /// The `q` quantile (0..1, nearest rank) of sorted values; 0 when empty.
 fn quantile(sorted: &[f32], q: f64) -> f32 {
     if sorted.is_empty() {
@@ -252,6 +288,10 @@ pub struct QualityReport {
     pub sharpness: f64,
     pub sharpness_min: f64,
     pub sharpness_max: f64,
+    /// Mean noise estimates ([`noise_pair`]) of image1 and image2, 8-bit levels (0 when no
+    /// sample has one).
+    pub noise1: f64,
+    pub noise2: f64,
 }
 
 /// Accumulates [`QualityReport`] over samples.
@@ -266,6 +306,7 @@ pub struct QualityAccumulator {
     holes: u64,
     magnitudes: Vec<f32>,
     sharpness: Vec<f64>,
+    noise: Vec<(f64, f64)>,
 }
 
 impl QualityAccumulator {
@@ -284,6 +325,7 @@ impl QualityAccumulator {
         r.lines2 += thin_line_runs(&s.image2, s.width, s.height);
         r.lines1 += thin_line_runs(&s.image1, s.width, s.height);
         self.sharpness.extend(sharpness_ratio(s));
+        self.noise.extend(noise_pair(s));
         let n = (s.width * s.height) as u64;
         self.pixels += n;
         self.holes += s.holes.iter().filter(|&&v| v != 0).count() as u64;
@@ -315,6 +357,11 @@ impl QualityAccumulator {
             r.sharpness = self.sharpness.iter().sum::<f64>() / self.sharpness.len() as f64;
             r.sharpness_min = self.sharpness.iter().copied().fold(f64::INFINITY, f64::min);
             r.sharpness_max = self.sharpness.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        }
+        if !self.noise.is_empty() {
+            let k = self.noise.len() as f64;
+            r.noise1 = self.noise.iter().map(|n| n.0).sum::<f64>() / k;
+            r.noise2 = self.noise.iter().map(|n| n.1).sum::<f64>() / k;
         }
         self.report
     }

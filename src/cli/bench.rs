@@ -201,16 +201,18 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         let run = |c: &SampleConfig| {
             quality_same_motions(p.generator(), c, q.seed, q.count).map_err(|e| CliError(e.to_string()))
         };
-        println!("| resample | sharpness img2 / img1 (min-max) | photometric | background | hole fraction | flow p50 / p95 px |");
-        println!("|---|---|---|---|---|---|");
+        println!("| resample | sharpness img2 / img1 (min-max) | noise img1 / img2 (levels) | photometric | background | hole fraction | flow p50 / p95 px |");
+        println!("|---|---|---|---|---|---|---|");
         for &resample in &kernels {
             let c = SampleConfig { max_objects: 0, resample, ..base.clone() };
             let r = run(&c)?;
             println!(
-                "| {resample} | {:.3} ({:.3}-{:.3}) | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
+                "| {resample} | {:.3} ({:.3}-{:.3}) | {:.2} / {:.2} | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
                 r.sharpness,
                 r.sharpness_min,
                 r.sharpness_max,
+                r.noise1,
+                r.noise2,
                 r.photometric,
                 r.photometric_background,
                 r.hole_fraction,
