@@ -175,14 +175,17 @@ pub fn thin_line_runs(img: &[u8], w: usize, h: usize) -> usize {
     runs
 }
 
+/// Rec. 601 luminance (0..255) of pixel `i` of an interleaved u8 RGB image.
+fn luminance(img: &[u8], i: usize) -> f64 {
+    0.299 * f64::from(img[3 * i]) + 0.587 * f64::from(img[3 * i + 1]) + 0.114 * f64::from(img[3 * i + 2])
+}
+
 /// Variance of the discrete Laplacian (`4 c - n - s - e - w` of the luminance, 0..255 units) of
 /// an interleaved u8 RGB image over the interior pixels where `inside` holds for the pixel and
 /// its four neighbours; `None` when fewer than 16 pixels qualify. The usual focus measure: it
 /// weighs the highest frequencies, which a resampling kernel loses first.
 pub fn laplacian_variance(img: &[u8], w: usize, h: usize, inside: impl Fn(usize) -> bool) -> Option<f64> {
-    let lum = |i: usize| {
-        0.299 * f64::from(img[3 * i]) + 0.587 * f64::from(img[3 * i + 1]) + 0.114 * f64::from(img[3 * i + 2])
-    };
+    let lum = |i: usize| luminance(img, i);
     let (mut n, mut sum, mut sq) = (0u64, 0.0f64, 0.0f64);
     for y in 1..h.saturating_sub(1) {
         for x in 1..w - 1 {
@@ -221,9 +224,7 @@ pub fn sharpness_ratio(s: &Sample) -> Option<f64> {
 /// 3x3 neighbourhood satisfies `inside`. Edges and fine texture add to it as the estimator's
 /// known bias, the same on both images of a pair; `None` when fewer than 16 pixels qualify.
 pub fn noise_sigma(img: &[u8], w: usize, h: usize, inside: impl Fn(usize) -> bool) -> Option<f64> {
-    let lum = |i: usize| {
-        0.299 * f64::from(img[3 * i]) + 0.587 * f64::from(img[3 * i + 1]) + 0.114 * f64::from(img[3 * i + 2])
-    };
+    let lum = |i: usize| luminance(img, i);
     const M: [[f64; 3]; 3] = [[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]];
     let (mut n, mut sum) = (0u64, 0.0f64);
     for y in 1..h.saturating_sub(1) {
