@@ -1,7 +1,21 @@
 //! The noise estimate of the quality report (`bench::quality::noise_sigma`, Immerkaer 1996):
-//! blind to smooth shading, close to the true level on Gaussian noise, empty regions refused.
+//! blind to smooth shading, close to the true level on Gaussian noise, empty regions refused;
+//! and `restore_noise` (issue 16): image2 of an RGB-D photo under lateral motion carries less
+//! noise than image1, and with the option as much, deterministically by address, changing
+//! nothing but the rendered frames' pixels.
 
-use mpiflow::bench::quality::noise_sigma;
+use std::path::Path;
+use std::sync::Arc;
+
+use mpiflow::bench::quality::{noise_sigma, quality_same_motions};
+use mpiflow::sample::motion::{Component, MotionPreset};
+use mpiflow::sample::noise::channel_sigmas;
+use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
+use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
+use mpiflow::scene::cache::SceneCache;
+use mpiflow::scene::models::ModelConfig;
+
+const REPO: &str = env!("CARGO_MANIFEST_DIR");
 
 /// A deterministic standard normal stream (splitmix64 + Box-Muller).
 fn normals(seed: u64) -> impl FnMut() -> f64 {
@@ -66,4 +80,88 @@ fn only_the_region_is_read_and_an_empty_one_is_refused() {
     assert!(left > 6.0, "left half {left}");
     assert!(noise_sigma(&img, w, h, |_| false).is_none());
     assert!(noise_sigma(&img[..3 * 2 * 2], 2, 2, |_| true).is_none());
+}
+
+/// The RGB-D photo of `examples/data` (the cat with its depth map) under a pure lateral camera
+/// translation of up to 0.05 (flows up to ~10 px), no moving object.
+fn lateral_photo(restore_noise: bool) -> (Pipeline, SampleConfig) {
+    let mut ranges = MotionPreset::Reference.ranges();
+    ranges.name = "lateral-0.05".into();
+    let law = &mut ranges.camera;
+    law.translation.x = Component::RandomSign { min: 0.0, max: 0.05 };
+    law.translation.y = Component::RandomSign { min: 0.0, max: 0.05 };
+    law.translation.z = Component::constant(0.0);
+    law.rotation.x = Component::constant(0.0);
+    law.rotation.y = Component::constant(0.0);
+    law.rotation.z = Component::constant(0.0);
+    let config = SampleConfig {
+        motion: MotionSpec::Ranges(Box::new(ranges)),
+        max_objects: 0,
+        restore_noise,
+        ..SampleConfig::default()
+    };
+    let stage = Arc::new(ModelConfig::default().build_stage().unwrap());
+    let spec = SourceSpec::Path(Path::new(REPO).join("examples/data"));
+    let source = open_source(&spec, &OpenOptions::default()).unwrap();
+    let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 28)), config.clone()).unwrap();
+    (p, config)
+}
+
+#[test]
+fn restored_noise_brings_image2_to_image1s_level() {
+    let (p, plain) = lateral_photo(false);
+    let restored = SampleConfig { restore_noise: true, ..plain.clone() };
+    // the same motions for both (the addresses of the plain configuration)
+    let a = quality_same_motions(p.generator(), &plain, 0, 4).unwrap();
+    let b = quality_same_motions(p.generator(), &restored, 0, 4).unwrap();
+    println!("noise img1 / img2: plain {:.3} / {:.3}, restored {:.3} / {:.3}", a.noise1, a.noise2, b.noise1, b.noise2);
+    println!("sharpness: plain {:.3}, restored {:.3}", a.sharpness, b.sharpness);
+    assert_eq!(a.noise1, b.noise1, "image1 is untouched");
+    assert!(a.noise2 < 0.9 * a.noise1, "the render removes noise: {} of {}", a.noise2, a.noise1);
+    assert!((b.noise2 / b.noise1 - 1.0).abs() < 0.08, "restored: {} against {}", b.noise2, b.noise1);
+    // the labels do not change, nor does the photometric consistency by more than the noise
+    assert_eq!(a.valid_fraction, b.valid_fraction);
+    assert_eq!(a.occluded_fraction, b.occluded_fraction);
+    assert!(b.photometric < a.photometric + 0.01, "{} -> {}", a.photometric, b.photometric);
+}
+
+#[test]
+fn restored_noise_is_per_channel_deterministic_and_only_in_the_rendered_frames() {
+    let (p, plain) = lateral_photo(false);
+    let restored = SampleConfig { restore_noise: true, frames: 3, ..plain.clone() };
+    let plain3 = SampleConfig { frames: 3, ..plain.clone() };
+    let g = p.generator().with_config(restored.clone()).unwrap();
+    let g0 = p.generator().with_config(plain3.clone()).unwrap();
+    // the option is part of the fingerprint, and only when set
+    assert_ne!(g.fingerprint(), g0.fingerprint());
+    assert!(!serde_json::to_string(&plain).unwrap().contains("restore_noise"));
+    let s = g.sample(0, 1).unwrap();
+    let again = g.sample(0, 1).unwrap();
+    assert_eq!(s.image2, again.image2, "the same address gives the same bytes");
+    assert_eq!(s.clip[0].image, again.clip[0].image);
+    assert_ne!(s.image2, g.sample(0, 2).unwrap().image2);
+    // against the plain render of the same motion: only image2 and the later frames' pixels move
+    let scene = g.scene(g.source_item(1).unwrap()).unwrap();
+    let plain_s = mpiflow::sample::recipe::assemble(&scene, s.address, &plain3).unwrap();
+    assert_eq!(s.image1, plain_s.image1);
+    assert_eq!(s.flow, plain_s.flow);
+    assert_eq!(s.valid, plain_s.valid);
+    assert_eq!(s.occlusion, plain_s.occlusion);
+    assert_eq!(s.holes, plain_s.holes);
+    assert_eq!(s.camera, plain_s.camera);
+    let (w, h) = (s.width, s.height);
+    let frames = [(&s.image2, &plain_s.image2, &s.holes), (&s.clip[0].image, &plain_s.clip[0].image, &s.clip[0].holes)];
+    let want = channel_sigmas(&s.image1, w, h, |_| true).unwrap();
+    for (k, (noisy, clean, holes)) in frames.into_iter().enumerate() {
+        assert_ne!(noisy, clean, "frame {k} got noise");
+        let mean_diff: f64 = noisy.iter().zip(clean.iter()).map(|(&a, &b)| f64::from(a) - f64::from(b)).sum::<f64>()
+            / noisy.len() as f64;
+        assert!(mean_diff.abs() < 0.05, "frame {k}: zero-mean noise, mean shift {mean_diff}");
+        let got = channel_sigmas(noisy, w, h, |i| holes[i] == 0).unwrap();
+        let before = channel_sigmas(clean, w, h, |i| holes[i] == 0).unwrap();
+        for c in 0..3 {
+            assert!(before[c] < want[c], "frame {k} channel {c}: {} >= {}", before[c], want[c]);
+            assert!((got[c] / want[c] - 1.0).abs() < 0.08, "frame {k} channel {c}: {} against {}", got[c], want[c]);
+        }
+    }
 }

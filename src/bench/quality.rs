@@ -216,30 +216,7 @@ pub fn sharpness_ratio(s: &Sample) -> Option<f64> {
     (v1 > 0.0).then(|| v2 / v1)
 }
 
-/// Immerkaer's fast noise estimate ("Fast Noise Variance Estimation", CVIU 1996): the standard
-/// deviation, in 8-bit levels, of white Gaussian noise on the luminance of an interleaved u8 RGB
-/// image, from `sqrt(pi / 2) / 6` times the mean absolute response to the mask
-/// `[1 -2 1; -2 4 -2; 1 -2 1]` (the difference of two Laplacians, which cancels every
-/// polynomial of degree two, so smooth shading adds nothing), over the interior pixels whose
-/// 3x3 neighbourhood satisfies `inside`. Edges and fine texture add to it as the estimator's
-/// known bias, the same on both images of a pair; `None` when fewer than 16 pixels qualify.
-pub fn noise_sigma(img: &[u8], w: usize, h: usize, inside: impl Fn(usize) -> bool) -> Option<f64> {
-    let lum = |i: usize| luminance(img, i);
-    const M: [[f64; 3]; 3] = [[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]];
-    let (mut n, mut sum) = (0u64, 0.0f64);
-    for y in 1..h.saturating_sub(1) {
-        for x in 1..w.saturating_sub(1) {
-            let at = |dx: usize, dy: usize| (y + dy - 1) * w + x + dx - 1;
-            if !(0..9).all(|k| inside(at(k % 3, k / 3))) {
-                continue;
-            }
-            let r: f64 = (0..9).map(|k| M[k / 3][k % 3] * lum(at(k % 3, k / 3))).sum();
-            n += 1;
-            sum += r.abs();
-        }
-    }
-    (n >= 16).then(|| (std::f64::consts::FRAC_PI_2).sqrt() * sum / (6.0 * n as f64))
-}
+pub use crate::sample::noise::noise_sigma;
 
 /// The noise estimates ([`noise_sigma`]) of a sample's image1 over its valid pixels and image2
 /// over its pixels that are not holes (the regions of [`sharpness_ratio`]).
@@ -278,10 +255,13 @@ pub struct QualityReport {
     pub valid_fraction: f64,
     /// Valid and occluded pixels, as a fraction of all pixels.
     pub occluded_fraction: f64,
-    /// Flow magnitude percentiles (p5, p50, p95) over valid pixels, in pixels.
+    /// Flow magnitude percentiles (p5, p50, p95, p99) and the largest magnitude over valid
+    /// pixels, in pixels.
     pub flow_p5: f32,
     pub flow_p50: f32,
     pub flow_p95: f32,
+    pub flow_p99: f32,
+    pub flow_max: f32,
     /// Fraction of valid pixels moving less than 1 px.
     pub below_1px: f64,
     /// The sharpness ratio ([`sharpness_ratio`]): mean, smallest and largest over the samples
@@ -352,6 +332,8 @@ impl QualityAccumulator {
         r.flow_p5 = quantile(&self.magnitudes, 0.05);
         r.flow_p50 = quantile(&self.magnitudes, 0.5);
         r.flow_p95 = quantile(&self.magnitudes, 0.95);
+        r.flow_p99 = quantile(&self.magnitudes, 0.99);
+        r.flow_max = self.magnitudes.last().copied().unwrap_or(0.0);
         let below = self.magnitudes.partition_point(|&m| m < 1.0);
         r.below_1px = frac(below as u64, self.magnitudes.len() as u64);
         if !self.sharpness.is_empty() {

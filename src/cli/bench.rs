@@ -61,6 +61,10 @@ pub struct QualityBench {
     /// ratio image2 / image1 with its range, photometric error, hole fraction, flow p50 / p95).
     #[arg(long)]
     sharpness: bool,
+    /// Restore image1's noise level in image2 (`restore_noise`). With --sharpness: each kernel
+    /// also gets a row with the noise restored.
+    #[arg(long)]
+    restore_noise: bool,
 }
 
 #[derive(Args, Debug)]
@@ -98,6 +102,10 @@ pub struct SampleBench {
     /// Also make the backward fields (flow image2 -> image1 and its masks).
     #[arg(long)]
     backward: bool,
+    /// Restore image1's noise level in image2 (`restore_noise`; its time is part of the
+    /// inpaint stage).
+    #[arg(long)]
+    restore_noise: bool,
 }
 
 #[derive(Args, Debug)]
@@ -191,6 +199,9 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         base.motion = MotionSpec::Ranges(Box::new(ranges));
         motion = format!("lateral (|tx|, |ty| <= {t}, no tz, no rotation)");
     }
+    if !q.sharpness {
+        base.restore_noise = q.restore_noise;
+    }
     let kernels = if q.resample.is_empty() { vec![base.resample] } else { q.resample.clone() };
     let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
         .map_err(|e| CliError(e.to_string()))?;
@@ -203,11 +214,13 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         };
         println!("| resample | sharpness img2 / img1 (min-max) | noise img1 / img2 (levels) | photometric | background | hole fraction | flow p50 / p95 px |");
         println!("|---|---|---|---|---|---|---|");
-        for &resample in &kernels {
-            let c = SampleConfig { max_objects: 0, resample, ..base.clone() };
+        let noise = if q.restore_noise { vec![false, true] } else { vec![false] };
+        for (&resample, restore_noise) in kernels.iter().flat_map(|k| noise.iter().map(move |&n| (k, n))) {
+            let c = SampleConfig { max_objects: 0, resample, restore_noise, ..base.clone() };
             let r = run(&c)?;
+            let name = if restore_noise { format!("{resample} + noise") } else { resample.to_string() };
             println!(
-                "| {resample} | {:.3} ({:.3}-{:.3}) | {:.2} / {:.2} | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
+                "| {name} | {:.3} ({:.3}-{:.3}) | {:.2} / {:.2} | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
                 r.sharpness,
                 r.sharpness_min,
                 r.sharpness_max,
@@ -223,7 +236,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         return Ok(());
     }
     println!(
-        "| resample | merge | fill | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | sharpness | valid | occluded | flow p5 / p50 / p95 px | < 1 px |"
+        "| resample | merge | fill | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | sharpness | valid | occluded | flow p5 / p50 / p95 / p99 / max px | < 1 px |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     let pct = |r: &QualityReport, n: u64| format!("{:.3}%", 100.0 * r.laws.rate(n));
@@ -245,7 +258,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
                 };
                 let r = run(&c)?;
                 println!(
-                    "| {resample} | {} | {background} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} | {:.2}% |",
+                    "| {resample} | {} | {background} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} / {:.1} / {:.1} | {:.2}% |",
                     match merge {
                         MergeRule::DepthAware => "depth-aware",
                         MergeRule::Reference => "reference",
@@ -270,6 +283,8 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
                     r.flow_p5,
                     r.flow_p50,
                     r.flow_p95,
+                    r.flow_p99,
+                    r.flow_max,
                     100.0 * r.below_1px
                 );
             }
@@ -392,6 +407,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             max_objects: usize::from(object),
             frames: b.frames as usize,
             backward: b.backward,
+            restore_noise: b.restore_noise,
             ..SampleConfig::with_preset(b.preset)
         };
         let cfg = SampleBenchConfig {
@@ -406,7 +422,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         };
         let r = pool.install(|| bench_sample(&cfg))?;
         println!(
-            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}:",
+            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}{}:",
             b.width,
             b.height,
             b.planes,
@@ -416,7 +432,8 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             b.preset,
             if b.full_frame { "full-frame object renders" } else { "windowed object renders" },
             b.frames,
-            if b.backward { ", backward fields" } else { "" }
+            if b.backward { ", backward fields" } else { "" },
+            if b.restore_noise { ", noise restored" } else { "" }
         );
         println!(
             "median {:.1} ms (min {:.1}, max {:.1}) over {} samples, {threads} threads; median {} holes inpainted",

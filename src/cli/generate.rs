@@ -79,6 +79,10 @@ pub struct GenerateArgs {
     /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
     #[arg(long, value_name = "KERNEL", default_value_t = mpiflow::render::Resample::default())]
     resample: mpiflow::render::Resample,
+    /// Restore image1's sensor-noise level in image2 and the later frames (per channel, the
+    /// variance the render lost; deterministic by address; part of the fingerprint).
+    #[arg(long)]
+    restore_noise: bool,
     /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
@@ -213,6 +217,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         merge: a.merge,
         label_rule: a.label_rule,
         background: a.background,
+        restore_noise: a.restore_noise,
         motions_per_image: a.motions_per_image,
         frames: a.frames as usize,
         backward: a.backward,

@@ -124,6 +124,12 @@ pub struct SampleConfig {
     /// Colour kernel of the exact-mode target renders ([`crate::render::resample`]; the
     /// reference mode is always bilinear). Default `bspline3` (measurements in docs/quality.md).
     pub resample: Resample,
+    /// Restore image1's sensor-noise level in image2 and every later frame
+    /// ([`super::noise`]: per channel, the variance the render lost, deterministic by address).
+    /// Default false; part of the fingerprint when true (so samples keep the addresses they had
+    /// before the option).
+    #[serde(skip_serializing_if = "is_false")]
+    pub restore_noise: bool,
 }
 
 /// Fewest frames per sample (a pair).
@@ -134,6 +140,11 @@ pub const MAX_FRAMES: usize = 8;
 #[allow(clippy::trivially_copy_pass_by_ref)]
 fn is_inpaint(b: &Background) -> bool {
     *b == Background::Inpaint
+}
+
+#[allow(clippy::trivially_copy_pass_by_ref)]
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 fn is_pair(frames: &usize) -> bool {
@@ -162,6 +173,7 @@ impl Default for SampleConfig {
             frames: MIN_FRAMES,
             backward: false,
             resample: Resample::default(),
+            restore_noise: false,
         }
     }
 }

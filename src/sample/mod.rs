@@ -8,6 +8,7 @@ pub mod holes;
 pub mod inpaint;
 pub mod merge;
 pub mod motion;
+pub mod noise;
 pub mod object;
 pub mod pipeline;
 pub mod preblend;

@@ -230,6 +230,13 @@ pub fn assemble_with_target_depth(
             inpaint_holes(&mut f.image, w, h, &f.holes, config.inpaint_method, config.inpaint_radius, true);
         }
     }
+    if config.restore_noise {
+        let key = super::noise::noise_key(sample.address);
+        super::noise::restore_noise(&sample.image1, &mut sample.image2, &sample.holes, w, h, key, 1);
+        for (k, f) in sample.clip.iter_mut().enumerate() {
+            super::noise::restore_noise(&sample.image1, &mut f.image, &f.holes, w, h, key, k as u64 + 2);
+        }
+    }
     sample.timings.inpaint_ms = ms(t);
     sample.timings.total_ms = ms(start);
     Ok((sample, target_depth))

@@ -316,6 +316,7 @@ impl ServiceConfig {
                 "MAX_OBJECTS" => self.sample.max_objects = env_parse(&key, &value)?,
                 "MOTIONS_PER_IMAGE" => self.sample.motions_per_image = env_parse(&key, &value)?,
                 "RESAMPLE" => self.sample.resample = env_parse(&key, &value)?,
+                "RESTORE_NOISE" => self.sample.restore_noise = env_parse(&key, &value)?,
                 "HEALTH_ADDR" => {
                     self.health_addr = (!value.trim().is_empty()).then(|| value.trim().to_string());
                 }
