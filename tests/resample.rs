@@ -231,3 +231,60 @@ fn higher_order_kernels_keep_a_photos_detail_under_lateral_translation() {
     assert!(mean["bspline5"] > mean["bspline3"] && mean["bspline5"] > 0.72, "{mean:?}");
     assert!(mean["lanczos3"] > 0.67, "{mean:?}");
 }
+
+/// The ideal warp of the quality report (`bench::quality::ideal_warp_sharpness`): image1's
+/// quintic B-spline interpolates the photo (its value at every pixel centre is the pixel's), and a
+/// sample whose camera does not move warps image1 to itself, so both ratios, the ideal warp's and
+/// image2's over the same pixels, are 1.
+#[test]
+fn the_ideal_warp_interpolates_and_an_unmoved_camera_keeps_every_detail() {
+    use mpiflow::bench::quality::ideal_warp_sharpness;
+    use mpiflow::render::resample::SplineImage;
+    use mpiflow::sample::motion::{Component, MotionPreset};
+    use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
+    use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
+    use mpiflow::scene::cache::SceneCache;
+    use mpiflow::scene::models::ModelConfig;
+    use std::sync::Arc;
+
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let photo = load_rgb(&root.join("examples/photos/coffee.png"), &ImageLimits::default()).unwrap();
+    let (w, h) = (photo.width, photo.height);
+    let spline = SplineImage::new(&photo.data, w, h);
+    for (x, y) in [(0, 0), (w - 1, h - 1), (17, 3), (w / 2, h / 3), (5, h - 2)] {
+        let got = spline.sample(x as f32, y as f32);
+        for c in 0..3 {
+            let want = photo.data[3 * (y * w + x) + c];
+            assert!((got[c] - want).abs() < 1e-4, "({x}, {y}) channel {c}: {} against {want}", got[c]);
+        }
+    }
+
+    let mut still = MotionPreset::Reference.ranges();
+    still.name = "still".into();
+    for law in [&mut still.camera, &mut still.object] {
+        for c in [
+            &mut law.translation.x,
+            &mut law.translation.y,
+            &mut law.translation.z,
+            &mut law.rotation.x,
+            &mut law.rotation.y,
+            &mut law.rotation.z,
+        ] {
+            *c = Component::constant(0.0);
+        }
+    }
+    let config = SampleConfig {
+        motion: MotionSpec::Ranges(Box::new(still)),
+        max_objects: 0,
+        backward: true,
+        ..SampleConfig::default()
+    };
+    let stage = Arc::new(ModelConfig::default().build_stage().unwrap());
+    let source = open_source(&SourceSpec::Path(root.join("examples/data")), &OpenOptions::default()).unwrap();
+    let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 28)), config).unwrap();
+    let s = p.generator().sample(0, 0).unwrap();
+    let (ideal, image2) = ideal_warp_sharpness(&s).unwrap();
+    println!("unmoved camera: ideal warp {ideal:.4}, image2 {image2:.4}");
+    assert!((ideal - 1.0).abs() < 1e-3, "ideal warp {ideal}");
+    assert!((image2 - 1.0).abs() < 0.05, "image2 {image2}");
+}

@@ -218,6 +218,40 @@ pub fn sharpness_ratio(s: &Sample) -> Option<f64> {
 
 pub use crate::sample::noise::noise_sigma;
 
+/// The sharpness ratios, over the same pixels, of image1 warped *ideally* by the sample's geometry
+/// and of image2 itself: `(ideal, image2)`, each the [`laplacian_variance`] over the image2 pixels
+/// whose backward flow is valid and that are not holes, divided by image1's over its valid
+/// pixels (as [`sharpness_ratio`]). The ideal warp samples image1's quintic B-spline
+/// ([`crate::render::resample::SplineImage`]) at `q + backward_flow(q)`: what a high-order
+/// reconstruction of the photo by the same geometry keeps, so the gap between the two is the
+/// render's own loss (its kernel, the planes' blend) and `1 - ideal` is the geometry's
+/// (magnification). Needs the backward fields (`None` without them or when a region is empty).
+pub fn ideal_warp_sharpness(s: &Sample) -> Option<(f64, f64)> {
+    let (w, h) = (s.width, s.height);
+    let bw = &s.backward;
+    if bw.flow.len() != 2 * w * h || bw.valid.len() != w * h {
+        return None;
+    }
+    let rgb: Vec<f32> = s.image1.iter().map(|&v| f32::from(v) / 255.0).collect();
+    let spline = crate::render::resample::SplineImage::new(&rgb, w, h);
+    let mut ideal = vec![0u8; 3 * w * h];
+    for i in 0..w * h {
+        if bw.valid[i] == 0 {
+            continue;
+        }
+        let (x, y) = ((i % w) as f32 + bw.flow[2 * i], (i / w) as f32 + bw.flow[2 * i + 1]);
+        let c = spline.sample(x, y);
+        for k in 0..3 {
+            ideal[3 * i + k] = (c[k] * 255.0 + 0.5).clamp(0.0, 255.0) as u8;
+        }
+    }
+    let v1 = laplacian_variance(&s.image1, w, h, |i| s.valid[i] != 0)?;
+    let region = |i: usize| bw.valid[i] != 0 && s.holes[i] == 0;
+    let vi = laplacian_variance(&ideal, w, h, region)?;
+    let v2 = laplacian_variance(&s.image2, w, h, region)?;
+    (v1 > 0.0).then(|| (vi / v1, v2 / v1))
+}
+
 /// The noise estimates ([`noise_sigma`]) of a sample's image1 over its valid pixels and image2
 /// over its pixels that are not holes (the regions of [`sharpness_ratio`]).
 pub fn noise_pair(s: &Sample) -> Option<(f64, f64)> {
@@ -273,6 +307,10 @@ pub struct QualityReport {
     /// sample has one).
     pub noise1: f64,
     pub noise2: f64,
+    /// Means over the samples with backward fields of [`ideal_warp_sharpness`]: image1 warped
+    /// ideally, and image2 over the same pixels (0 when no sample has them).
+    pub ideal_sharpness: f64,
+    pub ideal_image2_sharpness: f64,
 }
 
 /// Accumulates [`QualityReport`] over samples.
@@ -288,6 +326,7 @@ pub struct QualityAccumulator {
     magnitudes: Vec<f32>,
     sharpness: Vec<f64>,
     noise: Vec<(f64, f64)>,
+    ideal: Vec<(f64, f64)>,
 }
 
 impl QualityAccumulator {
@@ -307,6 +346,7 @@ impl QualityAccumulator {
         r.lines1 += thin_line_runs(&s.image1, s.width, s.height);
         self.sharpness.extend(sharpness_ratio(s));
         self.noise.extend(noise_pair(s));
+        self.ideal.extend(ideal_warp_sharpness(s));
         let n = (s.width * s.height) as u64;
         self.pixels += n;
         self.holes += s.holes.iter().filter(|&&v| v != 0).count() as u64;
@@ -340,6 +380,11 @@ impl QualityAccumulator {
             r.sharpness = self.sharpness.iter().sum::<f64>() / self.sharpness.len() as f64;
             r.sharpness_min = self.sharpness.iter().copied().fold(f64::INFINITY, f64::min);
             r.sharpness_max = self.sharpness.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        }
+        if !self.ideal.is_empty() {
+            let k = self.ideal.len() as f64;
+            r.ideal_sharpness = self.ideal.iter().map(|v| v.0).sum::<f64>() / k;
+            r.ideal_image2_sharpness = self.ideal.iter().map(|v| v.1).sum::<f64>() / k;
         }
         if !self.noise.is_empty() {
             let k = self.noise.len() as f64;

@@ -61,6 +61,10 @@ pub struct QualityBench {
     /// ratio image2 / image1 with its range, photometric error, hole fraction, flow p50 / p95).
     #[arg(long)]
     sharpness: bool,
+    /// Every row on the same motions (the addresses of the default configuration of the
+    /// preset) instead of each configuration's own draws: a paired comparison of the rules.
+    #[arg(long)]
+    same_motions: bool,
     /// Restore image1's noise level in image2 (`restore_noise`). With --sharpness: each kernel
     /// also gets a row with the noise restored.
     #[arg(long)]
@@ -205,25 +209,41 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     let kernels = if q.resample.is_empty() { vec![base.resample] } else { q.resample.clone() };
     let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
         .map_err(|e| CliError(e.to_string()))?;
-    println!("{}; {} samples per row, seed {}, motion {motion}", p.describe(), q.count, q.seed);
-    let run = |c: &SampleConfig| quality(p.generator(), c, q.seed, q.count).map_err(|e| CliError(e.to_string()));
+    println!(
+        "{}; {} samples per row, seed {}, motion {motion}{}",
+        p.describe(),
+        q.count,
+        q.seed,
+        if q.same_motions { ", every row on the same motions" } else { "" }
+    );
+    let run = |c: &SampleConfig| {
+        if q.same_motions {
+            quality_same_motions(p.generator(), c, q.seed, q.count)
+        } else {
+            quality(p.generator(), c, q.seed, q.count)
+        }
+        .map_err(|e| CliError(e.to_string()))
+    };
     if q.sharpness {
         // every kernel on the same motions (the addresses of the base configuration)
         let run = |c: &SampleConfig| {
             quality_same_motions(p.generator(), c, q.seed, q.count).map_err(|e| CliError(e.to_string()))
         };
-        println!("| resample | sharpness img2 / img1 (min-max) | noise img1 / img2 (levels) | photometric | background | hole fraction | flow p50 / p95 px |");
-        println!("|---|---|---|---|---|---|---|");
+        println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | noise img1 / img2 (levels) | photometric | background | hole fraction | flow p50 / p95 px |");
+        println!("|---|---|---|---|---|---|---|---|");
         let noise = if q.restore_noise { vec![false, true] } else { vec![false] };
         for (&resample, restore_noise) in kernels.iter().flat_map(|k| noise.iter().map(move |&n| (k, n))) {
-            let c = SampleConfig { max_objects: 0, resample, restore_noise, ..base.clone() };
+            // the backward fields only add outputs (the ideal warp's geometry), no other byte
+            let c = SampleConfig { max_objects: 0, resample, restore_noise, backward: true, ..base.clone() };
             let r = run(&c)?;
             let name = if restore_noise { format!("{resample} + noise") } else { resample.to_string() };
             println!(
-                "| {name} | {:.3} ({:.3}-{:.3}) | {:.2} / {:.2} | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
+                "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.2} / {:.2} | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
                 r.sharpness,
                 r.sharpness_min,
                 r.sharpness_max,
+                r.ideal_sharpness,
+                r.ideal_image2_sharpness,
                 r.noise1,
                 r.noise2,
                 r.photometric,

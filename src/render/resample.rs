@@ -246,6 +246,38 @@ pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
     acc.map(|v| v.max(T::zero()).min(T::one()))
 }
 
+/// A still RGB image as a quintic B-spline that can be sampled anywhere: the high-order
+/// reference warp of the quality report (image1 resampled "ideally" by a sample's geometry, to
+/// separate what the colour kernel loses from what the geometry does; `bench::quality`). The
+/// same prefilter and kernel as [`Resample::Bspline5`].
+pub struct SplineImage {
+    coefficients: Vec<f32>,
+    width: usize,
+    height: usize,
+}
+
+impl SplineImage {
+    /// `rgb`: interleaved RGB in [0, 1], `width` x `height` (both at least 1).
+    ///
+    /// # Panics
+    /// If `rgb` is not `3 width height` values long.
+    pub fn new(rgb: &[f32], width: usize, height: usize) -> Self {
+        assert_eq!(rgb.len(), 3 * width * height, "SplineImage: buffer size");
+        let mut mpi = Mpi::new(width, height, vec![1.0], 0);
+        for (d, s) in mpi.plane_rgba_mut(0).chunks_exact_mut(4).zip(rgb.chunks_exact(3)) {
+            d[..3].copy_from_slice(s);
+        }
+        Self { coefficients: bspline_coefficients(&mpi, 5), width, height }
+    }
+
+    /// The colour at `(x, y)` (clamped to the frame), each channel clamped to [0, 1].
+    pub fn sample(&self, x: f32, y: f32) -> [f32; 3] {
+        let x = x.clamp(0.0, (self.width - 1) as f32);
+        let y = y.clamp(0.0, (self.height - 1) as f32);
+        sample_rgb::<f32, Bspline5, 6, 3>(&self.coefficients, x, y, self.width, self.height)
+    }
+}
+
 /// Computes the B-spline coefficients `resample` needs (if any, and if `mpi` does not hold them
 /// already) and keeps them in [`Mpi::bspline_rgb`].
 pub fn prefilter(mpi: &mut Mpi, resample: Resample) {
