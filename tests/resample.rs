@@ -253,9 +253,9 @@ fn the_ideal_warp_interpolates_and_an_unmoved_camera_keeps_every_detail() {
     let spline = SplineImage::new(&photo.data, w, h);
     for (x, y) in [(0, 0), (w - 1, h - 1), (17, 3), (w / 2, h / 3), (5, h - 2)] {
         let got = spline.sample(x as f32, y as f32);
-        for c in 0..3 {
+        for (c, g) in got.iter().enumerate() {
             let want = photo.data[3 * (y * w + x) + c];
-            assert!((got[c] - want).abs() < 1e-4, "({x}, {y}) channel {c}: {} against {want}", got[c]);
+            assert!((g - want).abs() < 1e-4, "({x}, {y}) channel {c}: {g} against {want}");
         }
     }
 
