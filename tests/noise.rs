@@ -134,7 +134,11 @@ fn restored_noise_is_per_channel_deterministic_and_only_in_the_rendered_frames()
     let g0 = p.generator().with_config(plain3.clone()).unwrap();
     // the option is part of the fingerprint, and only when set
     assert_ne!(g.fingerprint(), g0.fingerprint());
-    assert!(!serde_json::to_string(&plain).unwrap().contains("restore_noise"));
+    let json = serde_json::to_string(&plain).unwrap();
+    assert!(!json.contains("restore_noise") && !json.contains("minify"), "{json}");
+    // so is the minification option (issue 16, item 2)
+    let minify = p.generator().with_config(SampleConfig { minify: true, ..plain3.clone() }).unwrap();
+    assert_ne!(minify.fingerprint(), g0.fingerprint());
     let s = g.sample(0, 1).unwrap();
     let again = g.sample(0, 1).unwrap();
     assert_eq!(s.image2, again.image2, "the same address gives the same bytes");

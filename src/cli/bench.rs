@@ -110,6 +110,9 @@ pub struct SampleBench {
     /// inpaint stage).
     #[arg(long)]
     restore_noise: bool,
+    /// Alias-free minification of the target renders (`minify`).
+    #[arg(long)]
+    minify: bool,
 }
 
 #[derive(Args, Debug)]
@@ -428,6 +431,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             frames: b.frames as usize,
             backward: b.backward,
             restore_noise: b.restore_noise,
+            minify: b.minify,
             ..SampleConfig::with_preset(b.preset)
         };
         let cfg = SampleBenchConfig {
@@ -442,7 +446,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         };
         let r = pool.install(|| bench_sample(&cfg))?;
         println!(
-            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}{}:",
+            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}{}{}:",
             b.width,
             b.height,
             b.planes,
@@ -453,7 +457,8 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             if b.full_frame { "full-frame object renders" } else { "windowed object renders" },
             b.frames,
             if b.backward { ", backward fields" } else { "" },
-            if b.restore_noise { ", noise restored" } else { "" }
+            if b.restore_noise { ", noise restored" } else { "" },
+            if b.minify { ", minify" } else { "" }
         );
         println!(
             "median {:.1} ms (min {:.1}, max {:.1}) over {} samples, {threads} threads; median {} holes inpainted",

@@ -83,6 +83,10 @@ pub struct GenerateArgs {
     /// variance the render lost; deterministic by address; part of the fingerprint).
     #[arg(long)]
     restore_noise: bool,
+    /// Alias-free minification: planes the view shrinks are sampled from prefiltered levels
+    /// (part of the fingerprint).
+    #[arg(long)]
+    minify: bool,
     /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
@@ -218,6 +222,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         label_rule: a.label_rule,
         background: a.background,
         restore_noise: a.restore_noise,
+        minify: a.minify,
         motions_per_image: a.motions_per_image,
         frames: a.frames as usize,
         backward: a.backward,

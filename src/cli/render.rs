@@ -55,6 +55,10 @@ pub struct RenderArgs {
     /// (density and masks stay bilinear; the reference mode is always bilinear).
     #[arg(long, default_value_t = Resample::default())]
     resample: Resample,
+    /// Alias-free minification of the exact-mode target view (planes the view shrinks are
+    /// sampled from prefiltered levels).
+    #[arg(long)]
+    minify: bool,
     /// Output directory (created if missing).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
@@ -135,6 +139,7 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
         skip: if a.mode == Mode::Exact { Skip::DEFAULT } else { Skip::NONE },
         links: [None, None],
         resample: a.resample,
+        minify: a.minify,
     };
     let out = render::<f32>(&mpi, &params, None)?;
     if out.stats.repaired > 0 {

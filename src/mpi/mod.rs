@@ -67,6 +67,38 @@ pub struct Mpi {
     /// as it was when they were computed: whoever changes the colours afterwards must drop them
     /// (the renderer computes its own when they are missing or of another degree).
     pub bspline_rgb: Option<BsplineRgb>,
+    /// Prefiltered levels of every plane's colour for alias-free minification
+    /// (`render::mip`); None until a scene is prepared for it. Like [`Self::bspline_rgb`], they
+    /// describe `rgba` as it was when they were computed.
+    pub mip: Option<std::sync::Arc<MipLevels>>,
+}
+
+/// One prefiltered level of a plane ([`MipLevels`]): colour (interleaved RGB) and density,
+/// `width` x `height`.
+#[derive(Clone, Debug)]
+pub struct MipLevel {
+    pub rgb: Vec<f32>,
+    pub sigma: Vec<f32>,
+    pub width: usize,
+    pub height: usize,
+}
+
+/// Levels 1, 2, ... of every plane (`planes[i][l - 1]` is level `l` of plane `i`; a plane may
+/// hold fewer levels than another, or none).
+#[derive(Clone, Debug, Default)]
+pub struct MipLevels {
+    pub planes: Vec<Vec<MipLevel>>,
+}
+
+impl MipLevels {
+    /// Values held (floats).
+    pub fn len(&self) -> usize {
+        self.planes.iter().flatten().map(|l| l.rgb.len() + l.sigma.len()).sum()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
 }
 
 /// Prefiltered colour of an MPI ([`Mpi::bspline_rgb`]).
@@ -92,6 +124,7 @@ impl Mpi {
             intrinsics: None,
             pose: None,
             bspline_rgb: None,
+            mip: None,
         }
     }
 
@@ -113,6 +146,7 @@ impl Mpi {
     /// Plane `i`'s data for a change; drops the prefiltered coefficients ([`Self::bspline_rgb`]).
     pub fn plane_rgba_mut(&mut self, i: usize) -> &mut [f32] {
         self.bspline_rgb = None;
+        self.mip = None;
         let n = self.plane_len() * 4;
         &mut self.rgba[i * n..(i + 1) * n]
     }
@@ -125,7 +159,11 @@ impl Mpi {
 
     /// Bytes held by the plane data.
     pub fn byte_size(&self) -> usize {
-        (self.rgba.len() + self.extras.len() + self.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.len())) * 4
+        (self.rgba.len()
+            + self.extras.len()
+            + self.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.len())
+            + self.mip.as_ref().map_or(0, |m| m.len()))
+            * 4
     }
 
     /// Structural checks: sizes agree, at least one plane, disparities finite, >= 0 and

@@ -28,6 +28,7 @@
 //! channels are sampled per plane from the MPI or from one H x W mask shared by every plane
 //! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
 
+use super::mip::{mip_planes, missing_levels, plane_lods, MipPlane};
 use super::occupancy::Occupancy;
 use super::resample::{bspline_coefficients, sample_rgb, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample};
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
@@ -67,6 +68,8 @@ trait PlaneSampler<T: Real>: Sync {
 /// Bilinear colour and density (the reference's arithmetic, channel by channel).
 struct Bilinear<'a> {
     rgba: Vec<&'a [f32]>,
+    /// the pyramids of the minified planes (empty: none; [`super::mip`])
+    mip: &'a [Option<MipPlane<'a>>],
 }
 
 impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
@@ -76,8 +79,12 @@ impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
     }
 
     #[inline(always)]
-    fn colour(&self, tap: &Tap<T>, _: T, _: T, i: usize, _: T) -> [T; 3] {
-        [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k))
+    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, _: T) -> [T; 3] {
+        let base = || [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k));
+        match self.mip.get(i) {
+            Some(Some(m)) => m.colour(qx, qy, base),
+            _ => base(),
+        }
     }
 }
 
@@ -94,6 +101,8 @@ struct HighOrder<'a, K, const N: usize, const S: usize> {
     w: usize,
     h: usize,
     kernel: std::marker::PhantomData<K>,
+    /// the pyramids of the minified planes (empty: none; [`super::mip`])
+    mip: &'a [Option<MipPlane<'a>>],
 }
 
 impl<T: Real, K: Kernel<N>, const N: usize, const S: usize> PlaneSampler<T> for HighOrder<'_, K, N, S> {
@@ -104,10 +113,16 @@ impl<T: Real, K: Kernel<N>, const N: usize, const S: usize> PlaneSampler<T> for 
 
     #[inline(always)]
     fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
-        if wgt < T::of32(KERNEL_MIN_WEIGHT) {
-            return [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k));
+        let base = || {
+            if wgt < T::of32(KERNEL_MIN_WEIGHT) {
+                return [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k));
+            }
+            sample_rgb::<T, K, N, S>(self.src[i], qx, qy, self.w, self.h)
+        };
+        match self.mip.get(i) {
+            Some(Some(m)) => m.colour(qx, qy, base),
+            _ => base(),
         }
-        sample_rgb::<T, K, N, S>(self.src[i], qx, qy, self.w, self.h)
     }
 }
 
@@ -207,18 +222,23 @@ fn target_view_n<T: Real, const NL: usize>(
         (0..n).map(|i| &src[i * len..(i + 1) * len]).collect()
     }
     let high = |src, stride: usize| (rgba.clone(), split(src, n, w * h * stride));
+    let lods = plane_lods(mpi, p);
+    let built = missing_levels(mpi, &lods);
+    let levels = built.as_ref().or(mpi.mip.as_deref());
+    let mips = levels.map(|l| mip_planes(&lods, l)).unwrap_or_default();
+    let mip = mips.as_slice();
     match p.resample {
         Resample::Bilinear => {
-            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &Bilinear { rgba })
+            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &Bilinear { rgba, mip })
         }
         Resample::Bicubic => {
             let (rgba, src) = high(&mpi.rgba, 4);
-            let s = HighOrder::<Keys, 4, 4> { rgba, src, w, h, kernel: std::marker::PhantomData };
+            let s = HighOrder::<Keys, 4, 4> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
         }
         Resample::Lanczos3 => {
             let (rgba, src) = high(&mpi.rgba, 4);
-            let s = HighOrder::<Lanczos3, 6, 4> { rgba, src, w, h, kernel: std::marker::PhantomData };
+            let s = HighOrder::<Lanczos3, 6, 4> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
         }
         Resample::Bspline3 | Resample::Bspline5 => {
@@ -233,10 +253,10 @@ fn target_view_n<T: Real, const NL: usize>(
             };
             let (rgba, src) = high(coef, 3);
             if degree == 3 {
-                let s = HighOrder::<Bspline3, 4, 3> { rgba, src, w, h, kernel: std::marker::PhantomData };
+                let s = HighOrder::<Bspline3, 4, 3> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
                 target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
             } else {
-                let s = HighOrder::<Bspline5, 6, 3> { rgba, src, w, h, kernel: std::marker::PhantomData };
+                let s = HighOrder::<Bspline5, 6, 3> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
                 target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
             }
         }
@@ -637,7 +657,7 @@ pub(super) fn target_view_cut<T: Real>(
     out: &mut RenderOutput,
 ) -> RenderStats {
     let n = mpi.planes();
-    let sampler = CutSampler { inner: Bilinear { rgba: (0..n).map(|i| mpi.plane_rgba(i)).collect() }, cut };
+    let sampler = CutSampler { inner: Bilinear { rgba: (0..n).map(|i| mpi.plane_rgba(i)).collect(), mip: &[] }, cut };
     let none: [LinkConst<T>; 0] = [];
     target_view_with::<T, _, 0>(
         mpi,

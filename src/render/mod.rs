@@ -45,6 +45,7 @@
 
 pub mod cut;
 mod exact;
+pub mod mip;
 pub mod occupancy;
 pub mod real;
 mod reference;
@@ -129,6 +130,9 @@ pub struct RenderParams {
     /// The colour kernel of the exact-mode target view ([`resample`]); the reference mode is
     /// always bilinear.
     pub resample: Resample,
+    /// Alias-free minification of the exact-mode target view's colour: planes that the view
+    /// shrinks are sampled from prefiltered levels ([`mip`]). Off = the colour kernel alone.
+    pub minify: bool,
 }
 
 impl RenderParams {
@@ -143,6 +147,7 @@ impl RenderParams {
             skip: Skip::DEFAULT,
             links: [None, None],
             resample: Resample::Bilinear,
+            minify: false,
         }
     }
 }

@@ -130,6 +130,11 @@ pub struct SampleConfig {
     /// before the option).
     #[serde(skip_serializing_if = "is_false")]
     pub restore_noise: bool,
+    /// Alias-free minification of the target renders' colour ([`crate::render::mip`]: planes the
+    /// view shrinks are sampled from prefiltered levels). Default false; part of the fingerprint
+    /// when true.
+    #[serde(skip_serializing_if = "is_false")]
+    pub minify: bool,
 }
 
 /// Fewest frames per sample (a pair).
@@ -174,6 +179,7 @@ impl Default for SampleConfig {
             backward: false,
             resample: Resample::default(),
             restore_noise: false,
+            minify: false,
         }
     }
 }
@@ -226,14 +232,14 @@ impl SampleConfig {
         Ok(())
     }
 
-    /// The word of the cache key for what [`prepare_scene`] changes (the pre-blend, and the
-    /// B-spline coefficients a `bspline3` render needs).
+    /// The word of the cache key for what [`prepare_scene`] changes (the pre-blend, the
+    /// B-spline coefficients a `bspline3` render needs, the minification levels).
     pub fn scene_variant(&self) -> u64 {
         let degree = match self.mode {
             Mode::Exact => self.resample.bspline_degree().unwrap_or(0),
             Mode::Reference => 0,
         };
-        u64::from(self.preblend) | u64::from(degree) << 1
+        u64::from(self.preblend) | u64::from(degree) << 1 | u64::from(self.minify && self.mode == Mode::Exact) << 8
     }
 
     /// The source item of sample `index` in a collection of `len` items.

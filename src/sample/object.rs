@@ -184,6 +184,7 @@ pub fn mpi_with_mask(mpi: &Mpi, mask: &[f32]) -> Mpi {
     out.intrinsics = mpi.intrinsics;
     out.pose = mpi.pose;
     out.bspline_rgb = mpi.bspline_rgb.clone();
+    out.mip = mpi.mip.clone();
     out
 }
 
@@ -199,6 +200,7 @@ pub fn render_full_with_mask(
     mode: Mode,
     skip: Skip,
     resample: Resample,
+    minify: bool,
     fields: Fields,
     links: [Option<View>; 2],
 ) -> Result<WindowRender, RenderError> {
@@ -207,6 +209,7 @@ pub fn render_full_with_mask(
     p.mode = mode;
     p.skip = skip;
     p.resample = resample;
+    p.minify = minify;
     p.fields = Fields { occlusion: false, ..fields };
     p.links = links;
     let out = render::<f32>(&copy, &p, None)?;
@@ -221,7 +224,8 @@ pub fn render_full_with_mask(
 /// `tests/sample_merge.rs`, and the renderer's window laws in `tests/render_window.rs`); only
 /// the pixels outside `win` are not computed. `occupancy` (built with `skip.tile_sigma_eps`)
 /// serves tile skipping when `skip.tiles` is set (the renderer builds one when it is missing).
-/// `pose` is the motion, `k` the intrinsics of source and target, `resample` the colour kernel.
+/// `pose` is the motion, `k` the intrinsics of source and target, `resample` the colour kernel,
+/// `minify` the alias-free minification ([`crate::render::RenderParams::minify`]).
 /// No occlusion field.
 #[allow(clippy::too_many_arguments)]
 pub fn render_mask_window(
@@ -233,12 +237,14 @@ pub fn render_mask_window(
     mask: &[f32],
     skip: Skip,
     resample: Resample,
+    minify: bool,
     source: bool,
     links: [Option<View>; 2],
 ) -> Result<WindowRender, RenderError> {
     let mut p = RenderParams::new(*k, *pose);
     p.skip = skip;
     p.resample = resample;
+    p.minify = minify;
     p.fields = Fields { target: true, flow: source, occlusion: false };
     p.links = links;
     render_window::<f32>(mpi, &p, occupancy, win, Channels::Broadcast(mask), source.then_some(mask))

@@ -159,6 +159,9 @@ pub fn prepare_scene(mut scene: Scene, config: &SampleConfig) -> Result<Scene, S
     if config.mode == Mode::Exact {
         // once per scene: the cached scene carries the coefficients every sample samples
         crate::render::resample::prefilter_arc(&mut scene.mpi, config.resample);
+        if config.minify {
+            crate::render::mip::prefilter_arc(&mut scene.mpi);
+        }
     }
     Ok(scene)
 }
@@ -611,6 +614,7 @@ fn render_frame(
     params.mode = config.mode;
     params.skip = config.skip;
     params.resample = config.resample;
+    params.minify = config.minify;
     params.fields = Fields { target: true, flow: source_view, occlusion: false };
     params.links = cam_links;
     let t = Instant::now();
@@ -626,6 +630,7 @@ fn render_frame(
                 config.mode,
                 config.skip,
                 config.resample,
+                config.minify,
                 params.fields,
                 cam_links,
             )
@@ -655,6 +660,7 @@ fn render_frame(
                 config.skip,
                 Resample::Bilinear,
                 false,
+                false,
                 [None, None],
             )
             .map_err(render_err("scene mask"))?;
@@ -679,6 +685,7 @@ fn render_frame(
                     mask,
                     config.skip,
                     config.resample,
+                    config.minify,
                     source_view,
                     *links,
                 )
@@ -691,6 +698,7 @@ fn render_frame(
                 config.mode,
                 config.skip,
                 config.resample,
+                config.minify,
                 params.fields,
                 *links,
             ),

@@ -317,6 +317,7 @@ impl ServiceConfig {
                 "MOTIONS_PER_IMAGE" => self.sample.motions_per_image = env_parse(&key, &value)?,
                 "RESAMPLE" => self.sample.resample = env_parse(&key, &value)?,
                 "RESTORE_NOISE" => self.sample.restore_noise = env_parse(&key, &value)?,
+                "MINIFY" => self.sample.minify = env_parse(&key, &value)?,
                 "HEALTH_ADDR" => {
                     self.health_addr = (!value.trim().is_empty()).then(|| value.trim().to_string());
                 }
