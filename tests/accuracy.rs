@@ -159,6 +159,15 @@ fn tiny_sweep_writes_markdown_and_a_png() {
         assert!(r.bytes.1 < r.bytes.0, "{}: {:?}", r.scene, r.bytes);
     }
     assert_eq!(report.reference_mode.len(), 3);
+    // every colour kernel once per scene; the bilinear kernel's same-kernel reference is the
+    // bilinear reference itself
+    assert_eq!(report.kernels.len(), 3 * mpiflow::render::Resample::ALL.len());
+    for r in &report.kernels {
+        assert!(r.m.image.mae.is_finite() && r.same_kernel.mae.is_finite(), "{} {}", r.scene, r.kernel);
+        if r.kernel == mpiflow::render::Resample::Bilinear {
+            assert_eq!(r.same_kernel.mae, r.m.image.mae, "{}", r.scene);
+        }
+    }
     assert!(!report.skips.is_empty());
     // skipping that is exact by construction changes nothing
     for r in report.skips.iter().filter(|r| r.name == "tiles") {
@@ -185,6 +194,8 @@ fn tiny_sweep_writes_markdown_and_a_png() {
         }
     }
     assert!(md.contains("## Convergence order"));
+    assert!(md.contains("## Colour kernels"));
+    assert!(md.contains(&format!("| {} | 8 | bspline3 |", scenes[2].name)));
 
     let dir = std::env::temp_dir().join(format!("mpiflow-accuracy-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();

@@ -28,7 +28,9 @@ use crate::io::image::{ImageError, RgbImage};
 use crate::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions, ALPHA_MAX};
 use crate::mpi::npz::{load_npz_bytes_limited, save_npz_as, MpiDtype};
 use crate::mpi::{Mpi, MpiError};
-use crate::render::{render, Fields, Mode, Occupancy, Real, RenderError, RenderOutput, RenderParams, Skip, DELTA_LAST};
+use crate::render::{
+    render, Fields, Mode, Occupancy, Real, RenderError, RenderOutput, RenderParams, Resample, Skip, DELTA_LAST,
+};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::fmt::Write as _;
@@ -159,6 +161,23 @@ pub struct StorageRow {
     pub bytes: (usize, usize),
 }
 
+/// One soft MPI rendered with each colour kernel ([`Resample`], issue 16): time, errors (the
+/// image against the bilinear f64 reference in `m`, and against an f64 reference with the same
+/// kernel), and the sharpness ratio of the render to the scene's photo.
+#[derive(Clone, Debug)]
+pub struct KernelRow {
+    pub scene: String,
+    pub planes: usize,
+    pub kernel: Resample,
+    pub m: Measurement,
+    /// Image error against the f64 reference of `reference_planes` planes rendered with the
+    /// same kernel (what the planes and f32 cost this kernel).
+    pub same_kernel: ImageErr,
+    /// Variance of the Laplacian of the render (rounded to 8 bits, over its covered interior)
+    /// over that of the photo (`bench::quality::laplacian_variance`); None when either is empty.
+    pub sharpness: Option<f64>,
+}
+
 #[derive(Clone, Debug)]
 pub struct ReferenceModeRow {
     pub scene: String,
@@ -197,6 +216,7 @@ pub struct AccuracyReport {
     pub skips: Vec<SkipRow>,
     pub precision: Vec<PrecisionRow>,
     pub storage: Vec<StorageRow>,
+    pub kernels: Vec<KernelRow>,
     pub reference_mode: Vec<ReferenceModeRow>,
 }
 
@@ -283,6 +303,7 @@ pub fn run_accuracy(
         skips: Vec::new(),
         precision: Vec::new(),
         storage: Vec::new(),
+        kernels: Vec::new(),
         reference_mode: Vec::new(),
     };
     for scene in scenes {
@@ -410,6 +431,10 @@ fn details(
         bytes: (f32_bytes, f16_bytes),
     });
     progress(&format!("{}: N={n} MPI stored as f16", scene.name));
+    if cfg.detail_planes.first() == Some(&n) {
+        kernel_rows(cfg, ctx, mpi, n, report)?;
+        progress(&format!("{}: N={n} colour kernels", scene.name));
+    }
     let p = params_for(scene, cfg.pose, Skip::NONE, Mode::Reference);
     let (m_ref, _) = measure::<f32>(ctx, mpi, &p, None, cfg.runs)?;
     let exact = report
@@ -421,6 +446,45 @@ fn details(
         .unwrap_or(m_none);
     report.reference_mode.push(ReferenceModeRow { scene: scene.name.clone(), planes: n, exact, reference: m_ref });
     progress(&format!("{}: N={n} reference mode", scene.name));
+    Ok(())
+}
+
+/// [`KernelRow`]s of one soft MPI: every kernel at default skipping, against the bilinear f64
+/// reference of the scene and against an f64 reference with the same kernel.
+fn kernel_rows(
+    cfg: &AccuracyConfig,
+    ctx: &SceneCtx,
+    mpi: &Mpi,
+    n: usize,
+    report: &mut AccuracyReport,
+) -> Result<(), AccuracyError> {
+    let scene = ctx.scene;
+    let (w, h) = (scene.width, scene.height);
+    let to_u8 = |v: &[f32]| -> Vec<u8> { v.iter().map(|&x| (x.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect() };
+    let photo = crate::bench::quality::laplacian_variance(&to_u8(&scene.rgb), w, h, |_| true);
+    let reference_mpi = layer(scene, cfg.reference_planes, Layering::Soft)?;
+    for kernel in Resample::ALL {
+        let mut m_k = mpi.clone();
+        crate::render::resample::prefilter(&mut m_k, kernel);
+        let occ = Occupancy::build(&m_k, 0.0);
+        let mut p = params_for(scene, cfg.pose, Skip::DEFAULT, Mode::Exact);
+        p.resample = kernel;
+        let (m, out) = measure::<f32>(ctx, &m_k, &p, Some(&occ), cfg.runs)?;
+        let mut r_k = reference_mpi.clone();
+        crate::render::resample::prefilter(&mut r_k, kernel);
+        let mut pr = params_for(scene, cfg.pose, Skip::NONE, Mode::Exact);
+        pr.fields = Fields { target: true, flow: false, occlusion: false };
+        pr.resample = kernel;
+        let reference = render::<f64>(&r_k, &pr, None)?;
+        let same_kernel = image_error(&out.image, &reference.image, &reference.coverage);
+        let covered = |i: usize| out.coverage[i] > 0.999;
+        let rendered = crate::bench::quality::laplacian_variance(&to_u8(&out.image), w, h, covered);
+        let sharpness = match (rendered, photo) {
+            (Some(a), Some(b)) if b > 0.0 => Some(a / b),
+            _ => None,
+        };
+        report.kernels.push(KernelRow { scene: scene.name.clone(), planes: n, kernel, m, same_kernel, sharpness });
+    }
     Ok(())
 }
 
