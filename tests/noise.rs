@@ -8,7 +8,7 @@ use std::path::Path;
 use std::sync::Arc;
 
 use mpiflow::bench::quality::{noise_sigma, quality_same_motions};
-use mpiflow::sample::motion::{Component, MotionPreset};
+use mpiflow::sample::motion::MotionPreset;
 use mpiflow::sample::noise::channel_sigmas;
 use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
 use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
@@ -85,15 +85,7 @@ fn only_the_region_is_read_and_an_empty_one_is_refused() {
 /// The RGB-D photo of `examples/data` (the cat with its depth map) under a pure lateral camera
 /// translation of up to 0.05 (flows up to ~10 px), no moving object.
 fn lateral_photo(restore_noise: bool) -> (Pipeline, SampleConfig) {
-    let mut ranges = MotionPreset::Reference.ranges();
-    ranges.name = "lateral-0.05".into();
-    let law = &mut ranges.camera;
-    law.translation.x = Component::RandomSign { min: 0.0, max: 0.05 };
-    law.translation.y = Component::RandomSign { min: 0.0, max: 0.05 };
-    law.translation.z = Component::constant(0.0);
-    law.rotation.x = Component::constant(0.0);
-    law.rotation.y = Component::constant(0.0);
-    law.rotation.z = Component::constant(0.0);
+    let ranges = MotionPreset::Reference.ranges().with_lateral_camera(0.05);
     let config = SampleConfig {
         motion: MotionSpec::Ranges(Box::new(ranges)),
         max_objects: 0,

@@ -175,7 +175,6 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     use mpiflow::bench::quality::{quality, quality_same_motions, QualityReport};
     use mpiflow::sample::background::Background;
     use mpiflow::sample::merge::{LabelRule, MergeRule};
-    use mpiflow::sample::motion::{Component, MotionRanges};
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
     use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
     use mpiflow::scene::cache::SceneCache;
@@ -194,16 +193,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         if !(t.is_finite() && (0.0..=1.0).contains(&t)) {
             return Err(CliError("--lateral must be 0 to 1".into()));
         }
-        let mut ranges: MotionRanges = base.motion.ranges();
-        ranges.name = format!("lateral-{t}");
-        let law = &mut ranges.camera;
-        law.translation.x = Component::RandomSign { min: 0.0, max: t };
-        law.translation.y = Component::RandomSign { min: 0.0, max: t };
-        law.translation.z = Component::constant(0.0);
-        law.rotation.x = Component::constant(0.0);
-        law.rotation.y = Component::constant(0.0);
-        law.rotation.z = Component::constant(0.0);
-        base.motion = MotionSpec::Ranges(Box::new(ranges));
+        base.motion = MotionSpec::Ranges(Box::new(base.motion.ranges().with_lateral_camera(t)));
         motion = format!("lateral (|tx|, |ty| <= {t}, no tz, no rotation)");
     }
     if !q.sharpness {

@@ -317,6 +317,22 @@ impl Default for MotionRanges {
 }
 
 impl MotionRanges {
+    /// These laws with the camera's replaced by a pure lateral translation: `tx` and `ty` of
+    /// random sign and magnitude uniform in `[0, t]`, no forward part, no rotation (the sharpness
+    /// and noise measurements of issue 16); named `lateral-T`.
+    #[must_use]
+    pub fn with_lateral_camera(mut self, t: f64) -> Self {
+        self.name = format!("lateral-{t}");
+        let law = &mut self.camera;
+        law.translation = Axes::new(
+            Component::RandomSign { min: 0.0, max: t },
+            Component::RandomSign { min: 0.0, max: t },
+            Component::constant(0.0),
+        );
+        law.rotation = Axes::splat(Component::constant(0.0));
+        self
+    }
+
     /// Checks every range: finite bounds, `lo <= hi`, magnitudes `0 <= min <= max`, the forward
     /// law on translation z only, rotation components below pi in magnitude, and for axis-angle
     /// laws the largest possible rotation vector shorter than pi.
