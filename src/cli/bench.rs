@@ -69,6 +69,9 @@ pub struct QualityBench {
     /// also gets a row with the noise restored.
     #[arg(long)]
     restore_noise: bool,
+    /// Alias-free minification (`minify`). With --sharpness: each kernel also gets a row with it.
+    #[arg(long)]
+    minify: bool,
 }
 
 #[derive(Args, Debug)]
@@ -198,6 +201,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     }
     if !q.sharpness {
         base.restore_noise = q.restore_noise;
+        base.minify = q.minify;
     }
     let kernels = if q.resample.is_empty() { vec![base.resample] } else { q.resample.clone() };
     let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
@@ -224,12 +228,22 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         };
         println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | noise img1 / img2 (levels) | photometric | background | hole fraction | flow p50 / p95 px |");
         println!("|---|---|---|---|---|---|---|---|");
-        let noise = if q.restore_noise { vec![false, true] } else { vec![false] };
-        for (&resample, restore_noise) in kernels.iter().flat_map(|k| noise.iter().map(move |&n| (k, n))) {
+        let mut variants = vec![(false, false)];
+        if q.restore_noise {
+            variants.push((true, false));
+        }
+        if q.minify {
+            variants.push((false, true));
+        }
+        for (&resample, (restore_noise, minify)) in kernels.iter().flat_map(|k| variants.iter().map(move |&v| (k, v))) {
             // the backward fields only add outputs (the ideal warp's geometry), no other byte
-            let c = SampleConfig { max_objects: 0, resample, restore_noise, backward: true, ..base.clone() };
+            let c = SampleConfig { max_objects: 0, resample, restore_noise, minify, backward: true, ..base.clone() };
             let r = run(&c)?;
-            let name = if restore_noise { format!("{resample} + noise") } else { resample.to_string() };
+            let name = match (restore_noise, minify) {
+                (true, _) => format!("{resample} + noise"),
+                (_, true) => format!("{resample} + minify"),
+                _ => resample.to_string(),
+            };
             println!(
                 "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.2} / {:.2} | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
                 r.sharpness,
