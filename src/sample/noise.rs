@@ -21,6 +21,10 @@ use super::SampleAddress;
 /// The purpose number of the noise stream (`Purpose::Other(NOISE_PURPOSE)`): "nois".
 pub const NOISE_PURPOSE: u32 = 0x6e6f_6973;
 
+/// Immerkaer's mask `[1 -2 1; -2 4 -2; 1 -2 1]`, row-major (the difference of two Laplacians:
+/// zero on every polynomial of degree two).
+const MASK: [f64; 9] = [1.0, -2.0, 1.0, -2.0, 4.0, -2.0, 1.0, -2.0, 1.0];
+
 /// Rec. 601 luminance weights.
 const LUMA: [f64; 3] = [0.299, 0.587, 0.114];
 
@@ -48,7 +52,6 @@ pub fn noise_sigma_weighted(
             + weights[1] * f64::from(img[3 * i + 1])
             + weights[2] * f64::from(img[3 * i + 2])
     };
-    const M: [[f64; 3]; 3] = [[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]];
     let rows: Vec<(u64, f64)> = (1..h - 1)
         .into_par_iter()
         .map(|y| {
@@ -58,7 +61,7 @@ pub fn noise_sigma_weighted(
                 if !(0..9).all(|k| inside(at(k))) {
                     continue;
                 }
-                let r: f64 = (0..9).map(|k| M[k / 3][k % 3] * val(at(k))).sum();
+                let r: f64 = (0..9).map(|k| MASK[k] * val(at(k))).sum();
                 n += 1;
                 sum += r.abs();
             }
@@ -154,7 +157,7 @@ fn paired_responses(
     c: usize,
     inside: impl Fn(usize) -> bool + Sync,
 ) -> (Vec<f32>, Vec<f32>) {
-    const M: [f32; 9] = [1.0, -2.0, 1.0, -2.0, 4.0, -2.0, 1.0, -2.0, 1.0];
+    let m = MASK.map(|v| v as f32);
     let rows: Vec<(Vec<f32>, Vec<f32>)> = (1..h.saturating_sub(1))
         .into_par_iter()
         .filter(|y| y % 2 == 0)
@@ -165,8 +168,8 @@ fn paired_responses(
                 if !(0..9).all(|k| inside(at(k))) {
                     continue;
                 }
-                r.push((0..9).map(|k| M[k] * f32::from(img[3 * at(k) + c])).sum());
-                n.push((0..9).map(|k| M[k] * noise[3 * at(k) + c]).sum());
+                r.push((0..9).map(|k| m[k] * f32::from(img[3 * at(k) + c])).sum());
+                n.push((0..9).map(|k| m[k] * noise[3 * at(k) + c]).sum());
             }
             (r, n)
         })
@@ -229,7 +232,6 @@ fn solve_sigma(r: &[f32], n: &[f32], want: f64) -> f64 {
 /// luminance of an interleaved RGB image, read at the interior pixels with even `x` and `y` (the
 /// grid [`restore_noise`] solves on), in one pass.
 fn grid_levels(img: &[u8], w: usize, h: usize) -> Option<([f64; 3], f64)> {
-    const M: [f64; 9] = [1.0, -2.0, 1.0, -2.0, 4.0, -2.0, 1.0, -2.0, 1.0];
     let rows: Vec<(u64, [f64; 4])> = (1..h.saturating_sub(1))
         .into_par_iter()
         .filter(|y| y % 2 == 0)
@@ -237,7 +239,7 @@ fn grid_levels(img: &[u8], w: usize, h: usize) -> Option<([f64; 3], f64)> {
             let (mut n, mut sum) = (0u64, [0.0f64; 4]);
             for x in (2..w.saturating_sub(1)).step_by(2) {
                 let mut r = [0.0f64; 3];
-                for (k, m) in M.iter().enumerate() {
+                for (k, m) in MASK.iter().enumerate() {
                     let o = 3 * ((y + k / 3 - 1) * w + x + k % 3 - 1);
                     for c in 0..3 {
                         r[c] += m * f64::from(img[o + c]);
@@ -263,6 +265,26 @@ fn grid_levels(img: &[u8], w: usize, h: usize) -> Option<([f64; 3], f64)> {
     (n >= 16).then(|| ([sum[0] * k, sum[1] * k, sum[2] * k], sum[3] * k))
 }
 
+/// What the later frames of a sample are brought to: image1's noise level per channel (every
+/// pixel, read on the quarter grid) and the share of it its channels have in common
+/// ([`shared_fraction`]). The same for every frame of a sample, so computed once.
+#[derive(Clone, Copy, Debug)]
+pub struct NoiseTarget {
+    want: [f64; 3],
+    rho: f64,
+}
+
+impl NoiseTarget {
+    /// The target of `image1` (`w` x `h`, interleaved RGB); `None` when it cannot be read.
+    pub fn of(image1: &[u8], w: usize, h: usize) -> Option<Self> {
+        if image1.len() != 3 * w * h {
+            return None;
+        }
+        let (want, luma) = grid_levels(image1, w, h)?;
+        Some(Self { want, rho: shared_fraction(want, luma) })
+    }
+}
+
 /// Restores image1's noise level in a later frame (`frame`: 1 = image2): per channel, the
 /// estimate of `image1` (every pixel, read on the quarter grid) is the level wanted, and the
 /// share of it the channels have in common ([`shared_fraction`]) shapes the noise; the noise of the frame's key is added
@@ -279,14 +301,27 @@ pub fn restore_noise(
     key: u64,
     frame: u64,
 ) -> [f64; 3] {
-    if image.len() != 3 * w * h || holes.len() != w * h || image1.len() != 3 * w * h {
+    match NoiseTarget::of(image1, w, h) {
+        Some(target) => restore_noise_to(&target, image, holes, w, h, key, frame),
+        None => [0.0; 3],
+    }
+}
+
+/// [`restore_noise`] with image1's [`NoiseTarget`] computed beforehand.
+pub fn restore_noise_to(
+    target: &NoiseTarget,
+    image: &mut [u8],
+    holes: &[u8],
+    w: usize,
+    h: usize,
+    key: u64,
+    frame: u64,
+) -> [f64; 3] {
+    if image.len() != 3 * w * h || holes.len() != w * h {
         return [0.0; 3];
     }
-    let Some((want, luma)) = grid_levels(image1, w, h) else {
-        return [0.0; 3];
-    };
-    let rho = shared_fraction(want, luma);
-    let noise = noise_field(key, frame, w * h, rho);
+    let want = target.want;
+    let noise = noise_field(key, frame, w * h, target.rho);
     let mut add = [0.0f64; 3];
     for (c, a) in add.iter_mut().enumerate() {
         let (r, n) = paired_responses(image, &noise, w, h, c, |i| holes[i] == 0);

@@ -234,10 +234,14 @@ pub fn assemble_with_target_depth(
         }
     }
     if config.restore_noise {
-        let key = super::noise::noise_key(sample.address);
-        super::noise::restore_noise(&sample.image1, &mut sample.image2, &sample.holes, w, h, key, 1);
-        for (k, f) in sample.clip.iter_mut().enumerate() {
-            super::noise::restore_noise(&sample.image1, &mut f.image, &f.holes, w, h, key, k as u64 + 2);
+        use super::noise::{noise_key, restore_noise_to, NoiseTarget};
+        // image1's level once for every frame
+        if let Some(target) = NoiseTarget::of(&sample.image1, w, h) {
+            let key = noise_key(sample.address);
+            restore_noise_to(&target, &mut sample.image2, &sample.holes, w, h, key, 1);
+            for (k, f) in sample.clip.iter_mut().enumerate() {
+                restore_noise_to(&target, &mut f.image, &f.holes, w, h, key, k as u64 + 2);
+            }
         }
     }
     sample.timings.inpaint_ms = ms(t);
