@@ -57,12 +57,17 @@ fn cap<T: Real>(v: T, max: f64) -> T {
     }
 }
 
-/// Plane samples of the target view: the density of plane `i` at a tap (always bilinear) and
-/// its colour by the render's [`Resample`] kernel, asked for only where the density is positive.
+/// Plane samples of the target view: the bilinear density of plane `i` at a tap (always
+/// bilinear; with the bilinear colour where a sampler gets it for free) and its colour by the
+/// render's [`Resample`] kernel, asked for only where the density is positive.
 trait PlaneSampler<T: Real>: Sync {
-    fn sigma(&self, tap: &Tap<T>, i: usize) -> T;
-    /// The colour at `q` of a sample that gets composite weight `wgt`.
-    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, wgt: T) -> [T; 3];
+    /// The bilinear density (`[3]`) of plane `i` at a tap; `[0..3]` is its bilinear colour for
+    /// [`Bilinear`] (all four channels in one vector operation, [`Real::lerp4`]) and unused by
+    /// the others.
+    fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4];
+    /// The colour at `q` of a sample that gets composite weight `wgt` (`texel`: the sample's
+    /// [`Self::texel`] at `tap`).
+    fn colour(&self, tap: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3];
 }
 
 /// Bilinear colour and density (the reference's arithmetic, channel by channel).
@@ -74,13 +79,13 @@ struct Bilinear<'a> {
 
 impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
     #[inline(always)]
-    fn sigma(&self, tap: &Tap<T>, i: usize) -> T {
-        tap.sample_ch(self.rgba[i], 4, 3)
+    fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
+        tap.sample4(self.rgba[i])
     }
 
     #[inline(always)]
-    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, _: T) -> [T; 3] {
-        let base = || [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k));
+    fn colour(&self, _: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, _: T) -> [T; 3] {
+        let base = || [texel[0], texel[1], texel[2]];
         match self.mip.get(i) {
             Some(Some(m)) => m.colour(qx, qy, base),
             _ => base(),
@@ -107,12 +112,13 @@ struct HighOrder<'a, K, const N: usize, const S: usize> {
 
 impl<T: Real, K: Kernel<N>, const N: usize, const S: usize> PlaneSampler<T> for HighOrder<'_, K, N, S> {
     #[inline(always)]
-    fn sigma(&self, tap: &Tap<T>, i: usize) -> T {
-        tap.sample_ch(self.rgba[i], 4, 3)
+    fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
+        // the density alone: the colour comes from the kernel (bilinear only for faint samples)
+        [T::zero(), T::zero(), T::zero(), tap.sample_ch(self.rgba[i], 4, 3)]
     }
 
     #[inline(always)]
-    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
+    fn colour(&self, tap: &Tap<T>, _: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
         let base = || {
             if wgt < T::of32(KERNEL_MIN_WEIGHT) {
                 return [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k));
@@ -391,7 +397,8 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                                 qy
                             };
                             let tap = Tap::new(qx, qy, w, h);
-                            let sigma = sampler.sigma(&tap, i);
+                            let texel = sampler.texel(&tap, i);
+                            let sigma = texel[3];
                             stats.samples += 1;
                             if sigma <= T::zero() {
                                 continue;
@@ -408,7 +415,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                             let e = T::exp_neg(sigma * delta);
                             let wgt = tr * (T::one() - e);
                             tr *= e;
-                            let smp = sampler.colour(&tap, qx, qy, i, wgt);
+                            let smp = sampler.colour(&tap, &texel, qx, qy, i, wgt);
                             for k in 0..3 {
                                 rgb[k] += wgt * smp[k];
                             }
@@ -631,18 +638,18 @@ struct CutSampler<'a> {
 
 impl<T: Real> PlaneSampler<T> for CutSampler<'_> {
     #[inline(always)]
-    fn sigma(&self, tap: &Tap<T>, i: usize) -> T {
-        let sigma: T = self.inner.sigma(tap, i);
+    fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
+        let [r, g, b, sigma]: [T; 4] = self.inner.texel(tap, i);
         if sigma <= T::zero() {
-            return sigma;
+            return [r, g, b, sigma];
         }
         let cut = tap.sample_where(self.cut.mask, |p| usize::from(self.cut.last[p]) >= i && self.cut.mask[p] > 0.0);
-        sigma * (T::one() - cut).max(T::zero())
+        [r, g, b, sigma * (T::one() - cut).max(T::zero())]
     }
 
     #[inline(always)]
-    fn colour(&self, tap: &Tap<T>, qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
-        self.inner.colour(tap, qx, qy, i, wgt)
+    fn colour(&self, tap: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
+        self.inner.colour(tap, texel, qx, qy, i, wgt)
     }
 }
 

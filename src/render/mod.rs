@@ -50,6 +50,7 @@ pub mod occupancy;
 pub mod real;
 mod reference;
 pub mod resample;
+mod simd;
 pub mod window;
 
 use crate::geometry::{Intrinsics, Pose};
@@ -547,23 +548,12 @@ impl<T: Real> Tap<T> {
         Self { i00: y0 * w + x0, i10: y0 * w + x1, i01: y1 * w + x0, i11: y1 * w + x1, wx: qx - fx, wy: qy - fy }
     }
 
-    /// Samples an interleaved 4-channel plane.
+    /// Samples an interleaved 4-channel plane (per channel the arithmetic of [`Self::sample1`];
+    /// `f32` takes the four channels at once, [`Real::lerp4`]).
     #[inline(always)]
     pub(crate) fn sample4(&self, plane: &[f32]) -> [T; 4] {
-        let (wx, wy) = (self.wx, self.wy);
-        let (a, b, c, d) = (
-            &plane[4 * self.i00..4 * self.i00 + 4],
-            &plane[4 * self.i10..4 * self.i10 + 4],
-            &plane[4 * self.i01..4 * self.i01 + 4],
-            &plane[4 * self.i11..4 * self.i11 + 4],
-        );
-        let mut o = [T::zero(); 4];
-        for k in 0..4 {
-            let top = T::of32(a[k]) + wx * (T::of32(b[k]) - T::of32(a[k]));
-            let bot = T::of32(c[k]) + wx * (T::of32(d[k]) - T::of32(c[k]));
-            o[k] = top + wy * (bot - top);
-        }
-        o
+        let px = |i: usize| &plane[4 * i..4 * i + 4];
+        T::lerp4(px(self.i00), px(self.i10), px(self.i01), px(self.i11), self.wx, self.wy)
     }
 
     /// Samples channel `k` of a plane of `stride` interleaved channels (the arithmetic of
