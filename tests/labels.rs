@@ -213,8 +213,13 @@ fn object_law(forward: bool) -> MotionRanges {
 
 /// Thin one-pixel lines: with a mask spanning many depths (the photos above at 740 x 493) under
 /// the default law and under forward and lateral object motion, image2 has no more thin-line
-/// runs than image1. (With the paper's exact depth comparison in the depth-aware merge, image2
-/// had 13 runs against image1's 6 under the default law, 7 against 6 under lateral motion.)
+/// runs than image1 (seed 0), and over five seeds the depth-aware merge draws few one-row label
+/// slivers (a row of object between rows of scene, or the reverse): at most one run per two
+/// samples. (With the paper's exact depth comparison in the depth-aware merge, image2 had 13
+/// runs against image1's 6 under the default law, 7 against 6 under lateral motion. With the
+/// depth maps upsampled by nearest neighbour and the occlusion test on single pixels, seeds 0-4
+/// gave 31, 4 and 37 sliver runs in 30 samples under the default, forward and lateral laws;
+/// now 4, 0 and 5.)
 #[test]
 fn no_thin_lines_with_masks_spanning_many_depths() {
     let root = photos("lines");
@@ -228,10 +233,17 @@ fn no_thin_lines_with_masks_spanning_many_depths() {
         for (law, motion) in &laws {
             let c = SampleConfig { motion: motion.clone(), merge, ..SampleConfig::default() };
             let g = p.generator().with_config(c).unwrap();
-            let (mut lines1, mut lines2) = (0, 0);
-            for index in 0..6 {
-                let s = g.sample(0, index).unwrap();
+            let (mut lines1, mut lines2, mut slivers, mut samples) = (0, 0, 0, 0);
+            // the reference rule draws the object on top (no slivers): one seed is its check
+            let seeds = if merge == MergeRule::Reference { 1 } else { 5 };
+            for (seed, index) in (0..seeds).flat_map(|s| (0..6).map(move |i| (s, i))) {
+                let s = g.sample(seed, index).unwrap();
                 let (w, h) = (s.width, s.height);
+                slivers += sliver_runs(&s.mask2, w, h);
+                samples += 1;
+                if seed > 0 {
+                    continue;
+                }
                 let (l1, l2) = (thin_line_runs(&s.image1, w, h), thin_line_runs(&s.image2, w, h));
                 lines1 += l1;
                 lines2 += l2;
@@ -239,11 +251,38 @@ fn no_thin_lines_with_masks_spanning_many_depths() {
                     diagnose(&s);
                 }
             }
-            println!("{merge:?} {law} object motion: thin-line runs image2 {lines2}, image1 {lines1}");
+            println!(
+                "{merge:?} {law} object motion: thin-line runs image2 {lines2}, image1 {lines1} (seed 0); \
+                 one-row label slivers {slivers} in {samples} samples"
+            );
             assert!(lines2 <= lines1, "{merge:?} {law}: {lines2} runs in image2, {lines1} in image1");
+            assert!(2 * slivers <= samples, "{merge:?} {law}: {slivers} one-row label slivers in {samples} samples");
         }
     }
     std::fs::remove_dir_all(root).unwrap();
+}
+
+/// Runs of at least `THIN_LINE_MIN_RUN` pixels of one row whose label differs from the rows
+/// above and below while those two agree: a one-row sliver of an object (or of the scene) that
+/// the merge drew, whatever the photo shows there.
+fn sliver_runs(mask: &[u8], w: usize, h: usize) -> usize {
+    let mut runs = 0;
+    for y in 1..h.saturating_sub(1) {
+        let mut len = 0;
+        for x in 0..=w {
+            let sliver = x < w && {
+                let (a, c, b) = (mask[(y - 1) * w + x], mask[y * w + x], mask[(y + 1) * w + x]);
+                a == b && c != a
+            };
+            if sliver {
+                len += 1;
+            } else {
+                runs += usize::from(len >= mpiflow::bench::quality::THIN_LINE_MIN_RUN);
+                len = 0;
+            }
+        }
+    }
+    runs
 }
 
 /// Prints where image2's thin-line pixels are: label, hole, depth above / at / below.

@@ -192,4 +192,33 @@ mod tests {
         assert_eq!(b, vec![0.0, 0.25, 0.75, 1.0]);
         assert_eq!(resize_nearest(&[], 0, 0, 2, 2), vec![0.0; 4]);
     }
+
+    #[test]
+    fn depth_resize_is_smooth_on_a_surface_and_sharp_at_its_edges() {
+        // a slanted surface (1% per row) upsampled 1.5x: strictly increasing rows, no stair
+        // steps (nearest repeats every third row), the values between the source's
+        let (w, h) = (4, 20);
+        let ramp: Vec<f32> = (0..w * h).map(|i| 3.0 * (1.0 + 0.01 * (i / w) as f32)).collect();
+        let up = resize_depth(&ramp, w, h, 6, 30);
+        let col: Vec<f32> = (0..30).map(|y| up[y * 6 + 2]).collect();
+        assert!(col.windows(2).all(|p| p[1] > p[0]), "stair steps: {col:?}");
+        assert!(resize_nearest(&ramp, w, h, 6, 30).chunks(6).collect::<Vec<_>>().windows(2).any(|p| p[0] == p[1]));
+        assert!(col.iter().all(|&d| (3.0..=3.0 * 1.19).contains(&d)));
+        // an edge (depth 2 beside depth 8) stays a step: every value is one of the two
+        let edge: Vec<f32> = (0..16).map(|i| if i % 4 < 2 { 2.0 } else { 8.0 }).collect();
+        let e = resize_depth(&edge, 4, 4, 7, 5);
+        assert!(e.iter().all(|&d| d == 2.0 || d == 8.0), "{e:?}");
+        // unknown depth (0, NaN, negative) is never blended into its neighbours
+        let mut holes = vec![4.0f32; 16];
+        holes[5] = 0.0;
+        holes[10] = f32::NAN;
+        let r = resize_depth(&holes, 4, 4, 9, 9);
+        assert!(r.iter().all(|&d| d == 4.0 || d == 0.0 || d.is_nan()), "{r:?}");
+        assert_eq!(
+            r.iter().filter(|d| d.is_nan()).count(),
+            resize_nearest(&holes, 4, 4, 9, 9).iter().filter(|d| d.is_nan()).count()
+        );
+        // the same size is the identity
+        assert_eq!(resize_depth(&ramp, w, h, w, h), ramp);
+    }
 }

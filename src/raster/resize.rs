@@ -1,4 +1,5 @@
-//! Resizing masks: nearest (labels) and bilinear (probabilities).
+//! Resizing masks: nearest (labels) and bilinear (probabilities); depth and disparity maps:
+//! bilinear within a surface, nearest across its edges ([`resize_depth`]).
 
 // ---------------------------------------------------------------------------------------------
 // resizing
@@ -27,6 +28,55 @@ pub fn resize_nearest(mask: &[f32], w: usize, h: usize, new_w: usize, new_h: usi
     for y in 0..new_h {
         let row = &mask[map(y, h, new_h) * w..][..w];
         out.extend(xs.iter().map(|&x| row[x]));
+    }
+    out
+}
+
+/// Largest ratio between the four source values a depth (or disparity) resize interpolates
+/// between ([`resize_depth`]); a larger step is an edge between surfaces.
+pub const DEPTH_RESIZE_SPREAD: f32 = 1.05;
+
+/// Resize of a depth or disparity map (`w x h` to `new_w x new_h`, pixel centres aligned):
+/// bilinear, as [`resize_bilinear`], where the four source values around the point are all
+/// known (finite and > 0) and lie within [`DEPTH_RESIZE_SPREAD`] of each other, i.e. on one
+/// smooth surface; elsewhere (an edge between surfaces, or unknown depth next to the point)
+/// nearest, as [`resize_nearest`], so no depth is invented between two surfaces and unknown
+/// stays unknown. Nearest alone turns an upsampled slanted surface into stair steps (rows of
+/// equal depth), which the object merge saw as depth ripples and drew as thin lines
+/// (`tests/labels.rs`).
+///
+/// # Panics
+/// If `v.len() != w * h`.
+pub fn resize_depth(v: &[f32], w: usize, h: usize, new_w: usize, new_h: usize) -> Vec<f32> {
+    let nearest = resize_nearest(v, w, h, new_w, new_h);
+    if w == 0 || h == 0 {
+        return nearest;
+    }
+    let taps = |dst: usize, src_len: usize, dst_len: usize| {
+        let s = ((dst as f64 + 0.5) * src_len as f64 / dst_len as f64 - 0.5).clamp(0.0, (src_len - 1) as f64);
+        let i0 = s.floor() as usize;
+        let i1 = (i0 + 1).min(src_len - 1);
+        (i0, i1, (s - i0 as f64) as f32)
+    };
+    let xs: Vec<(usize, usize, f32)> = (0..new_w).map(|x| taps(x, w, new_w)).collect();
+    let known = |d: f32| d.is_finite() && d > 0.0;
+    let mut out = nearest;
+    for (y, row) in out.chunks_exact_mut(new_w.max(1)).enumerate().take(new_h) {
+        let (y0, y1, fy) = taps(y, h, new_h);
+        let (r0, r1) = (&v[y0 * w..][..w], &v[y1 * w..][..w]);
+        for (o, &(x0, x1, fx)) in row.iter_mut().zip(&xs) {
+            let q = [r0[x0], r0[x1], r1[x0], r1[x1]];
+            if !q.iter().all(|&d| known(d)) {
+                continue;
+            }
+            let (lo, hi) = q.iter().fold((f32::MAX, 0.0f32), |(lo, hi), &d| (lo.min(d), hi.max(d)));
+            if hi > lo * DEPTH_RESIZE_SPREAD {
+                continue;
+            }
+            let top = q[0] + (q[1] - q[0]) * fx;
+            let bottom = q[2] + (q[3] - q[2]) * fx;
+            *o = top + (bottom - top) * fy;
+        }
     }
     out
 }

@@ -29,9 +29,14 @@
 //! # [`MergeRule::DepthAware`] (the paper's module; the default)
 //!
 //! Background nearer than a moved object stays in front: object `j` is hidden at a candidate
-//! pixel where `M_occ = s * m_j * [D_t (1 + tol) < D_t^obj_j] >= 1/2` (`s = 1 - M_t`, `tol` =
-//! [`OCCLUSION_TOLERANCE`]). Among the candidates not hidden, the nearest (`D_t^obj` smallest;
-//! ties: lower slot) is drawn.
+//! pixel where `M_occ = s' * m_j * [D_t' (1 + tol) < D_t^obj_j] >= 1/2` (`s = 1 - M_t`, `tol` =
+//! [`OCCLUSION_TOLERANCE`]; `s'` and `D_t'` are `s` and `D_t` with one-pixel dips filled: a
+//! pixel lower in `s` or farther in `D_t` than both its vertical, or both its horizontal,
+//! neighbours takes the nearer of the two; so a one-pixel dip of the scene render where a soft
+//! layer's two planes part under the camera's motion does not let a hidden object through as a
+//! one-pixel line, while edges stay where they are).
+//! Among the candidates not hidden, the nearest (`D_t^obj` smallest; ties: lower slot) is
+//! drawn.
 //!
 //! The tolerance is what keeps touching surfaces from striping: a mask that spans many depths
 //! (an object with part of the floor it stands on) moves that floor with the object, so the
@@ -335,6 +340,18 @@ pub fn merge_target(
     // D_t is read and then replaced, pixel by pixel, by the depth of what image2 shows
     let mut shown_depth = depth;
     let mut hole = crate::buf::zeros::<u8>(n);
+    let scene_s = |x: usize, y: usize| match scene_mask_patch {
+        Some((r, patch)) if r.contains(x, y) => patch[(y - r.y0) * r.width() + x - r.x0],
+        _ => scene_mask[y * w + x],
+    };
+    // the occlusion test's view of the scene (depth-aware rule): scene mask and depth with
+    // one-pixel dips filled, so a dip of either (where a soft layer's planes part under the
+    // camera's motion) does not let a hidden object through as a one-pixel line
+    let near = if rule == MergeRule::DepthAware && !objects.is_empty() {
+        neighbourhood_scene(w, h, &shown_depth, scene_s)
+    } else {
+        Vec::new()
+    };
     let holes: u64 = image2
         .par_chunks_mut(3 * w)
         .zip(mask2.par_chunks_mut(w))
@@ -345,11 +362,7 @@ pub fn merge_target(
             let mut row_holes = 0u64;
             for x in 0..w {
                 let i = y * w + x;
-                let s = match scene_mask_patch {
-                    Some((r, patch)) if r.contains(x, y) => patch[(y - r.y0) * r.width() + x - r.x0],
-                    _ => scene_mask[i],
-                };
-                let d_t = dep[x];
+                let s = scene_s(x, y);
                 let mut best: Option<Hit> = None;
                 for (slot, o) in objects.iter().enumerate() {
                     let Some(idx) = o.render.index(x, y) else { continue };
@@ -366,8 +379,9 @@ pub fn merge_target(
                             }
                         }
                         MergeRule::DepthAware => {
-                            let occluded = d_t * (1.0 + OCCLUSION_TOLERANCE) < depth;
-                            let m_occ = if occluded { s * m } else { 0.0 };
+                            let (s_near, d_near) = near[i];
+                            let occluded = d_near * (1.0 + OCCLUSION_TOLERANCE) < depth;
+                            let m_occ = if occluded { s_near * m } else { 0.0 };
                             if m_occ >= 0.5 {
                                 continue; // nearer background stays in front
                             }
@@ -407,6 +421,38 @@ pub fn merge_target(
 }
 
 #[inline]
+/// Per pixel, the scene mask `s` and depth `D_t` with one-pixel dips filled: `s` raised to the
+/// smaller of its two vertical (or two horizontal) neighbours when both are larger, `D_t` lowered
+/// to the larger of its two vertical (or horizontal) neighbours when both are nearer (finite and
+/// positive). A dip one pixel wide between two higher neighbours is filled; an edge (a higher
+/// neighbour on one side only) is kept, so no occluder grows.
+fn neighbourhood_scene(w: usize, h: usize, depth: &[f32], s: impl Fn(usize, usize) -> f32 + Sync) -> Vec<(f32, f32)> {
+    let mut out = vec![(0.0f32, f32::INFINITY); w * h];
+    let known = |d: f32| d.is_finite() && d > 0.0;
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
+            let i = y * w + x;
+            let (mut sv, mut dv) = (s(x, y), depth[i]);
+            let pairs = [
+                (y > 0 && y + 1 < h).then(|| ((x, y - 1), (x, y + 1))),
+                (x > 0 && x + 1 < w).then(|| ((x - 1, y), (x + 1, y))),
+            ];
+            for ((xa, ya), (xb, yb)) in pairs.into_iter().flatten() {
+                let (sa, sb) = (s(xa, ya), s(xb, yb));
+                if !sv.is_nan() && sa.min(sb) > sv {
+                    sv = sa.min(sb);
+                }
+                let (da, db) = (depth[ya * w + xa], depth[yb * w + xb]);
+                if known(da) && known(db) && known(dv) && da.max(db) < dv {
+                    dv = da.max(db);
+                }
+            }
+            *o = (if sv.is_nan() { 0.0 } else { sv }, if known(dv) { dv } else { f32::INFINITY });
+        }
+    });
+    out
+}
+
 fn finite_or_zero(v: f32) -> f32 {
     if v.is_finite() {
         v

@@ -38,10 +38,12 @@ use crate::source::{FailureKind, Fnv64, Source, SourceError};
 /// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
 /// (sources + scene stage) and the configuration's JSON. Never change the formula without a
 /// reason: it is the dataset word of every address, so changing it changes every sample.
+/// v2 (2026-12-04): the depth-aware merge fills one-pixel dips of the scene mask and depth
+/// before its occlusion test (`sample::merge`), which changes samples with moving objects.
 pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
     // serialising a plain struct of numbers and strings cannot fail
     let json = serde_json::to_string(config).unwrap_or_default();
-    Fnv64::new().str("mpiflow dataset v1").u64(loader_fingerprint).str(&json).finish()
+    Fnv64::new().str("mpiflow dataset v2").u64(loader_fingerprint).str(&json).finish()
 }
 
 /// `WxH`, both sides 16 to 16384 pixels (the `--size` of every command and the `size` key).

@@ -37,10 +37,13 @@
 //!
 //! # Sizes and camera
 //!
-//! Depth, disparity and masks whose size differs from the image's are resized to it (nearest
-//! neighbour, so unknown depth stays unknown and ids stay ids), as the reference resizes all its
-//! inputs to one size. With [`SourceOptions::resize`] every item is resized to that size: the
-//! image with an antialiasing triangle filter, depth and masks by nearest neighbour. A given MPI
+//! Depth, disparity and masks whose size differs from the image's are resized to it (masks by
+//! nearest neighbour, so ids stay ids; depth and disparity bilinearly on a surface and by
+//! nearest neighbour across its edges and next to unknown values, so unknown depth stays unknown
+//! and no depth is invented between surfaces: [`crate::raster::resize_depth`]), as the reference
+//! resizes all its inputs to one size. With [`SourceOptions::resize`] every item is resized to
+//! that size: the image with an antialiasing triangle filter, depth and disparity the same way
+//! as above, masks by nearest neighbour. A given MPI
 //! must have the size of the (resized) image; it is never resized. Intrinsics are the reference's
 //! default (`0.58 W, 0.58 H`, centre; left to the scene stage) unless
 //! [`SourceOptions::intrinsics`] sets them for the run.
@@ -72,7 +75,7 @@ use super::{Carried, FailureKind, Fnv64, GivenDepth, SkippedItem, Source, Source
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits};
 use crate::mpi::{Mpi, MpiError};
-use crate::raster::{resize_nearest, InstanceMasks};
+use crate::raster::{resize_depth, InstanceMasks};
 use std::collections::HashMap;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -129,6 +132,8 @@ impl SourceOptions {
             None => h.str("size as is"),
             Some((w, hh)) => h.str("resize").u64(w as u64).u64(hh as u64),
         };
+        // depth maps of another size are resized bilinearly on surfaces (not nearest-only)
+        h.str("depth resize: surface-bilinear");
         match self.intrinsics {
             None => h.str("intrinsics default"),
             Some(IntrinsicsSpec::Pixels(k)) => h.str("intrinsics px").f64(k.fx).f64(k.fy).f64(k.cx).f64(k.cy),
@@ -557,8 +562,8 @@ impl DirSource {
                 }
                 image = resize_rgb(&image, rw, rh);
                 depth = depth.map(|d| match d {
-                    GivenDepth::Depth(v) => GivenDepth::Depth(resize_nearest(&v, w0, h0, rw, rh)),
-                    GivenDepth::Disparity(v) => GivenDepth::Disparity(resize_nearest(&v, w0, h0, rw, rh)),
+                    GivenDepth::Depth(v) => GivenDepth::Depth(resize_depth(&v, w0, h0, rw, rh)),
+                    GivenDepth::Disparity(v) => GivenDepth::Disparity(resize_depth(&v, w0, h0, rw, rh)),
                 });
                 masks = masks.map(|m| m.resize_nearest(rw, rh));
             }

@@ -5,7 +5,7 @@ use super::dir::{depth_npy_from_bytes, disparity_png_from_bytes, resize_rgb, Sou
 use super::{FailureKind, GivenDepth, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::load_rgb_from_bytes_named;
-use crate::raster::{resize_nearest, InstanceMasks};
+use crate::raster::{resize_depth, InstanceMasks};
 
 /// How an encoded depth companion is read.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -60,7 +60,7 @@ pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<Sou
     let mut image = load_rgb_from_bytes_named(item.image.bytes, &item.image.name, limits)
         .map_err(|e| err(&item.image.name, e.failure_kind(), e))?;
     let (w0, h0) = (image.width, image.height);
-    let fit = |d: Vec<f32>, w: usize, h: usize| if (w, h) == (w0, h0) { d } else { resize_nearest(&d, w, h, w0, h0) };
+    let fit = |d: Vec<f32>, w: usize, h: usize| super::given::fit(d, w, h, w0, h0);
     let mut depth = match &item.depth {
         Some((DepthEncoding::Npy, f)) => {
             let (w, h, d) = depth_npy_from_bytes(f.bytes, limits).map_err(|(kind, m)| err(&f.name, kind, m))?;
@@ -92,8 +92,8 @@ pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<Sou
             }
             image = resize_rgb(&image, rw, rh);
             depth = depth.map(|d| match d {
-                GivenDepth::Depth(v) => GivenDepth::Depth(resize_nearest(&v, w0, h0, rw, rh)),
-                GivenDepth::Disparity(v) => GivenDepth::Disparity(resize_nearest(&v, w0, h0, rw, rh)),
+                GivenDepth::Depth(v) => GivenDepth::Depth(resize_depth(&v, w0, h0, rw, rh)),
+                GivenDepth::Disparity(v) => GivenDepth::Disparity(resize_depth(&v, w0, h0, rw, rh)),
             });
             masks = masks.map(|m| m.resize_nearest(rw, rh));
             let (sx, sy) = (rw as f64 / w0 as f64, rh as f64 / h0 as f64);

@@ -5,16 +5,18 @@
 use super::dir::{file_err, io_err, over_limit, DepthFile};
 use super::{FailureKind, SourceError};
 use crate::io::image::{decode_file, load_depth_png16_with_limits, ImageLimits, RgbImage};
-use crate::raster::resize_nearest;
+use crate::raster::resize_depth;
 use ::image::DynamicImage;
 use std::path::Path;
 
-/// Resizes `data` (w x h) to (w0 x h0) by nearest neighbour when the sizes differ.
+/// Resizes a depth or disparity map `data` (w x h) to (w0 x h0) when the sizes differ:
+/// bilinear on a surface, nearest across its edges and next to unknown values
+/// ([`resize_depth`]).
 pub(crate) fn fit(data: Vec<f32>, w: usize, h: usize, w0: usize, h0: usize) -> Vec<f32> {
     if (w, h) == (w0, h0) {
         data
     } else {
-        resize_nearest(&data, w, h, w0, h0)
+        resize_depth(&data, w, h, w0, h0)
     }
 }
 
