@@ -347,11 +347,11 @@ pub fn merge_target(
     // the occlusion test's view of the scene (depth-aware rule): scene mask and depth with
     // one-pixel dips filled, so a dip of either (where a soft layer's planes part under the
     // camera's motion) does not let a hidden object through as a one-pixel line
-    let near = if rule == MergeRule::DepthAware && !objects.is_empty() {
-        neighbourhood_scene(w, h, &shown_depth, scene_s)
-    } else {
-        Vec::new()
-    };
+    // (computed at candidate pixels only, from a copy of the scene depth: the rows below are
+    // overwritten with what image2 shows as they are merged)
+    let scene_depth =
+        if rule == MergeRule::DepthAware && !objects.is_empty() { shown_depth.clone() } else { Vec::new() };
+    let near = |x: usize, y: usize| dip_filled(w, h, &scene_depth, &scene_s, x, y);
     let holes: u64 = image2
         .par_chunks_mut(3 * w)
         .zip(mask2.par_chunks_mut(w))
@@ -363,6 +363,7 @@ pub fn merge_target(
             for x in 0..w {
                 let i = y * w + x;
                 let s = scene_s(x, y);
+                let mut filled: Option<(f32, f32)> = None;
                 let mut best: Option<Hit> = None;
                 for (slot, o) in objects.iter().enumerate() {
                     let Some(idx) = o.render.index(x, y) else { continue };
@@ -379,11 +380,15 @@ pub fn merge_target(
                             }
                         }
                         MergeRule::DepthAware => {
-                            let (s_near, d_near) = near[i];
-                            let occluded = d_near * (1.0 + OCCLUSION_TOLERANCE) < depth;
-                            let m_occ = if occluded { s_near * m } else { 0.0 };
-                            if m_occ >= 0.5 {
+                            let hidden = |s: f32, d_t: f32| d_t * (1.0 + OCCLUSION_TOLERANCE) < depth && s * m >= 0.5;
+                            // filling dips only raises s and lowers D_t: hidden as the pixel is,
+                            // hidden after filling (so only the others need their neighbours)
+                            if hidden(s, dep[x]) {
                                 continue; // nearer background stays in front
+                            }
+                            let (s_near, d_near) = *filled.get_or_insert_with(|| near(x, y));
+                            if hidden(s_near, d_near) {
+                                continue;
                             }
                             if best.is_none_or(|b| depth < b.depth) {
                                 best = Some(hit);
@@ -421,36 +426,30 @@ pub fn merge_target(
 }
 
 #[inline]
-/// Per pixel, the scene mask `s` and depth `D_t` with one-pixel dips filled: `s` raised to the
-/// smaller of its two vertical (or two horizontal) neighbours when both are larger, `D_t` lowered
-/// to the larger of its two vertical (or horizontal) neighbours when both are nearer (finite and
-/// positive). A dip one pixel wide between two higher neighbours is filled; an edge (a higher
-/// neighbour on one side only) is kept, so no occluder grows.
-fn neighbourhood_scene(w: usize, h: usize, depth: &[f32], s: impl Fn(usize, usize) -> f32 + Sync) -> Vec<(f32, f32)> {
-    let mut out = vec![(0.0f32, f32::INFINITY); w * h];
+/// The scene mask `s` and depth `D_t` of pixel (x, y) with one-pixel dips filled: `s` raised
+/// to the smaller of its two vertical (or two horizontal) neighbours when both are larger, `D_t`
+/// lowered to the larger of its two vertical (or horizontal) neighbours when both are nearer
+/// (finite and positive). A dip one pixel wide between two higher neighbours is filled; an edge
+/// (a higher neighbour on one side only) is kept, so no occluder grows. Non-finite `s` reads 0,
+/// unknown `D_t` infinity.
+fn dip_filled(w: usize, h: usize, depth: &[f32], s: &impl Fn(usize, usize) -> f32, x: usize, y: usize) -> (f32, f32) {
     let known = |d: f32| d.is_finite() && d > 0.0;
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            let i = y * w + x;
-            let (mut sv, mut dv) = (s(x, y), depth[i]);
-            let pairs = [
-                (y > 0 && y + 1 < h).then(|| ((x, y - 1), (x, y + 1))),
-                (x > 0 && x + 1 < w).then(|| ((x - 1, y), (x + 1, y))),
-            ];
-            for ((xa, ya), (xb, yb)) in pairs.into_iter().flatten() {
-                let (sa, sb) = (s(xa, ya), s(xb, yb));
-                if !sv.is_nan() && sa.min(sb) > sv {
-                    sv = sa.min(sb);
-                }
-                let (da, db) = (depth[ya * w + xa], depth[yb * w + xb]);
-                if known(da) && known(db) && known(dv) && da.max(db) < dv {
-                    dv = da.max(db);
-                }
-            }
-            *o = (if sv.is_nan() { 0.0 } else { sv }, if known(dv) { dv } else { f32::INFINITY });
+    let (mut sv, mut dv) = (s(x, y), depth[y * w + x]);
+    let pairs = [
+        (y > 0 && y + 1 < h).then(|| ((x, y - 1), (x, y + 1))),
+        (x > 0 && x + 1 < w).then(|| ((x - 1, y), (x + 1, y))),
+    ];
+    for ((xa, ya), (xb, yb)) in pairs.into_iter().flatten() {
+        let (sa, sb) = (s(xa, ya), s(xb, yb));
+        if !sv.is_nan() && sa.min(sb) > sv {
+            sv = sa.min(sb);
         }
-    });
-    out
+        let (da, db) = (depth[ya * w + xa], depth[yb * w + xb]);
+        if known(da) && known(db) && known(dv) && da.max(db) < dv {
+            dv = da.max(db);
+        }
+    }
+    (if sv.is_nan() { 0.0 } else { sv }, if known(dv) { dv } else { f32::INFINITY })
 }
 
 fn finite_or_zero(v: f32) -> f32 {
