@@ -32,6 +32,22 @@ pub fn resize_nearest(mask: &[f32], w: usize, h: usize, new_w: usize, new_h: usi
     out
 }
 
+/// The two source taps and the weight of the second for destination index `dst` of a bilinear
+/// resize from `src_len` to `dst_len` (pixel centres aligned, edges clamped).
+fn bilinear_taps(dst: usize, src_len: usize, dst_len: usize) -> (usize, usize, f32) {
+    let s = ((dst as f64 + 0.5) * src_len as f64 / dst_len as f64 - 0.5).clamp(0.0, (src_len - 1) as f64);
+    let i0 = s.floor() as usize;
+    let i1 = (i0 + 1).min(src_len - 1);
+    (i0, i1, (s - i0 as f64) as f32)
+}
+
+/// Bilinear interpolation of `[top-left, top-right, bottom-left, bottom-right]`.
+fn lerp2(q: [f32; 4], fx: f32, fy: f32) -> f32 {
+    let top = q[0] + (q[1] - q[0]) * fx;
+    let bottom = q[2] + (q[3] - q[2]) * fx;
+    top + (bottom - top) * fy
+}
+
 /// Largest ratio between the four source values a depth (or disparity) resize interpolates
 /// between ([`resize_depth`]); a larger step is an edge between surfaces.
 pub const DEPTH_RESIZE_SPREAD: f32 = 1.05;
@@ -52,17 +68,11 @@ pub fn resize_depth(v: &[f32], w: usize, h: usize, new_w: usize, new_h: usize) -
     if w == 0 || h == 0 {
         return nearest;
     }
-    let taps = |dst: usize, src_len: usize, dst_len: usize| {
-        let s = ((dst as f64 + 0.5) * src_len as f64 / dst_len as f64 - 0.5).clamp(0.0, (src_len - 1) as f64);
-        let i0 = s.floor() as usize;
-        let i1 = (i0 + 1).min(src_len - 1);
-        (i0, i1, (s - i0 as f64) as f32)
-    };
-    let xs: Vec<(usize, usize, f32)> = (0..new_w).map(|x| taps(x, w, new_w)).collect();
+    let xs: Vec<(usize, usize, f32)> = (0..new_w).map(|x| bilinear_taps(x, w, new_w)).collect();
     let known = |d: f32| d.is_finite() && d > 0.0;
     let mut out = nearest;
     for (y, row) in out.chunks_exact_mut(new_w.max(1)).enumerate().take(new_h) {
-        let (y0, y1, fy) = taps(y, h, new_h);
+        let (y0, y1, fy) = bilinear_taps(y, h, new_h);
         let (r0, r1) = (&v[y0 * w..][..w], &v[y1 * w..][..w]);
         for (o, &(x0, x1, fx)) in row.iter_mut().zip(&xs) {
             let q = [r0[x0], r0[x1], r1[x0], r1[x1]];
@@ -73,9 +83,7 @@ pub fn resize_depth(v: &[f32], w: usize, h: usize, new_w: usize, new_h: usize) -
             if hi > lo * DEPTH_RESIZE_SPREAD {
                 continue;
             }
-            let top = q[0] + (q[1] - q[0]) * fx;
-            let bottom = q[2] + (q[3] - q[2]) * fx;
-            *o = top + (bottom - top) * fy;
+            *o = lerp2(q, fx, fy);
         }
     }
     out
@@ -92,22 +100,12 @@ pub fn resize_bilinear(mask: &[f32], w: usize, h: usize, new_w: usize, new_h: us
     if w == 0 || h == 0 {
         return vec![0.0; new_w * new_h];
     }
-    let taps = |dst: usize, src_len: usize, dst_len: usize| {
-        let s = ((dst as f64 + 0.5) * src_len as f64 / dst_len as f64 - 0.5).clamp(0.0, (src_len - 1) as f64);
-        let i0 = s.floor() as usize;
-        let i1 = (i0 + 1).min(src_len - 1);
-        (i0, i1, (s - i0 as f64) as f32)
-    };
-    let xs: Vec<(usize, usize, f32)> = (0..new_w).map(|x| taps(x, w, new_w)).collect();
+    let xs: Vec<(usize, usize, f32)> = (0..new_w).map(|x| bilinear_taps(x, w, new_w)).collect();
     let mut out = Vec::with_capacity(new_w * new_h);
     for y in 0..new_h {
-        let (y0, y1, fy) = taps(y, h, new_h);
+        let (y0, y1, fy) = bilinear_taps(y, h, new_h);
         let (r0, r1) = (&mask[y0 * w..][..w], &mask[y1 * w..][..w]);
-        out.extend(xs.iter().map(|&(x0, x1, fx)| {
-            let top = r0[x0] + (r0[x1] - r0[x0]) * fx;
-            let bottom = r1[x0] + (r1[x1] - r1[x0]) * fx;
-            top + (bottom - top) * fy
-        }));
+        out.extend(xs.iter().map(|&(x0, x1, fx)| lerp2([r0[x0], r0[x1], r1[x0], r1[x1]], fx, fy)));
     }
     out
 }

@@ -425,7 +425,6 @@ pub fn merge_target(
     TargetSide { image: image2, mask: mask2, shown_depth, hole, holes }
 }
 
-#[inline]
 /// The scene mask `s` and depth `D_t` of pixel (x, y) with one-pixel dips filled: `s` raised
 /// to the smaller of its two vertical (or two horizontal) neighbours when both are larger, `D_t`
 /// lowered to the larger of its two vertical (or horizontal) neighbours when both are nearer
@@ -452,6 +451,7 @@ fn dip_filled(w: usize, h: usize, depth: &[f32], s: &impl Fn(usize, usize) -> f3
     (if sv.is_nan() { 0.0 } else { sv }, if known(dv) { dv } else { f32::INFINITY })
 }
 
+#[inline]
 fn finite_or_zero(v: f32) -> f32 {
     if v.is_finite() {
         v
