@@ -122,6 +122,14 @@ fn read(what: &str, p: &PathBuf) -> Result<Vec<u8>, ConnectError> {
     std::fs::read(p).map_err(|e| ConnectError::Options(format!("{what} {}: {e}", p.display())))
 }
 
+/// The largest HTTP/2 frame this client accepts (`SETTINGS_MAX_FRAME_SIZE`; HTTP/2's default is
+/// 16 KiB). A 640x480 sample is ~4.6 MB: in 16 KiB frames the client read it in ~560 socket reads
+/// and woke its tasks as often, ~6 ms of CPU per sample on the cores the server shares; in 1 MiB
+/// frames it takes a third of that (docs/performance.md, "The wire"). A frame is buffered whole
+/// before it is passed on, so this also bounds the connection's read buffer (besides the
+/// stream window, 2 MiB, of data received but not yet read).
+pub const MAX_FRAME_BYTES: u32 = 1 << 20;
+
 /// A channel to `addr` (`HOST:PORT`, `http://` or `https://`), with TLS as the options say.
 pub async fn channel(addr: &str, options: &ClientOptions) -> Result<Channel, ConnectError> {
     let tls = options.tls(addr);
@@ -132,7 +140,10 @@ pub async fn channel(addr: &str, options: &ClientOptions) -> Result<Channel, Con
         }
         _ => endpoint_uri(addr),
     };
-    let mut endpoint = Endpoint::from_shared(uri)?.tcp_nodelay(true).connect_timeout(Duration::from_secs(10));
+    let mut endpoint = Endpoint::from_shared(uri)?
+        .tcp_nodelay(true)
+        .connect_timeout(Duration::from_secs(10))
+        .max_frame_size(MAX_FRAME_BYTES);
     if tls {
         let Some(ca) = &options.tls_ca else {
             return Err(ConnectError::Options(format!("{addr}: TLS needs the server's CA (--tls-ca)")));
