@@ -160,6 +160,23 @@ pub fn rss_mib(pid: u32) -> Option<f64> {
     Some(line.split_whitespace().nth(1)?.parse::<f64>().ok()? / 1024.0)
 }
 
+/// CPU seconds (user + system, all threads) process `pid` has used so far, from
+/// `/proc/PID/stat` (Linux; its unit, `USER_HZ`, is 100 per second in the kernel's ABI). None
+/// where there is no `/proc`.
+pub fn cpu_s(pid: u32) -> Option<f64> {
+    stat_cpu_s(&std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?)
+}
+
+/// [`cpu_s`] of one `/proc/PID/stat` line.
+fn stat_cpu_s(s: &str) -> Option<f64> {
+    // the fields after the command name, which is in parentheses and may hold spaces
+    let rest = &s[s.rfind(')')? + 1..];
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    // utime and stime are fields 14 and 15 of the line, 12 and 13 after the name
+    let ticks = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
 /// A `mpiflow serve` child process on loopback; SIGTERM and wait on drop.
 pub struct ServerProcess {
     child: Child,
@@ -248,7 +265,7 @@ pub fn metric_value(text: &str, name: &str) -> Option<f64> {
 }
 
 /// `GET /metrics` over plain HTTP/1.0.
-async fn scrape(addr: &str) -> Option<String> {
+pub async fn scrape(addr: &str) -> Option<String> {
     let mut s = tokio::net::TcpStream::connect(addr).await.ok()?;
     s.write_all(format!("GET /metrics HTTP/1.0\r\nHost: {addr}\r\n\r\n").as_bytes()).await.ok()?;
     let mut body = Vec::new();
@@ -752,6 +769,16 @@ mod tests {
         assert!(!r.passed());
         assert!(r.summary().iter().any(|l| l == "clients that got nothing done: slow"), "{:?}", r.summary());
         assert_eq!(r.summary().last().map(String::as_str), Some("soak: FAIL"));
+    }
+
+    #[test]
+    fn cpu_time_is_user_plus_system_after_a_command_name_with_spaces_and_parentheses() {
+        // pid (comm) state ppid pgrp session tty tpgid flags minflt cminflt majflt cmajflt utime stime ...
+        let line = "4242 (mpi (flow) x) S 1 4242 4242 0 -1 4194560 100 0 0 0 250 75 0 0 20 0 3 0";
+        assert_eq!(stat_cpu_s(line), Some(3.25));
+        assert_eq!(stat_cpu_s("4242 (truncated) S 1 2"), None);
+        let me = cpu_s(std::process::id()).expect("this process's /proc/PID/stat");
+        assert!(me >= 0.0 && me.is_finite());
     }
 
     #[test]

@@ -1,11 +1,13 @@
 //! `mpiflow bench serve`: delivered samples/s of `mpiflow serve` over loopback (a child server
 //! process, pulled by the Rust client) against the in-process generator rate on the same number
-//! of workers; time to first sample, p99 gap; server memory with stalled and fast clients.
+//! of workers; time to first sample, p99 gap; where the CPU went (the workers' busy time from
+//! the server's `/metrics`, the server's and the client's CPU time per sample against the
+//! in-process run's); server memory with stalled and fast clients.
 
 use std::time::{Duration, Instant};
 
 use clap::Args;
-use mpiflow::bench::soak::{rss_mib, ServerProcess};
+use mpiflow::bench::soak::{cpu_s, metric_value, rss_mib, scrape, ServerProcess};
 use mpiflow::service::client::{connect, pull};
 use mpiflow::service::config::DatasetConfig;
 use mpiflow::service::dataset::Datasets;
@@ -66,9 +68,11 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(workers).build()?;
     let warm = ds.sources() as u64;
     pool.install(|| (0..warm).into_par_iter().try_for_each(|i| generator.sample(0, i).map(drop)))?;
-    let t = Instant::now();
+    let me = std::process::id();
+    let (t, cpu0) = (Instant::now(), cpu_s(me));
     pool.install(|| (0..b.count).into_par_iter().try_for_each(|i| generator.sample(1, i).map(drop)))?;
     let in_process = b.count as f64 / t.elapsed().as_secs_f64();
+    let in_process_cpu = cpu0.zip(cpu_s(me)).map(|(a, z)| z - a);
     drop(datasets);
     println!(
         "in process: {in_process:.2} samples/s ({} samples of {}, {workers} workers, dataset {} with {} sources)",
@@ -88,6 +92,8 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
         b.size.clone(),
         "--log-level".into(),
         "warn".into(),
+        "--metrics-addr".into(),
+        "127.0.0.1:0".into(),
     ];
     if let Some(s) = &b.source {
         args.extend(["--source".into(), s.clone()]);
@@ -108,7 +114,21 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
         if let Some(e) = w.error {
             return Err(CliError(format!("warm-up pull: {e}")));
         }
+        let usage = || async {
+            let busy = match &server.metrics_addr {
+                Some(m) => scrape(m).await.map(|t| {
+                    ["total", "encode"]
+                        .iter()
+                        .filter_map(|k| metric_value(&t, &format!("mpiflow_stage_seconds_sum{{stage=\"{k}\"}}")))
+                        .sum::<f64>()
+                }),
+                None => None,
+            };
+            (busy, cpu_s(pid), cpu_s(me))
+        };
+        let before = usage().await;
         let r = pull(&mut client, request(&b, 1, b.count), |_| {}).await.map_err(|s| CliError(s.to_string()))?;
+        let after = usage().await;
         if let Some(e) = &r.error {
             return Err(CliError(format!("pull: {e}")));
         }
@@ -120,6 +140,19 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
             r.gap_quantile_ms(0.99).unwrap_or(0.0),
             b.batch_size,
             b.lz4
+        );
+        let per = |a: Option<f64>, z: Option<f64>| a.zip(z).map(|(a, z)| 1e3 * (z - a) / b.count as f64);
+        let ms = |v: Option<f64>| v.map_or_else(|| "?".into(), |v| format!("{v:.1} ms"));
+        let run_s = r.seconds;
+        println!(
+            "where the CPU went (per sample): in process {}; served: server {}, client {}; the workers were busy {} of the run",
+            ms(in_process_cpu.map(|c| 1e3 * c / b.count as f64)),
+            ms(per(before.1, after.1)),
+            ms(per(before.2, after.2)),
+            before.0.zip(after.0).map_or_else(
+                || "?".into(),
+                |(a, z)| format!("{:.1}%", 100.0 * (z - a) / (run_s * workers as f64))
+            )
         );
         if b.clients == 0 {
             return Ok(());
