@@ -550,6 +550,20 @@ pub(super) fn source_view<T: Real>(
     // the source camera's own depth, only when a link needs it (allocated by the caller)
     let mut src_depth = std::mem::take(&mut out.source_depth);
     let want_sd = !src_depth.is_empty();
+    // four pixels at a time where T is f32 and every pixel is asked for (the same bits)
+    let lanes = (T::LANES && flow_where.is_none()).then(|| SourceLanes {
+        m: std::array::from_fn(|r| [m.row(r).x as f32, m.row(r).y as f32, m.row(r).z as f32]),
+        b: [bt.x as f32, bt.y as f32, bt.z as f32],
+        disp: mpi.disparity.iter().map(|&d| d as f32).collect(),
+        depth: mpi.disparity.iter().map(|&d| plane_depth(d) as f32).collect(),
+        gap: plane_gaps(&mpi.disparity).into_iter().map(|g| g as f32).collect(),
+        t_eps: p.skip.transmittance_eps,
+        z_min: 1e-9_f64 as f32,
+        rgba: rgba.clone(),
+        w,
+        ks,
+        want_sd,
+    });
     let bufs: [&mut [f32]; 4] = [&mut flow, &mut zexp, &mut front, &mut src_depth];
     for_each_band(ww, win.height(), bufs, [2, 1, 1, usize::from(want_sd)], |y0, rows, b| {
         let fy0 = win.y0 + y0;
@@ -567,7 +581,14 @@ pub(super) fn source_view<T: Real>(
                 let yy = fy0 + ry;
                 let y = T::of(yy as f64);
                 let uy = T::of((yy as f64 - ks.cy) / ks.fy);
-                for x in tx0..=tx1 {
+                let mut x0 = tx0;
+                if let Some(l) = &lanes {
+                    while x0 + 3 <= tx1 {
+                        l.four(x0, yy, &active, ry * ww + (x0 - win.x0), b);
+                        x0 += 4;
+                    }
+                }
+                for x in x0..=tx1 {
                     if let Some(m) = flow_where {
                         let mv = m[yy * w + x];
                         if mv.is_nan() || mv <= 0.0 {
@@ -626,6 +647,95 @@ pub(super) fn source_view<T: Real>(
     out.flow = flow;
     out.source_depth_in_target = zexp;
     out.source_depth = src_depth;
+}
+
+/// The source view's per-pixel loop for four adjacent pixels of a row at once (f32 only, the
+/// scalar loop of [`source_view`] stays the reference): every lane does the scalar loop's
+/// operations in its order on its own pixel, planes a lane does not take (density 0, or the
+/// lane done because its transmittance fell below `t_eps`) are masked out instead of skipped,
+/// and the plane loop ends when every lane is done. So each pixel gets the scalar loop's bits
+/// (`tests/render_window.rs` compares the two: a `flow_where` mask makes the scalar loop run).
+struct SourceLanes<'a> {
+    m: [[f32; 3]; 3],
+    b: [f32; 3],
+    disp: Vec<f32>,
+    depth: Vec<f32>,
+    gap: Vec<f32>,
+    t_eps: f32,
+    z_min: f32,
+    rgba: Vec<&'a [f32]>,
+    w: usize,
+    ks: crate::geometry::Intrinsics,
+    want_sd: bool,
+}
+
+impl SourceLanes<'_> {
+    /// Pixels `x .. x + 4` of row `yy`, written at `o .. o + 4` of the band's buffers `b`
+    /// (flow, expected target depth, front fraction, source depth).
+    #[inline(always)]
+    fn four(&self, x: usize, yy: usize, active: &[usize], o: usize, b: &mut [&mut [f32]; 4]) {
+        use super::simd::{exp_neg4, gather};
+        use wide::f32x4;
+        let sp = f32x4::splat;
+        let (zero, one) = (sp(0.0), sp(1.0));
+        let xf = f32x4::from(std::array::from_fn::<f32, 4, _>(|k| (x + k) as f64 as f32));
+        let y = yy as f64 as f32;
+        let ux = f32x4::from(std::array::from_fn::<f32, 4, _>(|k| (((x + k) as f64 - self.ks.cx) / self.ks.fx) as f32));
+        let uy = sp(((yy as f64 - self.ks.cy) / self.ks.fy) as f32);
+        let norm_u = (ux * ux + uy * uy + one).sqrt();
+        let a: [f32x4; 3] = std::array::from_fn(|r| sp(self.m[r][0]) * xf + sp(self.m[r][1] * y) + sp(self.m[r][2]));
+        let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall, mut sd) = (one, zero, zero, zero, zero, zero, zero);
+        let pix = 4 * (yy * self.w + x) + 3;
+        let (t_eps, z_lim) = (sp(self.t_eps), sp(self.z_min) * (a[2].abs() + one));
+        let depth_max = sp(DEPTH_MAX as f32);
+        for &i in active {
+            // a lane is done once its transmittance is below t_eps (it only falls)
+            let live = !tr.simd_lt(t_eps);
+            if !live.any() {
+                break;
+            }
+            let sigma = gather(self.rgba[i], pix, 4);
+            let take = live & !sigma.simd_le(zero);
+            if !take.any() {
+                continue;
+            }
+            let e = exp_neg4(sigma * sp(self.gap[i]) * norm_u);
+            let wgt = tr * (one - e);
+            tr = take.select(tr * e, tr);
+            sall = take.select(sall + wgt, sall);
+            if self.want_sd {
+                sd = take.select(sd + wgt * sp(self.depth[i]), sd);
+            }
+            let d = sp(self.disp[i]);
+            let hz = a[2] + sp(self.b[2]) * d;
+            let front = take & hz.simd_gt(z_lim);
+            if front.any() {
+                let hx = a[0] + sp(self.b[0]) * d;
+                let hy = a[1] + sp(self.b[1]) * d;
+                fu = front.select(fu + wgt * (hx / hz - xf), fu);
+                fv = front.select(fv + wgt * (hy / hz - sp(y)), fv);
+                sw = front.select(sw + wgt, sw);
+                let z = hz * sp(self.depth[i]);
+                let z = z.simd_gt(depth_max).select(depth_max, z);
+                sz = front.select(sz + wgt * z, sz);
+            }
+        }
+        // the scalar loop's T::of(1e-6)
+        const EPS: f32 = 1e-6_f64 as f32;
+        let [fu, fv, sw, sz, sall, sd] = [fu, fv, sw, sz, sall, sd].map(f32x4::to_array);
+        for k in 0..4 {
+            let o = o + k;
+            if sw[k] > EPS {
+                b[0][2 * o] = fu[k] / sw[k];
+                b[0][2 * o + 1] = fv[k] / sw[k];
+                b[1][o] = sz[k] / sw[k];
+            }
+            b[2][o] = if sall[k] > 0.0 { sw[k] / sall[k] } else { 0.0 };
+            if self.want_sd && sall[k] > EPS {
+                b[3][o] = sd[k] / sall[k];
+            }
+        }
+    }
 }
 
 /// A density cut ([`crate::render::cut::DensityCut`]) over a bilinear sampler: plane `i`'s

@@ -3,7 +3,8 @@
 //! scalar twin (no fused multiply-add, the same order), so the results are bit-identical to the
 //! scalar formulas of [`super::real::Real`] (tested in `render::real`).
 
-use wide::f32x4;
+use wide::bytemuck::cast;
+use wide::{f32x4, i32x4};
 
 #[inline(always)]
 fn load(s: &[f32]) -> f32x4 {
@@ -21,4 +22,30 @@ pub(crate) fn lerp4(a: &[f32], b: &[f32], c: &[f32], d: &[f32], wx: f32, wy: f32
     let top = a + wx * (b - a);
     let bot = c + wx * (d - c);
     (top + wy * (bot - top)).to_array()
+}
+
+/// exp(-x) of four values: [`super::real`]'s `exp_neg_f32`, operation for operation in every
+/// lane (the same clamps, argument reduction, polynomial and exponent bits), so the same bits.
+#[inline(always)]
+pub(crate) fn exp_neg4(x: f32x4) -> f32x4 {
+    let (zero, cap) = (f32x4::splat(0.0), f32x4::splat(80.0));
+    let x = x.simd_lt(cap).select(x, cap); // NaN becomes 80
+    let x = x.simd_gt(zero).select(x, zero);
+    let t = -x * f32x4::splat(std::f32::consts::LOG2_E);
+    let magic = f32x4::splat(12_582_912.0);
+    let n = (t + magic) - magic;
+    let f = t - n;
+    let c = |k: usize| f32x4::splat(super::real::EXP2_TAYLOR[k]);
+    let p = c(0) + f * (c(1) + f * (c(2) + f * (c(3) + f * (c(4) + f * (c(5) + f * c(6))))));
+    let n = n.trunc_int();
+    // n / 2 rounded toward zero, as Rust's integer division: one more before the shift when n < 0
+    let half = (n - n.simd_lt(i32x4::splat(0))) >> 1;
+    let pow2 = |k: i32x4| cast::<i32x4, f32x4>((i32x4::splat(127) + k) << 23);
+    p * pow2(half) * pow2(n - half)
+}
+
+/// Four values `stride` apart from `s[at]` (a gather, one load per lane).
+#[inline(always)]
+pub(crate) fn gather(s: &[f32], at: usize, stride: usize) -> f32x4 {
+    f32x4::from([s[at], s[at + stride], s[at + 2 * stride], s[at + 3 * stride]])
 }
