@@ -17,7 +17,9 @@
 //! normalised mean over the planes in front.
 //!
 //! This is the only implementation of these loops (the tile width [`TILE`], the per-plane
-//! constants, [`tile_activity`]); every exact render goes through it: the full frame, and
+//! constants, [`tile_activity`]); [`SourceLanes`] and [`TargetLanes`] run the same loops for
+//! four adjacent pixels at once in `f32` lanes, operation for operation, so with the same bits
+//! (the scalar loops are their reference and take the rest). Every exact render goes through it: the full frame, and
 //! windows of it ([`crate::render::render_window`]). Both passes take a window `win` of the
 //! frame and write window-sized buffers (pixel (x, y) of them is frame pixel
 //! (win.x0 + x, win.y0 + y)); rays, sampling and the "leaves the source image" test always use
@@ -318,6 +320,24 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         (v, (ux * ux + uy * uy + T::one()).sqrt())
     };
     let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
+    // four pixels at a time where T is f32, without links and with at most one extra channel
+    let lanes = (T::LANES && NL == 0 && c <= 1).then(|| TargetLanes {
+        a: planes.iter().map(|p| p.a.f32()).collect(),
+        depth: planes.iter().map(|p| p.depth.f32()).collect(),
+        ox: planes.iter().map(|p| p.ox.f32()).collect(),
+        oy: planes.iter().map(|p| p.oy.f32()).collect(),
+        fxs: fxs.f32(),
+        fys: fys.f32(),
+        lo: lo.f32(),
+        hix: hix.f32(),
+        hiy: hiy.f32(),
+        wm: wm.f32(),
+        hm: hm.f32(),
+        t_eps: t_eps.f32(),
+        w,
+        h,
+    });
+    let ex_lanes = (c == 1).then_some(ex_planes.as_slice());
     let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
 
     let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
@@ -351,7 +371,17 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
             stats.skipped_tile += ((n - fwd.len()) * rows * (tx1 + 1 - tx0)) as u64;
             for ry in 0..rows {
                 let uy_y = uy[y0 + ry];
-                for (x, &ux_x) in (tx0..=tx1).zip(&ux[tx0 - win.x0..=tx1 - win.x0]) {
+                let mut x = tx0;
+                while x <= tx1 {
+                    if let Some(l) = lanes.as_ref().filter(|_| x + 3 <= tx1) {
+                        let rays: [([T; 3], T); 4] = std::array::from_fn(|k| ray_u(ux[x + k - win.x0], uy_y));
+                        let o = ry * ww + (x - win.x0);
+                        if l.four(sampler, ex_lanes, &rays, &fwd, &rev, o, b, &mut stats) {
+                            x += 4;
+                            continue;
+                        }
+                    }
+                    let ux_x = ux[x - win.x0];
                     let (v, norm_u) = ray_u(ux_x, uy_y);
                     let s = v[2];
                     let (mut tr, mut sum_w, mut sum_z) = (T::one(), T::zero(), T::zero());
@@ -467,11 +497,180 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                         }
                         b[j + 2][o] = if sum_w > T::zero() { (acc[3] / sum_w).f32() } else { 0.0 };
                     }
+                    x += 1;
                 }
             }
         }
         stats
     })
+}
+
+/// The target view's per-pixel loop for four adjacent pixels of a row at once (`f32`, without
+/// links, with no or one extra channel; the scalar loop of [`target_view_with`] stays the
+/// reference and runs everything else). The ray set-up, the plane intersection, the "leaves the
+/// source image" test, the clamps, the depth, the gap to the next plane, the exponential and the
+/// compositing run in `f32x4` lanes with the scalar loop's operations in its order; the taps and
+/// the colour kernel run per lane through the same [`PlaneSampler`] calls. A plane a lane does
+/// not take is masked out, a lane whose transmittance fell below `t_eps` is done (counted as
+/// the scalar loop counts its early exit), and the loop ends when all four are done, so every
+/// pixel gets the scalar loop's bits (`tests/render_window.rs` compares the two).
+struct TargetLanes {
+    a: Vec<f32>,
+    depth: Vec<f32>,
+    ox: Vec<f32>,
+    oy: Vec<f32>,
+    fxs: f32,
+    fys: f32,
+    lo: f32,
+    hix: f32,
+    hiy: f32,
+    wm: f32,
+    hm: f32,
+    t_eps: f32,
+    w: usize,
+    h: usize,
+}
+
+/// Lanes where `on` holds, as an `f32x4` mask.
+#[inline(always)]
+fn lane_mask(on: [bool; 4]) -> wide::f32x4 {
+    wide::f32x4::from(on.map(|b| if b { f32::from_bits(u32::MAX) } else { 0.0 }))
+}
+
+impl TargetLanes {
+    /// Pixels `o .. o + 4` of the band's buffers `b` (image, depth, coverage, the extra channel
+    /// when `ex` is given) for the rays `rays` (direction, |u|): false, with nothing written,
+    /// when the four rays do not all meet the planes in the same order (the scalar loop then
+    /// takes them).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn four<T: Real, S: PlaneSampler<T>>(
+        &self,
+        sampler: &S,
+        ex: Option<&[&[f32]]>,
+        rays: &[([T; 3], T); 4],
+        fwd: &[usize],
+        rev: &[usize],
+        o: usize,
+        b: &mut [&mut [f32]; 10],
+        stats: &mut RenderStats,
+    ) -> bool {
+        use super::simd::exp_neg4;
+        use wide::f32x4;
+        let sp = f32x4::splat;
+        let (zero, one) = (sp(0.0), sp(1.0));
+        let s: [f32; 4] = std::array::from_fn(|k| rays[k].0[2].f32());
+        let forward = s[0] > 0.0;
+        if !s.iter().all(|&s| s.abs() > 1e-12_f64 as f32 && (s > 0.0) == forward) {
+            return false;
+        }
+        let lane = |f: &dyn Fn(usize) -> f32| f32x4::from(std::array::from_fn::<f32, 4, _>(f));
+        let inv_s = one / f32x4::from(s);
+        let v0 = lane(&|k| rays[k].0[0].f32());
+        let v1 = lane(&|k| rays[k].0[1].f32());
+        let norm_u = lane(&|k| rays[k].1.f32());
+        let (lo, hix, hiy, wm, hm) = (sp(self.lo), sp(self.hix), sp(self.hiy), sp(self.wm), sp(self.hm));
+        let (t_eps, depth_max, delta_last) = (sp(self.t_eps), sp(DEPTH_MAX as f32), sp(DELTA_LAST as f32));
+        let cap = |v: f32x4, max: f32x4| v.simd_gt(max).select(max, v);
+        let order = if forward { fwd } else { rev };
+        let (mut tr, mut sum_w, mut sum_z, mut acc1) = (one, zero, zero, zero);
+        let mut rgb = [zero; 3];
+        let mut done = [false; 4];
+        for (j, &i) in order.iter().enumerate() {
+            let g = sp(self.a[i]) * inv_s;
+            let front = !g.simd_le(zero);
+            // a lane in front of the plane with its transmittance below t_eps stops here
+            let stop = (front & tr.simd_lt(t_eps)).to_bitmask();
+            for (k, d) in done.iter_mut().enumerate() {
+                if stop >> k & 1 == 1 && !*d {
+                    *d = true;
+                    stats.skipped_early += (order.len() - j) as u64;
+                }
+            }
+            if done.iter().all(|&d| d) {
+                break;
+            }
+            let qx = sp(self.ox[i]) + sp(self.fxs) * v0 * g;
+            let qy = sp(self.oy[i]) + sp(self.fys) * v1 * g;
+            let inside = qx.simd_ge(lo) & qx.simd_lt(hix) & qy.simd_ge(lo) & qy.simd_lt(hiy);
+            let take = (front & inside & lane_mask(done.map(|d| !d))).to_bitmask();
+            if take == 0 {
+                continue;
+            }
+            let qx = qx.simd_lt(zero).select(zero, qx.simd_gt(wm).select(wm, qx)).to_array();
+            let qy = qy.simd_lt(zero).select(zero, qy.simd_gt(hm).select(hm, qy)).to_array();
+            let mut taps: [Option<(Tap<T>, [T; 4])>; 4] = [None, None, None, None];
+            let mut sig = [0.0f32; 4];
+            let mut on = [false; 4];
+            for k in (0..4).filter(|k| take >> k & 1 == 1) {
+                let tap = Tap::new(T::of32(qx[k]), T::of32(qy[k]), self.w, self.h);
+                let texel = sampler.texel(&tap, i);
+                stats.samples += 1;
+                // the scalar loop goes on with this plane unless sigma <= 0
+                if !matches!(
+                    texel[3].partial_cmp(&T::zero()),
+                    Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
+                ) {
+                    on[k] = true;
+                    sig[k] = texel[3].f32();
+                }
+                taps[k] = Some((tap, texel));
+            }
+            if !on.iter().any(|&t| t) {
+                continue;
+            }
+            let m = lane_mask(on);
+            let lambda = cap(g * sp(self.depth[i]), depth_max);
+            let next = if forward { i + 1 } else { i.wrapping_sub(1) };
+            let delta = match self.a.get(next) {
+                Some(&an) => {
+                    let an = sp(an) * inv_s;
+                    let d = cap((cap(an * sp(self.depth[next]), depth_max) - lambda) * norm_u, delta_last);
+                    an.simd_gt(zero).select(d, delta_last)
+                }
+                None => delta_last,
+            };
+            let e = exp_neg4(f32x4::from(sig) * delta);
+            let wgt = tr * (one - e);
+            tr = m.select(tr * e, tr);
+            let wa = wgt.to_array();
+            let mut smp = [[0.0f32; 4]; 3];
+            let mut a1 = [0.0f32; 4];
+            for k in (0..4).filter(|&k| on[k]) {
+                let (tap, texel) = taps[k].as_ref().expect("a tap where the lane takes the plane");
+                let c = sampler.colour(tap, texel, T::of32(qx[k]), T::of32(qy[k]), i, T::of32(wa[k]));
+                for ch in 0..3 {
+                    smp[ch][k] = c[ch].f32();
+                }
+                if let Some(ex) = ex {
+                    a1[k] = tap.sample1(ex[i]).f32();
+                }
+            }
+            for ch in 0..3 {
+                rgb[ch] = m.select(rgb[ch] + wgt * f32x4::from(smp[ch]), rgb[ch]);
+            }
+            sum_w = m.select(sum_w + wgt, sum_w);
+            sum_z = m.select(sum_z + wgt * lambda, sum_z);
+            if ex.is_some() {
+                acc1 = m.select(acc1 + wgt * f32x4::from(a1), acc1);
+            }
+        }
+        // the scalar loop's T::of(1e-6)
+        const EPS: f32 = 1e-6_f64 as f32;
+        let [r, g, bl, sum_w, sum_z, acc1] = [rgb[0], rgb[1], rgb[2], sum_w, sum_z, acc1].map(f32x4::to_array);
+        for k in 0..4 {
+            let o = o + k;
+            b[0][3 * o] = r[k];
+            b[0][3 * o + 1] = g[k];
+            b[0][3 * o + 2] = bl[k];
+            b[1][o] = if sum_w[k] > EPS { sum_z[k] / sum_w[k] } else { 0.0 };
+            b[2][o] = sum_w[k];
+            if ex.is_some() {
+                b[3][o] = acc1[k];
+            }
+        }
+        true
+    }
 }
 
 /// Marks which planes can contribute inside the target tile [x0, x1] x [y0, y1]: a plane is
