@@ -19,9 +19,9 @@
 //! This is the only implementation of these loops (the tile width [`TILE`], the per-plane
 //! constants, [`tile_activity`]); [`SourceLanes`] and [`TargetLanes`] run the same loops for
 //! four adjacent pixels at once in `f32` lanes, operation for operation, so with the same bits
-//! (the scalar loops are their reference and take the rest). Every exact render goes through it: the full frame, and
-//! windows of it ([`crate::render::render_window`]). Both passes take a window `win` of the
-//! frame and write window-sized buffers (pixel (x, y) of them is frame pixel
+//! (the scalar loops are their reference and take the rest). Every exact render goes through
+//! it: the full frame, and windows of it ([`crate::render::render_window`]). Both passes take a
+//! window `win` of the frame and write window-sized buffers (pixel (x, y) of them is frame pixel
 //! (win.x0 + x, win.y0 + y)); rays, sampling and the "leaves the source image" test always use
 //! the whole frame, so a pixel's value does not depend on the window it is rendered in. Tiles
 //! start at `win.x0` and bands at `win.y0`; tile skipping only drops planes whose density is
