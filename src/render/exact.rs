@@ -597,13 +597,20 @@ impl TargetLanes {
             if take == 0 {
                 continue;
             }
-            let qx = qx.simd_lt(zero).select(zero, qx.simd_gt(wm).select(wm, qx)).to_array();
-            let qy = qy.simd_lt(zero).select(zero, qy.simd_gt(hm).select(hm, qy)).to_array();
+            let qx = qx.simd_lt(zero).select(zero, qx.simd_gt(wm).select(wm, qx));
+            let qy = qy.simd_lt(zero).select(zero, qy.simd_gt(hm).select(hm, qy));
+            // `Tap::new` in lanes: q >= 0, so truncation is floor; at most the last pixel
+            let x0 = qx.trunc_int().min(wide::i32x4::splat(self.w as i32 - 1));
+            let y0 = qy.trunc_int().min(wide::i32x4::splat(self.h as i32 - 1));
+            let (fx, fy) = ((qx - x0.round_float()).to_array(), (qy - y0.round_float()).to_array());
+            let (x0, y0) = (x0.to_array(), y0.to_array());
+            let (qx, qy) = (qx.to_array(), qy.to_array());
             let mut taps: [Option<(Tap<T>, [T; 4])>; 4] = [None, None, None, None];
             let mut sig = [0.0f32; 4];
             let mut on = [false; 4];
             for k in (0..4).filter(|k| take >> k & 1 == 1) {
-                let tap = Tap::new(T::of32(qx[k]), T::of32(qy[k]), self.w, self.h);
+                let (x, y) = (x0[k] as usize, y0[k] as usize);
+                let tap = Tap::from_parts(x, y, self.w, self.h, T::of32(fx[k]), T::of32(fy[k]));
                 let texel = sampler.texel(&tap, i);
                 stats.samples += 1;
                 // the scalar loop goes on with this plane unless sigma <= 0

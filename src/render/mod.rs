@@ -543,9 +543,17 @@ impl<T: Real> Tap<T> {
         let x0 = (qx.f32() as usize).min(w - 1);
         let y0 = (qy.f32() as usize).min(h - 1);
         let (fx, fy) = (T::of(x0 as f64), T::of(y0 as f64));
+        Self::from_parts(x0, y0, w, h, qx - fx, qy - fy)
+    }
+
+    /// The tap of [`Self::new`] from its parts: the pixel (x0, y0) (q truncated, at most the last
+    /// pixel) and the fractions wx = qx - x0, wy = qy - y0 (the four-lane loop computes these in
+    /// lanes with `new`'s operations).
+    #[inline(always)]
+    pub(crate) fn from_parts(x0: usize, y0: usize, w: usize, h: usize, wx: T, wy: T) -> Self {
         let x1 = (x0 + 1).min(w - 1);
         let y1 = (y0 + 1).min(h - 1);
-        Self { i00: y0 * w + x0, i10: y0 * w + x1, i01: y1 * w + x0, i11: y1 * w + x1, wx: qx - fx, wy: qy - fy }
+        Self { i00: y0 * w + x0, i10: y0 * w + x1, i01: y1 * w + x0, i11: y1 * w + x1, wx, wy }
     }
 
     /// Samples an interleaved 4-channel plane (per channel the arithmetic of [`Self::sample1`];
