@@ -177,6 +177,20 @@ mod tests {
         }
     }
 
+    /// `floor_index` is `(q as usize).min(n - 1)` for every q: the random spread, its negatives,
+    /// NaN, infinities and values past i32's range.
+    #[test]
+    fn floor_index_is_the_saturating_usize_conversion() {
+        let mut qs: Vec<f32> =
+            [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, 3e9, -3e9, 2.1e9, 0.0, -0.0, 639.999].into_iter().collect();
+        qs.extend((0..500).flat_map(|s| values(8, s)).flat_map(|v| [v, v * 700.0]));
+        for n in [1usize, 2, 640, 4096] {
+            for &q in &qs {
+                assert_eq!(super::super::floor_index(q, n), (q as usize).min(n - 1), "q = {q}, n = {n}");
+            }
+        }
+    }
+
     /// The four-lane tap gives the scalar formula's bits: the vector path is tested against the
     /// scalar reference it replaces (also end to end: the renders' bytes did not change).
     #[test]

@@ -30,6 +30,7 @@
 //! mirrored (whole-sample symmetric, the prefilter's boundary condition). The reference mode
 //! ignores this option: it is bilinear formula for formula.
 
+use super::floor_index;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -207,8 +208,8 @@ pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
     h: usize,
 ) -> [T; 3] {
     // q >= 0 here, so truncation is floor
-    let x0 = (qx.f32() as usize).min(w - 1);
-    let y0 = (qy.f32() as usize).min(h - 1);
+    let x0 = floor_index(qx.f32(), w);
+    let y0 = floor_index(qy.f32(), h);
     let wx = K::weights(qx - T::of(x0 as f64));
     let wy = K::weights(qy - T::of(y0 as f64));
     let off = N / 2 - 1;
