@@ -8,10 +8,12 @@
 use mpiflow::bench::quality::laplacian_variance;
 use mpiflow::geometry::{Intrinsics, Pose};
 use mpiflow::io::image::{load_rgb, ImageLimits};
-use mpiflow::mpi::Mpi;
+use mpiflow::mpi::{BsplineRgb, Mpi};
+use mpiflow::render::resample::bspline_bricks;
 use mpiflow::render::resample::prefilter;
 use mpiflow::render::{render, render_window, Channels, Fields, Mode, Rect, RenderOutput, RenderParams, Resample};
 use std::path::Path;
+use std::sync::Arc;
 
 fn params(mpi: &Mpi, pose: Pose, resample: Resample) -> RenderParams {
     let mut p = RenderParams::new(Intrinsics::reference_default(mpi.width, mpi.height), pose);
@@ -385,6 +387,62 @@ fn minification_removes_the_alias_and_keeps_what_the_view_can_show() {
                 let (i, j) = (y * w + x, (y - win.y0) * win.width() + x - win.x0);
                 assert_eq!(mip.image[3 * i..3 * i + 3], wr.out.image[3 * j..3 * j + 3], "{r} ({x}, {y})");
             }
+        }
+    }
+}
+
+/// The cached scene keeps only the blocks of B-spline coefficients the colour kernel can reach
+/// (where a plane has density): renders from them are the renders from every block, bit for
+/// bit, for both B-spline degrees, in windows and full frames, under lateral, rotating,
+/// forward and backward motions, and the store holds far fewer blocks.
+#[test]
+fn sparse_coefficients_render_the_bits_of_all_of_them() {
+    let (w, h) = (160, 96);
+    let mut m = Mpi::new(w, h, vec![0.9, 0.5, 0.2], 0);
+    for i in 0..3 {
+        for y in 0..h {
+            for x in 0..w {
+                let o = (i * h * w + y * w + x) * 4;
+                let v = ((x * 13 + y * 7 + i * 5) % 17) as f32 / 16.0;
+                m.rgba[o..o + 3].copy_from_slice(&[v, 1.0 - v, (v * 3.0) % 1.0]);
+                // a disc, a thin ring, a corner block and lines on the first column and row of a
+                // block (the blocks before them are reached by their bilinear taps): most blocks
+                // of each plane are empty
+                let (dx, dy) = (x as f64 - 50.0 - 30.0 * i as f64, y as f64 - 48.0);
+                let r = (dx * dx + dy * dy).sqrt();
+                let dense = match i {
+                    0 => r < 14.0,
+                    1 => (r - 30.0).abs() < 1.0,
+                    _ => (x >= w - 9 && y >= h - 5) || (x == 64 && y < 40) || (y == 80 && x < 48),
+                };
+                m.rgba[o + 3] = if dense { 2.0 + (x % 3) as f32 } else { 0.0 };
+            }
+        }
+    }
+    let poses = [
+        Pose::from_axis_angle([0.0, 0.0, 0.0], [0.0131, -0.0077, 0.0]),
+        Pose::from_axis_angle([0.01, -0.02, 0.005], [0.05, 0.03, -0.1]),
+        Pose::from_axis_angle([0.0, 0.0, 0.0], [0.0, 0.0, 0.3]),
+        Pose::from_axis_angle([0.0, 0.03, 0.0], [-0.02, 0.0, 0.8]),
+    ];
+    for (r, degree) in [(Resample::Bspline3, 3), (Resample::Bspline5, 5)] {
+        let mut sparse = m.clone();
+        prefilter(&mut sparse, r);
+        let kept = sparse.bspline_rgb.as_ref().unwrap().coefficients.stored();
+        assert!(kept.0 * 3 < kept.1, "{r}: {} of {} blocks kept", kept.0, kept.1);
+        let mut full = m.clone();
+        full.bspline_rgb = Some(BsplineRgb { degree, coefficients: Arc::new(bspline_bricks(&m, degree, false)) });
+        assert_eq!(full.bspline_rgb.as_ref().unwrap().coefficients.stored().0, kept.1);
+        assert!(sparse.byte_size() < full.byte_size());
+        for pose in poses {
+            let a = render::<f32>(&sparse, &params(&sparse, pose, r), None).unwrap();
+            let b = render::<f32>(&full, &params(&full, pose, r), None).unwrap();
+            assert_eq!(a.image, b.image, "{r} {pose:?}");
+            assert_eq!(a.flow, b.flow);
+            let win = Rect { x0: 30, y0: 20, x1: 131, y1: 77 };
+            let wa = render_window::<f32>(&sparse, &params(&sparse, pose, r), None, &win, Channels::PerPlane, None);
+            let wb = render_window::<f32>(&full, &params(&full, pose, r), None, &win, Channels::PerPlane, None);
+            assert_eq!(wa.unwrap().out.image, wb.unwrap().out.image, "{r} {pose:?} window");
         }
     }
 }

@@ -846,7 +846,7 @@ fn metric_sum(text: &str, name: &str) -> f64 {
 
 /// The server on the built-in default (640x480 bundled scenes, the default cache) keeps every
 /// scene it builds: two samples of each of the 8 scenes build each once and evict nothing.
-/// (With a cache of 2048 MiB the 8 scenes, ~270 MiB each, did not fit and most samples rebuilt
+/// (With a cache of 2048 MiB the 8 scenes, then ~270 MiB each, did not fit and most samples rebuilt
 /// their scene.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_default_cache_holds_every_bundled_scene() {

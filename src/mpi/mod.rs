@@ -4,6 +4,7 @@
 //! [`planes::DELTA_LAST`], [`planes::DEPTH_MAX`]) lives in [`planes`]; `mpi` depends on nothing
 //! above it (not on `render`).
 
+pub mod bricks;
 pub mod layering;
 pub mod npz;
 pub mod planes;
@@ -106,8 +107,9 @@ impl MipLevels {
 pub struct BsplineRgb {
     /// The B-spline degree (3 or 5).
     pub degree: u32,
-    /// N * H * W * 3 values, plane-major, row-major, interleaved.
-    pub coefficients: std::sync::Arc<Vec<f32>>,
+    /// The rgb coefficients (3 values per pixel) of the blocks the colour kernel can reach:
+    /// those with density on the plane (`render::resample::prefilter`), or all of them.
+    pub coefficients: std::sync::Arc<bricks::Bricks>,
 }
 
 impl Mpi {
@@ -159,11 +161,8 @@ impl Mpi {
 
     /// Bytes held by the plane data.
     pub fn byte_size(&self) -> usize {
-        (self.rgba.len()
-            + self.extras.len()
-            + self.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.len())
-            + self.mip.as_ref().map_or(0, |m| m.len()))
-            * 4
+        (self.rgba.len() + self.extras.len() + self.mip.as_ref().map_or(0, |m| m.len())) * 4
+            + self.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.byte_size())
     }
 
     /// Structural checks: sizes agree, at least one plane, disparities finite, >= 0 and
@@ -178,7 +177,10 @@ impl Mpi {
         }
         if self.rgba.len() != n * self.plane_len() * 4
             || self.extras.len() != n * self.plane_len() * self.extra_channels
-            || self.bspline_rgb.as_ref().is_some_and(|c| c.coefficients.len() != n * self.plane_len() * 3)
+            || self.bspline_rgb.as_ref().is_some_and(|c| {
+                let b = &c.coefficients;
+                (b.width(), b.height(), b.stride()) != (self.width, self.height, 3)
+            })
         {
             return Err(MpiError::Invalid("MPI plane data does not match its size".into()));
         }

@@ -32,8 +32,11 @@
 
 use super::mip::{mip_planes, missing_levels, plane_lods, MipPlane};
 use super::occupancy::Occupancy;
-use super::resample::{bspline_coefficients, sample_rgb, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample};
+use super::resample::{
+    bspline_bricks, sample_rgb, sample_rgb_bricks, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample,
+};
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
+use crate::mpi::bricks::Bricks;
 use crate::mpi::planes::{plane_depth, plane_gaps, DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
 use crate::render::real::Real;
@@ -100,19 +103,46 @@ impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
 /// samples are common (the faint tails of soft layers), so the kernel's cost goes where it shows.
 pub(crate) const KERNEL_MIN_WEIGHT: f32 = 1.0 / 1024.0;
 
-/// Bilinear density; colour by kernel `K` from `src` (`S` values per pixel) for samples of
-/// weight at least [`KERNEL_MIN_WEIGHT`], bilinear below.
-struct HighOrder<'a, K, const N: usize, const S: usize> {
-    rgba: Vec<&'a [f32]>,
+/// Where a [`HighOrder`] sampler's kernel reads colour: `Some` colour of plane `i` at (qx, qy)
+/// by kernel `K`, `None` where the source holds nothing there (the sampler then takes the
+/// bilinear colour).
+trait KernelColour: Sync {
+    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, qx: T, qy: T) -> Option<[T; 3]>;
+}
+
+/// Dense planes of `S` values per pixel (the bicubic and Lanczos kernels read the MPI's rgba).
+struct DenseColour<'a, const S: usize> {
     src: Vec<&'a [f32]>,
     w: usize,
     h: usize,
+}
+
+impl<const S: usize> KernelColour for DenseColour<'_, S> {
+    #[inline(always)]
+    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, qx: T, qy: T) -> Option<[T; 3]> {
+        Some(sample_rgb::<T, K, N, S>(self.src[i], qx, qy, self.w, self.h))
+    }
+}
+
+/// The B-spline coefficients in blocks ([`crate::mpi::Mpi::bspline_rgb`]).
+impl KernelColour for Bricks {
+    #[inline(always)]
+    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, qx: T, qy: T) -> Option<[T; 3]> {
+        sample_rgb_bricks::<T, K, N>(self, i, qx, qy)
+    }
+}
+
+/// Bilinear density; colour by kernel `K` from `src` for samples of weight at least
+/// [`KERNEL_MIN_WEIGHT`], bilinear below (and where `src` holds nothing).
+struct HighOrder<'a, K, const N: usize, C> {
+    rgba: Vec<&'a [f32]>,
+    src: &'a C,
     kernel: std::marker::PhantomData<K>,
     /// the pyramids of the minified planes (empty: none; [`super::mip`])
     mip: &'a [Option<MipPlane<'a>>],
 }
 
-impl<T: Real, K: Kernel<N>, const N: usize, const S: usize> PlaneSampler<T> for HighOrder<'_, K, N, S> {
+impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for HighOrder<'_, K, N, C> {
     #[inline(always)]
     fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
         // the density alone: the colour comes from the kernel (bilinear only for faint samples)
@@ -122,10 +152,8 @@ impl<T: Real, K: Kernel<N>, const N: usize, const S: usize> PlaneSampler<T> for 
     #[inline(always)]
     fn colour(&self, tap: &Tap<T>, _: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
         let base = || {
-            if wgt < T::of32(KERNEL_MIN_WEIGHT) {
-                return [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k));
-            }
-            sample_rgb::<T, K, N, S>(self.src[i], qx, qy, self.w, self.h)
+            let kernel = if wgt < T::of32(KERNEL_MIN_WEIGHT) { None } else { self.src.rgb::<T, K, N>(i, qx, qy) };
+            kernel.unwrap_or_else(|| [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k)))
         };
         match self.mip.get(i) {
             Some(Some(m)) => m.colour(qx, qy, base),
@@ -226,10 +254,7 @@ fn target_view_n<T: Real, const NL: usize>(
 ) -> RenderStats {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
-    fn split(src: &[f32], n: usize, len: usize) -> Vec<&[f32]> {
-        (0..n).map(|i| &src[i * len..(i + 1) * len]).collect()
-    }
-    let high = |src, stride: usize| (rgba.clone(), split(src, n, w * h * stride));
+    let dense = DenseColour::<4> { src: rgba.clone(), w, h };
     let lods = plane_lods(mpi, p);
     let built = missing_levels(mpi, &lods);
     let levels = built.as_ref().or(mpi.mip.as_deref());
@@ -240,31 +265,28 @@ fn target_view_n<T: Real, const NL: usize>(
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &Bilinear { rgba, mip })
         }
         Resample::Bicubic => {
-            let (rgba, src) = high(&mpi.rgba, 4);
-            let s = HighOrder::<Keys, 4, 4> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
+            let s = HighOrder::<Keys, 4, _> { rgba, src: &dense, kernel: std::marker::PhantomData, mip };
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
         }
         Resample::Lanczos3 => {
-            let (rgba, src) = high(&mpi.rgba, 4);
-            let s = HighOrder::<Lanczos3, 6, 4> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
+            let s = HighOrder::<Lanczos3, 6, _> { rgba, src: &dense, kernel: std::marker::PhantomData, mip };
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
         }
         Resample::Bspline3 | Resample::Bspline5 => {
             let degree = if p.resample == Resample::Bspline3 { 3 } else { 5 };
             let owned;
-            let coef: &[f32] = match &mpi.bspline_rgb {
+            let coef: &Bricks = match &mpi.bspline_rgb {
                 Some(c) if c.degree == degree => &c.coefficients,
                 _ => {
-                    owned = bspline_coefficients(mpi, degree);
+                    owned = bspline_bricks(mpi, degree, true);
                     &owned
                 }
             };
-            let (rgba, src) = high(coef, 3);
             if degree == 3 {
-                let s = HighOrder::<Bspline3, 4, 3> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
+                let s = HighOrder::<Bspline3, 4, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
                 target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
             } else {
-                let s = HighOrder::<Bspline5, 6, 3> { rgba, src, w, h, kernel: std::marker::PhantomData, mip };
+                let s = HighOrder::<Bspline5, 6, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
                 target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
             }
         }

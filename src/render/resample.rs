@@ -16,8 +16,9 @@
 //!   boundaries; [`bspline_coefficients`]) and then evaluated with the B-spline basis. Much
 //!   closer to the ideal reconstruction than bicubic convolution; the prefilter is computed once
 //!   per scene and kept with the MPI ([`crate::mpi::Mpi::bspline_rgb`], set by
-//!   `sample::recipe::prepare_scene` through [`prefilter_arc`], so it lives in the scene cache);
-//!   a render of an MPI without it computes it for that render.
+//!   `sample::recipe::prepare_scene` through [`prefilter_arc`], so it lives in the scene cache;
+//!   only the 16 x 16 blocks where the plane has density, [`bspline_bricks`]); a render of an MPI
+//!   without it computes it for that render.
 //! - [`Resample::Bspline5`]: quintic B-spline interpolation over 6 x 6 taps (prefilter poles
 //!   -0.4306 and -0.0431), sharper still.
 //! - [`Resample::Lanczos3`]: windowed sinc over 6 x 6 taps, weights normalised to sum 1.
@@ -35,6 +36,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::real::Real;
+use crate::mpi::bricks::Bricks;
 use crate::mpi::Mpi;
 
 /// The reconstruction kernel of the target render's colour (see the module documentation).
@@ -213,23 +215,10 @@ pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
     let wx = K::weights(qx - T::of(x0 as f64));
     let wy = K::weights(qy - T::of(y0 as f64));
     let off = N / 2 - 1;
-    let mut acc = [T::zero(); 3];
-    if x0 >= off && x0 + N - off <= w && y0 >= off && y0 + N - off <= h {
-        let base = S * ((y0 - off) * w + x0 - off);
-        for (j, &wyj) in wy.iter().enumerate() {
-            let start = base + j * S * w;
-            let row = &src[start..start + N * S];
-            let mut r = [T::zero(); 3];
-            for (px, &wxk) in row.chunks_exact(S).zip(&wx) {
-                r[0] += wxk * T::of32(px[0]);
-                r[1] += wxk * T::of32(px[1]);
-                r[2] += wxk * T::of32(px[2]);
-            }
-            for c in 0..3 {
-                acc[c] += wyj * r[c];
-            }
-        }
+    let acc = if x0 >= off && x0 + N - off <= w && y0 >= off && y0 + N - off <= h {
+        kernel_rows(src, S * ((y0 - off) * w + x0 - off), S * w, S, &wx, &wy)
     } else {
+        let mut acc = [T::zero(); 3];
         let xs: [usize; N] = std::array::from_fn(|k| S * mirror(x0 as isize + k as isize - off as isize, w));
         for (j, &wyj) in wy.iter().enumerate() {
             let row = &src[S * w * mirror(y0 as isize + j as isize - off as isize, h)..];
@@ -243,8 +232,56 @@ pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
                 acc[c] += wyj * r[c];
             }
         }
-    }
+        acc
+    };
     acc.map(|v| v.max(T::zero()).min(T::one()))
+}
+
+/// [`sample_rgb`] of plane `i` from block-sparse coefficients (3 values per pixel; the blocks'
+/// aprons hold the mirrored values, so every neighbourhood reads one block): the same bits as
+/// [`sample_rgb`] of the dense coefficients. `None` where the block is not stored.
+#[inline(always)]
+pub(crate) fn sample_rgb_bricks<T: Real, K: Kernel<N>, const N: usize>(
+    b: &Bricks,
+    i: usize,
+    qx: T,
+    qy: T,
+) -> Option<[T; 3]> {
+    let x0 = floor_index(qx.f32(), b.width());
+    let y0 = floor_index(qy.f32(), b.height());
+    let (data, start) = b.neighbourhood(i, x0, y0)?;
+    let wx = K::weights(qx - T::of(x0 as f64));
+    let wy = K::weights(qy - T::of(y0 as f64));
+    let acc = kernel_rows(data, start, b.row_len(), 3, &wx, &wy);
+    Some(acc.map(|v| v.max(T::zero()).min(T::one())))
+}
+
+/// A separable kernel over N rows of N pixels of `stride` values (colour in the first three)
+/// from `src[start]`, rows `row_len` apart: per row j, per channel, r = sum over k of wx[k] px_k
+/// (k = 0..), then acc += wy[j] r (j = 0..).
+#[inline(always)]
+fn kernel_rows<T: Real, const N: usize>(
+    src: &[f32],
+    start: usize,
+    row_len: usize,
+    stride: usize,
+    wx: &[T; N],
+    wy: &[T; N],
+) -> [T; 3] {
+    let mut acc = [T::zero(); 3];
+    for (j, &wyj) in wy.iter().enumerate() {
+        let at = start + j * row_len;
+        let mut r = [T::zero(); 3];
+        for (px, &wxk) in src[at..at + N * stride].chunks_exact(stride).zip(wx) {
+            r[0] += wxk * T::of32(px[0]);
+            r[1] += wxk * T::of32(px[1]);
+            r[2] += wxk * T::of32(px[2]);
+        }
+        for c in 0..3 {
+            acc[c] += wyj * r[c];
+        }
+    }
+    acc
 }
 
 /// A still RGB image as a quintic B-spline that can be sampled anywhere: the high-order
@@ -280,11 +317,12 @@ impl SplineImage {
 }
 
 /// Computes the B-spline coefficients `resample` needs (if any, and if `mpi` does not hold them
-/// already) and keeps them in [`Mpi::bspline_rgb`].
+/// already) and keeps them in [`Mpi::bspline_rgb`]: the blocks the colour kernel can reach
+/// ([`bspline_bricks`] with `sparse`), the same colours as all of them.
 pub fn prefilter(mpi: &mut Mpi, resample: Resample) {
     if let Some(degree) = resample.bspline_degree() {
         if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
-            let coefficients = std::sync::Arc::new(bspline_coefficients(mpi, degree));
+            let coefficients = std::sync::Arc::new(bspline_bricks(mpi, degree, true));
             mpi.bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
         }
     }
@@ -295,7 +333,7 @@ pub fn prefilter(mpi: &mut Mpi, resample: Resample) {
 pub fn prefilter_arc(mpi: &mut std::sync::Arc<Mpi>, resample: Resample) {
     if let Some(degree) = resample.bspline_degree() {
         if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
-            let coefficients = std::sync::Arc::new(bspline_coefficients(mpi, degree));
+            let coefficients = std::sync::Arc::new(bspline_bricks(mpi, degree, true));
             std::sync::Arc::make_mut(mpi).bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
         }
     }
@@ -315,44 +353,91 @@ fn poles(degree: u32) -> &'static [f64] {
 /// B-spline at the pixel centres, with mirror boundaries (Unser, "Fast B-spline transforms for
 /// continuous image representation and interpolation", 1991). Computed in f64 per line.
 pub fn bspline_coefficients(mpi: &Mpi, degree: u32) -> Vec<f32> {
+    let z = poles(degree);
+    let planes: Vec<Vec<f32>> = (0..mpi.planes()).into_par_iter().map(|i| plane_coefficients(mpi, i, z)).collect();
+    planes.concat()
+}
+
+/// [`bspline_coefficients`] of plane `i` (H x W x 3) for the prefilter `poles`.
+fn plane_coefficients(mpi: &Mpi, i: usize, z: &[f64]) -> Vec<f32> {
+    let (w, h) = (mpi.width, mpi.height);
+    let rgba = mpi.plane_rgba(i);
+    let mut buf = vec![0.0f64; w * h * 3];
+    for (d, s) in buf.chunks_exact_mut(3).zip(rgba.chunks_exact(4)) {
+        d.copy_from_slice(&[f64::from(s[0]), f64::from(s[1]), f64::from(s[2])]);
+    }
+    let mut line = vec![0.0f64; w.max(h)];
+    for y in 0..h {
+        for c in 0..3 {
+            for x in 0..w {
+                line[x] = buf[3 * (y * w + x) + c];
+            }
+            prefilter_line(&mut line[..w], z);
+            for x in 0..w {
+                buf[3 * (y * w + x) + c] = line[x];
+            }
+        }
+    }
+    for x in 0..w {
+        for c in 0..3 {
+            for y in 0..h {
+                line[y] = buf[3 * (y * w + x) + c];
+            }
+            prefilter_line(&mut line[..h], z);
+            for y in 0..h {
+                buf[3 * (y * w + x) + c] = line[y];
+            }
+        }
+    }
+    buf.iter().map(|&v| v as f32).collect()
+}
+
+/// The kernel's taps per axis for a B-spline of `degree` (3 or 5).
+fn bspline_taps(degree: u32) -> usize {
+    if degree == 3 {
+        4
+    } else {
+        6
+    }
+}
+
+/// [`bspline_coefficients`] in block-sparse form ([`Bricks`]) with the mirror boundary in each
+/// block's apron, so that the kernel's N x N neighbourhood of any anchor pixel in a block is in
+/// that block. `sparse`: only the blocks the colour kernel can reach, those of anchor pixels
+/// whose bilinear density taps (the pixel and its right, lower and lower-right neighbours) hold
+/// any density > 0: the target render asks for a plane's colour only where its bilinear density
+/// is > 0 ([`prefilter`]'s blocks); otherwise every block.
+pub fn bspline_bricks(mpi: &Mpi, degree: u32, sparse: bool) -> Bricks {
     let (w, h) = (mpi.width, mpi.height);
     let z = poles(degree);
-    let plane = w * h * 3;
-    let mut out = vec![0.0f32; plane * mpi.planes()];
-    out.par_chunks_mut(plane.max(1)).enumerate().for_each(|(i, dst)| {
-        let rgba = mpi.plane_rgba(i);
-        let mut buf = vec![0.0f64; w * h * 3];
-        for (d, s) in buf.chunks_exact_mut(3).zip(rgba.chunks_exact(4)) {
-            d.copy_from_slice(&[f64::from(s[0]), f64::from(s[1]), f64::from(s[2])]);
-        }
-        let mut line = vec![0.0f64; w.max(h)];
-        for y in 0..h {
-            for c in 0..3 {
-                for x in 0..w {
-                    line[x] = buf[3 * (y * w + x) + c];
-                }
-                prefilter_line(&mut line[..w], z);
-                for x in 0..w {
-                    buf[3 * (y * w + x) + c] = line[x];
-                }
-            }
-        }
-        for x in 0..w {
-            for c in 0..3 {
-                for y in 0..h {
-                    line[y] = buf[3 * (y * w + x) + c];
-                }
-                prefilter_line(&mut line[..h], z);
-                for y in 0..h {
-                    buf[3 * (y * w + x) + c] = line[y];
+    let n = bspline_taps(degree);
+    let lo = n / 2 - 1;
+    let keep = |i: usize| sparse.then(|| reachable_blocks(mpi, i));
+    Bricks::build(w, h, mpi.planes(), 3, lo, n - 1 - lo, |i| plane_coefficients(mpi, i, z), keep, mirror)
+}
+
+/// The blocks of plane `i` that hold an anchor pixel (x, y) with density > 0 at (x, y),
+/// (x + 1, y), (x, y + 1) or (x + 1, y + 1): a pixel with density marks its own block and, on a
+/// block's first column or row, the blocks before it.
+fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
+    let (w, h) = (mpi.width, mpi.height);
+    let b = Bricks::SIZE;
+    let (bw, bh) = (w.div_ceil(b), h.div_ceil(b));
+    let mut keep = vec![false; bw * bh];
+    for (y, row) in mpi.plane_rgba(i).chunks_exact(4 * w).enumerate() {
+        for (x, px) in row.chunks_exact(4).enumerate() {
+            if px[3] > 0.0 {
+                let bxs = [x / b, if x % b == 0 && x > 0 { x / b - 1 } else { x / b }];
+                let bys = [y / b, if y % b == 0 && y > 0 { y / b - 1 } else { y / b }];
+                for by in bys {
+                    for bx in bxs {
+                        keep[by * bw + bx] = true;
+                    }
                 }
             }
         }
-        for (d, s) in dst.iter_mut().zip(&buf) {
-            *d = *s as f32;
-        }
-    });
-    out
+    }
+    keep
 }
 
 /// In-place B-spline prefilter of one line with the given poles (mirror boundaries).
@@ -433,6 +518,43 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The colour from the blocks (every block kept) is the dense coefficients' colour, bit for
+    /// bit, everywhere in the frame: inside, on the mirrored borders, at integer positions and
+    /// at the last pixel; in f32 and f64, for both degrees.
+    #[test]
+    fn blocks_give_the_dense_kernels_bits() {
+        let (w, h) = (37, 23);
+        let mut m = Mpi::new(w, h, vec![0.8, 0.2], 0);
+        for (k, v) in m.rgba.iter_mut().enumerate() {
+            *v = ((k * 7919 + k / 5) % 101) as f32 / 100.0;
+        }
+        let mut qs: Vec<(f64, f64)> = vec![(0.0, 0.0), ((w - 1) as f64, (h - 1) as f64), (0.0, (h - 1) as f64)];
+        for j in 0..=4 * (h - 1) {
+            for i in 0..=4 * (w - 1) {
+                qs.push((i as f64 * 0.25 + 0.013 * (j % 3) as f64, j as f64 * 0.25));
+            }
+        }
+        qs.retain(|&(x, y)| x <= (w - 1) as f64 && y <= (h - 1) as f64);
+        fn check<K: Kernel<N>, const N: usize>(m: &Mpi, degree: u32, qs: &[(f64, f64)]) {
+            let (w, h) = (m.width, m.height);
+            let dense = bspline_coefficients(m, degree);
+            let blocks = bspline_bricks(m, degree, false);
+            for i in 0..m.planes() {
+                let plane = &dense[i * w * h * 3..(i + 1) * w * h * 3];
+                for &(x, y) in qs {
+                    let a = sample_rgb::<f32, K, N, 3>(plane, x as f32, y as f32, w, h);
+                    let b = sample_rgb_bricks::<f32, K, N>(&blocks, i, x as f32, y as f32).expect("every block");
+                    assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "degree {degree}, plane {i}, ({x}, {y})");
+                    let a = sample_rgb::<f64, K, N, 3>(plane, x, y, w, h);
+                    let b = sample_rgb_bricks::<f64, K, N>(&blocks, i, x, y).expect("every block");
+                    assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "f64, degree {degree}, ({x}, {y})");
+                }
+            }
+        }
+        check::<Bspline3, 4>(&m, 3, &qs);
+        check::<Bspline5, 6>(&m, 5, &qs);
     }
 
     #[test]

@@ -1,0 +1,213 @@
+//! Block-sparse storage of per-pixel plane values ([`Bricks`]): each plane cut into
+//! [`Bricks::SIZE`]-pixel square blocks, each block stored with an apron so that an N x N
+//! neighbourhood whose anchor pixel lies in the block is one contiguous block of memory, and only
+//! the blocks a reader can reach kept. The B-spline colour coefficients of a cached scene live
+//! here (`render::resample`): the colour kernel only runs where a plane has density, and most
+//! of a layered MPI's plane area has none (about 15% of the 16 x 16 blocks of a bundled scene's
+//! planes hold any).
+
+use rayon::prelude::*;
+
+/// `u32::MAX` in the block table: the block is not stored.
+const EMPTY: u32 = u32::MAX;
+
+/// Block-sparse planes of `stride` values per pixel; see the module documentation.
+#[derive(Clone, Debug)]
+pub struct Bricks {
+    width: usize,
+    height: usize,
+    stride: usize,
+    /// the apron before a block (columns and rows): the neighbourhood of anchor pixel x starts
+    /// at x - lo
+    lo: usize,
+    /// side of a stored block: SIZE + lo + hi
+    side: usize,
+    /// blocks per row and per column
+    bw: usize,
+    bh: usize,
+    /// per plane, bh x bw entries: the index of the block's data, or [`EMPTY`]
+    table: Vec<u32>,
+    data: Vec<f32>,
+}
+
+impl Bricks {
+    /// Pixels per block side.
+    pub const SIZE: usize = 16;
+
+    /// Builds the store of `planes` planes of `width` x `height` pixels, `stride` values each,
+    /// for neighbourhoods reaching `lo` pixels before and `hi` after their anchor.
+    /// `plane(i)` gives plane `i` densely (row-major, interleaved, `width height stride` values);
+    /// `keep(i)` which of its blocks to store (`bh x bw` flags, row-major; `None`: all);
+    /// `index(c, n)` maps a column or row index `c` that may lie outside `0..n` to the one whose
+    /// value the store holds there (the readers' boundary rule, e.g. a mirror).
+    ///
+    /// # Panics
+    /// If a plane has the wrong length, a flag list the wrong count, or the store would hold
+    /// more than `u32::MAX` blocks.
+    #[allow(clippy::too_many_arguments)]
+    pub fn build(
+        width: usize,
+        height: usize,
+        planes: usize,
+        stride: usize,
+        lo: usize,
+        hi: usize,
+        plane: impl Fn(usize) -> Vec<f32> + Sync,
+        keep: impl Fn(usize) -> Option<Vec<bool>> + Sync,
+        index: impl Fn(isize, usize) -> usize + Sync,
+    ) -> Self {
+        let (bw, bh) = (width.div_ceil(Self::SIZE), height.div_ceil(Self::SIZE));
+        let side = Self::SIZE + lo + hi;
+        let block_len = side * side * stride;
+        let per_plane: Vec<(Vec<bool>, Vec<f32>)> = (0..planes)
+            .into_par_iter()
+            .map(|i| {
+                let dense = plane(i);
+                assert_eq!(dense.len(), width * height * stride, "Bricks: plane {i} has the wrong length");
+                let kept = keep(i).unwrap_or_else(|| vec![true; bw * bh]);
+                assert_eq!(kept.len(), bw * bh, "Bricks: plane {i}'s block flags");
+                let mut data = Vec::with_capacity(kept.iter().filter(|&&k| k).count() * block_len);
+                for by in 0..bh {
+                    for bx in 0..bw {
+                        if !kept[by * bw + bx] {
+                            continue;
+                        }
+                        for v in 0..side {
+                            let sy = index((by * Self::SIZE + v) as isize - lo as isize, height);
+                            for u in 0..side {
+                                let sx = index((bx * Self::SIZE + u) as isize - lo as isize, width);
+                                let at = (sy * width + sx) * stride;
+                                data.extend_from_slice(&dense[at..at + stride]);
+                            }
+                        }
+                    }
+                }
+                (kept, data)
+            })
+            .collect();
+        let stored: usize = per_plane.iter().map(|(_, d)| d.len() / block_len.max(1)).sum();
+        assert!(stored < EMPTY as usize, "Bricks: too many blocks");
+        let mut table = Vec::with_capacity(planes * bw * bh);
+        let mut data = Vec::with_capacity(stored * block_len);
+        let mut next = 0u32;
+        for (kept, d) in per_plane {
+            for k in kept {
+                table.push(if k {
+                    next += 1;
+                    next - 1
+                } else {
+                    EMPTY
+                });
+            }
+            data.extend_from_slice(&d);
+        }
+        Self { width, height, stride, lo, side, bw, bh, table, data }
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Values per pixel.
+    pub fn stride(&self) -> usize {
+        self.stride
+    }
+
+    /// Distance in values between two rows of a neighbourhood ([`Self::neighbourhood`]).
+    #[inline(always)]
+    pub fn row_len(&self) -> usize {
+        self.side * self.stride
+    }
+
+    /// The neighbourhood of anchor pixel (x, y) (inside the plane) of plane `i`: the data of
+    /// its block and the index in it of the value at (x - lo, y - lo), the neighbourhood's first;
+    /// rows follow [`Self::row_len`] apart. `None` where the block is not stored.
+    #[inline(always)]
+    pub fn neighbourhood(&self, i: usize, x: usize, y: usize) -> Option<(&[f32], usize)> {
+        let (bx, by) = (x / Self::SIZE, y / Self::SIZE);
+        let b = self.table[(i * self.bh + by) * self.bw + bx];
+        if b == EMPTY {
+            return None;
+        }
+        let len = self.side * self.side * self.stride;
+        let data = &self.data[b as usize * len..(b as usize + 1) * len];
+        let (u, v) = (x - bx * Self::SIZE, y - by * Self::SIZE);
+        Some((data, (v * self.side + u) * self.stride))
+    }
+
+    /// The value the store holds for channel `k` at pixel (x, y) of plane `i` read through the
+    /// block of anchor pixel (ax, ay) (x - ax and y - ay in -lo..=hi); `None` where that block is
+    /// not stored.
+    pub fn get(&self, i: usize, ax: usize, ay: usize, x: isize, y: isize, k: usize) -> Option<f32> {
+        let (data, start) = self.neighbourhood(i, ax, ay)?;
+        let du = (x - ax as isize + self.lo as isize) as usize;
+        let dv = (y - ay as isize + self.lo as isize) as usize;
+        Some(data[start + dv * self.row_len() + du * self.stride + k])
+    }
+
+    /// Blocks stored, of all the planes' blocks.
+    pub fn stored(&self) -> (usize, usize) {
+        (self.table.iter().filter(|&&b| b != EMPTY).count(), self.table.len())
+    }
+
+    /// Bytes held (values and the block table).
+    pub fn byte_size(&self) -> usize {
+        self.data.len() * 4 + self.table.len() * 4
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn clamp(c: isize, n: usize) -> usize {
+        c.clamp(0, n as isize - 1) as usize
+    }
+
+    fn dense(w: usize, h: usize, s: usize, i: usize) -> Vec<f32> {
+        (0..w * h * s).map(|k| (k * 7 + i * 1000) as f32).collect()
+    }
+
+    /// Every value of every stored neighbourhood is the dense plane's value at the boundary
+    /// rule's index; dropped blocks read `None`; sizes add up.
+    #[test]
+    fn neighbourhoods_read_the_dense_values() {
+        let (w, h, s, n) = (37, 21, 3, 2);
+        let keep = |i: usize| (i == 1).then(|| (0..3 * 2).map(|b| b % 2 == 0).collect::<Vec<_>>());
+        let b = Bricks::build(w, h, n, s, 1, 2, |i| dense(w, h, s, i), keep, clamp);
+        assert_eq!(b.stored(), (6 + 3, 12));
+        assert_eq!(b.byte_size(), 9 * 19 * 19 * 3 * 4 + 12 * 4);
+        for i in 0..n {
+            let d = dense(w, h, s, i);
+            for ay in 0..h {
+                for ax in 0..w {
+                    let block = (ay / 16) * 3 + ax / 16;
+                    let present = i == 0 || block % 2 == 0;
+                    assert_eq!(b.neighbourhood(i, ax, ay).is_some(), present, "plane {i} ({ax}, {ay})");
+                    if !present {
+                        continue;
+                    }
+                    for y in ay as isize - 1..=ay as isize + 2 {
+                        for x in ax as isize - 1..=ax as isize + 2 {
+                            for k in 0..s {
+                                let want = d[(clamp(y, h) * w + clamp(x, w)) * s + k];
+                                assert_eq!(b.get(i, ax, ay, x, y, k), Some(want), "({x}, {y}) from ({ax}, {ay})");
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_plane_smaller_than_a_block_is_one_block() {
+        let b = Bricks::build(1, 1, 1, 3, 2, 3, |_| vec![0.25, 0.5, 0.75], |_| None, clamp);
+        assert_eq!(b.stored(), (1, 1));
+        assert_eq!(b.get(0, 0, 0, -2, 3, 1), Some(0.5));
+    }
+}
