@@ -73,6 +73,9 @@ pub struct RenderBenchConfig {
 pub fn bench_render(cfg: &RenderBenchConfig) -> Timing {
     let mut mpi = bench_mpi(cfg.width, cfg.height, cfg.planes);
     crate::render::resample::prefilter(&mut mpi, cfg.resample);
+    if crate::render::store::packs(cfg.mode, cfg.resample, false) {
+        crate::render::store::pack(&mut mpi);
+    }
     let k = Intrinsics::reference_default(cfg.width, cfg.height);
     let mut p = RenderParams::new(k, bench_pose());
     p.mode = cfg.mode;

@@ -121,7 +121,7 @@ pub struct GenerateArgs {
     /// Width of one preview panel in pixels.
     #[arg(long, value_name = "PX", default_value_t = 160, value_parser = clap::value_parser!(u64).range(8..=4096))]
     preview_width: u64,
-    /// Scene cache budget in MiB (a 640x480 scene with 32 planes takes about 175 MiB).
+    /// Scene cache budget in MiB (a 640x480 scene with 32 planes takes about 45 MiB).
     #[arg(long, value_name = "MIB", default_value_t = mpiflow::service::config::DEFAULT_CACHE_MB, value_parser = clap::value_parser!(u64).range(1..))]
     cache_mb: u64,
     /// Frames per sample: 2 = a pair, 3 to 8 = a clip along the constant-velocity trajectory

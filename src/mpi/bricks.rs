@@ -22,6 +22,8 @@ pub struct Bricks {
     lo: usize,
     /// side of a stored block: SIZE + lo + hi
     side: usize,
+    /// values per stored block: side * side * stride
+    block_len: usize,
     /// blocks per row and per column
     bw: usize,
     bh: usize,
@@ -101,7 +103,7 @@ impl Bricks {
             }
             data.extend_from_slice(&d);
         }
-        Self { width, height, stride, lo, side, bw, bh, table, data }
+        Self { width, height, stride, lo, side, block_len, bw, bh, table, data }
     }
 
     pub fn width(&self) -> usize {
@@ -117,6 +119,35 @@ impl Bricks {
         self.stride
     }
 
+    pub fn planes(&self) -> usize {
+        self.table.len() / (self.bw * self.bh).max(1)
+    }
+
+    /// Plane `i` spread out densely (row-major, interleaved): every pixel some stored block holds
+    /// (in its own area or its apron) gets that value, the others 0.
+    pub fn plane_dense(&self, i: usize) -> Vec<f32> {
+        let (s, side, w, h) = (self.stride, self.side, self.width, self.height);
+        let mut out = vec![0.0; w * h * s];
+        for by in 0..self.bh {
+            for bx in 0..self.bw {
+                let b = self.table[(i * self.bh + by) * self.bw + bx];
+                if b == EMPTY {
+                    continue;
+                }
+                let data = &self.data[b as usize * self.block_len..(b as usize + 1) * self.block_len];
+                for v in 0..side {
+                    let Some(y) = (by * Self::SIZE + v).checked_sub(self.lo).filter(|&y| y < h) else { continue };
+                    for u in 0..side {
+                        let Some(x) = (bx * Self::SIZE + u).checked_sub(self.lo).filter(|&x| x < w) else { continue };
+                        let at = (v * side + u) * s;
+                        out[(y * w + x) * s..(y * w + x + 1) * s].copy_from_slice(&data[at..at + s]);
+                    }
+                }
+            }
+        }
+        out
+    }
+
     /// Distance in values between two rows of a neighbourhood ([`Self::neighbourhood`]).
     #[inline(always)]
     pub fn row_len(&self) -> usize {
@@ -128,15 +159,30 @@ impl Bricks {
     /// rows follow [`Self::row_len`] apart. `None` where the block is not stored.
     #[inline(always)]
     pub fn neighbourhood(&self, i: usize, x: usize, y: usize) -> Option<(&[f32], usize)> {
+        let at = self.offset(i, x, y)?;
+        let (u, v) = (x % Self::SIZE, y % Self::SIZE);
+        let start = (v * self.side + u) * self.stride;
+        let block = at - start;
+        Some((&self.data[block..block + self.block_len], start))
+    }
+
+    /// Where the neighbourhood of anchor pixel (x, y) of plane `i` starts in [`Self::data`]
+    /// (its block's values follow to the block's end); `None` where the block is not stored.
+    #[inline(always)]
+    pub fn offset(&self, i: usize, x: usize, y: usize) -> Option<usize> {
         let (bx, by) = (x / Self::SIZE, y / Self::SIZE);
         let b = self.table[(i * self.bh + by) * self.bw + bx];
         if b == EMPTY {
             return None;
         }
-        let len = self.side * self.side * self.stride;
-        let data = &self.data[b as usize * len..(b as usize + 1) * len];
-        let (u, v) = (x - bx * Self::SIZE, y - by * Self::SIZE);
-        Some((data, (v * self.side + u) * self.stride))
+        let (u, v) = (x % Self::SIZE, y % Self::SIZE);
+        Some(b as usize * self.block_len + (v * self.side + u) * self.stride)
+    }
+
+    /// All stored values, block after block ([`Self::offset`]).
+    #[inline(always)]
+    pub fn data(&self) -> &[f32] {
+        &self.data
     }
 
     /// The value the store holds for channel `k` at pixel (x, y) of plane `i` read through the
@@ -199,6 +245,28 @@ mod tests {
                             }
                         }
                     }
+                }
+            }
+        }
+    }
+
+    /// Spread out again, a store gives every pixel a kept block holds (its own area or its
+    /// apron) and 0 elsewhere; with every block kept, the dense plane.
+    #[test]
+    fn plane_dense_gives_back_what_the_blocks_hold() {
+        let (w, h, s) = (37, 21, 4);
+        let all = Bricks::build(w, h, 1, s, 0, 1, |i| dense(w, h, s, i), |_| None, clamp);
+        assert_eq!(all.plane_dense(0), dense(w, h, s, 0));
+        // only block (1, 0): pixels 16..=32 x 0..=16 (its area and its apron's column and row)
+        let keep = |_| Some(vec![false, true, false, false, false, false]);
+        let one = Bricks::build(w, h, 1, s, 0, 1, |i| dense(w, h, s, i), keep, clamp);
+        let (d, got) = (dense(w, h, s, 0), one.plane_dense(0));
+        for y in 0..h {
+            for x in 0..w {
+                let held = (16..=32).contains(&x) && y <= 16;
+                for k in 0..s {
+                    let want = if held { d[(y * w + x) * s + k] } else { 0.0 };
+                    assert_eq!(got[(y * w + x) * s + k], want, "({x}, {y})");
                 }
             }
         }

@@ -53,8 +53,13 @@ pub struct Mpi {
     pub height: usize,
     /// Plane disparities (1 / depth), strictly decreasing, >= 0 (0 = infinitely far).
     pub disparity: Vec<f64>,
-    /// N * H * W * 4 values: r, g, b in [0, 1] (not enforced), sigma >= 0.
+    /// N * H * W * 4 values: r, g, b in [0, 1] (not enforced), sigma >= 0; empty once the MPI
+    /// is packed into [`Self::rgba_blocks`].
     pub rgba: Vec<f32>,
+    /// The planes in 16 x 16 blocks, only those a render can read (a prepared scene's MPI,
+    /// `render::store::pack`); `rgba` is empty then. Renders read them through
+    /// `render::store::Rgba`; [`Self::unpacked`] gives a dense copy.
+    pub rgba_blocks: Option<std::sync::Arc<bricks::Bricks>>,
     /// Number of extra channels per plane pixel (0 when none).
     pub extra_channels: usize,
     /// N * H * W * extra_channels values.
@@ -121,6 +126,7 @@ impl Mpi {
             height,
             disparity,
             rgba: vec![0.0; n * width * height * 4],
+            rgba_blocks: None,
             extra_channels,
             extras: vec![0.0; n * width * height * extra_channels],
             intrinsics: None,
@@ -139,14 +145,56 @@ impl Mpi {
         self.width * self.height
     }
 
+    /// Plane `i`'s dense data.
+    ///
+    /// # Panics
+    /// If the MPI is packed ([`Self::rgba_blocks`]; see [`Self::unpacked`]).
     #[inline]
     pub fn plane_rgba(&self, i: usize) -> &[f32] {
+        assert!(self.rgba_blocks.is_none(), "plane_rgba of a packed MPI (read it through render::store)");
         let n = self.plane_len() * 4;
         &self.rgba[i * n..(i + 1) * n]
     }
 
+    /// A copy of everything but the plane data (`rgba` and `extras` empty; the shared blocks,
+    /// coefficients and levels are shared, not copied).
+    pub fn clone_without_planes(&self) -> Mpi {
+        Mpi {
+            width: self.width,
+            height: self.height,
+            disparity: self.disparity.clone(),
+            rgba: Vec::new(),
+            rgba_blocks: self.rgba_blocks.clone(),
+            extra_channels: self.extra_channels,
+            extras: Vec::new(),
+            intrinsics: self.intrinsics,
+            pose: self.pose,
+            bspline_rgb: self.bspline_rgb.clone(),
+            mip: self.mip.clone(),
+        }
+    }
+
+    /// Whether the planes are held in blocks ([`Self::rgba_blocks`]).
+    pub fn is_packed(&self) -> bool {
+        self.rgba_blocks.is_some()
+    }
+
+    /// The MPI with dense planes: itself, or a copy with the blocks spread out (pixels of blocks
+    /// not kept read 0: they have no density, so every render gives the same bits).
+    pub fn unpacked(&self) -> std::borrow::Cow<'_, Mpi> {
+        let Some(b) = &self.rgba_blocks else { return std::borrow::Cow::Borrowed(self) };
+        let mut m = self.clone();
+        m.rgba_blocks = None;
+        m.rgba = (0..self.planes()).flat_map(|i| b.plane_dense(i)).collect();
+        std::borrow::Cow::Owned(m)
+    }
+
     /// Plane `i`'s data for a change; drops the prefiltered coefficients ([`Self::bspline_rgb`]).
+    ///
+    /// # Panics
+    /// If the MPI is packed.
     pub fn plane_rgba_mut(&mut self, i: usize) -> &mut [f32] {
+        assert!(self.rgba_blocks.is_none(), "plane_rgba_mut of a packed MPI");
         self.bspline_rgb = None;
         self.mip = None;
         let n = self.plane_len() * 4;
@@ -162,6 +210,7 @@ impl Mpi {
     /// Bytes held by the plane data.
     pub fn byte_size(&self) -> usize {
         (self.rgba.len() + self.extras.len() + self.mip.as_ref().map_or(0, |m| m.len())) * 4
+            + self.rgba_blocks.as_ref().map_or(0, |b| b.byte_size())
             + self.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.byte_size())
     }
 
@@ -175,7 +224,14 @@ impl Mpi {
         if n == 0 {
             return Err(MpiError::Invalid("MPI has no planes".into()));
         }
-        if self.rgba.len() != n * self.plane_len() * 4
+        let rgba_ok = match &self.rgba_blocks {
+            None => self.rgba.len() == n * self.plane_len() * 4,
+            Some(b) => {
+                self.rgba.is_empty()
+                    && (b.width(), b.height(), b.stride(), b.planes()) == (self.width, self.height, 4, n)
+            }
+        };
+        if !rgba_ok
             || self.extras.len() != n * self.plane_len() * self.extra_channels
             || self.bspline_rgb.as_ref().is_some_and(|c| {
                 let b = &c.coefficients;

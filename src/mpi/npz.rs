@@ -179,9 +179,11 @@ pub fn save_npz<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W) -> std:
     save_npz_as(mpi, writer, MpiDtype::F32)
 }
 
-/// [`save_npz`] with `mpi_rgb` and `mpi_sigma` in `dtype` (the rest as there).
+/// [`save_npz`] with `mpi_rgb` and `mpi_sigma` in `dtype` (the rest as there). A packed MPI is
+/// written densely ([`Mpi::unpacked`]).
 pub fn save_npz_as<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W, dtype: MpiDtype) -> std::io::Result<W> {
     use npyz::WriterBuilder;
+    let mpi = &*mpi.unpacked();
     fn member<T: npyz::AutoSerialize + Copy, W: std::io::Write + std::io::Seek>(
         npz: &mut npyz::npz::NpzWriter<W>,
         name: &str,

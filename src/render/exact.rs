@@ -35,6 +35,7 @@ use super::occupancy::Occupancy;
 use super::resample::{
     bspline_bricks, sample_rgb, sample_rgb_bricks, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample,
 };
+use super::store::Rgba;
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
 use crate::mpi::bricks::Bricks;
 use crate::mpi::planes::{plane_depth, plane_gaps, DELTA_LAST, DEPTH_MAX};
@@ -77,7 +78,7 @@ trait PlaneSampler<T: Real>: Sync {
 
 /// Bilinear colour and density (the reference's arithmetic, channel by channel).
 struct Bilinear<'a> {
-    rgba: Vec<&'a [f32]>,
+    rgba: Rgba<'a>,
     /// the pyramids of the minified planes (empty: none; [`super::mip`])
     mip: &'a [Option<MipPlane<'a>>],
 }
@@ -85,7 +86,7 @@ struct Bilinear<'a> {
 impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
     #[inline(always)]
     fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
-        tap.sample4(self.rgba[i])
+        self.rgba.texel(tap, i)
     }
 
     #[inline(always)]
@@ -135,7 +136,7 @@ impl KernelColour for Bricks {
 /// Bilinear density; colour by kernel `K` from `src` for samples of weight at least
 /// [`KERNEL_MIN_WEIGHT`], bilinear below (and where `src` holds nothing).
 struct HighOrder<'a, K, const N: usize, C> {
-    rgba: Vec<&'a [f32]>,
+    rgba: Rgba<'a>,
     src: &'a C,
     kernel: std::marker::PhantomData<K>,
     /// the pyramids of the minified planes (empty: none; [`super::mip`])
@@ -146,14 +147,14 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
     #[inline(always)]
     fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
         // the density alone: the colour comes from the kernel (bilinear only for faint samples)
-        [T::zero(), T::zero(), T::zero(), tap.sample_ch(self.rgba[i], 4, 3)]
+        [T::zero(), T::zero(), T::zero(), self.rgba.channel(tap, i, 3)]
     }
 
     #[inline(always)]
     fn colour(&self, tap: &Tap<T>, _: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
         let base = || {
             let kernel = if wgt < T::of32(KERNEL_MIN_WEIGHT) { None } else { self.src.rgb::<T, K, N>(i, qx, qy) };
-            kernel.unwrap_or_else(|| [0, 1, 2].map(|k| tap.sample_ch(self.rgba[i], 4, k)))
+            kernel.unwrap_or_else(|| [0, 1, 2].map(|k| self.rgba.channel(tap, i, k)))
         };
         match self.mip.get(i) {
             Some(Some(m)) => m.colour(qx, qy, base),
@@ -252,9 +253,12 @@ fn target_view_n<T: Real, const NL: usize>(
     consts: &[LinkConst<T>],
     lb: [(&mut [f32], &mut [f32], &mut [f32]); 2],
 ) -> RenderStats {
-    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
-    let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
-    let dense = DenseColour::<4> { src: rgba.clone(), w, h };
+    let rgba = Rgba::of(mpi);
+    // the bicubic and Lanczos kernels read colour around the density too: dense planes
+    let unpacked = matches!(p.resample, Resample::Bicubic | Resample::Lanczos3).then(|| mpi.unpacked());
+    fn dense(m: &Mpi) -> DenseColour<'_, 4> {
+        DenseColour { src: (0..m.planes()).map(|i| m.plane_rgba(i)).collect(), w: m.width, h: m.height }
+    }
     let lods = plane_lods(mpi, p);
     let built = missing_levels(mpi, &lods);
     let levels = built.as_ref().or(mpi.mip.as_deref());
@@ -265,11 +269,19 @@ fn target_view_n<T: Real, const NL: usize>(
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &Bilinear { rgba, mip })
         }
         Resample::Bicubic => {
-            let s = HighOrder::<Keys, 4, _> { rgba, src: &dense, kernel: std::marker::PhantomData, mip };
+            let m = unpacked.as_deref().unwrap_or(mpi);
+            let s =
+                HighOrder::<Keys, 4, _> { rgba: Rgba::of(m), src: &dense(m), kernel: std::marker::PhantomData, mip };
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
         }
         Resample::Lanczos3 => {
-            let s = HighOrder::<Lanczos3, 6, _> { rgba, src: &dense, kernel: std::marker::PhantomData, mip };
+            let m = unpacked.as_deref().unwrap_or(mpi);
+            let s = HighOrder::<Lanczos3, 6, _> {
+                rgba: Rgba::of(m),
+                src: &dense(m),
+                kernel: std::marker::PhantomData,
+                mip,
+            };
             target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
         }
         Resample::Bspline3 | Resample::Bspline5 => {
@@ -771,7 +783,7 @@ pub(super) fn source_view<T: Real>(
     let gap: Vec<T> = plane_gaps(&mpi.disparity).into_iter().map(T::of).collect();
     let t_eps = T::of32(p.skip.transmittance_eps);
     let z_min = T::of(1e-9);
-    let rgba: Vec<&[f32]> = (0..n).map(|i| mpi.plane_rgba(i)).collect();
+    let rgba = Rgba::of(mpi);
     let mut flow = std::mem::take(&mut out.flow);
     let mut zexp = std::mem::take(&mut out.source_depth_in_target);
     let mut front = crate::buf::zeros::<f32>(ww * win.height());
@@ -788,7 +800,6 @@ pub(super) fn source_view<T: Real>(
         t_eps: p.skip.transmittance_eps,
         z_min: 1e-9_f64 as f32,
         rgba: rgba.clone(),
-        w,
         ks,
         want_sd,
     });
@@ -830,12 +841,11 @@ pub(super) fn source_view<T: Real>(
                     let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall) =
                         (T::one(), T::zero(), T::zero(), T::zero(), T::zero(), T::zero());
                     let mut sd = T::zero();
-                    let pix = 4 * (yy * w + x) + 3;
                     for &i in &active {
                         if tr < t_eps {
                             break;
                         }
-                        let sigma = T::of32(rgba[i][pix]);
+                        let sigma = T::of32(rgba.sigma(i, x, yy));
                         if sigma <= T::zero() {
                             continue;
                         }
@@ -891,8 +901,7 @@ struct SourceLanes<'a> {
     gap: Vec<f32>,
     t_eps: f32,
     z_min: f32,
-    rgba: Vec<&'a [f32]>,
-    w: usize,
+    rgba: Rgba<'a>,
     ks: crate::geometry::Intrinsics,
     want_sd: bool,
 }
@@ -902,7 +911,7 @@ impl SourceLanes<'_> {
     /// (flow, expected target depth, front fraction, source depth).
     #[inline(always)]
     fn four(&self, x: usize, yy: usize, active: &[usize], o: usize, b: &mut [&mut [f32]; 4]) {
-        use super::simd::{exp_neg4, gather};
+        use super::simd::exp_neg4;
         use wide::f32x4;
         let sp = f32x4::splat;
         let (zero, one) = (sp(0.0), sp(1.0));
@@ -913,7 +922,6 @@ impl SourceLanes<'_> {
         let norm_u = (ux * ux + uy * uy + one).sqrt();
         let a: [f32x4; 3] = std::array::from_fn(|r| sp(self.m[r][0]) * xf + sp(self.m[r][1] * y) + sp(self.m[r][2]));
         let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall, mut sd) = (one, zero, zero, zero, zero, zero, zero);
-        let pix = 4 * (yy * self.w + x) + 3;
         let (t_eps, z_lim) = (sp(self.t_eps), sp(self.z_min) * (a[2].abs() + one));
         let depth_max = sp(DEPTH_MAX as f32);
         for &i in active {
@@ -922,7 +930,7 @@ impl SourceLanes<'_> {
             if !live.any() {
                 break;
             }
-            let sigma = gather(self.rgba[i], pix, 4);
+            let sigma = self.rgba.sigma4(i, x, yy);
             let take = live & !sigma.simd_le(zero);
             if !take.any() {
                 continue;
@@ -1001,8 +1009,7 @@ pub(super) fn target_view_cut<T: Real>(
     cut: &super::cut::DensityCut<'_>,
     out: &mut RenderOutput,
 ) -> RenderStats {
-    let n = mpi.planes();
-    let sampler = CutSampler { inner: Bilinear { rgba: (0..n).map(|i| mpi.plane_rgba(i)).collect(), mip: &[] }, cut };
+    let sampler = CutSampler { inner: Bilinear { rgba: Rgba::of(mpi), mip: &[] }, cut };
     let none: [LinkConst<T>; 0] = [];
     target_view_with::<T, _, 0>(
         mpi,

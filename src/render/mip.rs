@@ -112,6 +112,7 @@ pub fn plane_levels(rgba: &[f32], w: usize, h: usize, levels: usize) -> Vec<MipL
 
 /// Levels 1 to [`CACHED_LEVELS`] of every plane of `mpi`.
 pub fn mip_levels(mpi: &Mpi) -> MipLevels {
+    let mpi = &*mpi.unpacked();
     let planes = (0..mpi.planes())
         .into_par_iter()
         .map(|i| plane_levels(mpi.plane_rgba(i), mpi.width, mpi.height, CACHED_LEVELS))
@@ -218,6 +219,7 @@ pub(crate) fn missing_levels(mpi: &Mpi, lods: &[Option<f32>]) -> Option<MipLevel
     if lods.is_empty() || mpi.mip.as_ref().is_some_and(|m| m.planes.len() == mpi.planes()) {
         return None;
     }
+    let mpi = &*mpi.unpacked();
     let planes = lods
         .par_iter()
         .enumerate()

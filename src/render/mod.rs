@@ -51,6 +51,7 @@ pub mod real;
 mod reference;
 pub mod resample;
 mod simd;
+pub mod store;
 pub mod window;
 
 use crate::geometry::{Intrinsics, Pose};
@@ -357,6 +358,9 @@ pub fn render_window<T: Real>(
     if window.x1 > w || window.y1 > h {
         return bad(format!("window {window:?} is not inside the {w} x {h} frame"));
     }
+    // the reference mode reads dense planes (a packed MPI's blocks spread out: the same bits)
+    let unpacked = (params.mode == Mode::Reference).then(|| mpi.unpacked());
+    let mpi = unpacked.as_deref().unwrap_or(mpi);
     let mut built = None;
     let occ = tile_occupancy(mpi, params, occupancy, &mut built);
     if fields.target {
@@ -537,6 +541,9 @@ pub(crate) fn floor_index(q: f32, n: usize) -> usize {
 /// A bilinear tap at a point already clamped to [0, W-1] x [0, H-1].
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Tap<T> {
+    /// the tap's pixel (the top-left of its four)
+    pub(crate) x0: usize,
+    pub(crate) y0: usize,
     i00: usize,
     i10: usize,
     i01: usize,
@@ -562,7 +569,26 @@ impl<T: Real> Tap<T> {
     pub(crate) fn from_parts(x0: usize, y0: usize, w: usize, h: usize, wx: T, wy: T) -> Self {
         let x1 = (x0 + 1).min(w - 1);
         let y1 = (y0 + 1).min(h - 1);
-        Self { i00: y0 * w + x0, i10: y0 * w + x1, i01: y1 * w + x0, i11: y1 * w + x1, wx, wy }
+        Self { x0, y0, i00: y0 * w + x0, i10: y0 * w + x1, i01: y1 * w + x0, i11: y1 * w + x1, wx, wy }
+    }
+
+    /// [`Self::sample4`] of a block of 4-valued pixels ([`crate::mpi::bricks::Bricks`]) whose
+    /// value at the tap's pixel starts at `s`, rows `row` values apart, the right and lower
+    /// neighbours in the block's apron (the same arithmetic).
+    #[inline(always)]
+    pub(crate) fn sample4_at(&self, data: &[f32], s: usize, row: usize) -> [T; 4] {
+        let d = &data[s..s + row + 8];
+        T::lerp4(&d[..4], &d[4..8], &d[row..row + 4], &d[row + 4..], self.wx, self.wy)
+    }
+
+    /// [`Self::sample_ch`] (stride 4) of a block, as [`Self::sample4_at`].
+    #[inline(always)]
+    pub(crate) fn sample_ch_at(&self, data: &[f32], s: usize, row: usize, k: usize) -> T {
+        let d = &data[s + k..s + k + row + 5];
+        let at = |i: usize| T::of32(d[i]);
+        let top = at(0) + self.wx * (at(4) - at(0));
+        let bot = at(row) + self.wx * (at(row + 4) - at(row));
+        top + self.wy * (bot - top)
     }
 
     /// Samples an interleaved 4-channel plane (per channel the arithmetic of [`Self::sample1`];

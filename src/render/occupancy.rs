@@ -27,14 +27,13 @@ impl Occupancy {
         let bh = h.div_ceil(BLOCK);
         let mut prefix = Vec::with_capacity(mpi.planes());
         let mut plane_any = Vec::with_capacity(mpi.planes());
+        let rgba = super::store::Rgba::of(mpi);
         for i in 0..mpi.planes() {
-            let rgba = mpi.plane_rgba(i);
             let mut occ = vec![false; bw * bh];
             for y in 0..h {
-                let row = &rgba[y * w * 4..(y + 1) * w * 4];
                 let brow = &mut occ[(y / BLOCK) * bw..(y / BLOCK + 1) * bw];
-                for (x, px) in row.chunks_exact(4).enumerate() {
-                    if px[3] > sigma_eps {
+                for x in 0..w {
+                    if rgba.sigma(i, x, y) > sigma_eps {
                         brow[x / BLOCK] = true;
                     }
                 }

@@ -353,6 +353,7 @@ fn poles(degree: u32) -> &'static [f64] {
 /// B-spline at the pixel centres, with mirror boundaries (Unser, "Fast B-spline transforms for
 /// continuous image representation and interpolation", 1991). Computed in f64 per line.
 pub fn bspline_coefficients(mpi: &Mpi, degree: u32) -> Vec<f32> {
+    let mpi = &*mpi.unpacked();
     let z = poles(degree);
     let planes: Vec<Vec<f32>> = (0..mpi.planes()).into_par_iter().map(|i| plane_coefficients(mpi, i, z)).collect();
     planes.concat()
@@ -408,36 +409,13 @@ fn bspline_taps(degree: u32) -> usize {
 /// any density > 0: the target render asks for a plane's colour only where its bilinear density
 /// is > 0 ([`prefilter`]'s blocks); otherwise every block.
 pub fn bspline_bricks(mpi: &Mpi, degree: u32, sparse: bool) -> Bricks {
+    let mpi = &*mpi.unpacked();
     let (w, h) = (mpi.width, mpi.height);
     let z = poles(degree);
     let n = bspline_taps(degree);
     let lo = n / 2 - 1;
-    let keep = |i: usize| sparse.then(|| reachable_blocks(mpi, i));
+    let keep = |i: usize| sparse.then(|| super::store::reachable_blocks(mpi, i));
     Bricks::build(w, h, mpi.planes(), 3, lo, n - 1 - lo, |i| plane_coefficients(mpi, i, z), keep, mirror)
-}
-
-/// The blocks of plane `i` that hold an anchor pixel (x, y) with density > 0 at (x, y),
-/// (x + 1, y), (x, y + 1) or (x + 1, y + 1): a pixel with density marks its own block and, on a
-/// block's first column or row, the blocks before it.
-fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
-    let (w, h) = (mpi.width, mpi.height);
-    let b = Bricks::SIZE;
-    let (bw, bh) = (w.div_ceil(b), h.div_ceil(b));
-    let mut keep = vec![false; bw * bh];
-    for (y, row) in mpi.plane_rgba(i).chunks_exact(4 * w).enumerate() {
-        for (x, px) in row.chunks_exact(4).enumerate() {
-            if px[3] > 0.0 {
-                let bxs = [x / b, if x % b == 0 && x > 0 { x / b - 1 } else { x / b }];
-                let bys = [y / b, if y % b == 0 && y > 0 { y / b - 1 } else { y / b }];
-                for by in bys {
-                    for bx in bxs {
-                        keep[by * bw + bx] = true;
-                    }
-                }
-            }
-        }
-    }
-    keep
 }
 
 /// In-place B-spline prefilter of one line with the given poles (mirror boundaries).

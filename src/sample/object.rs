@@ -178,13 +178,13 @@ pub fn object_window(mpi: &Mpi, k: &Intrinsics, pose: &Pose, support: &Rect) -> 
 /// A full copy of `mpi` with one extra channel holding `mask` (H x W) on every plane: the
 /// reference's construction, used in the reference mode and with `windowed = false`.
 pub fn mpi_with_mask(mpi: &Mpi, mask: &[f32]) -> Mpi {
-    let mut out = Mpi::new(mpi.width, mpi.height, mpi.disparity.clone(), 1);
-    out.rgba.par_chunks_mut(1 << 16).zip(mpi.rgba.par_chunks(1 << 16)).for_each(|(d, s)| d.copy_from_slice(s));
+    let mut out = Mpi { rgba: Vec::new(), extras: Vec::new(), extra_channels: 1, ..mpi.clone_without_planes() };
+    if !mpi.is_packed() {
+        out.rgba = crate::buf::zeros(mpi.rgba.len());
+        out.rgba.par_chunks_mut(1 << 16).zip(mpi.rgba.par_chunks(1 << 16)).for_each(|(d, s)| d.copy_from_slice(s));
+    }
+    out.extras = crate::buf::zeros(mpi.plane_len() * mpi.planes());
     out.extras.par_chunks_mut(mpi.plane_len()).for_each(|dst| dst.copy_from_slice(mask));
-    out.intrinsics = mpi.intrinsics;
-    out.pose = mpi.pose;
-    out.bspline_rgb = mpi.bspline_rgb.clone();
-    out.mip = mpi.mip.clone();
     out
 }
 

@@ -163,6 +163,10 @@ pub fn prepare_scene(mut scene: Scene, config: &SampleConfig) -> Result<Scene, S
             crate::render::mip::prefilter_arc(&mut scene.mpi);
         }
     }
+    if crate::render::store::packs(config.mode, config.resample, config.minify) {
+        // the planes in blocks, only where there is density (the same renders, a third of the bytes)
+        crate::render::store::pack_arc(&mut scene.mpi);
+    }
     Ok(scene)
 }
 

@@ -16,11 +16,11 @@ use super::error::ServiceError;
 /// occlusion, mask1, mask2, holes (5 x 1), f32 depth1 and depth2 (8).
 pub const BYTES_PER_PIXEL_ALL_FIELDS: u64 = 27;
 
-/// The scene cache's default budget in MiB: the 8 bundled 640x480 scenes (about 175 MiB each,
-/// 1,403 MiB together, since the B-spline coefficients are kept only where the planes have
-/// density) with room for about nine more. When a scene took 270 MiB, a budget of 2048 did not
-/// hold the 8, and the default server rebuilt a scene for most samples (4.6 instead of ~25
-/// samples/s).
+/// The scene cache's default budget in MiB: the 8 bundled 640x480 scenes (about 45 MiB each,
+/// 356 MiB together, since a prepared scene keeps its planes and B-spline coefficients only in
+/// the blocks where they have density) with room for about 60 more. When a scene took 270 MiB,
+/// a budget of 2048 did not hold the 8, and the default server rebuilt a scene for most samples
+/// (4.6 instead of ~25 samples/s).
 pub const DEFAULT_CACHE_MB: u64 = 3072;
 
 /// The largest gRPC message the server ever allows (well below protobuf's 2 GiB).
@@ -157,8 +157,8 @@ pub struct ServiceConfig {
     /// false: they are left out as `outside-root`; links that stay inside are always followed).
     pub follow_source_links: bool,
     /// Scene cache budget in MiB ([`DEFAULT_CACHE_MB`]; a 640x480 scene with 32 planes takes
-    /// about 175 MiB: 150 of planes, ~18 of B-spline colour coefficients (the blocks with
-    /// density), the photo and masks).
+    /// about 45 MiB: ~22 of planes and ~18 of B-spline colour coefficients, both in the blocks
+    /// with density, the photo and masks).
     pub cache_mb: u64,
     /// Build the scenes of each stream's next indices (its prefetch window) on the scene pool
     /// ahead of the samples, so that the workers only make samples of ready scenes; false =

@@ -1,0 +1,132 @@
+//! How the renderer reads a plane's (r, g, b, sigma): the MPI's dense planes, or the blocks of a
+//! packed MPI ([`pack`]: a prepared scene keeps only the 16 x 16 blocks a render can read, those
+//! where the plane has density, in [`crate::mpi::Mpi::rgba_blocks`]). [`Rgba`] gives both the
+//! same bits: a render reads colour only where the bilinear density is > 0, and a block left
+//! out has no density anywhere its reads reach.
+
+use super::real::Real;
+use super::Tap;
+use crate::mpi::bricks::Bricks;
+use crate::mpi::Mpi;
+use std::sync::Arc;
+
+/// A render's view of the planes' rgba (see the module documentation).
+#[derive(Clone)]
+pub(crate) enum Rgba<'a> {
+    Dense { planes: Vec<&'a [f32]>, w: usize },
+    Blocks(&'a Bricks),
+}
+
+impl<'a> Rgba<'a> {
+    pub(crate) fn of(mpi: &'a Mpi) -> Self {
+        match &mpi.rgba_blocks {
+            Some(b) => Rgba::Blocks(b),
+            None => Rgba::Dense { planes: (0..mpi.planes()).map(|i| mpi.plane_rgba(i)).collect(), w: mpi.width },
+        }
+    }
+
+    /// The bilinear (r, g, b, sigma) of plane `i` at `tap` ([`Tap::sample4`]); 0 in a block
+    /// not stored.
+    #[inline(always)]
+    pub(crate) fn texel<T: Real>(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
+        match self {
+            Rgba::Dense { planes, .. } => tap.sample4(planes[i]),
+            Rgba::Blocks(b) => match b.offset(i, tap.x0, tap.y0) {
+                Some(s) => tap.sample4_at(b.data(), s, b.row_len()),
+                None => [T::zero(); 4],
+            },
+        }
+    }
+
+    /// The bilinear channel `k` of plane `i` at `tap` ([`Tap::sample_ch`]); 0 in a block not
+    /// stored.
+    #[inline(always)]
+    pub(crate) fn channel<T: Real>(&self, tap: &Tap<T>, i: usize, k: usize) -> T {
+        match self {
+            Rgba::Dense { planes, .. } => tap.sample_ch(planes[i], 4, k),
+            Rgba::Blocks(b) => match b.offset(i, tap.x0, tap.y0) {
+                Some(s) => tap.sample_ch_at(b.data(), s, b.row_len(), k),
+                None => T::zero(),
+            },
+        }
+    }
+
+    /// The density of plane `i` at pixel (x, y).
+    #[inline(always)]
+    pub(crate) fn sigma(&self, i: usize, x: usize, y: usize) -> f32 {
+        match self {
+            Rgba::Dense { planes, w } => planes[i][4 * (y * w + x) + 3],
+            Rgba::Blocks(b) => b.offset(i, x, y).map_or(0.0, |s| b.data()[s + 3]),
+        }
+    }
+
+    /// The densities of plane `i` at pixels x .. x + 4 of row y, in lanes.
+    #[inline(always)]
+    pub(crate) fn sigma4(&self, i: usize, x: usize, y: usize) -> wide::f32x4 {
+        match self {
+            Rgba::Dense { planes, w } => super::simd::gather(planes[i], 4 * (y * w + x) + 3, 4),
+            Rgba::Blocks(b) if x % Bricks::SIZE + 3 < Bricks::SIZE => match b.offset(i, x, y) {
+                Some(s) => super::simd::gather(&b.data()[s + 3..s + 16], 0, 4),
+                None => wide::f32x4::splat(0.0),
+            },
+            Rgba::Blocks(_) => wide::f32x4::from(std::array::from_fn::<f32, 4, _>(|k| self.sigma(i, x + k, y))),
+        }
+    }
+}
+
+/// The blocks ([`Bricks::SIZE`] square) of plane `i` that hold an anchor pixel (x, y) with
+/// density > 0 at (x, y), (x + 1, y), (x, y + 1) or (x + 1, y + 1): those a bilinear tap at
+/// any point whose pixel lies in the block can find density in. A pixel with density marks its
+/// own block and, on a block's first column or row, the blocks before it.
+pub fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
+    let (w, h) = (mpi.width, mpi.height);
+    let b = Bricks::SIZE;
+    let (bw, bh) = (w.div_ceil(b), h.div_ceil(b));
+    let mut keep = vec![false; bw * bh];
+    for (y, row) in mpi.plane_rgba(i).chunks_exact(4 * w).enumerate() {
+        for (x, px) in row.chunks_exact(4).enumerate() {
+            if px[3] > 0.0 {
+                let bxs = [x / b, if x % b == 0 && x > 0 { x / b - 1 } else { x / b }];
+                let bys = [y / b, if y % b == 0 && y > 0 { y / b - 1 } else { y / b }];
+                for by in bys {
+                    for bx in bxs {
+                        keep[by * bw + bx] = true;
+                    }
+                }
+            }
+        }
+    }
+    keep
+}
+
+/// Whether a prepared scene's MPI is packed ([`pack`]) for renders with these settings: in the
+/// exact mode, with a kernel that reads colour only where there is density (bilinear and the
+/// B-splines, whose coefficients are computed before), and without minification (its levels
+/// read colour around the density).
+pub fn packs(mode: super::Mode, resample: super::Resample, minify: bool) -> bool {
+    use super::Resample as R;
+    mode == super::Mode::Exact && !minify && matches!(resample, R::Bilinear | R::Bspline3 | R::Bspline5)
+}
+
+/// Packs the planes into blocks ([`crate::mpi::Mpi::rgba_blocks`]): the blocks of
+/// [`reachable_blocks`], each with a one-pixel apron after it (the edge pixel repeated past the
+/// frame, as [`Tap`] clamps), and drops the dense planes. Everything computed from the dense
+/// planes (B-spline coefficients, minification levels, occupancy) must be computed before.
+pub fn pack(mpi: &mut Mpi) {
+    if mpi.is_packed() {
+        return;
+    }
+    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let clamp = |c: isize, n: usize| c.clamp(0, n as isize - 1) as usize;
+    let m: &Mpi = mpi;
+    let blocks = Bricks::build(w, h, n, 4, 0, 1, |i| m.plane_rgba(i).to_vec(), |i| Some(reachable_blocks(m, i)), clamp);
+    mpi.rgba_blocks = Some(Arc::new(blocks));
+    mpi.rgba = Vec::new();
+}
+
+/// [`pack`] of a shared MPI (copied first only when others hold it).
+pub fn pack_arc(mpi: &mut Arc<Mpi>) {
+    if !mpi.is_packed() {
+        pack(Arc::make_mut(mpi));
+    }
+}
