@@ -33,7 +33,7 @@
 use super::mip::{mip_planes, missing_levels, plane_lods, MipPlane};
 use super::occupancy::Occupancy;
 use super::resample::{
-    bspline_bricks, sample_rgb, sample_rgb_bricks, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample,
+    bspline_bricks, sample_rgb_at, sample_rgb_bricks, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample,
 };
 use super::store::Rgba;
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
@@ -108,7 +108,7 @@ pub(crate) const KERNEL_MIN_WEIGHT: f32 = 1.0 / 1024.0;
 /// by kernel `K`, `None` where the source holds nothing there (the sampler then takes the
 /// bilinear colour).
 trait KernelColour: Sync {
-    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, qx: T, qy: T) -> Option<[T; 3]>;
+    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]>;
 }
 
 /// Dense planes of `S` values per pixel (the bicubic and Lanczos kernels read the MPI's rgba).
@@ -120,16 +120,16 @@ struct DenseColour<'a, const S: usize> {
 
 impl<const S: usize> KernelColour for DenseColour<'_, S> {
     #[inline(always)]
-    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, qx: T, qy: T) -> Option<[T; 3]> {
-        Some(sample_rgb::<T, K, N, S>(self.src[i], qx, qy, self.w, self.h))
+    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
+        Some(sample_rgb_at::<T, K, N, S>(self.src[i], tap.x0, tap.y0, tap.wx, tap.wy, self.w, self.h))
     }
 }
 
 /// The B-spline coefficients in blocks ([`crate::mpi::Mpi::bspline_rgb`]).
 impl KernelColour for Bricks {
     #[inline(always)]
-    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, qx: T, qy: T) -> Option<[T; 3]> {
-        sample_rgb_bricks::<T, K, N>(self, i, qx, qy)
+    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
+        sample_rgb_bricks::<T, K, N>(self, i, tap.x0, tap.y0, tap.wx, tap.wy)
     }
 }
 
@@ -153,7 +153,7 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
     #[inline(always)]
     fn colour(&self, tap: &Tap<T>, _: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
         let base = || {
-            let kernel = if wgt < T::of32(KERNEL_MIN_WEIGHT) { None } else { self.src.rgb::<T, K, N>(i, qx, qy) };
+            let kernel = if wgt < T::of32(KERNEL_MIN_WEIGHT) { None } else { self.src.rgb::<T, K, N>(i, tap) };
             kernel.unwrap_or_else(|| [0, 1, 2].map(|k| self.rgba.channel(tap, i, k)))
         };
         match self.mip.get(i) {

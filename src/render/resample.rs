@@ -210,10 +210,23 @@ pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
     h: usize,
 ) -> [T; 3] {
     // q >= 0 here, so truncation is floor
-    let x0 = floor_index(qx.f32(), w);
-    let y0 = floor_index(qy.f32(), h);
-    let wx = K::weights(qx - T::of(x0 as f64));
-    let wy = K::weights(qy - T::of(y0 as f64));
+    let (x0, y0) = (floor_index(qx.f32(), w), floor_index(qy.f32(), h));
+    sample_rgb_at::<T, K, N, S>(src, x0, y0, qx - T::of(x0 as f64), qy - T::of(y0 as f64), w, h)
+}
+
+/// [`sample_rgb`] at the pixel (x0, y0) that q truncates to and the fractions fx = qx - x0,
+/// fy = qy - y0 (a bilinear tap's, `Tap`, which the render has at hand).
+#[inline(always)]
+pub(crate) fn sample_rgb_at<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
+    src: &[f32],
+    x0: usize,
+    y0: usize,
+    fx: T,
+    fy: T,
+    w: usize,
+    h: usize,
+) -> [T; 3] {
+    let (wx, wy) = (K::weights(fx), K::weights(fy));
     let off = N / 2 - 1;
     let acc = if x0 >= off && x0 + N - off <= w && y0 >= off && y0 + N - off <= h {
         kernel_rows(src, S * ((y0 - off) * w + x0 - off), S * w, S, &wx, &wy)
@@ -237,21 +250,20 @@ pub(crate) fn sample_rgb<T: Real, K: Kernel<N>, const N: usize, const S: usize>(
     acc.map(|v| v.max(T::zero()).min(T::one()))
 }
 
-/// [`sample_rgb`] of plane `i` from block-sparse coefficients (3 values per pixel; the blocks'
-/// aprons hold the mirrored values, so every neighbourhood reads one block): the same bits as
-/// [`sample_rgb`] of the dense coefficients. `None` where the block is not stored.
+/// [`sample_rgb_at`] of plane `i` from block-sparse coefficients (3 values per pixel; the
+/// blocks' aprons hold the mirrored values, so every neighbourhood reads one block): the same
+/// bits as [`sample_rgb`] of the dense coefficients. `None` where the block is not stored.
 #[inline(always)]
 pub(crate) fn sample_rgb_bricks<T: Real, K: Kernel<N>, const N: usize>(
     b: &Bricks,
     i: usize,
-    qx: T,
-    qy: T,
+    x0: usize,
+    y0: usize,
+    fx: T,
+    fy: T,
 ) -> Option<[T; 3]> {
-    let x0 = floor_index(qx.f32(), b.width());
-    let y0 = floor_index(qy.f32(), b.height());
     let (data, start) = b.neighbourhood(i, x0, y0)?;
-    let wx = K::weights(qx - T::of(x0 as f64));
-    let wy = K::weights(qy - T::of(y0 as f64));
+    let (wx, wy) = (K::weights(fx), K::weights(fy));
     let acc = kernel_rows(data, start, b.row_len(), 3, &wx, &wy);
     Some(acc.map(|v| v.max(T::zero()).min(T::one())))
 }
@@ -523,10 +535,15 @@ mod tests {
                 let plane = &dense[i * w * h * 3..(i + 1) * w * h * 3];
                 for &(x, y) in qs {
                     let a = sample_rgb::<f32, K, N, 3>(plane, x as f32, y as f32, w, h);
-                    let b = sample_rgb_bricks::<f32, K, N>(&blocks, i, x as f32, y as f32).expect("every block");
+                    let at = |q: f64, n: usize| (q as f32 as usize).min(n - 1);
+                    let (x0, y0) = (at(x, w), at(y, h));
+                    let (fx, fy) = (x as f32 - x0 as f32, y as f32 - y0 as f32);
+                    let b = sample_rgb_bricks::<f32, K, N>(&blocks, i, x0, y0, fx, fy).expect("every block");
                     assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "degree {degree}, plane {i}, ({x}, {y})");
                     let a = sample_rgb::<f64, K, N, 3>(plane, x, y, w, h);
-                    let b = sample_rgb_bricks::<f64, K, N>(&blocks, i, x, y).expect("every block");
+                    let (x0, y0) = (at(x, w), at(y, h));
+                    let b = sample_rgb_bricks::<f64, K, N>(&blocks, i, x0, y0, x - x0 as f64, y - y0 as f64)
+                        .expect("every block");
                     assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "f64, degree {degree}, ({x}, {y})");
                 }
             }
