@@ -152,13 +152,29 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
 
     #[inline(always)]
     fn colour(&self, tap: &Tap<T>, _: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
-        let base = || {
-            let kernel = if wgt < T::of32(KERNEL_MIN_WEIGHT) { None } else { self.src.rgb::<T, K, N>(i, tap) };
-            kernel.unwrap_or_else(|| [0, 1, 2].map(|k| self.rgba.channel(tap, i, k)))
-        };
         match self.mip.get(i) {
-            Some(Some(m)) => m.colour(qx, qy, base),
-            _ => base(),
+            Some(Some(m)) => m.colour(qx, qy, || self.level0(tap, i, wgt)),
+            _ => self.level0(tap, i, wgt),
+        }
+    }
+}
+
+impl<K, const N: usize, C: KernelColour> HighOrder<'_, K, N, C> {
+    /// The colour of plane `i` itself at `tap`: by the kernel, or bilinear for a faint sample
+    /// and where the kernel's source holds nothing (a method, not a closure, so that it inlines
+    /// into the pixel loops).
+    #[inline(always)]
+    fn level0<T: Real>(&self, tap: &Tap<T>, i: usize, wgt: T) -> [T; 3]
+    where
+        K: Kernel<N>,
+    {
+        let bilinear = || [self.rgba.channel(tap, i, 0), self.rgba.channel(tap, i, 1), self.rgba.channel(tap, i, 2)];
+        if wgt < T::of32(KERNEL_MIN_WEIGHT) {
+            return bilinear();
+        }
+        match self.src.rgb::<T, K, N>(i, tap) {
+            Some(c) => c,
+            None => bilinear(),
         }
     }
 }
