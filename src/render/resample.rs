@@ -380,26 +380,24 @@ fn plane_coefficients(mpi: &Mpi, i: usize, z: &[f64]) -> Vec<f32> {
         d.copy_from_slice(&[f64::from(s[0]), f64::from(s[1]), f64::from(s[2])]);
     }
     let mut line = vec![0.0f64; w.max(h)];
+    // one channel's line of `len` values `step` apart from `buf[start]`, prefiltered in place
+    let mut run = |buf: &mut [f64], start: usize, step: usize, len: usize| {
+        for (k, v) in line[..len].iter_mut().enumerate() {
+            *v = buf[start + k * step];
+        }
+        prefilter_line(&mut line[..len], z);
+        for (k, v) in line[..len].iter().enumerate() {
+            buf[start + k * step] = *v;
+        }
+    };
     for y in 0..h {
         for c in 0..3 {
-            for x in 0..w {
-                line[x] = buf[3 * (y * w + x) + c];
-            }
-            prefilter_line(&mut line[..w], z);
-            for x in 0..w {
-                buf[3 * (y * w + x) + c] = line[x];
-            }
+            run(&mut buf, 3 * y * w + c, 3, w);
         }
     }
     for x in 0..w {
         for c in 0..3 {
-            for y in 0..h {
-                line[y] = buf[3 * (y * w + x) + c];
-            }
-            prefilter_line(&mut line[..h], z);
-            for y in 0..h {
-                buf[3 * (y * w + x) + c] = line[y];
-            }
+            run(&mut buf, 3 * x + c, 3 * w, h);
         }
     }
     buf.iter().map(|&v| v as f32).collect()
