@@ -29,7 +29,31 @@ pub trait Real: num_traits::Float + AddAssign + MulAssign + Send + Sync + Defaul
             top + wy * (bot - top)
         })
     }
+
+    /// The column sums of a separable kernel over `N` rows of `N` pixels of `S` values each,
+    /// rows `row_len` apart from `src[start]`: value `m` (< N S) of the result is the sum over the
+    /// rows j = 0, 1, .. (in order, from 0) of wy[j] times value `m` of row j; the rest is 0.
+    /// `f32` takes four values at once ([`super::simd::kernel_cols`], the same bits).
+    #[inline(always)]
+    fn kernel_cols<const N: usize, const S: usize>(
+        src: &[f32],
+        start: usize,
+        row_len: usize,
+        wy: &[Self; N],
+    ) -> [Self; KERNEL_COLS] {
+        let mut col = [Self::zero(); KERNEL_COLS];
+        for (j, &wyj) in wy.iter().enumerate() {
+            let at = start + j * row_len;
+            for (c, &v) in col[..N * S].iter_mut().zip(&src[at..at + N * S]) {
+                *c += wyj * Self::of32(v);
+            }
+        }
+        col
+    }
 }
+
+/// The most values of a kernel row ([`Real::kernel_cols`]): 6 taps of 4 values.
+pub(crate) const KERNEL_COLS: usize = 24;
 
 /// 2^f = e^(f ln 2) for f in [-0.5, 0.5]: the Taylor coefficients of e^y at y = f ln 2 (the
 /// polynomial of [`exp_neg_f32`] and of its four-lane twin [`super::simd::exp_neg4`]).
@@ -84,6 +108,15 @@ impl Real for f32 {
     #[inline(always)]
     fn lerp4(a: &[f32], b: &[f32], c: &[f32], d: &[f32], wx: Self, wy: Self) -> [Self; 4] {
         super::simd::lerp4(a, b, c, d, wx, wy)
+    }
+    #[inline(always)]
+    fn kernel_cols<const N: usize, const S: usize>(
+        src: &[f32],
+        start: usize,
+        row_len: usize,
+        wy: &[Self; N],
+    ) -> [Self; KERNEL_COLS] {
+        super::simd::kernel_cols::<N, S>(src, start, row_len, wy)
     }
 }
 
@@ -210,6 +243,31 @@ mod tests {
             let got = f32::lerp4(&px[0..4], &px[4..8], &px[8..12], &px[12..16], wx, wy);
             let want = scalar(&px[0..4], &px[4..8], &px[8..12], &px[12..16], wx, wy);
             assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits), "lerp4, seed {seed}");
+        }
+    }
+
+    /// The four-value column sums of the colour kernels give the scalar formula's bits, for
+    /// every shape the kernels use (4 and 6 taps of 3 and 4 values; 18 values leave a tail of 2).
+    #[test]
+    fn vector_column_sums_match_the_scalar_formula_bit_for_bit() {
+        fn check<const N: usize, const S: usize>(seed: u64) {
+            let row_len = N * S + 5;
+            let src = values(N * row_len + 3, seed);
+            let wy: [f32; N] = std::array::from_fn(|j| values(1, seed * 31 + j as u64)[0].abs().fract());
+            let got = f32::kernel_cols::<N, S>(&src, 3, row_len, &wy);
+            let mut want = [0.0f32; KERNEL_COLS];
+            for (j, &w) in wy.iter().enumerate() {
+                for m in 0..N * S {
+                    want[m] += w * src[3 + j * row_len + m];
+                }
+            }
+            assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits), "N {N}, S {S}, seed {seed}");
+        }
+        for seed in 0..500u64 {
+            check::<4, 3>(seed);
+            check::<4, 4>(seed);
+            check::<6, 3>(seed);
+            check::<6, 4>(seed);
         }
     }
 }

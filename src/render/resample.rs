@@ -229,20 +229,23 @@ pub(crate) fn sample_rgb_at<T: Real, K: Kernel<N>, const N: usize, const S: usiz
     let (wx, wy) = (K::weights(fx), K::weights(fy));
     let off = N / 2 - 1;
     let acc = if x0 >= off && x0 + N - off <= w && y0 >= off && y0 + N - off <= h {
-        kernel_rows(src, S * ((y0 - off) * w + x0 - off), S * w, S, &wx, &wy)
+        kernel_rows::<T, N, S>(src, S * ((y0 - off) * w + x0 - off), S * w, &wx, &wy)
     } else {
-        let mut acc = [T::zero(); 3];
+        // the same sums in the same order over the mirrored pixels
         let xs: [usize; N] = std::array::from_fn(|k| S * mirror(x0 as isize + k as isize - off as isize, w));
+        let mut col = [[T::zero(); 3]; N];
         for (j, &wyj) in wy.iter().enumerate() {
             let row = &src[S * w * mirror(y0 as isize + j as isize - off as isize, h)..];
-            let mut r = [T::zero(); 3];
-            for (&xi, &wxk) in xs.iter().zip(&wx) {
-                r[0] += wxk * T::of32(row[xi]);
-                r[1] += wxk * T::of32(row[xi + 1]);
-                r[2] += wxk * T::of32(row[xi + 2]);
+            for (&xi, ck) in xs.iter().zip(&mut col) {
+                for (c, v) in ck.iter_mut().enumerate() {
+                    *v += wyj * T::of32(row[xi + c]);
+                }
             }
-            for c in 0..3 {
-                acc[c] += wyj * r[c];
+        }
+        let mut acc = [T::zero(); 3];
+        for (ck, &wxk) in col.iter().zip(&wx) {
+            for (a, &v) in acc.iter_mut().zip(ck) {
+                *a += wxk * v;
             }
         }
         acc
@@ -264,33 +267,27 @@ pub(crate) fn sample_rgb_bricks<T: Real, K: Kernel<N>, const N: usize>(
 ) -> Option<[T; 3]> {
     let (data, start) = b.neighbourhood(i, x0, y0)?;
     let (wx, wy) = (K::weights(fx), K::weights(fy));
-    let acc = kernel_rows(data, start, b.row_len(), 3, &wx, &wy);
+    let acc = kernel_rows::<T, N, 3>(data, start, b.row_len(), &wx, &wy);
     Some(acc.map(|v| v.max(T::zero()).min(T::one())))
 }
 
-/// A separable kernel over N rows of N pixels of `stride` values (colour in the first three)
-/// from `src[start]`, rows `row_len` apart: per row j, per channel, r = sum over k of wx[k] px_k
-/// (k = 0..), then acc += wy[j] r (j = 0..).
+/// A separable kernel over N rows of N pixels of `S` values (colour in the first three) from
+/// `src[start]`, rows `row_len` apart: the column sums first (per pixel k and channel,
+/// col = sum over the rows j of wy[j] px_jk, j = 0.., [`Real::kernel_cols`]), then per channel
+/// acc = sum over k of wx[k] col_k (k = 0..). Every path of every kernel sums in this order.
 #[inline(always)]
-fn kernel_rows<T: Real, const N: usize>(
+fn kernel_rows<T: Real, const N: usize, const S: usize>(
     src: &[f32],
     start: usize,
     row_len: usize,
-    stride: usize,
     wx: &[T; N],
     wy: &[T; N],
 ) -> [T; 3] {
+    let col = T::kernel_cols::<N, S>(src, start, row_len, wy);
     let mut acc = [T::zero(); 3];
-    for (j, &wyj) in wy.iter().enumerate() {
-        let at = start + j * row_len;
-        let mut r = [T::zero(); 3];
-        for (px, &wxk) in src[at..at + N * stride].chunks_exact(stride).zip(wx) {
-            r[0] += wxk * T::of32(px[0]);
-            r[1] += wxk * T::of32(px[1]);
-            r[2] += wxk * T::of32(px[2]);
-        }
-        for c in 0..3 {
-            acc[c] += wyj * r[c];
+    for (k, &wxk) in wx.iter().enumerate() {
+        for (c, a) in acc.iter_mut().enumerate() {
+            *a += wxk * col[S * k + c];
         }
     }
     acc

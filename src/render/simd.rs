@@ -49,3 +49,34 @@ pub(crate) fn exp_neg4(x: f32x4) -> f32x4 {
 pub(crate) fn gather(s: &[f32], at: usize, stride: usize) -> f32x4 {
     f32x4::from([s[at], s[at + stride], s[at + 2 * stride], s[at + 3 * stride]])
 }
+
+/// [`super::real::Real::kernel_cols`] for `f32`: the column sums four values at a time (the
+/// vectors of a row, then the row's last `N S mod 4` values one by one), each value's sum in
+/// the scalar order, so the same bits.
+#[inline(always)]
+pub(crate) fn kernel_cols<const N: usize, const S: usize>(
+    src: &[f32],
+    start: usize,
+    row_len: usize,
+    wy: &[f32; N],
+) -> [f32; super::real::KERNEL_COLS] {
+    let (nv, len) = ((N * S) / 4, N * S);
+    let mut vec = [f32x4::splat(0.0); super::real::KERNEL_COLS / 4];
+    let mut tail = [0.0f32; 4];
+    for (j, &wyj) in wy.iter().enumerate() {
+        let row = &src[start + j * row_len..start + j * row_len + len];
+        let w = f32x4::splat(wyj);
+        for (v, acc) in vec[..nv].iter_mut().enumerate() {
+            *acc += w * load(&row[4 * v..]);
+        }
+        for (t, &x) in tail.iter_mut().zip(&row[4 * nv..]) {
+            *t += wyj * x;
+        }
+    }
+    let mut col = [0.0f32; super::real::KERNEL_COLS];
+    for (v, acc) in vec[..nv].iter().enumerate() {
+        col[4 * v..4 * v + 4].copy_from_slice(&acc.to_array());
+    }
+    col[4 * nv..len].copy_from_slice(&tail[..len - 4 * nv]);
+    col
+}

@@ -40,10 +40,13 @@ use crate::source::{FailureKind, Fnv64, Source, SourceError};
 /// reason: it is the dataset word of every address, so changing it changes every sample.
 /// v2 (2026-12-04): the depth-aware merge fills one-pixel dips of the scene mask and depth
 /// before its occlusion test (`sample::merge`), which changes samples with moving objects.
+/// v3 (2026-12-04): the higher-order colour kernels sum each column of taps first, then the
+/// columns (`render::resample`, four values per vector operation), which moves a few image2
+/// pixels by one 8-bit level.
 pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
     // serialising a plain struct of numbers and strings cannot fail
     let json = serde_json::to_string(config).unwrap_or_default();
-    Fnv64::new().str("mpiflow dataset v2").u64(loader_fingerprint).str(&json).finish()
+    Fnv64::new().str("mpiflow dataset v3").u64(loader_fingerprint).str(&json).finish()
 }
 
 /// `WxH`, both sides 16 to 16384 pixels (the `--size` of every command and the `size` key).
