@@ -33,7 +33,8 @@
 use super::mip::{mip_planes, missing_levels, plane_lods, MipPlane};
 use super::occupancy::Occupancy;
 use super::resample::{
-    bspline_bricks, sample_rgb_at, sample_rgb_bricks, Bspline3, Bspline5, Kernel, Keys, Lanczos3, Resample,
+    bspline_bricks, sample_rgb_at, sample_rgb_bricks, sample_rgb_bricks_weighted, sample_rgb_weighted, Bspline3,
+    Bspline5, Kernel, Keys, Lanczos3, Resample,
 };
 use super::store::Rgba;
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
@@ -74,6 +75,47 @@ trait PlaneSampler<T: Real>: Sync {
     /// The colour at `q` of a sample that gets composite weight `wgt` (`texel`: the sample's
     /// [`Self::texel`] at `tap`).
     fn colour(&self, tap: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3];
+    /// The four-lane loop's [`Self::colour`] of the lanes `on` (the others 0): `taps` and
+    /// `texel`s per lane, `q` (x and y) and the tap fractions `f` (x and y) in lanes, the
+    /// weights `wgt` per lane; `[channel][lane]`. The same bits as `colour` lane by lane.
+    #[inline(always)]
+    fn colour4(
+        &self,
+        lanes: &LaneTaps<T>,
+        q: [[f32; 4]; 2],
+        _f: [wide::f32x4; 2],
+        i: usize,
+        wgt: [f32; 4],
+    ) -> [[f32; 4]; 3] {
+        colour_per_lane(self, lanes, q, i, wgt)
+    }
+}
+
+/// The taps of the four lanes that take a plane, with their texels, and which of them have
+/// density (`on`: they get a colour).
+struct LaneTaps<T> {
+    taps: [Option<(Tap<T>, [T; 4])>; 4],
+    on: [bool; 4],
+}
+
+/// [`PlaneSampler::colour4`] lane by lane through [`PlaneSampler::colour`].
+#[inline(always)]
+fn colour_per_lane<T: Real, S: PlaneSampler<T> + ?Sized>(
+    s: &S,
+    lanes: &LaneTaps<T>,
+    q: [[f32; 4]; 2],
+    i: usize,
+    wgt: [f32; 4],
+) -> [[f32; 4]; 3] {
+    let mut out = [[0.0f32; 4]; 3];
+    for k in (0..4).filter(|&k| lanes.on[k]) {
+        let (tap, texel) = lanes.taps[k].as_ref().expect("a tap where the lane takes the plane");
+        let c = s.colour(tap, texel, T::of32(q[0][k]), T::of32(q[1][k]), i, T::of32(wgt[k]));
+        for (o, v) in out.iter_mut().zip(c) {
+            o[k] = v.f32();
+        }
+    }
+    out
 }
 
 /// Bilinear colour and density (the reference's arithmetic, channel by channel).
@@ -109,6 +151,9 @@ pub(crate) const KERNEL_MIN_WEIGHT: f32 = 1.0 / 1024.0;
 /// bilinear colour).
 trait KernelColour: Sync {
     fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]>;
+    /// [`Self::rgb`] with the kernel's weights at the tap's fractions given.
+    fn rgb_weighted<T: Real, const N: usize>(&self, i: usize, tap: &Tap<T>, wx: &[T; N], wy: &[T; N])
+        -> Option<[T; 3]>;
 }
 
 /// Dense planes of `S` values per pixel (the bicubic and Lanczos kernels read the MPI's rgba).
@@ -123,6 +168,16 @@ impl<const S: usize> KernelColour for DenseColour<'_, S> {
     fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
         Some(sample_rgb_at::<T, K, N, S>(self.src[i], tap.x0, tap.y0, tap.wx, tap.wy, self.w, self.h))
     }
+    #[inline(always)]
+    fn rgb_weighted<T: Real, const N: usize>(
+        &self,
+        i: usize,
+        tap: &Tap<T>,
+        wx: &[T; N],
+        wy: &[T; N],
+    ) -> Option<[T; 3]> {
+        Some(sample_rgb_weighted::<T, N, S>(self.src[i], tap.x0, tap.y0, wx, wy, self.w, self.h))
+    }
 }
 
 /// The B-spline coefficients in blocks ([`crate::mpi::Mpi::bspline_rgb`]).
@@ -130,6 +185,16 @@ impl KernelColour for Bricks {
     #[inline(always)]
     fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
         sample_rgb_bricks::<T, K, N>(self, i, tap.x0, tap.y0, tap.wx, tap.wy)
+    }
+    #[inline(always)]
+    fn rgb_weighted<T: Real, const N: usize>(
+        &self,
+        i: usize,
+        tap: &Tap<T>,
+        wx: &[T; N],
+        wy: &[T; N],
+    ) -> Option<[T; 3]> {
+        sample_rgb_bricks_weighted::<T, N>(self, i, tap.x0, tap.y0, wx, wy)
     }
 }
 
@@ -156,6 +221,40 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
             Some(Some(m)) => m.colour(qx, qy, || self.level0(tap, i, wgt)),
             _ => self.level0(tap, i, wgt),
         }
+    }
+
+    /// The kernel's weights of the four lanes in lanes ([`Kernel::weights4`]); the rest as
+    /// [`Self::level0`] per lane (minified planes: [`Self::colour`] per lane).
+    #[inline(always)]
+    fn colour4(
+        &self,
+        lanes: &LaneTaps<T>,
+        q: [[f32; 4]; 2],
+        f: [wide::f32x4; 2],
+        i: usize,
+        wgt: [f32; 4],
+    ) -> [[f32; 4]; 3] {
+        if matches!(self.mip.get(i), Some(Some(_))) {
+            return colour_per_lane(self, lanes, q, i, wgt);
+        }
+        let (wx, wy) = (K::weights4(f[0]), K::weights4(f[1]));
+        let mut out = [[0.0f32; 4]; 3];
+        for k in (0..4).filter(|&k| lanes.on[k]) {
+            let (tap, _) = lanes.taps[k].as_ref().expect("a tap where the lane takes the plane");
+            let bilinear =
+                || [self.rgba.channel(tap, i, 0), self.rgba.channel(tap, i, 1), self.rgba.channel(tap, i, 2)];
+            let c = if T::of32(wgt[k]) < T::of32(KERNEL_MIN_WEIGHT) {
+                bilinear()
+            } else {
+                let (wxk, wyk): ([T; N], [T; N]) =
+                    (std::array::from_fn(|j| T::of32(wx[j][k])), std::array::from_fn(|j| T::of32(wy[j][k])));
+                self.src.rgb_weighted::<T, N>(i, tap, &wxk, &wyk).unwrap_or_else(bilinear)
+            };
+            for (o, v) in out.iter_mut().zip(c) {
+                o[k] = v.f32();
+            }
+        }
+        out
     }
 }
 
@@ -652,12 +751,12 @@ impl TargetLanes {
             // `Tap::new` in lanes: q >= 0, so truncation is floor; at most the last pixel
             let x0 = qx.trunc_int().min(wide::i32x4::splat(self.w as i32 - 1));
             let y0 = qy.trunc_int().min(wide::i32x4::splat(self.h as i32 - 1));
-            let (fx, fy) = ((qx - x0.round_float()).to_array(), (qy - y0.round_float()).to_array());
+            let f = [qx - x0.round_float(), qy - y0.round_float()];
+            let (fx, fy) = (f[0].to_array(), f[1].to_array());
             let (x0, y0) = (x0.to_array(), y0.to_array());
             let (qx, qy) = (qx.to_array(), qy.to_array());
-            let mut taps: [Option<(Tap<T>, [T; 4])>; 4] = [None, None, None, None];
+            let mut lt = LaneTaps { taps: [None, None, None, None], on: [false; 4] };
             let mut sig = [0.0f32; 4];
-            let mut on = [false; 4];
             for k in (0..4).filter(|k| take >> k & 1 == 1) {
                 let (x, y) = (x0[k] as usize, y0[k] as usize);
                 let tap = Tap::from_parts(x, y, self.w, self.h, T::of32(fx[k]), T::of32(fy[k]));
@@ -668,15 +767,15 @@ impl TargetLanes {
                     texel[3].partial_cmp(&T::zero()),
                     Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
                 ) {
-                    on[k] = true;
+                    lt.on[k] = true;
                     sig[k] = texel[3].f32();
                 }
-                taps[k] = Some((tap, texel));
+                lt.taps[k] = Some((tap, texel));
             }
-            if !on.iter().any(|&t| t) {
+            if !lt.on.iter().any(|&t| t) {
                 continue;
             }
-            let m = lane_mask(on);
+            let m = lane_mask(lt.on);
             let lambda = cap(g * sp(self.depth[i]), depth_max);
             let next = if forward { i + 1 } else { i.wrapping_sub(1) };
             let delta = match self.a.get(next) {
@@ -691,15 +790,11 @@ impl TargetLanes {
             let wgt = tr * (one - e);
             tr = m.select(tr * e, tr);
             let wa = wgt.to_array();
-            let mut smp = [[0.0f32; 4]; 3];
+            let smp = sampler.colour4(&lt, [qx, qy], f, i, wa);
             let mut a1 = [0.0f32; 4];
-            for k in (0..4).filter(|&k| on[k]) {
-                let (tap, texel) = taps[k].as_ref().expect("a tap where the lane takes the plane");
-                let c = sampler.colour(tap, texel, T::of32(qx[k]), T::of32(qy[k]), i, T::of32(wa[k]));
-                for ch in 0..3 {
-                    smp[ch][k] = c[ch].f32();
-                }
-                if let Some(ex) = ex {
+            if let Some(ex) = ex {
+                for k in (0..4).filter(|&k| lt.on[k]) {
+                    let (tap, _) = lt.taps[k].as_ref().expect("a tap where the lane takes the plane");
                     a1[k] = tap.sample1(ex[i]).f32();
                 }
             }

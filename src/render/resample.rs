@@ -100,6 +100,13 @@ impl std::str::FromStr for Resample {
 /// `floor(q)`; tap `k` sits at `floor(q) + k - (N / 2 - 1)`.
 pub(crate) trait Kernel<const N: usize>: Sync {
     fn weights<T: Real>(t: T) -> [T; N];
+
+    /// [`Self::weights`] of four fractions at once (`f32`, the same bits): `[k][lane]`.
+    #[inline(always)]
+    fn weights4(t: wide::f32x4) -> [[f32; 4]; N] {
+        let per_lane = t.to_array().map(Self::weights::<f32>);
+        std::array::from_fn(|k| std::array::from_fn(|lane| per_lane[lane][k]))
+    }
 }
 
 pub(crate) struct Keys;
@@ -157,6 +164,23 @@ impl Kernel<4> for Bspline3 {
             (T::of(-3.0) * t3 + T::of(3.0) * t2 + T::of(3.0) * t + T::one()) * s,
             t3 * s,
         ]
+    }
+
+    /// [`Self::weights`]' operations in lanes.
+    #[inline(always)]
+    fn weights4(t: wide::f32x4) -> [[f32; 4]; 4] {
+        use wide::f32x4;
+        let c = f32x4::splat;
+        let s = c(1.0f32 / 6.0);
+        let u = c(1.0) - t;
+        let (t2, t3) = (t * t, t * t * t);
+        [
+            u * u * u * s,
+            (c(3.0) * t3 - c(6.0) * t2 + c(4.0)) * s,
+            (c(-3.0) * t3 + c(3.0) * t2 + c(3.0) * t + c(1.0)) * s,
+            t3 * s,
+        ]
+        .map(f32x4::to_array)
     }
 }
 
@@ -226,10 +250,23 @@ pub(crate) fn sample_rgb_at<T: Real, K: Kernel<N>, const N: usize, const S: usiz
     w: usize,
     h: usize,
 ) -> [T; 3] {
-    let (wx, wy) = (K::weights(fx), K::weights(fy));
+    sample_rgb_weighted::<T, N, S>(src, x0, y0, &K::weights(fx), &K::weights(fy), w, h)
+}
+
+/// [`sample_rgb_at`] with the kernel's weights at the fractions given (`wx`, `wy`).
+#[inline(always)]
+pub(crate) fn sample_rgb_weighted<T: Real, const N: usize, const S: usize>(
+    src: &[f32],
+    x0: usize,
+    y0: usize,
+    wx: &[T; N],
+    wy: &[T; N],
+    w: usize,
+    h: usize,
+) -> [T; 3] {
     let off = N / 2 - 1;
     let acc = if x0 >= off && x0 + N - off <= w && y0 >= off && y0 + N - off <= h {
-        kernel_rows::<T, N, S>(src, S * ((y0 - off) * w + x0 - off), S * w, &wx, &wy)
+        kernel_rows::<T, N, S>(src, S * ((y0 - off) * w + x0 - off), S * w, wx, wy)
     } else {
         // the same sums in the same order over the mirrored pixels
         let xs: [usize; N] = std::array::from_fn(|k| S * mirror(x0 as isize + k as isize - off as isize, w));
@@ -243,7 +280,7 @@ pub(crate) fn sample_rgb_at<T: Real, K: Kernel<N>, const N: usize, const S: usiz
             }
         }
         let mut acc = [T::zero(); 3];
-        for (ck, &wxk) in col.iter().zip(&wx) {
+        for (ck, &wxk) in col.iter().zip(wx) {
             for (a, &v) in acc.iter_mut().zip(ck) {
                 *a += wxk * v;
             }
@@ -265,9 +302,21 @@ pub(crate) fn sample_rgb_bricks<T: Real, K: Kernel<N>, const N: usize>(
     fx: T,
     fy: T,
 ) -> Option<[T; 3]> {
+    sample_rgb_bricks_weighted::<T, N>(b, i, x0, y0, &K::weights(fx), &K::weights(fy))
+}
+
+/// [`sample_rgb_bricks`] with the kernel's weights at the fractions given (`wx`, `wy`).
+#[inline(always)]
+pub(crate) fn sample_rgb_bricks_weighted<T: Real, const N: usize>(
+    b: &Bricks,
+    i: usize,
+    x0: usize,
+    y0: usize,
+    wx: &[T; N],
+    wy: &[T; N],
+) -> Option<[T; 3]> {
     let (data, start) = b.neighbourhood(i, x0, y0)?;
-    let (wx, wy) = (K::weights(fx), K::weights(fy));
-    let acc = kernel_rows::<T, N, 3>(data, start, b.row_len(), &wx, &wy);
+    let acc = kernel_rows::<T, N, 3>(data, start, b.row_len(), wx, wy);
     Some(acc.map(|v| v.max(T::zero()).min(T::one())))
 }
 
@@ -555,6 +604,35 @@ mod tests {
             assert!((Bspline3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
             assert!((Lanczos3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
             assert!((Bspline5::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+    }
+
+    /// The kernels' weights of four fractions in lanes are their scalar weights' bits, lane by
+    /// lane (the cubic B-spline's own vector formula and the others' per-lane default).
+    #[test]
+    fn lane_weights_are_the_scalar_weights() {
+        fn check<K: Kernel<N>, const N: usize>(t: [f32; 4]) {
+            let got = K::weights4(wide::f32x4::from(t));
+            for (lane, &tl) in t.iter().enumerate() {
+                let want = K::weights::<f32>(tl);
+                for k in 0..N {
+                    assert_eq!(got[k][lane].to_bits(), want[k].to_bits(), "t = {tl}, tap {k}");
+                }
+            }
+        }
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        for i in 0..20_000u32 {
+            let t: [f32; 4] = std::array::from_fn(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                (x >> 40) as f32 / (1u64 << 24) as f32
+            });
+            // exact quarters and the ends too
+            let t = if i < 4 { [0.0, 0.25, 0.5, 1.0 - f32::EPSILON] } else { t };
+            check::<Bspline3, 4>(t);
+            check::<Bspline5, 6>(t);
+            check::<Keys, 4>(t);
         }
     }
 
