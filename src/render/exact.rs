@@ -91,11 +91,34 @@ trait PlaneSampler<T: Real>: Sync {
     }
 }
 
-/// The taps of the four lanes that take a plane, with their texels, and which of them have
-/// density (`on`: they get a colour).
+/// The taps of the four lanes that take a plane, by their parts (pixel and fractions,
+/// [`Tap::from_parts`]), with their texels, and which of them have density (`on`: they get a
+/// colour; the others' entries are not read).
 struct LaneTaps<T> {
-    taps: [Option<(Tap<T>, [T; 4])>; 4],
+    x0: [i32; 4],
+    y0: [i32; 4],
+    fx: [f32; 4],
+    fy: [f32; 4],
+    texel: [[T; 4]; 4],
     on: [bool; 4],
+    /// the planes' width and height
+    w: usize,
+    h: usize,
+}
+
+impl<T: Real> LaneTaps<T> {
+    /// The tap of lane `k`.
+    #[inline(always)]
+    fn tap(&self, k: usize) -> Tap<T> {
+        Tap::from_parts(
+            self.x0[k] as usize,
+            self.y0[k] as usize,
+            self.w,
+            self.h,
+            T::of32(self.fx[k]),
+            T::of32(self.fy[k]),
+        )
+    }
 }
 
 /// [`PlaneSampler::colour4`] lane by lane through [`PlaneSampler::colour`].
@@ -109,8 +132,7 @@ fn colour_per_lane<T: Real, S: PlaneSampler<T> + ?Sized>(
 ) -> [[f32; 4]; 3] {
     let mut out = [[0.0f32; 4]; 3];
     for k in (0..4).filter(|&k| lanes.on[k]) {
-        let (tap, texel) = lanes.taps[k].as_ref().expect("a tap where the lane takes the plane");
-        let c = s.colour(tap, texel, T::of32(q[0][k]), T::of32(q[1][k]), i, T::of32(wgt[k]));
+        let c = s.colour(&lanes.tap(k), &lanes.texel[k], T::of32(q[0][k]), T::of32(q[1][k]), i, T::of32(wgt[k]));
         for (o, v) in out.iter_mut().zip(c) {
             o[k] = v.f32();
         }
@@ -240,7 +262,7 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
         let (wx, wy) = (K::weights4(f[0]), K::weights4(f[1]));
         let mut out = [[0.0f32; 4]; 3];
         for k in (0..4).filter(|&k| lanes.on[k]) {
-            let (tap, _) = lanes.taps[k].as_ref().expect("a tap where the lane takes the plane");
+            let tap = &lanes.tap(k);
             let bilinear =
                 || [self.rgba.channel(tap, i, 0), self.rgba.channel(tap, i, 1), self.rgba.channel(tap, i, 2)];
             let c = if T::of32(wgt[k]) < T::of32(KERNEL_MIN_WEIGHT) {
@@ -724,25 +746,24 @@ impl TargetLanes {
         let order = if forward { fwd } else { rev };
         let (mut tr, mut sum_w, mut sum_z, mut acc1) = (one, zero, zero, zero);
         let mut rgb = [zero; 3];
-        let mut done = [false; 4];
+        // lanes done (bit k: lane k)
+        let mut done = 0u32;
         for (j, &i) in order.iter().enumerate() {
             let g = sp(self.a[i]) * inv_s;
             let front = !g.simd_le(zero);
             // a lane in front of the plane with its transmittance below t_eps stops here
-            let stop = (front & tr.simd_lt(t_eps)).to_bitmask();
-            for (k, d) in done.iter_mut().enumerate() {
-                if stop >> k & 1 == 1 && !*d {
-                    *d = true;
-                    stats.skipped_early += (order.len() - j) as u64;
+            let stop = (front & tr.simd_lt(t_eps)).to_bitmask() & !done;
+            if stop != 0 {
+                stats.skipped_early += u64::from(stop.count_ones()) * (order.len() - j) as u64;
+                done |= stop;
+                if done == 0b1111 {
+                    break;
                 }
-            }
-            if done.iter().all(|&d| d) {
-                break;
             }
             let qx = sp(self.ox[i]) + sp(self.fxs) * v0 * g;
             let qy = sp(self.oy[i]) + sp(self.fys) * v1 * g;
             let inside = qx.simd_ge(lo) & qx.simd_lt(hix) & qy.simd_ge(lo) & qy.simd_lt(hiy);
-            let take = (front & inside & lane_mask(done.map(|d| !d))).to_bitmask();
+            let take = (front & inside).to_bitmask() & !done;
             if take == 0 {
                 continue;
             }
@@ -752,15 +773,20 @@ impl TargetLanes {
             let x0 = qx.trunc_int().min(wide::i32x4::splat(self.w as i32 - 1));
             let y0 = qy.trunc_int().min(wide::i32x4::splat(self.h as i32 - 1));
             let f = [qx - x0.round_float(), qy - y0.round_float()];
-            let (fx, fy) = (f[0].to_array(), f[1].to_array());
-            let (x0, y0) = (x0.to_array(), y0.to_array());
             let (qx, qy) = (qx.to_array(), qy.to_array());
-            let mut lt = LaneTaps { taps: [None, None, None, None], on: [false; 4] };
+            let mut lt = LaneTaps {
+                x0: x0.to_array(),
+                y0: y0.to_array(),
+                fx: f[0].to_array(),
+                fy: f[1].to_array(),
+                texel: [[T::zero(); 4]; 4],
+                on: [false; 4],
+                w: self.w,
+                h: self.h,
+            };
             let mut sig = [0.0f32; 4];
             for k in (0..4).filter(|k| take >> k & 1 == 1) {
-                let (x, y) = (x0[k] as usize, y0[k] as usize);
-                let tap = Tap::from_parts(x, y, self.w, self.h, T::of32(fx[k]), T::of32(fy[k]));
-                let texel = sampler.texel(&tap, i);
+                let texel = sampler.texel(&lt.tap(k), i);
                 stats.samples += 1;
                 // the scalar loop goes on with this plane unless sigma <= 0
                 if !matches!(
@@ -770,7 +796,7 @@ impl TargetLanes {
                     lt.on[k] = true;
                     sig[k] = texel[3].f32();
                 }
-                lt.taps[k] = Some((tap, texel));
+                lt.texel[k] = texel;
             }
             if !lt.on.iter().any(|&t| t) {
                 continue;
@@ -794,8 +820,7 @@ impl TargetLanes {
             let mut a1 = [0.0f32; 4];
             if let Some(ex) = ex {
                 for k in (0..4).filter(|&k| lt.on[k]) {
-                    let (tap, _) = lt.taps[k].as_ref().expect("a tap where the lane takes the plane");
-                    a1[k] = tap.sample1(ex[i]).f32();
+                    a1[k] = lt.tap(k).sample1(ex[i]).f32();
                 }
             }
             for ch in 0..3 {
