@@ -233,15 +233,16 @@ struct HighOrder<'a, K, const N: usize, C> {
 impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for HighOrder<'_, K, N, C> {
     #[inline(always)]
     fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
-        // the density alone: the colour comes from the kernel (bilinear only for faint samples)
-        [T::zero(), T::zero(), T::zero(), self.rgba.channel(tap, i, 3)]
+        // the bilinear colour too (the four channels in one vector operation, one block look-up):
+        // it is the colour of faint samples, the kernel's elsewhere
+        self.rgba.texel(tap, i)
     }
 
     #[inline(always)]
-    fn colour(&self, tap: &Tap<T>, _: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
+    fn colour(&self, tap: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3] {
         match self.mip.get(i) {
-            Some(Some(m)) => m.colour(qx, qy, || self.level0(tap, i, wgt)),
-            _ => self.level0(tap, i, wgt),
+            Some(Some(m)) => m.colour(qx, qy, || self.level0(tap, texel, i, wgt)),
+            _ => self.level0(tap, texel, i, wgt),
         }
     }
 
@@ -262,15 +263,14 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
         let (wx, wy) = (K::weights4(f[0]), K::weights4(f[1]));
         let mut out = [[0.0f32; 4]; 3];
         for k in (0..4).filter(|&k| lanes.on[k]) {
-            let tap = &lanes.tap(k);
-            let bilinear =
-                || [self.rgba.channel(tap, i, 0), self.rgba.channel(tap, i, 1), self.rgba.channel(tap, i, 2)];
+            let texel = &lanes.texel[k];
+            let bilinear = [texel[0], texel[1], texel[2]];
             let c = if T::of32(wgt[k]) < T::of32(KERNEL_MIN_WEIGHT) {
-                bilinear()
+                bilinear
             } else {
                 let (wxk, wyk): ([T; N], [T; N]) =
                     (std::array::from_fn(|j| T::of32(wx[j][k])), std::array::from_fn(|j| T::of32(wy[j][k])));
-                self.src.rgb_weighted::<T, N>(i, tap, &wxk, &wyk).unwrap_or_else(bilinear)
+                self.src.rgb_weighted::<T, N>(i, &lanes.tap(k), &wxk, &wyk).unwrap_or(bilinear)
             };
             for (o, v) in out.iter_mut().zip(c) {
                 o[k] = v.f32();
@@ -285,18 +285,15 @@ impl<K, const N: usize, C: KernelColour> HighOrder<'_, K, N, C> {
     /// and where the kernel's source holds nothing (a method, not a closure, so that it inlines
     /// into the pixel loops).
     #[inline(always)]
-    fn level0<T: Real>(&self, tap: &Tap<T>, i: usize, wgt: T) -> [T; 3]
+    fn level0<T: Real>(&self, tap: &Tap<T>, texel: &[T; 4], i: usize, wgt: T) -> [T; 3]
     where
         K: Kernel<N>,
     {
-        let bilinear = || [self.rgba.channel(tap, i, 0), self.rgba.channel(tap, i, 1), self.rgba.channel(tap, i, 2)];
+        let bilinear = [texel[0], texel[1], texel[2]];
         if wgt < T::of32(KERNEL_MIN_WEIGHT) {
-            return bilinear();
+            return bilinear;
         }
-        match self.src.rgb::<T, K, N>(i, tap) {
-            Some(c) => c,
-            None => bilinear(),
-        }
+        self.src.rgb::<T, K, N>(i, tap).unwrap_or(bilinear)
     }
 }
 

@@ -581,32 +581,12 @@ impl<T: Real> Tap<T> {
         T::lerp4(&d[..4], &d[4..8], &d[row..row + 4], &d[row + 4..], self.wx, self.wy)
     }
 
-    /// [`Self::sample_ch`] (stride 4) of a block, as [`Self::sample4_at`].
-    #[inline(always)]
-    pub(crate) fn sample_ch_at(&self, data: &[f32], s: usize, row: usize, k: usize) -> T {
-        let d = &data[s + k..s + k + row + 5];
-        let at = |i: usize| T::of32(d[i]);
-        let top = at(0) + self.wx * (at(4) - at(0));
-        let bot = at(row) + self.wx * (at(row + 4) - at(row));
-        top + self.wy * (bot - top)
-    }
-
     /// Samples an interleaved 4-channel plane (per channel the arithmetic of [`Self::sample1`];
     /// `f32` takes the four channels at once, [`Real::lerp4`]).
     #[inline(always)]
     pub(crate) fn sample4(&self, plane: &[f32]) -> [T; 4] {
         let px = |i: usize| &plane[4 * i..4 * i + 4];
         T::lerp4(px(self.i00), px(self.i10), px(self.i01), px(self.i11), self.wx, self.wy)
-    }
-
-    /// Samples channel `k` of a plane of `stride` interleaved channels (the arithmetic of
-    /// [`Self::sample4`]'s channel `k` for `stride = 4`).
-    #[inline(always)]
-    pub(crate) fn sample_ch(&self, plane: &[f32], stride: usize, k: usize) -> T {
-        let at = |i: usize| T::of32(plane[stride * i + k]);
-        let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
-        let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
-        top + self.wy * (bot - top)
     }
 
     /// Samples a single-channel plane (`sample_c` with `c = 1`, the same arithmetic).

@@ -38,19 +38,6 @@ impl<'a> Rgba<'a> {
         }
     }
 
-    /// The bilinear channel `k` of plane `i` at `tap` ([`Tap::sample_ch`]); 0 in a block not
-    /// stored.
-    #[inline(always)]
-    pub(crate) fn channel<T: Real>(&self, tap: &Tap<T>, i: usize, k: usize) -> T {
-        match self {
-            Rgba::Dense { planes, .. } => tap.sample_ch(planes[i], 4, k),
-            Rgba::Blocks(b) => match b.offset(i, tap.x0, tap.y0) {
-                Some(s) => tap.sample_ch_at(b.data(), s, b.row_len(), k),
-                None => T::zero(),
-            },
-        }
-    }
-
     /// The density of plane `i` at pixel (x, y).
     #[inline(always)]
     pub(crate) fn sigma(&self, i: usize, x: usize, y: usize) -> f32 {
