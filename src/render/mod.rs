@@ -544,10 +544,10 @@ pub(crate) struct Tap<T> {
     /// the tap's pixel (the top-left of its four)
     pub(crate) x0: usize,
     pub(crate) y0: usize,
-    i00: usize,
-    i10: usize,
-    i01: usize,
-    i11: usize,
+    /// the plane's width and height (the four pixels' indices are computed where a dense plane
+    /// is read, [`Self::corners`]: a block store needs only the pixel)
+    w: usize,
+    h: usize,
     wx: T,
     wy: T,
 }
@@ -567,9 +567,17 @@ impl<T: Real> Tap<T> {
     /// lanes with `new`'s operations).
     #[inline(always)]
     pub(crate) fn from_parts(x0: usize, y0: usize, w: usize, h: usize, wx: T, wy: T) -> Self {
+        Self { x0, y0, w, h, wx, wy }
+    }
+
+    /// The indices in a dense plane of the tap's four pixels: (x0, y0), (x1, y0), (x0, y1),
+    /// (x1, y1), with x1 = x0 + 1 and y1 = y0 + 1 clamped to the last column and row.
+    #[inline(always)]
+    fn corners(&self) -> [usize; 4] {
+        let (w, x0, y0) = (self.w, self.x0, self.y0);
         let x1 = (x0 + 1).min(w - 1);
-        let y1 = (y0 + 1).min(h - 1);
-        Self { x0, y0, i00: y0 * w + x0, i10: y0 * w + x1, i01: y1 * w + x0, i11: y1 * w + x1, wx, wy }
+        let y1 = (y0 + 1).min(self.h - 1);
+        [y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1]
     }
 
     /// [`Self::sample4`] of a block of 4-valued pixels ([`crate::mpi::bricks::Bricks`]) whose
@@ -585,16 +593,18 @@ impl<T: Real> Tap<T> {
     /// `f32` takes the four channels at once, [`Real::lerp4`]).
     #[inline(always)]
     pub(crate) fn sample4(&self, plane: &[f32]) -> [T; 4] {
+        let [i00, i10, i01, i11] = self.corners();
         let px = |i: usize| &plane[4 * i..4 * i + 4];
-        T::lerp4(px(self.i00), px(self.i10), px(self.i01), px(self.i11), self.wx, self.wy)
+        T::lerp4(px(i00), px(i10), px(i01), px(i11), self.wx, self.wy)
     }
 
     /// Samples a single-channel plane (`sample_c` with `c = 1`, the same arithmetic).
     #[inline(always)]
     pub(crate) fn sample1(&self, plane: &[f32]) -> T {
+        let [i00, i10, i01, i11] = self.corners();
         let at = |i: usize| T::of32(plane[i]);
-        let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
-        let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
+        let top = at(i00) + self.wx * (at(i10) - at(i00));
+        let bot = at(i01) + self.wx * (at(i11) - at(i01));
         top + self.wy * (bot - top)
     }
 
@@ -602,9 +612,10 @@ impl<T: Real> Tap<T> {
     /// as 0), with the arithmetic of [`Self::sample1`].
     #[inline(always)]
     pub(crate) fn sample_where(&self, plane: &[f32], keep: impl Fn(usize) -> bool) -> T {
+        let [i00, i10, i01, i11] = self.corners();
         let at = |i: usize| if keep(i) { T::of32(plane[i]) } else { T::zero() };
-        let top = at(self.i00) + self.wx * (at(self.i10) - at(self.i00));
-        let bot = at(self.i01) + self.wx * (at(self.i11) - at(self.i01));
+        let top = at(i00) + self.wx * (at(i10) - at(i00));
+        let bot = at(i01) + self.wx * (at(i11) - at(i01));
         top + self.wy * (bot - top)
     }
 
@@ -612,10 +623,11 @@ impl<T: Real> Tap<T> {
     #[inline(always)]
     pub(crate) fn sample_c(&self, plane: &[f32], c: usize, out: &mut [T]) {
         let (wx, wy) = (self.wx, self.wy);
+        let [i00, i10, i01, i11] = self.corners();
         for k in 0..c {
             let at = |i: usize| T::of32(plane[c * i + k]);
-            let top = at(self.i00) + wx * (at(self.i10) - at(self.i00));
-            let bot = at(self.i01) + wx * (at(self.i11) - at(self.i01));
+            let top = at(i00) + wx * (at(i10) - at(i00));
+            let bot = at(i01) + wx * (at(i11) - at(i01));
             out[k] = top + wy * (bot - top);
         }
     }
