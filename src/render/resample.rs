@@ -417,7 +417,9 @@ pub fn bspline_coefficients(mpi: &Mpi, degree: u32) -> Vec<f32> {
     planes.concat()
 }
 
-/// [`bspline_coefficients`] of plane `i` (H x W x 3) for the prefilter `poles`.
+/// [`bspline_coefficients`] of plane `i` (H x W x 3) for the prefilter `poles`: every row's three
+/// channel lines, then all the columns' lines at once (row after row: the column pass streams
+/// through memory instead of striding down each column).
 fn plane_coefficients(mpi: &Mpi, i: usize, z: &[f64]) -> Vec<f32> {
     let (w, h) = (mpi.width, mpi.height);
     let rgba = mpi.plane_rgba(i);
@@ -425,27 +427,10 @@ fn plane_coefficients(mpi: &Mpi, i: usize, z: &[f64]) -> Vec<f32> {
     for (d, s) in buf.chunks_exact_mut(3).zip(rgba.chunks_exact(4)) {
         d.copy_from_slice(&[f64::from(s[0]), f64::from(s[1]), f64::from(s[2])]);
     }
-    let mut line = vec![0.0f64; w.max(h)];
-    // one channel's line of `len` values `step` apart from `buf[start]`, prefiltered in place
-    let mut run = |buf: &mut [f64], start: usize, step: usize, len: usize| {
-        for (k, v) in line[..len].iter_mut().enumerate() {
-            *v = buf[start + k * step];
-        }
-        prefilter_line(&mut line[..len], z);
-        for (k, v) in line[..len].iter().enumerate() {
-            buf[start + k * step] = *v;
-        }
-    };
-    for y in 0..h {
-        for c in 0..3 {
-            run(&mut buf, 3 * y * w + c, 3, w);
-        }
+    for row in buf.chunks_exact_mut(3 * w) {
+        prefilter_lines(row, w, 3, z);
     }
-    for x in 0..w {
-        for c in 0..3 {
-            run(&mut buf, 3 * x + c, 3 * w, h);
-        }
-    }
+    prefilter_lines(&mut buf, h, 3 * w, z);
     buf.iter().map(|&v| v as f32).collect()
 }
 
@@ -474,53 +459,77 @@ pub fn bspline_bricks(mpi: &Mpi, degree: u32, sparse: bool) -> Bricks {
     Bricks::build(w, h, mpi.planes(), 3, lo, n - 1 - lo, |i| plane_coefficients(mpi, i, z), keep, mirror)
 }
 
-/// In-place B-spline prefilter of one line with the given poles (mirror boundaries).
-fn prefilter_line(c: &mut [f64], poles: &[f64]) {
-    let n = c.len();
-    if n < 2 {
+/// In-place B-spline prefilter (mirror boundaries) of `m` lines of `n` values at once, `c` holding value k of line j at
+/// `c[k m + j]` (so each step runs over `m` adjacent values): every line gets the operations
+/// of a line alone, in the same order, so the same bits.
+fn prefilter_lines(c: &mut [f64], n: usize, m: usize, poles: &[f64]) {
+    assert_eq!(c.len(), n * m, "prefilter_lines: n x m values");
+    if n < 2 || m == 0 {
         return;
     }
     let lambda: f64 = poles.iter().map(|&z| (1.0 - z) * (1.0 - 1.0 / z)).product();
     for v in c.iter_mut() {
         *v *= lambda;
     }
+    let mut init = vec![0.0f64; m];
     for &z in poles {
-        c[0] = causal_init(c, z);
+        causal_init(c, n, m, z, &mut init);
+        c[..m].copy_from_slice(&init);
         for k in 1..n {
-            c[k] += z * c[k - 1];
+            let (before, from_k) = c.split_at_mut(k * m);
+            for (v, &p) in from_k[..m].iter_mut().zip(&before[(k - 1) * m..]) {
+                *v += z * p;
+            }
         }
-        c[n - 1] = (z / (z * z - 1.0)) * (c[n - 1] + z * c[n - 2]);
+        let a = z / (z * z - 1.0);
+        let (before, last) = c.split_at_mut((n - 1) * m);
+        for (v, &p) in last.iter_mut().zip(&before[(n - 2) * m..]) {
+            *v = a * (*v + z * p);
+        }
         for k in (0..n - 1).rev() {
-            c[k] = z * (c[k + 1] - c[k]);
+            let (upto, after) = c.split_at_mut((k + 1) * m);
+            for (v, &q) in upto[k * m..].iter_mut().zip(&after[..m]) {
+                *v = z * (q - *v);
+            }
         }
     }
 }
 
-/// `sum_k c[k] z^k` over the mirrored signal: truncated where `|z|^k < 1e-12`, exact for short lines.
-fn causal_init(c: &[f64], z: f64) -> f64 {
-    let n = c.len();
+/// Per line j of [`prefilter_lines`]' layout, `sum_k c[k] z^k` over the mirrored signal into
+/// `out[j]`: truncated where `|z|^k < 1e-12`, exact for short lines.
+fn causal_init(c: &[f64], n: usize, m: usize, z: f64, out: &mut [f64]) {
+    let at = |k: usize| &c[k * m..(k + 1) * m];
     let horizon = ((1e-12f64).ln() / z.abs().ln()).ceil() as usize;
     if horizon < n {
+        out.fill(0.0);
         let mut zk = 1.0;
-        let mut sum = 0.0;
-        for v in c.iter().take(horizon) {
-            sum += zk * v;
+        for k in 0..horizon {
+            for (o, &v) in out.iter_mut().zip(at(k)) {
+                *o += zk * v;
+            }
             zk *= z;
         }
-        return sum;
+        return;
     }
     // the mirrored signal has period 2n - 2
     let iz = 1.0 / z;
     let mut zk = z;
     let mut z2n = z.powi(n as i32 - 1);
-    let mut sum = c[0] + z2n * c[n - 1];
+    for ((o, &first), &last) in out.iter_mut().zip(at(0)).zip(at(n - 1)) {
+        *o = first + z2n * last;
+    }
     z2n = z2n * z2n * iz;
-    for v in c.iter().take(n - 1).skip(1) {
-        sum += (zk + z2n) * v;
+    for k in 1..n - 1 {
+        for (o, &v) in out.iter_mut().zip(at(k)) {
+            *o += (zk + z2n) * v;
+        }
         zk *= z;
         z2n *= iz;
     }
-    sum / (1.0 - zk * zk)
+    let d = 1.0 - zk * zk;
+    for o in out.iter_mut() {
+        *o /= d;
+    }
 }
 
 #[cfg(test)]
@@ -536,6 +545,38 @@ mod tests {
         } else {
             let wts = Bspline5::weights(x - x0);
             (0..6).map(|k| wts[k] * at(k as isize - 2)).sum()
+        }
+    }
+
+    /// The prefilter of one line alone.
+    fn prefilter_line(c: &mut [f64], poles: &[f64]) {
+        let n = c.len();
+        prefilter_lines(c, n, 1, poles);
+    }
+
+    /// Lines prefiltered together (as the column pass does) get each line's bits alone, for
+    /// short lines (the exact mirrored start) and long ones (the truncated start).
+    #[test]
+    fn lines_at_once_are_each_line_alone() {
+        for degree in [3, 5] {
+            for n in [2usize, 3, 7, 30, 64, 200] {
+                for m in [1usize, 2, 3, 7] {
+                    let all: Vec<f64> = (0..n * m).map(|i| ((i * 7919 + 17) % 101) as f64 / 101.0 - 0.3).collect();
+                    let mut together = all.clone();
+                    prefilter_lines(&mut together, n, m, poles(degree));
+                    for j in 0..m {
+                        let mut alone: Vec<f64> = (0..n).map(|k| all[k * m + j]).collect();
+                        prefilter_line(&mut alone, poles(degree));
+                        for k in 0..n {
+                            assert_eq!(
+                                together[k * m + j].to_bits(),
+                                alone[k].to_bits(),
+                                "degree {degree} n {n} m {m} line {j}"
+                            );
+                        }
+                    }
+                }
+            }
         }
     }
 
