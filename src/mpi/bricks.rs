@@ -38,7 +38,8 @@ impl Bricks {
 
     /// Builds the store of `planes` planes of `width` x `height` pixels, `stride` values each,
     /// for neighbourhoods reaching `lo` pixels before and `hi` after their anchor.
-    /// `plane(i)` gives plane `i` densely (row-major, interleaved, `width height stride` values);
+    /// `plane(i)` gives plane `i` densely (row-major, interleaved, `width height stride` values;
+    /// owned or borrowed);
     /// `keep(i)` which of its blocks to store (`bh x bw` flags, row-major; `None`: all);
     /// `index(c, n)` maps a column or row index `c` that may lie outside `0..n` to the one whose
     /// value the store holds there (the readers' boundary rule, e.g. a mirror).
@@ -47,14 +48,14 @@ impl Bricks {
     /// If a plane has the wrong length, a flag list the wrong count, or the store would hold
     /// more than `u32::MAX` blocks.
     #[allow(clippy::too_many_arguments)]
-    pub fn build(
+    pub fn build<P: AsRef<[f32]>>(
         width: usize,
         height: usize,
         planes: usize,
         stride: usize,
         lo: usize,
         hi: usize,
-        plane: impl Fn(usize) -> Vec<f32> + Sync,
+        plane: impl Fn(usize) -> P + Sync,
         keep: impl Fn(usize) -> Option<Vec<bool>> + Sync,
         index: impl Fn(isize, usize) -> usize + Sync,
     ) -> Self {
@@ -65,6 +66,7 @@ impl Bricks {
             .into_par_iter()
             .map(|i| {
                 let dense = plane(i);
+                let dense = dense.as_ref();
                 assert_eq!(dense.len(), width * height * stride, "Bricks: plane {i} has the wrong length");
                 let kept = keep(i).unwrap_or_else(|| vec![true; bw * bh]);
                 assert_eq!(kept.len(), bw * bh, "Bricks: plane {i}'s block flags");

@@ -106,7 +106,7 @@ pub fn pack(mpi: &mut Mpi) {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let clamp = |c: isize, n: usize| c.clamp(0, n as isize - 1) as usize;
     let m: &Mpi = mpi;
-    let blocks = Bricks::build(w, h, n, 4, 0, 1, |i| m.plane_rgba(i).to_vec(), |i| Some(reachable_blocks(m, i)), clamp);
+    let blocks = Bricks::build(w, h, n, 4, 0, 1, |i| m.plane_rgba(i), |i| Some(reachable_blocks(m, i)), clamp);
     mpi.rgba_blocks = Some(Arc::new(blocks));
     mpi.rgba = Vec::new();
 }
