@@ -75,9 +75,10 @@ trait PlaneSampler<T: Real>: Sync {
     /// The colour at `q` of a sample that gets composite weight `wgt` (`texel`: the sample's
     /// [`Self::texel`] at `tap`).
     fn colour(&self, tap: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3];
-    /// The four-lane loop's [`Self::colour`] of the lanes `on` (the others 0): `taps` and
-    /// `texel`s per lane, `q` (x and y) and the tap fractions `f` (x and y) in lanes, the
-    /// weights `wgt` per lane; `[channel][lane]`. The same bits as `colour` lane by lane.
+    /// The four-lane loop's [`Self::colour`] of the lanes with density (`lanes.on`; the others
+    /// 0): the lanes' taps and texels in `lanes`, `q` (x and y) and the tap fractions `f` (x and
+    /// y) in lanes, the weights `wgt` per lane; `[channel][lane]`. The same bits as `colour` lane
+    /// by lane.
     #[inline(always)]
     fn colour4(
         &self,
