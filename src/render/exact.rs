@@ -33,8 +33,8 @@
 use super::mip::{mip_planes, missing_levels, plane_lods, MipPlane};
 use super::occupancy::Occupancy;
 use super::resample::{
-    bspline_bricks, sample_rgb_at, sample_rgb_bricks, sample_rgb_bricks_weighted, sample_rgb_weighted, Bspline3,
-    Bspline5, Kernel, Keys, Lanczos3, Resample,
+    bspline_bricks, sample_rgb_bricks_weighted, sample_rgb_weighted, Bspline3, Bspline5, Kernel, Keys, Lanczos3,
+    Resample,
 };
 use super::store::Rgba;
 use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
@@ -173,8 +173,12 @@ pub(crate) const KERNEL_MIN_WEIGHT: f32 = 1.0 / 1024.0;
 /// by kernel `K`, `None` where the source holds nothing there (the sampler then takes the
 /// bilinear colour).
 trait KernelColour: Sync {
-    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]>;
-    /// [`Self::rgb`] with the kernel's weights at the tap's fractions given.
+    /// The colour by kernel `K` at the tap's fractions ([`Self::rgb_weighted`] with its weights).
+    #[inline(always)]
+    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
+        self.rgb_weighted(i, tap, &K::weights(tap.wx), &K::weights(tap.wy))
+    }
+    /// The colour with the kernel's weights at the tap's fractions given.
     fn rgb_weighted<T: Real, const N: usize>(&self, i: usize, tap: &Tap<T>, wx: &[T; N], wy: &[T; N])
         -> Option<[T; 3]>;
 }
@@ -187,10 +191,6 @@ struct DenseColour<'a, const S: usize> {
 }
 
 impl<const S: usize> KernelColour for DenseColour<'_, S> {
-    #[inline(always)]
-    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
-        Some(sample_rgb_at::<T, K, N, S>(self.src[i], tap.x0, tap.y0, tap.wx, tap.wy, self.w, self.h))
-    }
     #[inline(always)]
     fn rgb_weighted<T: Real, const N: usize>(
         &self,
@@ -205,10 +205,6 @@ impl<const S: usize> KernelColour for DenseColour<'_, S> {
 
 /// The B-spline coefficients in blocks ([`crate::mpi::Mpi::bspline_rgb`]).
 impl KernelColour for Bricks {
-    #[inline(always)]
-    fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
-        sample_rgb_bricks::<T, K, N>(self, i, tap.x0, tap.y0, tap.wx, tap.wy)
-    }
     #[inline(always)]
     fn rgb_weighted<T: Real, const N: usize>(
         &self,

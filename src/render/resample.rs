@@ -290,22 +290,9 @@ pub(crate) fn sample_rgb_weighted<T: Real, const N: usize, const S: usize>(
     acc.map(|v| v.max(T::zero()).min(T::one()))
 }
 
-/// [`sample_rgb_at`] of plane `i` from block-sparse coefficients (3 values per pixel; the
+/// [`sample_rgb_weighted`] of plane `i` from block-sparse coefficients (3 values per pixel; the
 /// blocks' aprons hold the mirrored values, so every neighbourhood reads one block): the same
-/// bits as [`sample_rgb`] of the dense coefficients. `None` where the block is not stored.
-#[inline(always)]
-pub(crate) fn sample_rgb_bricks<T: Real, K: Kernel<N>, const N: usize>(
-    b: &Bricks,
-    i: usize,
-    x0: usize,
-    y0: usize,
-    fx: T,
-    fy: T,
-) -> Option<[T; 3]> {
-    sample_rgb_bricks_weighted::<T, N>(b, i, x0, y0, &K::weights(fx), &K::weights(fy))
-}
-
-/// [`sample_rgb_bricks`] with the kernel's weights at the fractions given (`wx`, `wy`).
+/// bits as the dense coefficients'. `None` where the block is not stored.
 #[inline(always)]
 pub(crate) fn sample_rgb_bricks_weighted<T: Real, const N: usize>(
     b: &Bricks,
@@ -623,12 +610,13 @@ mod tests {
                     let at = |q: f64, n: usize| (q as f32 as usize).min(n - 1);
                     let (x0, y0) = (at(x, w), at(y, h));
                     let (fx, fy) = (x as f32 - x0 as f32, y as f32 - y0 as f32);
-                    let b = sample_rgb_bricks::<f32, K, N>(&blocks, i, x0, y0, fx, fy).expect("every block");
+                    let b = sample_rgb_bricks_weighted::<f32, N>(&blocks, i, x0, y0, &K::weights(fx), &K::weights(fy))
+                        .expect("every block");
                     assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "degree {degree}, plane {i}, ({x}, {y})");
                     let a = sample_rgb::<f64, K, N, 3>(plane, x, y, w, h);
                     let (x0, y0) = (at(x, w), at(y, h));
-                    let b = sample_rgb_bricks::<f64, K, N>(&blocks, i, x0, y0, x - x0 as f64, y - y0 as f64)
-                        .expect("every block");
+                    let (wx, wy) = (K::weights(x - x0 as f64), K::weights(y - y0 as f64));
+                    let b = sample_rgb_bricks_weighted::<f64, N>(&blocks, i, x0, y0, &wx, &wy).expect("every block");
                     assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "f64, degree {degree}, ({x}, {y})");
                 }
             }
