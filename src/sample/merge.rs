@@ -210,6 +210,31 @@ pub fn unit_to_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
+/// [`unit_to_u8`] of every value of `src` into `dst` (of the same length), four values per
+/// `f32x4` operation with the scalar function's operations (NaN to 0, the clamp, `* 255`,
+/// `+ 1/2`, truncation), so the same bytes (tested against it).
+pub fn units_to_u8(src: &[f32], dst: &mut [u8]) {
+    use wide::f32x4;
+    assert_eq!(src.len(), dst.len());
+    let (zero, one, scale, half) = (f32x4::splat(0.0), f32x4::splat(1.0), f32x4::splat(255.0), f32x4::splat(0.5));
+    let mut s = src.chunks_exact(4);
+    let mut d = dst.chunks_exact_mut(4);
+    for (s, d) in (&mut s).zip(&mut d) {
+        let v = f32x4::from([s[0], s[1], s[2], s[3]]);
+        // NaN (the only value not equal to itself) to 0, then the clamp: the lanes are ordered
+        let v = v.simd_eq(v).select(v, zero);
+        let v = v.simd_lt(zero).select(zero, v.simd_gt(one).select(one, v));
+        // in [0.5, 255.5]: truncation is the scalar `as`
+        let q = (v * scale + half).trunc_int().to_array();
+        for (d, q) in d.iter_mut().zip(q) {
+            *d = q as u8;
+        }
+    }
+    for (d, &v) in d.into_remainder().iter_mut().zip(s.remainder()) {
+        *d = unit_to_u8(v);
+    }
+}
+
 /// What one object shows at a frame pixel.
 #[derive(Clone, Copy)]
 struct Hit {
@@ -360,8 +385,9 @@ pub fn merge_target(
         .enumerate()
         .map(|(y, (((img, lab), dep), hol))| {
             let mut row_holes = 0u64;
+            // the scene's colours, overwritten below where an object is drawn
+            units_to_u8(&image[3 * y * w..3 * (y + 1) * w], img);
             for x in 0..w {
-                let i = y * w + x;
                 let s = scene_s(x, y);
                 let mut filled: Option<(f32, f32)> = None;
                 let mut best: Option<Hit> = None;
@@ -396,20 +422,15 @@ pub fn merge_target(
                         }
                     }
                 }
-                let px = &mut img[3 * x..3 * x + 3];
                 match best {
                     Some(b) => {
                         let src = &objects[b.slot].render.out.image[3 * b.idx..3 * b.idx + 3];
-                        for (d, &v) in px.iter_mut().zip(src) {
-                            *d = unit_to_u8(v);
-                        }
+                        units_to_u8(src, &mut img[3 * x..3 * x + 3]);
                         lab[x] = objects[b.slot].label;
                         dep[x] = b.depth;
                     }
                     None => {
-                        for (d, &v) in px.iter_mut().zip(&image[3 * i..3 * i + 3]) {
-                            *d = unit_to_u8(v);
-                        }
+                        // the row's scene colours are converted before the loop
                         if s < tau {
                             hol[x] = 1;
                             dep[x] = f32::INFINITY;
@@ -465,7 +486,8 @@ fn finite_or_zero(v: f32) -> f32 {
 fn neighbours(w: usize, h: usize, tx: f32, ty: f32) -> [usize; 4] {
     let tx = tx.clamp(0.0, (w - 1) as f32);
     let ty = ty.clamp(0.0, (h - 1) as f32);
-    let (x0, y0) = (tx as usize, ty as usize);
+    // in [0, w - 1] x [0, h - 1]: the i32 conversion is exact (and cheaper than usize's)
+    let (x0, y0) = (tx as i32 as usize, ty as i32 as usize);
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
     [y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1]
 }
@@ -563,4 +585,39 @@ pub fn merge_link(
         },
     );
     LinkFields { flow, valid, occlusion }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// The vector conversion gives the scalar function's byte for every value: the edges, the
+    /// half levels and their f32 neighbours, NaN and the infinities, any length (the tail).
+    #[test]
+    fn units_to_u8_is_unit_to_u8_byte_for_byte() {
+        let mut v =
+            vec![f32::NAN, -f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -0.0, 0.0, 1.0, -1e-30, 1.0 + 1e-7, 7.5];
+        for k in 0..=255u32 {
+            let half = (k as f32 + 0.5) / 255.0;
+            v.extend([half, f32::from_bits(half.to_bits() - 1), f32::from_bits(half.to_bits() + 1), k as f32 / 255.0]);
+        }
+        for len in 0..v.len() {
+            let mut out = vec![7u8; len];
+            units_to_u8(&v[..len], &mut out);
+            let want: Vec<u8> = v[..len].iter().map(|&x| unit_to_u8(x)).collect();
+            assert_eq!(out, want, "length {len}");
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn units_to_u8_agrees_on_any_bits(bits in proptest::collection::vec(any::<u32>(), 0..64)) {
+            let v: Vec<f32> = bits.iter().map(|&b| f32::from_bits(b)).collect();
+            let mut out = vec![0u8; v.len()];
+            units_to_u8(&v, &mut out);
+            let want: Vec<u8> = v.iter().map(|&x| unit_to_u8(x)).collect();
+            prop_assert_eq!(out, want);
+        }
+    }
 }

@@ -79,7 +79,7 @@ use super::background::{cut_planes, fill_from_planes, Background, Frame};
 pub use super::config::{InpaintMethod, MotionSpec, SampleConfig};
 pub use super::holes::inpaint_holes;
 use super::merge::{
-    merge, merge_link, merge_target, unit_to_u8, MergeRule, ObjectView, OtherFrame, SceneView, TargetSide,
+    merge, merge_link, merge_target, units_to_u8, MergeRule, ObjectView, OtherFrame, SceneView, TargetSide,
 };
 use super::motion::MotionError;
 use super::object::{
@@ -509,7 +509,8 @@ fn assemble_merged_sample(
         .collect();
     drop(views1);
     drop(first.objects);
-    let image1: Vec<u8> = scene.image.data.iter().map(|&v| unit_to_u8(v)).collect();
+    let mut image1 = crate::buf::zeros::<u8>(scene.image.data.len());
+    units_to_u8(&scene.image.data, &mut image1);
     // depth1 = 1 / disparity, written over the scene render's coverage (no longer needed; a
     // buffer already in memory costs no page faults)
     let mut depth1 = coverage;
