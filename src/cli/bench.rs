@@ -72,6 +72,10 @@ pub struct QualityBench {
     /// Alias-free minification (`minify`). With --sharpness: each kernel also gets a row with it.
     #[arg(long)]
     minify: bool,
+    /// MPI planes of the built-in layering (a photo's pixel lies on two neighbouring planes,
+    /// which a motion moves apart by about flow / planes pixels).
+    #[arg(long, value_name = "N", default_value_t = 32)]
+    planes: usize,
 }
 
 #[derive(Args, Debug)]
@@ -189,7 +193,8 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     let spec = q.source.clone().map_or(SourceSpec::Builtin, SourceSpec::Path);
     let source = open_source(&spec, &OpenOptions { resize: q.size, ..OpenOptions::default() })
         .map_err(|e| CliError(e.to_string()))?;
-    let stage = Arc::new(ModelConfig::default().build_stage().map_err(|e| CliError(e.to_string()))?);
+    let models = ModelConfig { planes: q.planes, ..ModelConfig::default() };
+    let stage = Arc::new(models.build_stage().map_err(|e| CliError(e.to_string()))?);
     let mut base = SampleConfig::with_preset(q.preset);
     let mut motion = q.preset.to_string();
     if let Some(t) = q.lateral {

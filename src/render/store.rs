@@ -70,15 +70,23 @@ pub fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
     let b = Bricks::SIZE;
     let (bw, bh) = (w.div_ceil(b), h.div_ceil(b));
     let mut keep = vec![false; bw * bh];
+    let dense = |px: &[f32]| px[3] > 0.0;
     for (y, row) in mpi.plane_rgba(i).chunks_exact(4 * w).enumerate() {
-        for (x, px) in row.chunks_exact(4).enumerate() {
-            if px[3] > 0.0 {
-                let bxs = [x / b, if x % b == 0 && x > 0 { x / b - 1 } else { x / b }];
-                let bys = [y / b, if y % b == 0 && y > 0 { y / b - 1 } else { y / b }];
-                for by in bys {
-                    for bx in bxs {
-                        keep[by * bw + bx] = true;
-                    }
+        let by = y / b;
+        // a block's first row also reaches the block above
+        let up = (y % b == 0 && y > 0).then(|| by - 1);
+        for (bx, cols) in row.chunks(4 * b).enumerate() {
+            // any pixel of this row in the block marks it; its first pixel also the block before
+            let mut mark = |bx: usize| {
+                keep[by * bw + bx] = true;
+                if let Some(u) = up {
+                    keep[u * bw + bx] = true;
+                }
+            };
+            if cols.chunks_exact(4).any(dense) {
+                mark(bx);
+                if bx > 0 && dense(&cols[..4]) {
+                    mark(bx - 1);
                 }
             }
         }
@@ -115,5 +123,58 @@ pub fn pack(mpi: &mut Mpi) {
 pub fn pack_arc(mpi: &mut Arc<Mpi>) {
     if !mpi.is_packed() {
         pack(Arc::make_mut(mpi));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// The definition, pixel by pixel: a pixel with density marks its block and, on a block's
+    /// first column or row, the blocks before it.
+    fn reachable_by_pixel(mpi: &Mpi, i: usize) -> Vec<bool> {
+        let (w, h, b) = (mpi.width, mpi.height, Bricks::SIZE);
+        let bw = w.div_ceil(b);
+        let mut keep = vec![false; bw * h.div_ceil(b)];
+        for y in 0..h {
+            for x in 0..w {
+                if mpi.plane_rgba(i)[4 * (y * w + x) + 3] > 0.0 {
+                    let bxs = [x / b, if x % b == 0 && x > 0 { x / b - 1 } else { x / b }];
+                    let bys = [y / b, if y % b == 0 && y > 0 { y / b - 1 } else { y / b }];
+                    for by in bys {
+                        for bx in bxs {
+                            keep[by * bw + bx] = true;
+                        }
+                    }
+                }
+            }
+        }
+        keep
+    }
+
+    proptest! {
+        /// The block-wise scan marks exactly the blocks of the pixel-wise definition, for any
+        /// size (partial blocks at the right and bottom) and any pixels with density (block
+        /// edges, frame edges, NaN and negative densities, which hold none).
+        #[test]
+        fn reachable_blocks_follow_the_pixel_definition(
+            w in 1usize..70,
+            h in 1usize..50,
+            dense in proptest::collection::vec((0usize..70 * 50, prop_oneof![Just(1.0f32), Just(-1.0), Just(f32::NAN), Just(1e-30)]), 0..12),
+            edges in proptest::collection::vec((0usize..5, 0usize..4), 0..6),
+        ) {
+            let mut mpi = Mpi::new(w, h, vec![0.5], 0);
+            let plane = mpi.plane_rgba_mut(0);
+            for (p, sigma) in dense {
+                plane[4 * (p % (w * h)) + 3] = sigma;
+            }
+            // pixels on block edges (x or y a multiple of 16)
+            for (bx, by) in edges {
+                let (x, y) = ((16 * bx).min(w - 1), (16 * by).min(h - 1));
+                plane[4 * (y * w + x) + 3] = 2.0;
+            }
+            prop_assert_eq!(reachable_blocks(&mpi, 0), reachable_by_pixel(&mpi, 0));
+        }
     }
 }
