@@ -86,6 +86,24 @@ pub fn mix64(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// SplitMix64 (a Weyl sequence through [`mix64`]): a small deterministic stream for test data
+/// and benchmarks. Not for samples, whose draws come from [`SampleRng`].
+#[derive(Clone, Debug)]
+pub struct SplitMix64(pub u64);
+
+impl SplitMix64 {
+    /// The next word.
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        mix64(self.0)
+    }
+
+    /// A value in [0, 1) with 24 random bits.
+    pub fn unit_f32(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
 /// The 32-byte ChaCha key of a sample-recipe key (see the module documentation). A bijection of
 /// the four key words, so distinct keys give distinct seeds.
 pub fn seed_from_key(dataset_fingerprint: u64, seed: u64, index: u64, purpose: Purpose) -> [u8; 32] {

@@ -14,24 +14,8 @@ use mpiflow::render::store::{pack, packs};
 use mpiflow::render::{
     render, render_window, Channels, Fields, Mode, Rect, RenderOutput, RenderParams, Resample, Skip, View,
 };
+use mpiflow::rng::SplitMix64 as Stream;
 use proptest::prelude::*;
-
-/// SplitMix64.
-struct Stream(u64);
-
-impl Stream {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    fn unit(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
 
 /// Planes with density in a few discs each (and on single pixels on block borders), colour
 /// everywhere (as a layered MPI has), one extra channel; the last plane opaque where `opaque`.
@@ -41,26 +25,26 @@ fn sparse_mpi(w: usize, h: usize, planes: usize, seed: u64, opaque: bool) -> Mpi
     let mut m = Mpi::new(w, h, disp, 1);
     for i in 0..planes {
         let discs: Vec<(f32, f32, f32)> =
-            (0..3).map(|_| (r.unit() * w as f32, r.unit() * h as f32, 2.0 + 9.0 * r.unit())).collect();
-        let edge = (16 * (1 + r.next() as usize % 2), 16 * (1 + r.next() as usize % 2));
+            (0..3).map(|_| (r.unit_f32() * w as f32, r.unit_f32() * h as f32, 2.0 + 9.0 * r.unit_f32())).collect();
+        let edge = (16 * (1 + r.next_u64() as usize % 2), 16 * (1 + r.next_u64() as usize % 2));
         for y in 0..h {
             for x in 0..w {
                 let o = (i * h * w + y * w + x) * 4;
                 for c in 0..3 {
-                    m.rgba[o + c] = r.unit();
+                    m.rgba[o + c] = r.unit_f32();
                 }
                 let inside = discs.iter().any(|&(cx, cy, rad)| (x as f32 - cx).hypot(y as f32 - cy) < rad);
                 m.rgba[o + 3] = if i + 1 == planes && opaque {
                     1e3
                 } else if inside || (x, y) == edge || (x == edge.0 && y < 5) {
-                    0.5 + 4.0 * r.unit()
+                    0.5 + 4.0 * r.unit_f32()
                 } else {
                     0.0
                 };
             }
         }
     }
-    m.extras.iter_mut().for_each(|v| *v = r.unit());
+    m.extras.iter_mut().for_each(|v| *v = r.unit_f32());
     m
 }
 

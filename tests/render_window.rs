@@ -10,25 +10,9 @@ use mpiflow::render::{
     render, render_window, Channels, Fields, Mode, Rect, RenderError, RenderOutput, RenderParams, Resample, Skip, View,
     WindowRender,
 };
+use mpiflow::rng::SplitMix64 as Stream;
 use mpiflow::sample::object::mpi_with_mask;
 use proptest::prelude::*;
-
-/// A small deterministic pseudo-random stream (SplitMix64).
-struct Stream(u64);
-
-impl Stream {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    fn unit(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
 
 /// `planes` planes of `w` x `h` with random colours, two random extra channels, and densities
 /// that are exactly 0 over random blocks (so tile skipping has work to skip); the farthest plane
@@ -42,24 +26,24 @@ fn random_mpi(w: usize, h: usize, planes: usize, seed: u64, far_zero: bool) -> M
     let mut m = Mpi::new(w, h, disp, 2);
     for i in 0..planes {
         // a block of 8 x 8 pixels is empty on this plane with probability 1/2
-        let empty: Vec<bool> = (0..w.div_ceil(8) * h.div_ceil(8)).map(|_| r.next().is_multiple_of(2)).collect();
+        let empty: Vec<bool> = (0..w.div_ceil(8) * h.div_ceil(8)).map(|_| r.next_u64().is_multiple_of(2)).collect();
         for y in 0..h {
             for x in 0..w {
                 let o = (i * h * w + y * w + x) * 4;
                 for c in 0..3 {
-                    m.rgba[o + c] = r.unit();
+                    m.rgba[o + c] = r.unit_f32();
                 }
                 m.rgba[o + 3] = if i + 1 == planes {
                     1e3
                 } else if empty[(y / 8) * w.div_ceil(8) + x / 8] {
                     0.0
                 } else {
-                    5.0 * r.unit()
+                    5.0 * r.unit_f32()
                 };
             }
         }
     }
-    m.extras.iter_mut().for_each(|v| *v = r.unit());
+    m.extras.iter_mut().for_each(|v| *v = r.unit_f32());
     m
 }
 
