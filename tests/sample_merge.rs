@@ -256,7 +256,7 @@ fn merge_rules_on_hand_made_renders() {
     ];
     let v = |x: f32| (x * 255.0).round() as u8;
 
-    let d = merge(scene.clone(), &objects, MergeRule::DepthAware, LabelRule::Honest, 0.99);
+    let d = merge(scene.clone(), &objects, MergeRule::DepthAware, LabelRule::Honest, 0.99, true);
     // pixel 0: background at depth 5 behind both objects: the nearer object A is drawn
     // pixel 1: background at depth 1 in front of A: stays
     // pixel 2: the object's old place: A drawn; pixel 3: hole, B covers it (A's mask is 0.5)
@@ -275,18 +275,18 @@ fn merge_rules_on_hand_made_renders() {
     assert_eq!(d.occlusion, vec![1, 0, 1, 1]);
     assert_eq!(d.target_depth, vec![5.0, 1.0, 2.0, 2.0]);
     // the depth-only rule: occluded only when behind all four neighbours (source 0 only)
-    let o = merge(scene.clone(), &objects, MergeRule::DepthAware, LabelRule::DepthOnly, 0.99);
+    let o = merge(scene.clone(), &objects, MergeRule::DepthAware, LabelRule::DepthOnly, 0.99, true);
     assert_eq!(o.occlusion, vec![1, 0, 0, 0]);
     assert_eq!((o.mask2, o.flow, o.image2), (d.mask2.clone(), d.flow.clone(), d.image2.clone()));
 
-    let r = merge(scene.clone(), &objects, MergeRule::Reference, LabelRule::Honest, 0.99);
+    let r = merge(scene.clone(), &objects, MergeRule::Reference, LabelRule::Honest, 0.99, true);
     // reference: no depth test; pixel 0 has two candidates with equal masks -> lower slot (A)
     assert_eq!(r.mask2, vec![1, 1, 1, 2]);
     assert_eq!(r.flow, d.flow);
     assert_eq!(r.hole, vec![0, 0, 0, 0]);
 
     // without objects: holes are exactly the pixels with scene mask < tau
-    let n = merge(scene, &[], MergeRule::DepthAware, LabelRule::Honest, 0.99);
+    let n = merge(scene, &[], MergeRule::DepthAware, LabelRule::Honest, 0.99, true);
     assert_eq!(n.hole, vec![0, 0, 1, 1]);
     assert_eq!(n.holes, 2);
     assert_eq!(n.mask1, vec![0; 4]);

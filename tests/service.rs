@@ -868,3 +868,42 @@ async fn the_default_cache_holds_every_bundled_scene() {
     assert!(bytes / 8.0 <= (80u64 << 20) as f64, "{} MiB per scene", bytes / 8.0 / (1u64 << 20) as f64);
     s.shutdown(Duration::from_secs(5)).await;
 }
+
+/// The occlusion mask is made only for the requests that ask for it (the other fields are the
+/// same bytes either way, at the same fingerprint), and then it is the library's mask at that
+/// address, byte for byte.
+#[tokio::test]
+async fn the_occlusion_mask_is_made_when_asked_for_and_is_the_librarys() {
+    use mpiflow::service::dataset::{Datasets, Overrides};
+    let c0 = config();
+    // the library at the server's configuration, with the mask: an address where it has occluded pixels
+    let datasets = Datasets::open(&c0).expect("datasets open");
+    let ds = datasets.default_dataset();
+    let g = ds.generator(&Overrides { occlusion: true, ..Overrides::default() }).expect("generator");
+    assert_eq!(g.fingerprint(), ds.fingerprint(), "an output selection, not a dataset");
+    let (index, want) = (0..16)
+        .map(|i| (i, g.sample(3, i).expect("sample").occlusion))
+        .find(|(_, o)| o.iter().any(|&v| v != 0))
+        .expect("some sample of 16 has occluded pixels");
+    // without the mask asked for, the dataset's own generator leaves it all 0
+    let plain = ds.generator(&Overrides::default()).expect("generator").sample(3, index).expect("sample");
+    assert!(plain.occlusion.iter().all(|&v| v == 0));
+
+    let srv = server(c0).await;
+    let mut c = client(&srv.addr).await;
+    let get = |fields: Vec<pb::Field>| pb::SampleRequest {
+        seed: 3,
+        index,
+        fields: fields.into_iter().map(|f| f as i32).collect(),
+        ..Default::default()
+    };
+    let with = c.get_sample(get(vec![pb::Field::Image2, pb::Field::Flow, pb::Field::Occlusion])).await.unwrap();
+    let without = c.get_sample(get(vec![pb::Field::Image2, pb::Field::Flow])).await.unwrap();
+    let (with, without) = (with.into_inner(), without.into_inner());
+    assert_eq!(with.fingerprint, without.fingerprint);
+    let data = |s: &pb::Sample, n: &str| s.tensors.iter().find(|t| t.name == n).map(|t| t.data.clone());
+    assert_eq!(data(&with, "image2"), data(&without, "image2"));
+    assert_eq!(data(&with, "flow"), data(&without, "flow"));
+    assert_eq!(data(&without, "occlusion"), None);
+    assert_eq!(data(&with, "occlusion"), Some(want));
+}

@@ -120,6 +120,9 @@ pub struct SampleBench {
     /// Alias-free minification of the target renders (`minify`).
     #[arg(long)]
     minify: bool,
+    /// Leave out the occlusion mask, as the service does for requests that do not ask for it.
+    #[arg(long)]
+    no_occlusion: bool,
 }
 
 #[derive(Args, Debug)]
@@ -441,6 +444,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             backward: b.backward,
             restore_noise: b.restore_noise,
             minify: b.minify,
+            occlusion: !b.no_occlusion,
             ..SampleConfig::with_preset(b.preset)
         };
         let cfg = SampleBenchConfig {
@@ -455,7 +459,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         };
         let r = pool.install(|| bench_sample(&cfg))?;
         println!(
-            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}{}{}:",
+            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}{}{}{}:",
             b.width,
             b.height,
             b.planes,
@@ -467,7 +471,8 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             b.frames,
             if b.backward { ", backward fields" } else { "" },
             if b.restore_noise { ", noise restored" } else { "" },
-            if b.minify { ", minify" } else { "" }
+            if b.minify { ", minify" } else { "" },
+            if b.no_occlusion { ", no occlusion mask" } else { "" }
         );
         println!(
             "median {:.1} ms (min {:.1}, max {:.1}) over {} samples, {threads} threads; median {} holes inpainted",

@@ -121,6 +121,12 @@ pub struct SampleConfig {
     /// fields a request asks for. Default false (none of their work is done).
     #[serde(skip)]
     pub backward: bool,
+    /// Compute the forward occlusion mask of the first pair ([`super::Sample::occlusion`]; all 0
+    /// without it). An output selection like `backward`: it changes no other byte and is not
+    /// part of the fingerprint. Default true; the service turns it off for requests that do not
+    /// ask for the occlusion field.
+    #[serde(skip, default = "yes")]
+    pub occlusion: bool,
     /// Colour kernel of the exact-mode target renders ([`crate::render::resample`]; the
     /// reference mode is always bilinear). Default `bspline3` (measurements in docs/quality.md).
     pub resample: Resample,
@@ -152,6 +158,10 @@ fn is_false(b: &bool) -> bool {
     !*b
 }
 
+fn yes() -> bool {
+    true
+}
+
 fn is_pair(frames: &usize) -> bool {
     *frames == MIN_FRAMES
 }
@@ -177,6 +187,7 @@ impl Default for SampleConfig {
             preblend: false,
             frames: MIN_FRAMES,
             backward: false,
+            occlusion: true,
             resample: Resample::default(),
             restore_noise: false,
             minify: false,

@@ -245,11 +245,19 @@ struct Hit {
 }
 
 /// Merges (see the module documentation). `tau` is the mask threshold (0.99 in the reference).
+/// Without `with_occlusion` the occlusion mask is left all 0 (nothing else changes).
 ///
 /// # Panics
 /// If a buffer's size disagrees with `scene.width` x `scene.height`, or there are more than 255
 /// objects.
-pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, labels: LabelRule, tau: f32) -> Merged {
+pub fn merge(
+    scene: SceneView<'_>,
+    objects: &[ObjectView<'_>],
+    rule: MergeRule,
+    labels: LabelRule,
+    tau: f32,
+    with_occlusion: bool,
+) -> Merged {
     let (w, h) = (scene.width, scene.height);
     let n = w * h;
     assert!(objects.len() < 256, "at most 255 objects");
@@ -306,7 +314,7 @@ pub fn merge(scene: SceneView<'_>, objects: &[ObjectView<'_>], rule: MergeRule, 
                 fl[2 * x + 1] = f[1];
                 va[x] = v;
                 zs[x] = if z.is_finite() && z > 0.0 { z } else { 0.0 };
-                if v != 0 {
+                if v != 0 && with_occlusion {
                     let (tx, ty) = (x as f32 + f[0], y as f32 + f[1]);
                     oc[x] = u8::from(match labels {
                         LabelRule::Honest => !shown_there(&shown_depth, &mask2, w, h, tx, ty, z, m1[x]),

@@ -107,7 +107,8 @@ pub struct Sample {
     pub flow: Vec<f32>,
     /// H x W, 1 = the flow is valid (target inside image2, point in front of the camera).
     pub valid: Vec<u8>,
-    /// H x W, 1 = the image1 point is hidden in image2.
+    /// H x W, 1 = the image1 point is hidden in image2 (all 0 when the configuration's
+    /// `occlusion` is off: the service computes it only for requests that ask for it).
     pub occlusion: Vec<u8>,
     /// H x W object labels in image1's frame (0 = background, else `ObjectRecord::label`).
     pub mask1: Vec<u8>,

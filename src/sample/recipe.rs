@@ -391,7 +391,7 @@ fn assemble_merged_sample(
         source_depth: source_depth_in_target,
     };
     let views1 = object_views(scene, &chosen, &first.objects);
-    let mut merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold);
+    let mut merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold, config.occlusion);
     drop(image);
     // ---- the MPI's planes behind the moved objects fill what they can of the holes
     // (super::background); the links keep the holes as the renders left them

@@ -53,6 +53,9 @@ pub struct Overrides {
     pub frames: Option<usize>,
     /// The request asks for a backward field (not part of the fingerprint).
     pub backward: bool,
+    /// The request asks for the occlusion field (not part of the fingerprint; the datasets'
+    /// own configurations leave it out).
+    pub occlusion: bool,
     pub resample: Option<crate::render::Resample>,
 }
 
@@ -68,8 +71,10 @@ impl Dataset {
         source: Arc<dyn Source>,
         stage: Arc<SceneStage>,
         cache: Arc<SceneCache>,
-        config: SampleConfig,
+        mut config: SampleConfig,
     ) -> Result<Self, ServiceError> {
+        // the occlusion mask only for the requests that ask for it (`Overrides::occlusion`)
+        config.occlusion = false;
         let pipeline = Pipeline::new(source, stage, cache.clone(), config)
             .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
         Ok(Self {
@@ -131,6 +136,7 @@ impl Dataset {
             config.frames = f;
         }
         config.backward |= o.backward;
+        config.occlusion |= o.occlusion;
         if let Some(r) = o.resample {
             config.resample = r;
         }

@@ -224,6 +224,11 @@ pub fn clip_field_name(f: pb::Field) -> Option<&'static str> {
     })
 }
 
+/// Whether the fields ask for the (forward) occlusion mask.
+pub fn wants_occlusion(fields: &[pb::Field]) -> bool {
+    fields.contains(&pb::Field::Occlusion)
+}
+
 /// Whether the fields ask for the backward flow or its masks.
 pub fn wants_backward(fields: &[pb::Field]) -> bool {
     fields

@@ -3,7 +3,7 @@
 
 use super::config::ServiceConfig;
 use super::dataset::Overrides;
-use super::encode::{wants_backward, CropSpec, OutputSpec, DEFAULT_FIELDS};
+use super::encode::{wants_backward, wants_occlusion, CropSpec, OutputSpec, DEFAULT_FIELDS};
 use super::error::ServiceError;
 use super::pb;
 use crate::failure::{echo, printable, ECHO_CHARS};
@@ -177,6 +177,7 @@ pub fn overrides(
         motions_per_image: motions_per_image.map(u64::from),
         frames: None,
         backward: false,
+        occlusion: false,
         resample: None,
     })
 }
@@ -194,7 +195,7 @@ pub fn resample(name: &str) -> Result<Option<Resample>, ServiceError> {
 }
 
 /// The `frames` of a request (0 = 2, else 2 to 8) and whether its fields ask for the backward
-/// flow, put into `o`. Clips and backward fields are not made with `augment`.
+/// flow and for the occlusion mask, put into `o`. Clips and backward fields are not made with `augment`.
 pub fn frames(frames: u32, out: &OutputSpec, o: &mut Overrides) -> Result<(), ServiceError> {
     use crate::sample::config::{MAX_FRAMES, MIN_FRAMES};
     let k = if frames == 0 { MIN_FRAMES } else { frames as usize };
@@ -202,6 +203,7 @@ pub fn frames(frames: u32, out: &OutputSpec, o: &mut Overrides) -> Result<(), Se
         return Err(invalid("frames", format!("{frames} (expected {MIN_FRAMES} to {MAX_FRAMES}, or 0 for 2)")));
     }
     o.backward = wants_backward(&out.fields);
+    o.occlusion = wants_occlusion(&out.fields);
     if out.augment.is_some() && (k > MIN_FRAMES || o.backward) {
         return Err(invalid("augment", "is not made for clips (frames > 2) or the backward fields yet"));
     }
