@@ -72,8 +72,8 @@ pub struct QualityBench {
     /// Alias-free minification (`minify`). With --sharpness: each kernel also gets a row with it.
     #[arg(long)]
     minify: bool,
-    /// MPI planes of the built-in layering (a photo's pixel lies on two neighbouring planes,
-    /// which a motion moves apart by about flow / planes pixels).
+    /// MPI planes of the built-in layering (docs/quality.md: the sharpness ratio hardly moves
+    /// with it).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
 }
