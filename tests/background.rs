@@ -1,4 +1,4 @@
-//! Background from the MPI before 2-D inpainting (issue 12, item 4): where a moved object leaves
+//! Background from the MPI before 2-D inpainting: where a moved object leaves
 //! its place, image2 shows what the MPI's planes hold behind it, exactly, and only what no plane
 //! covers is inpainted; `background = "inpaint"` and the reference merge keep the paper's rule.
 

@@ -1,4 +1,4 @@
-//! Backward flow and clips (issue 14): laws on real samples of the bundled scenes.
+//! Backward flow and clips: laws on real samples of the bundled scenes.
 //!
 //! - forward-backward consistency: |flow(p) + flow_backward(p + flow(p))| (bilinear lookup) on
 //!   valid, non-occluded pixels, per scene, without and with moving objects;

@@ -1,4 +1,4 @@
-//! Honest labels with moving objects (issue 12): on RGB-D photos with large object masks that
+//! Honest labels with moving objects: on RGB-D photos with large object masks that
 //! span many depths and on the bundled scenes, under several motion laws, seeds and both merge
 //! rules, every valid, non-occluded pixel's flow lands on the surface it names (the label laws
 //! of `mpiflow::bench::quality`): no hole next to the target, the object label shown there, the
@@ -178,7 +178,7 @@ fn photometric_error_with_objects_is_near_the_error_without() {
         show(&format!("{merge:?} {background} one object, depth-only"), &old);
         assert_eq!(one.with_objects, 8);
         assert!(one.photometric < old.photometric, "{merge:?} {background}: honest labels agree better with image2");
-        // the issue's goal: within 1.3 times the error without objects; the laws hold
+        // the goal: within 1.3 times the error without objects; the laws hold
         assert!(
             one.photometric <= 1.3 * none.photometric,
             "{merge:?} {background}: {} with an object, {} without",

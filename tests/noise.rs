@@ -1,6 +1,6 @@
 //! The noise estimate of the quality report (`bench::quality::noise_sigma`, Immerkaer 1996):
 //! blind to smooth shading, close to the true level on Gaussian noise, empty regions refused;
-//! and `restore_noise` (issue 16): image2 of an RGB-D photo under lateral motion carries less
+//! and `restore_noise`: image2 of an RGB-D photo under lateral motion carries less
 //! noise than image1, and with the option as much, deterministically by address, changing
 //! nothing but the rendered frames' pixels.
 
@@ -128,7 +128,7 @@ fn restored_noise_is_per_channel_deterministic_and_only_in_the_rendered_frames()
     assert_ne!(g.fingerprint(), g0.fingerprint());
     let json = serde_json::to_string(&plain).unwrap();
     assert!(!json.contains("restore_noise") && !json.contains("minify"), "{json}");
-    // so is the minification option (issue 16, item 2)
+    // so is the minification option
     let minify = p.generator().with_config(SampleConfig { minify: true, ..plain3.clone() }).unwrap();
     assert_ne!(minify.fingerprint(), g0.fingerprint());
     let s = g.sample(0, 1).unwrap();

@@ -1,4 +1,4 @@
-//! Laws of the one renderer over windows (issue 10, item 2): a windowed render is the same
+//! Laws of the one renderer over windows: a windowed render is the same
 //! window of the full-frame render, bit for bit (per-plane and broadcast channels, any window
 //! alignment, with and without `flow_where`); render(1 - U) = coverage - render(U) for a
 //! broadcast mask U; a broadcast channel is the same as per-plane extras holding the mask on

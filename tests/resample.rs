@@ -1,4 +1,4 @@
-//! The colour kernels of the target render (issue 16, item 1): no ringing leaves a sample
+//! The colour kernels of the target render: no ringing leaves a sample
 //! (colour within [0, coverage], density, coverage and masks bit-identical to the bilinear
 //! render's), every kernel reproduces constants and linear ramps (partition of unity), windows
 //! equal the full frame, the reference mode stays bilinear, the prefilter kept with the MPI is
@@ -309,7 +309,7 @@ fn covered_std(out: &RenderOutput) -> f64 {
     (v.iter().map(|x| (x - m) * (x - m)).sum::<f64>() / v.len() as f64).sqrt()
 }
 
-/// Alias-free minification (issue 16, item 2): a grating of 0.4 cycles per pixel (below the
+/// Alias-free minification: a grating of 0.4 cycles per pixel (below the
 /// Nyquist limit, so image1 shows it faithfully) on one plane, the camera moving back so the
 /// plane shrinks to half size: image2 would show it at 0.8 cycles per pixel, beyond the limit, so
 /// a faithful image2 shows (almost) nothing there, while point sampling folds it into a strong

@@ -863,7 +863,7 @@ async fn the_default_cache_holds_every_bundled_scene() {
     assert_eq!(metric_sum(&body, "mpiflow_scene_cache_evictions_total"), 0.0, "{body}");
     let bytes = metric_sum(&body, "mpiflow_scene_cache_bytes");
     assert!(bytes > 0.0 && bytes <= (mpiflow::service::config::DEFAULT_CACHE_MB << 20) as f64, "{body}");
-    // issue 17's goal: at most 80 MiB per cached 640x480, 32-plane scene (the planes and the
+    // the memory goal: at most 80 MiB per cached 640x480, 32-plane scene (the planes and the
     // B-spline coefficients in blocks where there is density; about 45 MiB)
     assert!(bytes / 8.0 <= (80u64 << 20) as f64, "{} MiB per scene", bytes / 8.0 / (1u64 << 20) as f64);
     s.shutdown(Duration::from_secs(5)).await;

@@ -1,4 +1,4 @@
-//! Laws and extremes of the renderer (issue 2, item 8): closed-form flows, degenerate poses,
+//! Laws and extremes of the renderer: closed-form flows, degenerate poses,
 //! depths and densities, NaN/Inf inputs, tiny and huge images, parallel = serial, f32 ~ f64.
 //! Every render here is also checked to contain no NaN or Inf.
 

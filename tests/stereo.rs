@@ -1,4 +1,4 @@
-//! Rectified stereo pairs (issue 14, item 3): the `stereo` motion preset, the disparity field,
+//! Rectified stereo pairs: the `stereo` motion preset, the disparity field,
 //! the `stereo` export layout and the request checks. The laws: the flow's v is exactly 0 and
 //! u = -d with d >= 0; an opaque fronto-parallel plane at depth Z has d = fx B / Z (closed form);
 //! the right view agrees photometrically with the left view through the disparity, as pairs do

@@ -69,7 +69,8 @@ pub struct GenerateArgs {
     #[arg(long, value_name = "RULE", default_value = "depth-aware")]
     merge: MergeRule,
     /// Which valid pixels are marked occluded: honest (visible only where image2 shows the
-    /// pixel's surface, no hole next to its target) or depth-only (the rule before issue 12).
+    /// pixel's surface, no hole next to its target) or depth-only (occluded only where hidden
+    /// behind by depth; holes never occlude).
     #[arg(long, value_name = "RULE", default_value = "honest")]
     label_rule: LabelRule,
     /// What fills image2's holes before 2-D inpainting with the depth-aware merge: inpaint (Telea

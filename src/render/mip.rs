@@ -1,4 +1,4 @@
-//! Alias-free minification of the target view (issue 16, item 2): where the view shrinks a
+//! Alias-free minification of the target view: where the view shrinks a
 //! plane (the camera moves back, a zoom-out), sampling the plane's colour at the target's pixel
 //! spacing skips source pixels, and detail finer than the target's grid aliases into patterns
 //! image1 does not have. With [`crate::render::RenderParams::minify`], each plane whose local

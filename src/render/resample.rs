@@ -4,7 +4,7 @@
 //! Every target ray samples each plane it meets at a sub-pixel point q. Bilinear interpolation
 //! (the public reference's choice) is a low-pass filter: one bilinear resampling at a random
 //! sub-pixel shift keeps well under half of a photo's Laplacian energy, so image2 came out much
-//! blurrier than image1 (issue 16; figures in docs/quality.md). The higher-order kernels here are
+//! blurrier than image1 (figures in docs/quality.md). The higher-order kernels here are
 //! separable, evaluated over an N x N neighbourhood of q (N = 4 for the cubics, 6 for Lanczos-3):
 //!
 //! - [`Resample::Bilinear`]: 2 x 2 taps, the reference's formula (bit-identical to the renderer

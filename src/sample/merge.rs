@@ -42,8 +42,8 @@
 //! (an object with part of the floor it stands on) moves that floor with the object, so the
 //! object render and the scene render show the same surface at nearly the same depth, and the
 //! paper's exact comparison `D_t < D_t^obj` flips from row to row with the renders' rounding:
-//! image2 showed one-pixel rows of the object's render across the scene's (the "thin lines"
-//! of issue 12; `tests/labels.rs` counts them). Within the tolerance the object is drawn, as
+//! image2 showed one-pixel rows of the object's render across the scene's ("thin lines";
+//! `tests/labels.rs` counts them). Within the tolerance the object is drawn, as
 //! where it is nearer, so the decision changes only at a real depth step. Holes = `s < tau`
 //! and nothing drawn (scene holes include rays that left the source frustum, coverage < tau).
 //!
@@ -73,7 +73,7 @@
 //!     something farther), and points that land on or next to a hole. So the label never says
 //!     "this surface moved here" where image2 shows another surface or an inpainted smudge
 //!     (tested as laws in `tests/labels.rs`).
-//!   - [`LabelRule::DepthOnly`] (the rule before issue 12): occluded when `z` exceeds `d` by more
+//!   - [`LabelRule::DepthOnly`] (the renderer's rule, for comparison): occluded when `z` exceeds `d` by more
 //!     than `tol` relative at all four pixels of `N` (the renderer's rule applied to the merged
 //!     frame); holes never occlude.
 
@@ -129,7 +129,7 @@ pub enum LabelRule {
     /// target.
     #[default]
     Honest,
-    /// Occluded only when hidden behind by depth (holes never occlude): the rule before issue 12.
+    /// Occluded only when hidden behind by depth (holes never occlude): the renderer's rule applied to the merged frame.
     DepthOnly,
 }
 

@@ -319,7 +319,7 @@ impl Default for MotionRanges {
 impl MotionRanges {
     /// These laws with the camera's replaced by a pure lateral translation: `tx` and `ty` of
     /// random sign and magnitude uniform in `[0, t]`, no forward part, no rotation (the sharpness
-    /// and noise measurements of issue 16); named `lateral-T`.
+    /// and noise measurements of `mpiflow bench quality`); named `lateral-T`.
     #[must_use]
     pub fn with_lateral_camera(mut self, t: f64) -> Self {
         self.name = format!("lateral-{t}");
@@ -415,13 +415,13 @@ pub enum MotionPreset {
     /// "Euler" triplet to an axis-angle function; set `rotation_kind = "axis-angle"` for that
     /// reading. At these angles the two differ by second-order terms.)
     Depthstillation,
-    /// Small and large motions together (issue 12): every camera component log-uniform with a
+    /// Small and large motions together: every camera component log-uniform with a
     /// random sign, translations in [0.001, 0.3] (forward or backward along z), axis-angle
     /// components in [0.0002, 0.05] rad; objects: translations in [0.001, 0.1], axis-angle
     /// components in [0.0002, 0.03]. Flow magnitudes span sub-pixel motions to a tail past
     /// 100 px (percentiles in `docs/quality.md`), where `reference` has almost none under 5 px.
     Mixed,
-    /// Rectified stereo pairs (issue 14): image 2 is the right view at a baseline `B` uniform in
+    /// Rectified stereo pairs: image 2 is the right view at a baseline `B` uniform in
     /// [`MotionRanges::STEREO_BASELINE`] = [0.02, 0.2] scene units (the nearest content lies at
     /// depth ~1, so the largest disparity is ~`fx B`: 0.116 W px at B = 0.2 with the reference
     /// intrinsics `fx = 0.58 W`), `t = (-B, 0, 0)`, no rotation, no moving objects.

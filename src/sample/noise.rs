@@ -1,5 +1,5 @@
 //! Sensor noise: Immerkaer's estimate of an image's noise level, and the option that restores
-//! image1's level in the rendered frames (`restore_noise`, issue 16). Resampling the planes
+//! image1's level in the rendered frames (`restore_noise`). Resampling the planes
 //! low-passes image2, so it carries less of the photo's sensor noise than image1 ("frame 2 is the
 //! clean one" is a cue a flow network can learn); with the option each later frame gets zero-mean
 //! noise, per colour channel, of the standard deviation that brings the frame's estimate over its

@@ -38,11 +38,10 @@ use crate::source::{FailureKind, Fnv64, Source, SourceError};
 /// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
 /// (sources + scene stage) and the configuration's JSON. Never change the formula without a
 /// reason: it is the dataset word of every address, so changing it changes every sample.
-/// v2 (2026-12-04): the depth-aware merge fills one-pixel dips of the scene mask and depth
-/// before its occlusion test (`sample::merge`), which changes samples with moving objects.
-/// v3 (2026-12-04): the higher-order colour kernels sum each column of taps first, then the
-/// columns (`render::resample`, four values per vector operation), which moves a few image2
-/// pixels by one 8-bit level.
+/// The version word (`v3`) names the sample bytes' rules: v2 marks the depth-aware merge that
+/// fills one-pixel dips of the scene mask and depth before its occlusion test (`sample::merge`),
+/// v3 the higher-order colour kernels that sum each column of taps first, then the columns
+/// (`render::resample`, four values per vector operation). CHANGELOG.md lists the changes.
 pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
     // serialising a plain struct of numbers and strings cannot fail
     let json = serde_json::to_string(config).unwrap_or_default();

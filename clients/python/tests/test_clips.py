@@ -1,4 +1,4 @@
-"""Backward flow and clips (issue 14) against the real server and `mpiflow generate`.
+"""Backward flow and clips against the real server and `mpiflow generate`.
 
 The Sintel export is read back by a reader written here from the MPI Sintel format itself
 (the `.flo` spec: float32 tag 202021.25, int32 width, int32 height, then H x W x 2 float32,

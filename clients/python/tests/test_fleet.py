@@ -1,6 +1,6 @@
 """A local fleet: three `mpiflow serve` replicas on loopback, two trainer ranks (rank 0 and 1 of
 world_size 2, one thread each, MPIFlowDataset over all three addresses), replicas SIGKILLed
-mid-stream and one restarted on its port (issue 6).
+mid-stream and one restarted on its port.
 
 What happens (a rank's stream starts on replica rank % 3: rank 0 on A, rank 1 on B; C is spare):
 1. both ranks stream; once each has KILL_AT samples, B is SIGKILLed -> rank 1 resumes on

@@ -161,7 +161,7 @@ pub struct StorageRow {
     pub bytes: (usize, usize),
 }
 
-/// One soft MPI rendered with each colour kernel ([`Resample`], issue 16): time, errors (the
+/// One soft MPI rendered with each colour kernel ([`Resample`]): time, errors (the
 /// image against the bilinear f64 reference in `m`, and against an f64 reference with the same
 /// kernel), and the sharpness ratio of the render to the scene's photo.
 #[derive(Clone, Debug)]
