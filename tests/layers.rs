@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-/// The levels, from the leaves up (see docs/design.md and the README's "Layout").
+/// The levels, from the leaves up (see docs/design.md §7 and CONTRIBUTING.md, "Layout").
 const LEVELS: &[&[&str]] = &[
     &["buf", "failure", "geometry", "hash", "rng"],
     &["io"],

@@ -1,6 +1,7 @@
 """Hostile-client load for the buffered budget: N stalled streams (read one batch, then stop
 reading; prefetch 64, all fields) while one fast client pulls; prints server RSS over time,
-the fast rate, then RSS after the stalled clients leave (the README's "Hostile clients" figures).
+the fast rate, then RSS after the stalled clients leave (the figures of docs/robustness.md,
+"Stalled and hostile clients").
 
 Usage (the project's Python env, `eval "$(bash tools/setup_python.sh)"`):
     mpiflow serve --addr 127.0.0.1:50300 --metrics-addr 127.0.0.1:50301 --size 320x240 \
