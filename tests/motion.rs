@@ -233,17 +233,6 @@ fn same_key_same_pose_bits_other_keys_differ() {
     }
 }
 
-/// Prints the values pinned by `golden_draws` (run with `--nocapture` to (re)compute them).
-#[test]
-fn print_golden_draws() {
-    for preset in MotionPreset::ALL {
-        let m = preset.ranges().sample_camera_motion(&mut SampleRng::new(1, 2, 3, Purpose::CameraMotion));
-        let bits: Vec<String> =
-            m.translation.iter().chain(m.angles.iter()).map(|v| format!("{:#018x}", v.to_bits())).collect();
-        println!("{preset}: [{}] ({:?} {:?})", bits.join(", "), m.translation, m.angles);
-    }
-}
-
 /// DETERMINISM CONTRACT. The first camera motion drawn for the key (fingerprint 1, seed 2,
 /// index 3, CameraMotion) under each preset, as f64 bits (translation x, y, z, then the three
 /// rotation components). Computed once with this implementation and hard-coded on purpose: if this
@@ -251,7 +240,7 @@ fn print_golden_draws() {
 /// the test pass; a change of the laws, the draw order or the generator breaks the dataset format.
 #[test]
 fn golden_draws() {
-    let golden: [(MotionPreset, [u64; 6]); 4] = [
+    let golden: [(MotionPreset, [u64; 6]); 5] = [
         // t = (0.14769656653191213, -0.15999348463127225, -0.14540143644347525),
         // axis-angle (-0.015079096785697112, 0.018178869755759233, -0.029954811605584546)
         (
@@ -304,11 +293,15 @@ fn golden_draws() {
                 0xbf968832428767c8,
             ],
         ),
+        // t = (-0.11414618024255818, 0, 0): the right camera at baseline 0.114, no rotation
+        (MotionPreset::Stereo, [0xbfbd38af1f1ae868, 0, 0, 0, 0, 0]),
     ];
+    assert_eq!(golden.map(|(p, _)| p), MotionPreset::ALL, "every preset is pinned, in the order of ALL");
     for (preset, bits) in golden {
         let m = preset.ranges().sample_camera_motion(&mut SampleRng::new(1, 2, 3, Purpose::CameraMotion));
         let got: Vec<u64> = m.translation.iter().chain(m.angles.iter()).map(|v| v.to_bits()).collect();
-        assert_eq!(got, bits, "{preset}");
+        let shown: Vec<String> = got.iter().map(|b| format!("{b:#018x}")).collect();
+        assert_eq!(got, bits, "{preset}: drew [{}] = {:?} {:?}", shown.join(", "), m.translation, m.angles);
     }
 }
 

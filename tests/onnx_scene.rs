@@ -532,10 +532,13 @@ fn runtime_is_loaded_once_from_ort_dylib_path() {
     assert!(other.to_string().contains("already loaded"), "{other}");
 }
 
-/// Prints the inference time of each test model (`cargo test --release --test onnx_scene --
-/// --nocapture inference_time`).
+/// Each test model on a 640x480 image (resized in and out): repeated calls give the same output
+/// bit for bit (a session keeps no state between runs), and the model counts exactly those
+/// calls, the constructor's warm-up excluded (`inference_runs`, what `mpiflow_model_runs_total`
+/// reports), until its stats are reset. The models' time per photo is what `mpiflow bake`
+/// measures (it runs only the models).
 #[test]
-fn inference_time_of_the_test_models() {
+fn repeated_inference_is_identical_and_counted() {
     let (w, h) = (640, 480);
     let image = test_image(w, h);
     let disp = test_disparity(w, h);
@@ -544,32 +547,27 @@ fn inference_time_of_the_test_models() {
     let mut cfg = OnnxSegmenterConfig::new(model("seg.onnx"));
     cfg.score_threshold = 0.0;
     let seg = OnnxSegmenter::new(cfg).unwrap();
-    let n = 10;
-    let t = std::time::Instant::now();
-    for _ in 0..n {
-        depth.estimate(&image).unwrap();
+    assert_eq!((depth.inference_runs(), mpi.inference_runs(), seg.inference_runs()), (Some(0), Some(0), Some(0)));
+    let n = 3;
+    let first_depth = depth.estimate(&image).unwrap();
+    assert_eq!((first_depth.width, first_depth.height), (w, h));
+    let first_mpi = mpi.build(&image, &disp, &intrinsics(w, h)).unwrap();
+    assert_eq!((first_mpi.width, first_mpi.height), (w, h));
+    let first_seg = seg.segment(&image).unwrap();
+    assert!(!first_seg.masks.is_empty(), "score threshold 0 keeps the test model's instances");
+    let bits = |m: &mpiflow::mpi::Mpi| m.rgba.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    for _ in 1..n {
+        assert_eq!(depth.estimate(&image).unwrap(), first_depth);
+        let again = mpi.build(&image, &disp, &intrinsics(w, h)).unwrap();
+        assert!(bits(&again) == bits(&first_mpi), "the MPI model gave other planes");
+        assert_eq!(again.disparity, first_mpi.disparity);
+        assert_eq!(seg.segment(&image).unwrap(), first_seg);
     }
-    let depth_all = t.elapsed().as_secs_f64() * 1e3 / n as f64;
-    let t = std::time::Instant::now();
-    for _ in 0..n {
-        mpi.build(&image, &disp, &intrinsics(w, h)).unwrap();
-    }
-    let mpi_all = t.elapsed().as_secs_f64() * 1e3 / n as f64;
-    let t = std::time::Instant::now();
-    for _ in 0..n {
-        seg.segment(&image).unwrap();
-    }
-    let seg_all = t.elapsed().as_secs_f64() * 1e3 / n as f64;
-    for (name, stats, all) in
-        [("depth", depth.stats(), depth_all), ("mpi (4 planes)", mpi.stats(), mpi_all), ("seg", seg.stats(), seg_all)]
-    {
-        assert_eq!(stats.runs, n);
-        println!(
-            "{name} {w}x{h}: session.run {:.2} ms/run (warm-up {:.2} ms), whole call {all:.2} ms",
-            stats.mean_ms(),
-            stats.warmup.as_secs_f64() * 1e3
-        );
-    }
+    assert_eq!((depth.stats().runs, mpi.stats().runs, seg.stats().runs), (n, n, n));
+    assert_eq!((depth.inference_runs(), mpi.inference_runs(), seg.inference_runs()), (Some(n), Some(n), Some(n)));
+    depth.reset_stats();
+    assert_eq!(depth.inference_runs(), Some(0));
+    assert_eq!(mpi.inference_runs(), Some(n), "resetting one model's stats leaves the others");
 }
 
 /// The fingerprint covers the model file's content, not its name: one changed byte of a weight
