@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use mpiflow::service::client::{channel, client_for, client_with_token, connect_with, BearerToken, ClientOptions};
 use mpiflow::service::pb;
@@ -115,15 +115,17 @@ fn with_cert(o: ClientOptions, pki: &Pki, name: &str) -> ClientOptions {
 async fn wait_serving(addr: &str, o: &ClientOptions) {
     let ch = channel(addr, &ClientOptions { token: None, ..o.clone() }).await.expect("health connects");
     let mut h = HealthClient::new(ch);
-    let t = Instant::now();
-    loop {
-        let s = h.check(HealthCheckRequest { service: String::new() }).await.unwrap().into_inner().status;
-        if s == ServingStatus::Serving as i32 {
-            return;
+    // the health Watch sends the status now and on every change: no polling
+    let mut updates = h.watch(HealthCheckRequest { service: String::new() }).await.unwrap().into_inner();
+    let serving = async {
+        while let Some(u) = updates.message().await.expect("health watch") {
+            if u.status == ServingStatus::Serving as i32 {
+                return;
+            }
         }
-        assert!(t.elapsed() < Duration::from_secs(30), "never SERVING");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+        panic!("the health watch ended before SERVING");
+    };
+    tokio::time::timeout(Duration::from_secs(30), serving).await.expect("never SERVING");
 }
 
 async fn serving(c: ServiceConfig, o: &ClientOptions) -> RunningServer {
@@ -206,8 +208,12 @@ async fn the_token_guards_every_call_but_health() {
     let mut answers = refl.server_reflection_info(tokio_stream::iter(vec![list()])).await.unwrap().into_inner();
     assert!(answers.message().await.unwrap().is_some(), "reflection answers with the token");
 
-    // nothing was made or stored for the refused calls
-    tokio::time::sleep(Duration::from_millis(100)).await;
+    // nothing was made or stored for the refused calls: the token check runs before any handler,
+    // so a refused call registers no stream with the pool and dispatches no job (the warm-up's
+    // stream closed before health said SERVING, and its sample was counted before it was
+    // delivered): with no stream open nothing can still be on its way, and the count is final
+    let pool = s.state.scheduler.stats();
+    assert_eq!((pool.streams, pool.waiting_scene), (0, 0), "a refused call reached the pool");
     assert_eq!(s.state.metrics.samples_generated.get(), made, "a refused call made a sample");
     assert_eq!(s.state.active_streams(), 0);
     let metrics = s.state.metrics.render();
