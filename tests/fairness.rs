@@ -96,11 +96,11 @@ async fn clients_that_open_and_drop_streams_are_not_starved_by_a_busy_stream() {
     }
 }
 
-/// A batch larger than a stream's share of the byte budget still completes: the stream may
-/// always make the samples of the batch it is filling (the budget is exceeded by at most one
-/// message per stream, as the pool's documentation states).
+/// A batch larger than a stream's share of the byte budget is sent in parts cut at the share:
+/// every sample arrives, in order, and no message holds more than the share allows (the budget
+/// is exceeded by at most one sample per stream, as the pool's documentation states).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_batch_larger_than_the_share_of_the_budget_is_still_sent() {
+async fn a_batch_larger_than_the_share_of_the_budget_is_sent_in_parts() {
     use mpiflow::service::metrics::Metrics;
     use mpiflow::service::pool::{Make, Produce, Scheduler, StreamSpec};
     use tokio_stream::StreamExt;
@@ -122,9 +122,12 @@ async fn a_batch_larger_than_the_share_of_the_budget_is_still_sent() {
     while let Some(b) =
         tokio::time::timeout(std::time::Duration::from_secs(60), st.next()).await.expect("the stream stalled")
     {
-        got.extend(b.unwrap().samples.into_iter().map(|s| s.index));
+        let b = b.unwrap();
+        // ~1 kB each: the 2.5 kB share holds two (a stream holding nothing starts one more)
+        assert!((1..=2).contains(&b.samples.len()), "a batch of {} samples", b.samples.len());
+        got.extend(b.samples.into_iter().map(|s| s.index));
         batches += 1;
     }
     assert_eq!(got, (0..12).collect::<Vec<_>>());
-    assert_eq!(batches, 3);
+    assert!(batches >= 6, "{batches} batches");
 }

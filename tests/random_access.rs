@@ -110,7 +110,7 @@ async fn get_samples_of_an_unordered_list_equals_get_sample_per_index() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_index_list_is_bounded_and_refusals_name_their_field() {
-    let s = server(ServiceConfig { max_streams: 1, ..config() }).await;
+    let s = server(ServiceConfig { max_random_access_calls: 1, ..config() }).await;
     let mut c = client(&s).await;
     let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
     assert_eq!(info.limits.unwrap().max_indices as usize, MAX_INDICES);
@@ -130,8 +130,9 @@ async fn the_index_list_is_bounded_and_refusals_name_their_field() {
     // exactly the limit is accepted (the first sample is enough to see it served)
     let mut full = c.get_samples(list(MAX_INDICES)).await.expect("256 indices are accepted").into_inner();
     assert_eq!(full.message().await.unwrap().unwrap().index, 0);
-    // ... and it holds the one stream slot of max_streams = 1
-    refused(get_samples(&mut c, list(1)).await.unwrap_err(), Code::ResourceExhausted, "too many streams");
+    // ... and it holds the one slot of max_random_access_calls = 1
+    let e = get_samples(&mut c, list(1)).await.unwrap_err();
+    refused(e, Code::ResourceExhausted, "too many GetSample/GetSamples calls");
     drop(full);
     s.shutdown(Duration::from_secs(5)).await;
 }

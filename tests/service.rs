@@ -733,7 +733,7 @@ async fn silent_connections_are_closed_and_connections_are_bounded() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_oversized_request_is_resource_exhausted() {
     let s = server(config()).await;
-    let limit = s.state.config.max_message_bytes() as usize;
+    let limit = s.state.config.max_request_bytes() as usize;
     let ch = channel(&s.addr.to_string()).await;
     let mut c = MpiFlowClient::new(ch).max_encoding_message_size(usize::MAX).max_decoding_message_size(usize::MAX);
     let huge = "d".repeat(limit + 1000);

@@ -17,6 +17,16 @@
 //! - **uploading**: uploads two small photos with depth to its own dataset, checks that both are
 //!   accepted and pulls two samples of it; once a second.
 //!
+//! - **unary**: GetSample calls one after another, read whole (a flood when there are many).
+//! - **unread**: from another loopback address (127.0.0.2), a raw HTTP/2 connection with a
+//!   one-byte window that keeps 8 GetSample calls of every field open and never reads them;
+//!   reconnects when the server closes it.
+//! - **idle**: from 127.0.0.2, a raw HTTP/2 connection that answers pings and opens no call;
+//!   reconnects when the server closes it.
+//! - **batch-stall**: like stalled, with batch 64.
+//!
+//! Every reading also times a newcomer: a new connection from 127.0.0.1 and a GetInfo call.
+//!
 //! RESOURCE_EXHAUSTED (a budget said no) is expected for all but the fast clients; every other
 //! error is unexpected. [`SoakReport::passed`] is false on a lost or repeated index, an
 //! unexpected error, or fast clients that got nothing.
@@ -29,6 +39,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use prost::Message;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::time::timeout_at;
 
@@ -58,6 +69,10 @@ pub struct SoakConfig {
     pub slow: usize,
     pub cancelling: usize,
     pub uploading: usize,
+    pub unary: usize,
+    pub unread: usize,
+    pub idle: usize,
+    pub batch_stall: usize,
     /// How often the server's memory is read and printed.
     pub report_every: Duration,
     /// More `mpiflow serve` flags (e.g. `--max-buffered-mb 512`).
@@ -103,6 +118,17 @@ pub struct SoakReport {
     pub stalled_streams: u64,
     pub cancelled_streams: u64,
     pub uploads: u64,
+    /// GetSample calls answered to unary clients; calls left unread; idle connections the server
+    /// closed.
+    pub unary_samples: u64,
+    pub unread_calls: u64,
+    pub idle_closed: u64,
+    /// The fast clients' longest wait for a message during the mix, ms.
+    pub fast_max_gap_ms: f64,
+    /// The longest a newcomer waited for its first answer (connect + GetInfo), ms; and how many
+    /// newcomers were turned away.
+    pub newcomer_max_ms: f64,
+    pub newcomers_refused: u64,
     /// The mix's length as it ran, seconds.
     pub mix_s: f64,
     /// Kinds of client that were in the mix and got nothing done (a starved client).
@@ -139,8 +165,19 @@ impl SoakReport {
                 self.idle_rss_mib, self.peak_rss_mib, self.end_rss_mib
             ),
             format!(
-                "other clients: {} stalled streams, {} slow samples, {} cancelled streams, {} uploads",
-                self.stalled_streams, self.slow_samples, self.cancelled_streams, self.uploads
+                "other clients: {} stalled streams, {} slow samples, {} cancelled streams, {} uploads, {} unary samples, \
+                 {} unread calls, {} idle connections closed by the server",
+                self.stalled_streams,
+                self.slow_samples,
+                self.cancelled_streams,
+                self.uploads,
+                self.unary_samples,
+                self.unread_calls,
+                self.idle_closed
+            ),
+            format!(
+                "fast clients' longest wait for a message: {:.0} ms; newcomers: longest wait {:.0} ms, {} turned away",
+                self.fast_max_gap_ms, self.newcomer_max_ms, self.newcomers_refused
             ),
             format!("errors by code: {errors}; unexpected: {}", self.unexpected),
         ];
@@ -290,6 +327,11 @@ struct Shared {
     stalled_streams: AtomicU64,
     cancelled_streams: AtomicU64,
     uploads: AtomicU64,
+    unary_samples: AtomicU64,
+    unread_calls: AtomicU64,
+    idle_closed: AtomicU64,
+    /// The fast clients' longest wait for a message, µs.
+    fast_max_gap_us: AtomicU64,
     errors: Mutex<(BTreeMap<String, u64>, u64, Vec<String>)>,
 }
 
@@ -334,10 +376,14 @@ async fn fast_client(addr: String, seed: u64, rank: u32, world: u32, until: toki
             Err(_) => return,
         };
         // a timeout polls its future first: a stream that is always ready never times out
+        let mut last = tokio::time::Instant::now();
         while tokio::time::Instant::now() < until {
             match timeout_at(until, stream.message()).await {
                 Err(_) => return,
                 Ok(Ok(Some(batch))) => {
+                    let now = tokio::time::Instant::now();
+                    sh.fast_max_gap_us.fetch_max((now - last).as_micros() as u64, Ordering::Relaxed);
+                    last = now;
                     for s in &batch.samples {
                         if s.index == expected {
                             expected += step;
@@ -379,12 +425,26 @@ async fn connected(kind: &str, addr: &str, until: tokio::time::Instant, sh: &Sha
     }
 }
 
-/// Opens a stream with prefetch 64 and every field, reads one batch, stops reading for `hold`.
-async fn stalled_client(addr: String, seed: u64, hold: Duration, until: tokio::time::Instant, sh: Arc<Shared>) {
+/// Opens a stream with prefetch 64, every field and `batch` samples per message, reads one
+/// batch, stops reading for `hold`.
+async fn stalled_client(
+    addr: String,
+    seed: u64,
+    batch: u32,
+    hold: Duration,
+    until: tokio::time::Instant,
+    sh: Arc<Shared>,
+) {
     let Some(mut client) = connected("stalled", &addr, until, &sh).await else { return };
     let mut round = 0u64;
     while tokio::time::Instant::now() < until {
-        let req = pb::StreamRequest { seed: seed + round, prefetch: 64, fields: all_fields(), ..Default::default() };
+        let req = pb::StreamRequest {
+            seed: seed + round,
+            prefetch: 64,
+            batch_size: batch,
+            fields: all_fields(),
+            ..Default::default()
+        };
         round += 1;
         match timeout_at(until, client.stream_samples(req)).await {
             Ok(Ok(s)) => {
@@ -407,6 +467,113 @@ async fn stalled_client(addr: String, seed: u64, hold: Duration, until: tokio::t
             Err(_) => return,
         }
     }
+}
+
+/// GetSample calls one after another, each read whole.
+async fn unary_client(addr: String, seed: u64, until: tokio::time::Instant, sh: Arc<Shared>) {
+    let Some(mut client) = connected("unary", &addr, until, &sh).await else { return };
+    let mut index = 0u64;
+    while tokio::time::Instant::now() < until {
+        index += 1;
+        match timeout_at(until, client.get_sample(pb::SampleRequest { seed, index, ..Default::default() })).await {
+            Ok(Ok(_)) => {
+                sh.unary_samples.fetch_add(1, Ordering::Relaxed);
+            }
+            Ok(Err(status)) => {
+                sh.status("unary", &status, false);
+                // refused: a short pause before the next try (a flood, not a spin)
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+            Err(_) => return,
+        }
+    }
+}
+
+/// The loopback address the misbehaving raw clients connect from (a peer of its own, as a
+/// different machine would be).
+const ATTACKER: std::net::Ipv4Addr = std::net::Ipv4Addr::new(127, 0, 0, 2);
+
+/// A raw HTTP/2 connection from [`ATTACKER`] with a `window`-byte stream window.
+async fn raw_h2(
+    addr: &str,
+    window: u32,
+) -> Result<(h2::client::SendRequest<bytes::Bytes>, tokio::task::JoinHandle<Result<(), h2::Error>>), String> {
+    let to: std::net::SocketAddr = addr.parse().map_err(|e| format!("{addr}: {e}"))?;
+    let sock = tokio::net::TcpSocket::new_v4().map_err(|e| e.to_string())?;
+    sock.bind((ATTACKER, 0).into()).map_err(|e| e.to_string())?;
+    let tcp = sock.connect(to).await.map_err(|e| e.to_string())?;
+    let (send, conn) =
+        h2::client::Builder::new().initial_window_size(window).handshake(tcp).await.map_err(|e| e.to_string())?;
+    Ok((send, tokio::spawn(conn)))
+}
+
+/// Keeps `calls` GetSample calls of every field open on a raw connection with a one-byte window,
+/// never reading them; reconnects when the server closes the connection.
+async fn unread_client(addr: String, calls: usize, until: tokio::time::Instant, sh: Arc<Shared>) {
+    let body = pb::SampleRequest { fields: all_fields(), ..Default::default() }.encode_to_vec();
+    let mut frame = vec![0u8];
+    frame.extend_from_slice(&(body.len() as u32).to_be_bytes());
+    frame.extend_from_slice(&body);
+    let frame = bytes::Bytes::from(frame);
+    while tokio::time::Instant::now() < until {
+        let (send, conn) = match timeout_at(until, raw_h2(&addr, 1)).await {
+            Ok(Ok(c)) => c,
+            Ok(Err(e)) => {
+                sh.error("unread", "connect", &e, true);
+                tokio::time::sleep(Duration::from_millis(200)).await;
+                continue;
+            }
+            Err(_) => return,
+        };
+        let mut held = Vec::new();
+        for _ in 0..calls {
+            let call = async {
+                let mut ready = send.clone().ready().await?;
+                let req = http::Request::post("http://localhost/mpiflow.v1.MpiFlow/GetSample")
+                    .header("content-type", "application/grpc")
+                    .header("te", "trailers")
+                    .body(())
+                    .expect("a valid request");
+                let (response, mut stream) = ready.send_request(req, false)?;
+                stream.send_data(frame.clone(), true)?;
+                response.await
+            };
+            match timeout_at(until, call).await {
+                Ok(Ok(r)) => {
+                    sh.unread_calls.fetch_add(1, Ordering::Relaxed);
+                    held.push(r);
+                }
+                Ok(Err(_)) | Err(_) => break,
+            }
+        }
+        // hold them unread until the server closes the connection (or the run ends)
+        let _ = timeout_at(until, conn).await;
+        drop(held);
+    }
+}
+
+/// A raw HTTP/2 connection that opens no call; counts the server's closes and reconnects.
+async fn idle_client(addr: String, until: tokio::time::Instant, sh: Arc<Shared>) {
+    while tokio::time::Instant::now() < until {
+        match timeout_at(until, raw_h2(&addr, 1 << 16)).await {
+            Ok(Ok((_send, conn))) => {
+                if timeout_at(until, conn).await.is_ok() {
+                    sh.idle_closed.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            // refused (the peer's connection bound): try again a little later
+            Ok(Err(_)) => tokio::time::sleep(Duration::from_millis(200)).await,
+            Err(_) => return,
+        }
+    }
+}
+
+/// A newcomer: a new connection and a GetInfo call; its wait in ms, or None when turned away.
+async fn newcomer(addr: &str) -> Option<f64> {
+    let t = Instant::now();
+    let mut c = tokio::time::timeout(Duration::from_secs(60), connect(addr)).await.ok()?.ok()?;
+    tokio::time::timeout(Duration::from_secs(60), c.get_info(pb::InfoRequest {})).await.ok()?.ok()?;
+    Some(t.elapsed().as_secs_f64() * 1e3)
 }
 
 /// Reads one batch every 250 ms.
@@ -659,8 +826,23 @@ async fn mix(
     for k in 0..cfg.stalled {
         tasks.push((
             "stalled",
-            tokio::spawn(stalled_client(addr.to_string(), 1000 * (k as u64 + 1), hold, until, sh.clone())),
+            tokio::spawn(stalled_client(addr.to_string(), 1000 * (k as u64 + 1), 1, hold, until, sh.clone())),
         ));
+    }
+    for k in 0..cfg.batch_stall {
+        tasks.push((
+            "batch-stall",
+            tokio::spawn(stalled_client(addr.to_string(), 5000 * (k as u64 + 1), 64, hold, until, sh.clone())),
+        ));
+    }
+    for k in 0..cfg.unary {
+        tasks.push(("unary", tokio::spawn(unary_client(addr.to_string(), 300 + k as u64, until, sh.clone()))));
+    }
+    for _ in 0..cfg.unread {
+        tasks.push(("unread", tokio::spawn(unread_client(addr.to_string(), 8, until, sh.clone()))));
+    }
+    for _ in 0..cfg.idle {
+        tasks.push(("idle", tokio::spawn(idle_client(addr.to_string(), until, sh.clone()))));
     }
     for k in 0..cfg.slow {
         tasks.push(("slow", tokio::spawn(slow_client(addr.to_string(), 100 + k as u64, until, sh.clone()))));
@@ -689,6 +871,10 @@ async fn mix(
             Some(m) => scrape(m).await.and_then(|t| metric_value(&t, "mpiflow_buffered_bytes")),
             None => None,
         };
+        match newcomer(addr).await {
+            Some(ms) => report.newcomer_max_ms = report.newcomer_max_ms.max(ms),
+            None => report.newcomers_refused += 1,
+        }
         let p = SoakPoint {
             t_s: (now - start).as_secs_f64(),
             rss_mib: rss,
@@ -735,12 +921,20 @@ async fn mix(
     report.stalled_streams = sh.stalled_streams.load(Ordering::Relaxed);
     report.cancelled_streams = sh.cancelled_streams.load(Ordering::Relaxed);
     report.uploads = sh.uploads.load(Ordering::Relaxed);
+    report.unary_samples = sh.unary_samples.load(Ordering::Relaxed);
+    report.unread_calls = sh.unread_calls.load(Ordering::Relaxed);
+    report.idle_closed = sh.idle_closed.load(Ordering::Relaxed);
+    report.fast_max_gap_ms = sh.fast_max_gap_us.load(Ordering::Relaxed) as f64 / 1e3;
     // each stalled client opens a stream at least once; the others get something every round
     for (kind, clients, done) in [
         ("stalled", cfg.stalled, report.stalled_streams / cfg.stalled.max(1) as u64),
         ("slow", cfg.slow, report.slow_samples),
         ("cancelling", cfg.cancelling, report.cancelled_streams),
         ("uploading", cfg.uploading, report.uploads),
+        ("batch-stall", cfg.batch_stall, 1),
+        ("unary", cfg.unary, report.unary_samples),
+        ("unread", cfg.unread, report.unread_calls),
+        ("idle", cfg.idle, 1),
     ] {
         if clients > 0 && done == 0 {
             report.idle_kinds.push(kind);

@@ -36,6 +36,18 @@ pub struct SoakBench {
     cancelling: usize,
     #[arg(long, default_value_t = 1)]
     uploading: usize,
+    /// Clients making GetSample calls one after another (a flood when many).
+    #[arg(long, default_value_t = 0)]
+    unary: usize,
+    /// Raw HTTP/2 clients from 127.0.0.2 keeping 8 GetSample calls open, never reading them.
+    #[arg(long, default_value_t = 0)]
+    unread: usize,
+    /// Raw HTTP/2 connections from 127.0.0.2 that answer pings and open no call.
+    #[arg(long, default_value_t = 0)]
+    idle: usize,
+    /// Stalled clients with batch 64.
+    #[arg(long, default_value_t = 0)]
+    batch_stall: usize,
     /// Seconds between readings of the server's memory.
     #[arg(long, default_value_t = 10.0)]
     report_every_s: f64,
@@ -56,8 +68,9 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         (Some(m), _) => seconds("--minutes", m * 60.0, 7.0 * 24.0 * 3600.0)?,
         (None, s) => seconds("--seconds", s.unwrap_or(60.0), 7.0 * 24.0 * 3600.0)?,
     };
-    if b.fast == 0 || b.fast + b.stalled + b.slow + b.cancelling + b.uploading > 1000 {
-        return Err(CliError("bench soak: at least 1 fast client and at most 1000 clients in all".into()));
+    let all = b.fast + b.stalled + b.slow + b.cancelling + b.uploading + b.unary + b.unread + b.idle + b.batch_stall;
+    if b.fast == 0 || all > 2000 {
+        return Err(CliError("bench soak: at least 1 fast client and at most 2000 clients in all".into()));
     }
     let exe = std::env::current_exe().map_err(|e| CliError(format!("cannot find the mpiflow binary: {e}")))?;
     let cfg = SoakConfig {
@@ -71,17 +84,26 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         slow: b.slow,
         cancelling: b.cancelling,
         uploading: b.uploading,
+        unary: b.unary,
+        unread: b.unread,
+        idle: b.idle,
+        batch_stall: b.batch_stall,
         report_every: seconds("--report-every-s", b.report_every_s, 3600.0)?,
         server_args: b.server_args,
     };
     println!(
-        "soak: {:.0} s of {} fast, {} stalled, {} slow, {} cancelling, {} uploading clients; server --size {} --workers {} {}",
+        "soak: {:.0} s of {} fast, {} stalled, {} slow, {} cancelling, {} uploading, {} unary, {} unread, {} idle, {} \
+         batch-stall clients; server --size {} --workers {} {}",
         duration.as_secs_f64(),
         cfg.fast,
         cfg.stalled,
         cfg.slow,
         cfg.cancelling,
         cfg.uploading,
+        cfg.unary,
+        cfg.unread,
+        cfg.idle,
+        cfg.batch_stall,
         cfg.size,
         cfg.workers,
         cfg.server_args.join(" ")

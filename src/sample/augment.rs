@@ -278,6 +278,58 @@ impl AugmentPreset {
     }
 }
 
+/// Any JSON value whose objects name no key twice (deserialising it is the check).
+struct NoRepeatedKeys;
+
+impl<'de> serde::Deserialize<'de> for NoRepeatedKeys {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        d.deserialize_any(NoRepeatedKeysVisitor)
+    }
+}
+
+struct NoRepeatedKeysVisitor;
+
+impl<'de> serde::de::Visitor<'de> for NoRepeatedKeysVisitor {
+    type Value = NoRepeatedKeys;
+
+    fn expecting(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("a JSON value")
+    }
+    fn visit_bool<E>(self, _: bool) -> Result<NoRepeatedKeys, E> {
+        Ok(NoRepeatedKeys)
+    }
+    fn visit_i64<E>(self, _: i64) -> Result<NoRepeatedKeys, E> {
+        Ok(NoRepeatedKeys)
+    }
+    fn visit_u64<E>(self, _: u64) -> Result<NoRepeatedKeys, E> {
+        Ok(NoRepeatedKeys)
+    }
+    fn visit_f64<E>(self, _: f64) -> Result<NoRepeatedKeys, E> {
+        Ok(NoRepeatedKeys)
+    }
+    fn visit_str<E>(self, _: &str) -> Result<NoRepeatedKeys, E> {
+        Ok(NoRepeatedKeys)
+    }
+    fn visit_unit<E>(self) -> Result<NoRepeatedKeys, E> {
+        Ok(NoRepeatedKeys)
+    }
+    fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut a: A) -> Result<NoRepeatedKeys, A::Error> {
+        while a.next_element::<NoRepeatedKeys>()?.is_some() {}
+        Ok(NoRepeatedKeys)
+    }
+    fn visit_map<A: serde::de::MapAccess<'de>>(self, mut a: A) -> Result<NoRepeatedKeys, A::Error> {
+        let mut seen = std::collections::HashSet::new();
+        while let Some(key) = a.next_key::<String>()? {
+            if !seen.insert(key.clone()) {
+                let key = crate::failure::echo(&key);
+                return Err(serde::de::Error::custom(format!("key {key} given twice")));
+            }
+            a.next_value::<NoRepeatedKeys>()?;
+        }
+        Ok(NoRepeatedKeys)
+    }
+}
+
 /// An augmentation of a request: the preset it starts from and its parameters.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Augment {
@@ -339,6 +391,8 @@ impl Augment {
                 )
             });
         }
+        // serde_json keeps the last of a repeated key without a word: refused instead
+        serde_json::from_str::<NoRepeatedKeys>(t).map_err(|e| bad("augment", format!("JSON: {e}")))?;
         let value: serde_json::Value = serde_json::from_str(t).map_err(|e| bad("augment", format!("JSON: {e}")))?;
         let obj = value.as_object().ok_or_else(|| bad("augment", "expected a JSON object"))?;
         let mut preset = AugmentPreset::None;
@@ -1010,6 +1064,17 @@ mod tests {
     use crate::sample::motion::{Motion, RotationKind};
     use crate::sample::StageTimings;
     use proptest::prelude::*;
+
+    #[test]
+    fn a_key_given_twice_is_refused_at_any_depth() {
+        let e = Augment::parse(r#"{"preset":"raft-chairs","preset":"none"}"#).unwrap_err();
+        assert_eq!(e.field, "augment");
+        assert!(e.reason.contains("\"preset\" given twice"), "{}", e.reason);
+        let e = Augment::parse(r#"{"crop":[8,8],"brightness":{"a":1,"a":2}}"#).unwrap_err();
+        assert!(e.reason.contains("given twice"), "{}", e.reason);
+        // the same key in two objects is fine, and so is a well-formed form
+        assert!(Augment::parse(r#"{"preset":"raft-chairs","crop":[64,48]}"#).is_ok());
+    }
 
     /// A `w` x `h` sample with textured images, the affine flow `f(p) = (a p.x + b, c p.y + d)`,
     /// valid except a band, and label/depth planes that name their pixel.

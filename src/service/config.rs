@@ -12,9 +12,25 @@ pub use crate::scene::models::ModelConfig;
 
 use super::error::ServiceError;
 
-/// Bytes per pixel of a sample with every field: image1 and image2 (3 + 3), f32 flow (8), valid,
-/// occlusion, mask1, mask2, holes (5 x 1), f32 depth1 and depth2 (8).
-pub const BYTES_PER_PIXEL_ALL_FIELDS: u64 = 27;
+/// Bytes per pixel of the largest sample a request can ask for: a clip of
+/// [`MAX_FRAMES`](crate::sample::config::MAX_FRAMES) frames with every field and f32 flow
+/// (`encode::bytes_per_pixel`).
+pub fn bytes_per_pixel_largest() -> u64 {
+    use super::encode::{bytes_per_pixel, ALL_FIELDS};
+    bytes_per_pixel(&ALL_FIELDS, crate::sample::config::MAX_FRAMES, false).iter().map(|(_, b)| b).sum()
+}
+
+/// The encoded size bound of a sample of `pixels` pixels at `per_pixel` bytes each in `tensors`
+/// tensors: lz4's worst case (1/255 more and 16 bytes per tensor), 64 bytes of name and shape
+/// per tensor, and [`SAMPLE_METADATA_BYTES`] for the rest of the message.
+pub fn sample_bytes_bound(pixels: u64, per_pixel: u64, tensors: u64) -> u64 {
+    let raw = pixels.saturating_mul(per_pixel);
+    raw.saturating_add(raw / 255).saturating_add(80 * tensors).saturating_add(SAMPLE_METADATA_BYTES)
+}
+
+/// The allowance for a sample's fields besides its tensors (camera, up to 255 objects with their
+/// motions, provenance, the augmentation record, names).
+pub const SAMPLE_METADATA_BYTES: u64 = 128 << 10;
 
 /// The scene cache's default budget in MiB: the 8 bundled 640x480 scenes (about 45 MiB each,
 /// 356 MiB together, since a prepared scene keeps its planes and B-spline coefficients only in
@@ -142,9 +158,20 @@ pub struct ServiceConfig {
     pub max_upload_bytes: u64,
     /// Most connections open at once on each listener (more are closed as they arrive).
     pub max_connections: usize,
-    /// Seconds a new connection may stay silent before it is closed; also the HTTP/2 keepalive
-    /// ping interval, a ping unanswered for this long closes the connection.
+    /// Most connections open at once from one peer address (more are closed as they arrive).
+    pub max_connections_per_peer: usize,
+    /// Most calls open at once on one connection (HTTP/2 `SETTINGS_MAX_CONCURRENT_STREAMS`).
+    pub max_calls_per_connection: u32,
+    /// Seconds a new connection may stay silent, and a connection may stay open with no call,
+    /// before it is closed; also the HTTP/2 keepalive ping interval, a ping unanswered for this
+    /// long closes the connection.
     pub idle_connection_timeout_s: f64,
+    /// Seconds a client may take less than 1 MiB while the server has bytes for it (it stopped
+    /// reading) before its connection is closed, ending its streams and freeing their slots.
+    pub stall_timeout_s: f64,
+    /// Concurrent GetSample and GetSamples calls over all clients; more are refused with
+    /// RESOURCE_EXHAUSTED (each takes a turn of the workers like a stream does).
+    pub max_random_access_calls: usize,
     /// Most uploads in progress at once; more are RESOURCE_EXHAUSTED with nothing kept.
     pub max_concurrent_uploads: usize,
     /// Most MiB held by all uploads in progress together (received, not yet committed); over it
@@ -213,7 +240,11 @@ impl Default for ServiceConfig {
             max_image_bytes: 64 << 20,
             max_upload_bytes: 256 << 20,
             max_connections: 512,
+            max_connections_per_peer: 128,
+            max_calls_per_connection: 128,
             idle_connection_timeout_s: 20.0,
+            stall_timeout_s: 120.0,
+            max_random_access_calls: 32,
             max_concurrent_uploads: 4,
             max_upload_buffer_mb: 512,
             size: None,
@@ -267,7 +298,8 @@ impl ServiceConfig {
     /// `MAX_IN_FLIGHT`, `MAX_STREAMS`, `PREFETCH`, `MAX_PREFETCH`, `MAX_BUFFERED_MB`, `MAX_BATCH_SIZE`,
     /// `MAX_IMAGE_SIDE`, `MAX_IMAGE_PIXELS`, `MAX_IMAGE_BYTES`, `MAX_UPLOAD_BYTES`,
     /// `MAX_CONCURRENT_UPLOADS`, `MAX_UPLOAD_BUFFER_MB`, `MAX_CONNECTIONS`,
-    /// `IDLE_CONNECTION_TIMEOUT_S`, `SIZE`,
+    /// `MAX_CONNECTIONS_PER_PEER`, `MAX_CALLS_PER_CONNECTION`, `IDLE_CONNECTION_TIMEOUT_S`,
+    /// `STALL_TIMEOUT_S`, `MAX_RANDOM_ACCESS_CALLS`, `SIZE`,
     /// `CACHE_MB`, `DRAIN_TIMEOUT_S`, `WARMUP_DELAY_MS`, `LOG_FORMAT`, `LOG_LEVEL`, `PLANES`,
     /// `DEPTH_MODEL`, `MPI_MODEL`, `SEGMENT_MODEL`, `PRESET`, `MAX_OBJECTS`, `MOTIONS_PER_IMAGE`,
     /// `HEALTH_ADDR`, `TLS_CERT`, `TLS_KEY`, `TLS_CLIENT_CA`, `AUTH_TOKEN`, `AUTH_TOKEN_FILE`
@@ -299,6 +331,10 @@ impl ServiceConfig {
                 "MAX_CONCURRENT_UPLOADS" => self.max_concurrent_uploads = env_parse(&key, &value)?,
                 "MAX_CONNECTIONS" => self.max_connections = env_parse(&key, &value)?,
                 "IDLE_CONNECTION_TIMEOUT_S" => self.idle_connection_timeout_s = env_parse(&key, &value)?,
+                "MAX_CONNECTIONS_PER_PEER" => self.max_connections_per_peer = env_parse(&key, &value)?,
+                "MAX_CALLS_PER_CONNECTION" => self.max_calls_per_connection = env_parse(&key, &value)?,
+                "STALL_TIMEOUT_S" => self.stall_timeout_s = env_parse(&key, &value)?,
+                "MAX_RANDOM_ACCESS_CALLS" => self.max_random_access_calls = env_parse(&key, &value)?,
                 "MAX_UPLOAD_BUFFER_MB" => self.max_upload_buffer_mb = env_parse(&key, &value)?,
                 "SIZE" => self.size = (!value.trim().is_empty()).then(|| value.trim().to_string()),
                 "FOLLOW_SOURCE_LINKS" => self.follow_source_links = env_parse(&key, &value)?,
@@ -361,6 +397,15 @@ impl ServiceConfig {
                 "idle_connection_timeout_s = {} (expected seconds > 0)",
                 self.idle_connection_timeout_s
             ));
+        }
+        if !(self.stall_timeout_s.is_finite() && self.stall_timeout_s > 0.0) {
+            return bad(format!("stall_timeout_s = {} (expected seconds > 0)", self.stall_timeout_s));
+        }
+        if self.max_connections_per_peer == 0 || self.max_calls_per_connection == 0 {
+            return bad("max_connections_per_peer and max_calls_per_connection must be at least 1".into());
+        }
+        if self.max_random_access_calls == 0 {
+            return bad("max_random_access_calls = 0 (expected at least 1)".into());
         }
         if self.max_concurrent_uploads == 0 || self.max_upload_buffer_mb == 0 {
             return bad("max_concurrent_uploads and max_upload_buffer_mb must be at least 1".into());
@@ -477,11 +522,18 @@ impl ServiceConfig {
         }
     }
 
-    /// The gRPC message limit (both directions, server and the Rust client): one sample of the
-    /// largest size with every field, plus 1 MiB for metadata, at least 64 MiB, at most 1 GiB.
-    /// A batch is cut short rather than exceed it.
+    /// The limit of a reply message: the largest sample the configuration admits (a clip of the
+    /// most frames with every field at the largest frame, [`sample_bytes_bound`]), at least
+    /// 64 MiB, at most [`MAX_MESSAGE_CAP`]. A request whose largest sample is over it is refused
+    /// before any work (`validate::admit_size`); a batch is cut short rather than exceed it.
     pub fn max_message_bytes(&self) -> u64 {
-        (BYTES_PER_PIXEL_ALL_FIELDS * self.max_sample_pixels() + (1 << 20)).clamp(64 << 20, MAX_MESSAGE_CAP)
+        sample_bytes_bound(self.max_sample_pixels(), bytes_per_pixel_largest(), 14).clamp(64 << 20, MAX_MESSAGE_CAP)
+    }
+
+    /// The limit of a request message: an upload chunk may carry a whole source file
+    /// (`max_image_bytes`) plus 1 MiB; at least 64 MiB, at most [`MAX_MESSAGE_CAP`].
+    pub fn max_request_bytes(&self) -> u64 {
+        self.max_image_bytes.saturating_add(1 << 20).clamp(64 << 20, MAX_MESSAGE_CAP)
     }
 }
 
@@ -496,7 +548,7 @@ fn check_token(t: &str) -> Result<(), String> {
 /// Dataset and upload names: 1 to 64 of letters, digits, `-`, `_`, `.`, not starting with `.`.
 pub fn valid_name(name: &str) -> bool {
     !name.is_empty()
-        && name.len() <= 64
+        && name.len() <= crate::source::upload::MAX_DATASET_NAME
         && !name.starts_with('.')
         && name.chars().all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
 }
@@ -595,7 +647,10 @@ mod tests {
     #[test]
     fn message_limit_fits_the_largest_sample() {
         let c = ServiceConfig::default();
-        assert!(c.max_message_bytes() >= BYTES_PER_PIXEL_ALL_FIELDS * c.max_image_pixels);
+        // a clip of 8 frames with all 14 fields: 8 x 3 + 7 x (8 + 1 + 1) x 2 + 3 + 3 x 4 bytes
+        assert_eq!(bytes_per_pixel_largest(), 24 + 140 + 3 + 12);
+        assert!(c.max_message_bytes() >= bytes_per_pixel_largest() * c.max_image_pixels);
+        assert!(c.max_message_bytes() <= MAX_MESSAGE_CAP);
         let small = ServiceConfig { size: Some("64x48".into()), ..ServiceConfig::default() };
         assert_eq!(small.max_message_bytes(), 64 << 20);
     }

@@ -224,6 +224,51 @@ pub fn clip_field_name(f: pb::Field) -> Option<&'static str> {
     })
 }
 
+/// Bytes per pixel of each field on the wire, for a sample of `frames` frames (2 = a pair) with
+/// f16 or f32 flow, before compression (lz4 may add up to 1/255 and 16 bytes per tensor): the
+/// images 3 per frame, a flow 4 or 8 and a mask 1 per pair of frames (for the linked fields of
+/// a clip), depth and disparity 4, the object masks and holes 1.
+pub fn bytes_per_pixel(fields: &[pb::Field], frames: usize, flow_f16: bool) -> Vec<(&'static str, u64)> {
+    let k = frames.max(2) as u64;
+    let pairs = k - 1;
+    let flow = if flow_f16 { 2 } else { 4 } * 2;
+    let mut out = Vec::with_capacity(fields.len());
+    for &f in fields {
+        let per_pixel = match f {
+            pb::Field::Unspecified => continue,
+            // a clip stacks both images into one tensor: counted once, with the first
+            pb::Field::Image1 => 3 * if k > 2 { k } else { 1 },
+            pb::Field::Image2 if k > 2 && fields.contains(&pb::Field::Image1) => continue,
+            pb::Field::Image2 => 3 * if k > 2 { k } else { 1 },
+            pb::Field::Flow | pb::Field::FlowBackward => flow * pairs,
+            pb::Field::Valid | pb::Field::Occlusion | pb::Field::ValidBackward | pb::Field::OcclusionBackward => pairs,
+            pb::Field::Mask1 | pb::Field::Mask2 | pb::Field::Holes => 1,
+            pb::Field::Depth1 | pb::Field::Depth2 | pb::Field::Disparity => 4,
+        };
+        let name = if k > 2 { clip_field_name(f).unwrap_or(field_name(f)) } else { field_name(f) };
+        out.push((name, per_pixel));
+    }
+    out
+}
+
+/// Every field a request may name, in wire order.
+pub const ALL_FIELDS: [pb::Field; 14] = [
+    pb::Field::Image1,
+    pb::Field::Image2,
+    pb::Field::Flow,
+    pb::Field::Valid,
+    pb::Field::Occlusion,
+    pb::Field::Mask1,
+    pb::Field::Mask2,
+    pb::Field::Depth1,
+    pb::Field::Depth2,
+    pb::Field::Holes,
+    pb::Field::FlowBackward,
+    pb::Field::ValidBackward,
+    pb::Field::OcclusionBackward,
+    pb::Field::Disparity,
+];
+
 /// Whether the fields ask for the (forward) occlusion mask.
 pub fn wants_occlusion(fields: &[pb::Field]) -> bool {
     fields.contains(&pb::Field::Occlusion)

@@ -112,40 +112,21 @@ pub fn from_request_stream(status: Status) -> ServiceError {
     }
 }
 
-/// The response layer of the server: tonic answers a unary or server-streaming request over the
-/// decoding limit with OUT_OF_RANGE before any handler runs; by gRPC's convention (and the error
-/// table of docs/api.md) a request too large is RESOURCE_EXHAUSTED, so the status header of such
-/// a (trailers-only) response is rewritten. Every other response passes unchanged.
-pub fn oversized_is_resource_exhausted<B>(
-    mut response: tonic::codegen::http::Response<B>,
-) -> tonic::codegen::http::Response<B> {
-    let h = response.headers();
-    let out_of_range = h.get("grpc-status").is_some_and(|v| v.as_bytes() == b"11");
-    let too_large =
-        h.get("grpc-message").and_then(|v| v.to_str().ok()).is_some_and(|m| percent_decoded_contains(m, TOO_LARGE));
-    if out_of_range && too_large {
-        response.headers_mut().insert("grpc-status", tonic::codegen::http::HeaderValue::from_static("8"));
-    }
-    response
-}
+/// What tonic says of a request message that is not valid protobuf (or ends early): the client's
+/// fault, INVALID_ARGUMENT by the error table, not the INTERNAL tonic gives it.
+const MALFORMED: [&str; 3] =
+    ["failed to decode Protobuf message", "Unexpected EOF decoding stream", "received message with compressed-flag"];
 
-/// Whether a `grpc-message` header (percent-encoded) contains `needle` (plain ASCII).
-fn percent_decoded_contains(header: &str, needle: &str) -> bool {
-    let mut plain = String::with_capacity(header.len());
-    let b = header.as_bytes();
-    let mut i = 0;
-    while i < b.len() {
-        if b[i] == b'%' && i + 2 < b.len() {
-            if let Ok(v) = u8::from_str_radix(&header[i + 1..i + 3], 16) {
-                plain.push(char::from(v));
-                i += 3;
-                continue;
-            }
-        }
-        plain.push(char::from(b[i]));
-        i += 1;
+/// The code of the error table for a status tonic made before any handler ran (a trailers-only
+/// reply): a request over the decoding limit is RESOURCE_EXHAUSTED (gRPC's code for a request
+/// too large; tonic says OUT_OF_RANGE), a malformed request message INVALID_ARGUMENT (tonic says
+/// INTERNAL, which the table keeps for a sample that could not be made). None = keep the code.
+pub fn transport_code(code: Code, message: &str) -> Option<Code> {
+    match code {
+        Code::OutOfRange if message.contains(TOO_LARGE) => Some(Code::ResourceExhausted),
+        Code::Internal if MALFORMED.iter().any(|m| message.contains(m)) => Some(Code::InvalidArgument),
+        _ => None,
     }
-    plain.contains(needle)
 }
 
 /// Most characters of a status message: a message never grows with what a client sent (a

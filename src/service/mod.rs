@@ -26,6 +26,7 @@ pub mod encode;
 pub mod error;
 pub mod metrics;
 pub mod pool;
+pub mod reply;
 pub mod security;
 pub mod server;
 pub mod validate;

@@ -51,9 +51,14 @@
 //! newest finished samples (made again, byte for byte, when the stream reads on) and make no
 //! more ahead until they send a message, so a stalled stream never keeps more than its share,
 //! does not refill and drop again as other streams come and go, and the fast streams keep
-//! their share. A stream may always make the samples of the batch it is filling (and never
-//! drops them), so a batch larger than the share is still sent. In all at most `budget` plus,
-//! per stream, one batch being filled and one message in the transport is held.
+//! their share. A batch is filled within the share as well: a stream at its share with nothing
+//! running sends the samples it has as a shorter batch (and never drops the next sample to send),
+//! so a batch larger than the share is sent in parts. Beyond its share, a job starts only while
+//! the whole budget has room for its estimate (a stream's message in the transport, made under a
+//! larger share before others opened, cannot be dropped; this keeps it inside the total). In all
+//! at most `budget` plus, per stream, one sample started while holding nothing is held. A unary
+//! reply (GetSample) keeps its stream, and so its bytes, until the reply has left
+//! (`service::reply`).
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
@@ -208,13 +213,15 @@ impl StreamShared {
         }
     }
 
-    fn eligible(&self, s: &StreamState, share: u64) -> bool {
+    /// Whether the stream may start a job now, with `share` its share of the budget and `room`
+    /// what the budget has left over all streams.
+    fn eligible(&self, s: &StreamState, share: u64, room: u64) -> bool {
         let holds_nothing = s.held == 0 && s.running == 0;
-        // the samples of the batch being filled are always made: a batch larger than the share
-        // would otherwise wait for ever for its last samples
-        let fills_batch = s.dispatched < s.delivered + self.spec.batch_size as u64;
+        // a batch is filled within the share too: a stream at its share sends the batch it has
+        // (cut short, see `SampleStream::poll_next`); and within what the budget has left, so
+        // that messages made under larger shares (still in the transport) keep the total bound
         let within_share =
-            holds_nothing || fills_batch || (!s.trimmed && s.estimate > 0 && s.held + s.estimate <= share);
+            holds_nothing || (!s.trimmed && s.estimate > 0 && s.held + s.estimate <= share && s.estimate <= room);
         !s.closed
             && !s.draining
             && s.dispatched < self.len
@@ -518,7 +525,7 @@ impl Scheduler {
                 let i = (s.rr + off) % n;
                 let st = &s.streams[i];
                 let mut g = lock(&st.state);
-                if st.eligible(&g, share) {
+                if st.eligible(&g, share, self.room()) {
                     let k = g.dispatched;
                     let reserved = g.estimate;
                     g.dispatched += 1;
@@ -558,6 +565,15 @@ impl Scheduler {
         self.pump();
     }
 
+    /// What the budget has left over all streams.
+    fn room(&self) -> u64 {
+        self.budget.saturating_sub(self.buffered.load(Ordering::Acquire))
+    }
+
+    fn open_streams(&self) -> usize {
+        self.open_streams.load(Ordering::Acquire)
+    }
+
     /// A stream's fair share of the budget with `n` streams open.
     fn share(&self, n: usize) -> u64 {
         self.budget / n.max(1) as u64
@@ -568,8 +584,8 @@ impl Scheduler {
     /// running job there stops it) and will make it again, byte for byte, when it reads on.
     fn trim(&self, st: &StreamShared, g: &mut StreamState, share: u64) {
         let mut freed = 0u64;
-        // never the batch being filled (it is always made, see `eligible`)
-        while g.held > share && g.dispatched > g.delivered + st.spec.batch_size as u64 {
+        // never the next sample to send (a stream always gets to send one)
+        while g.held > share && g.dispatched > g.delivered + 1 {
             let top = g.dispatched - 1;
             let Some(item) = g.ready.remove(&top) else { break }; // still running
             let size = match &item {
@@ -705,7 +721,7 @@ impl Scheduler {
             waiting_scene: s.waiting_scene + s.ready_jobs.len(),
             eligible: {
                 let share = self.share(s.streams.len());
-                s.streams.iter().filter(|st| st.eligible(&lock(&st.state), share)).count()
+                s.streams.iter().filter(|st| st.eligible(&lock(&st.state), share, self.room())).count()
             },
             per_stream: s
                 .streams
@@ -781,7 +797,10 @@ impl Stream for SampleStream {
             contiguous += 1;
         }
         let drained = g.draining && g.running == 0;
-        if contiguous > 0 && (contiguous == want || drained) {
+        // at its share of the budget, with nothing running, a stream sends the batch it has
+        let sc = &self.scheduler;
+        let at_share = g.running == 0 && !shared.eligible(&g, sc.share(sc.open_streams()), sc.room());
+        if contiguous > 0 && (contiguous == want || drained || at_share) {
             let mut samples = Vec::with_capacity(contiguous);
             let mut bytes = 0usize;
             let mut moved = 0u64;

@@ -25,6 +25,7 @@ use super::metrics::{serve_metrics, Metrics};
 use super::pb;
 use super::pb::mpi_flow_server::{MpiFlow, MpiFlowServer};
 use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
+use super::reply::{ReplyHold, ReplyLayer};
 use super::security::{server_tls, RequireToken};
 use super::validate;
 use crate::sample::recipe::Generator;
@@ -42,6 +43,9 @@ pub struct State {
     serving: AtomicBool,
     draining: AtomicBool,
     active_streams: AtomicUsize,
+    /// GetSample and GetSamples calls open now (`max_random_access_calls`), replies not yet sent
+    /// included.
+    random_access_calls: AtomicUsize,
 }
 
 impl std::fmt::Debug for State {
@@ -152,8 +156,9 @@ impl State {
         o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
+        validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
         // the stream limit
-        self.admit()?;
+        let admitted = self.admit(CallKind::Stream)?;
         let spec = StreamSpec {
             start_index: r.start_index,
             rank: u64::from(rank),
@@ -164,13 +169,7 @@ impl State {
             max_message_bytes: self.config.max_message_bytes() as usize,
         };
         let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
-        let inner = match self.scheduler.open(spec, produce) {
-            Ok(s) => s,
-            Err(e) => {
-                self.active_streams.fetch_sub(1, Ordering::SeqCst);
-                return Err(e);
-            }
-        };
+        let inner = self.scheduler.open(spec, produce)?;
         self.metrics.active_streams.inc();
         tracing::info!(
             stream = inner.id(),
@@ -185,17 +184,32 @@ impl State {
             prefetch,
             "stream opened"
         );
-        Ok(CountedStream { inner, state: self.clone(), random_access: false })
+        Ok(CountedStream { inner, _admitted: admitted })
     }
 
-    /// Counts a new stream against `max_streams` (undone by the returned stream's drop).
-    fn admit(&self) -> Result<(), ServiceError> {
-        let limit = self.config.max_streams;
-        if self.active_streams.fetch_add(1, Ordering::SeqCst) >= limit {
-            self.active_streams.fetch_sub(1, Ordering::SeqCst);
-            return Err(ServiceError::TooManyStreams { limit });
+    /// Counts a new call against its limit: `max_streams` for StreamSamples,
+    /// `max_random_access_calls` for GetSample and GetSamples (undone when the returned slot is
+    /// dropped, with the call's reply).
+    fn admit(self: &Arc<Self>, kind: CallKind) -> Result<Admitted, ServiceError> {
+        let (counter, limit) = self.counter(kind);
+        if counter.fetch_add(1, Ordering::SeqCst) >= limit {
+            counter.fetch_sub(1, Ordering::SeqCst);
+            return Err(match kind {
+                CallKind::Stream => ServiceError::TooManyStreams { limit },
+                CallKind::RandomAccess => ServiceError::LimitExceeded(format!(
+                    "too many GetSample/GetSamples calls: {limit} are open (max_random_access_calls); retry when \
+                     one has been answered"
+                )),
+            });
         }
-        Ok(())
+        Ok(Admitted { state: self.clone(), kind })
+    }
+
+    fn counter(&self, kind: CallKind) -> (&AtomicUsize, usize) {
+        match kind {
+            CallKind::Stream => (&self.active_streams, self.config.max_streams),
+            CallKind::RandomAccess => (&self.random_access_calls, self.config.max_random_access_calls),
+        }
     }
 
     /// The samples of an explicit index list, in its order (GetSamples): a stream of the pool
@@ -212,7 +226,8 @@ impl State {
         o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
-        self.admit()?;
+        validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
+        let admitted = self.admit(CallKind::RandomAccess)?;
         // as many made ahead as keep every worker busy (within max_prefetch)
         let prefetch = (self.config.default_prefetch as usize)
             .max(self.scheduler.workers())
@@ -221,13 +236,7 @@ impl State {
         let n = indices.len();
         let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
         let max_bytes = self.config.max_message_bytes() as usize;
-        let inner = match self.scheduler.open_indices(indices, 1, prefetch, max_bytes, produce) {
-            Ok(s) => s,
-            Err(e) => {
-                self.active_streams.fetch_sub(1, Ordering::SeqCst);
-                return Err(e);
-            }
-        };
+        let inner = self.scheduler.open_indices(indices, 1, prefetch, max_bytes, produce)?;
         self.metrics.active_streams.inc();
         tracing::debug!(
             stream = inner.id(),
@@ -238,11 +247,13 @@ impl State {
             prefetch,
             "samples opened"
         );
-        Ok(CountedStream { inner, state: self.clone(), random_access: true })
+        Ok(CountedStream { inner, _admitted: admitted })
     }
 
-    /// One sample through the worker pool (GetSample and the warm-up).
-    pub async fn one_sample(self: &Arc<Self>, r: &pb::SampleRequest) -> Result<pb::Sample, Status> {
+    /// One sample through the worker pool (GetSample and the warm-up), with its place in the
+    /// byte budget: the sample's bytes stay counted until the returned stream is dropped (with
+    /// the reply, once sent: [`ReplyHold`]).
+    pub async fn one_sample(self: &Arc<Self>, r: &pb::SampleRequest) -> Result<(pb::Sample, SampleStream), Status> {
         if r.index == super::pool::END_INDEX {
             return Err(ServiceError::invalid("index", "2^64 - 1 is the end of the index space, not a sample").into());
         }
@@ -253,6 +264,7 @@ impl State {
         o.resample = validate::resample(&r.resample)?;
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
+        validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
         let spec = StreamSpec {
             start_index: r.index,
             rank: 0,
@@ -264,7 +276,7 @@ impl State {
         };
         let mut stream = self.scheduler.open(spec, self.produce(ds, generator, r.seed, out))?;
         match stream.next().await {
-            Some(Ok(mut b)) if !b.samples.is_empty() => Ok(b.samples.swap_remove(0)),
+            Some(Ok(mut b)) if !b.samples.is_empty() => Ok((b.samples.swap_remove(0), stream)),
             Some(Err(status)) => Err(Status::new(status.code(), status.message().to_string())),
             _ => Err(ServiceError::Internal("no sample came back".into()).into()),
         }
@@ -351,6 +363,13 @@ impl State {
                 max_upload_bytes: c.max_upload_bytes,
                 max_indices: validate::MAX_INDICES as u32,
                 max_buffered_bytes: self.scheduler.budget(),
+                max_request_bytes: c.max_request_bytes(),
+                max_random_access_calls: c.max_random_access_calls as u32,
+                max_connections: c.max_connections as u32,
+                max_connections_per_peer: c.max_connections_per_peer as u32,
+                max_calls_per_connection: c.max_calls_per_connection,
+                idle_connection_timeout_s: c.idle_connection_timeout_s,
+                stall_timeout_s: c.stall_timeout_s,
             }),
             workers: self.scheduler.workers() as u32,
             serving: self.is_serving(),
@@ -358,12 +377,31 @@ impl State {
     }
 }
 
-/// A stream counted against `max_streams` while it lives.
+/// Which limit a call counts against.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum CallKind {
+    /// StreamSamples: `max_streams`.
+    Stream,
+    /// GetSample and GetSamples: `max_random_access_calls`.
+    RandomAccess,
+}
+
+/// A call's place under its limit, given back when dropped.
+struct Admitted {
+    state: Arc<State>,
+    kind: CallKind,
+}
+
+impl Drop for Admitted {
+    fn drop(&mut self) {
+        self.state.counter(self.kind).0.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+/// A stream counted against its limit while it lives.
 pub struct CountedStream {
     inner: SampleStream,
-    state: Arc<State>,
-    /// A GetSamples call (one per trainer batch): its close is logged at debug level only.
-    random_access: bool,
+    _admitted: Admitted,
 }
 
 impl Stream for CountedStream {
@@ -375,9 +413,8 @@ impl Stream for CountedStream {
 
 impl Drop for CountedStream {
     fn drop(&mut self) {
-        self.state.active_streams.fetch_sub(1, Ordering::SeqCst);
-        self.state.metrics.active_streams.dec();
-        if self.random_access {
+        self._admitted.state.metrics.active_streams.dec();
+        if self._admitted.kind == CallKind::RandomAccess {
             tracing::debug!(stream = self.inner.id(), "samples closed");
         } else {
             tracing::info!(stream = self.inner.id(), "stream closed");
@@ -416,11 +453,13 @@ impl MpiFlow for Service {
         if self.state.draining.load(Ordering::SeqCst) {
             return Err(refused::<()>(&self.state, Err(ServiceError::Draining)).unwrap_err());
         }
+        let admitted = refused(&self.state, self.state.admit(CallKind::RandomAccess))?;
         let r = self.state.one_sample(request.get_ref()).await;
-        if let Err(s) = &r {
-            self.state.metrics.count_refused(s.code());
-        }
-        r.map(Response::new)
+        let (sample, stream) = r.inspect_err(|s| self.state.metrics.count_refused(s.code()))?;
+        let mut response = Response::new(sample);
+        // the sample's bytes and the call's slot are held until the reply has been sent
+        response.extensions_mut().insert(ReplyHold(Arc::new(std::sync::Mutex::new((stream, admitted)))));
+        Ok(response)
     }
 
     async fn get_samples(
@@ -510,13 +549,19 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         serving: AtomicBool::new(false),
         draining: AtomicBool::new(false),
         active_streams: AtomicUsize::new(0),
+        random_access_calls: AtomicUsize::new(0),
     });
     state.set_health(ServingStatus::NotServing).await;
 
     let listener = bind(&config.addr, "addr").await?;
     // connection hygiene, the same on every listener (see service::conn)
     let idle = Duration::from_secs_f64(config.idle_connection_timeout_s);
-    let conn_limits = super::conn::ConnLimits { max_connections: config.max_connections, first_bytes_timeout: idle };
+    let conn_limits = super::conn::ConnLimits {
+        max_connections: config.max_connections,
+        max_per_peer: config.max_connections_per_peer,
+        first_bytes_timeout: idle,
+        stall_timeout: Duration::from_secs_f64(config.stall_timeout_s),
+    };
     let addr = listener.local_addr().map_err(|e| ServiceError::Config(format!("addr: {e}")))?;
     let (metrics_addr, metrics_task) = match &config.metrics_addr {
         Some(a) => {
@@ -535,6 +580,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
             let health = tonic::transport::Server::builder()
                 .http2_keepalive_interval(Some(idle))
                 .http2_keepalive_timeout(Some(idle))
+                .layer(ReplyLayer)
                 .add_service(health_service.clone());
             (Some(bound), Some(tokio::spawn(health.serve_with_incoming(incoming))))
         }
@@ -551,10 +597,12 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let reflection_v1alpha = reflection().build_v1alpha().map_err(refl_err)?;
     let limit = config.max_message_bytes() as usize;
     let service = MpiFlowServer::new(Service { state: state.clone() })
-        .max_decoding_message_size(limit)
+        .max_decoding_message_size(config.max_request_bytes() as usize)
         .max_encoding_message_size(limit);
-    let mut builder =
-        tonic::transport::Server::builder().http2_keepalive_interval(Some(idle)).http2_keepalive_timeout(Some(idle));
+    let mut builder = tonic::transport::Server::builder()
+        .http2_keepalive_interval(Some(idle))
+        .http2_keepalive_timeout(Some(idle))
+        .max_concurrent_streams(config.max_calls_per_connection);
     if let Some(tls) = tls.clone() {
         builder = builder.tls_config(tls).map_err(|e| ServiceError::Config(format!("tls_cert / tls_key: {e}")))?;
     }
@@ -562,7 +610,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let incoming = super::conn::incoming(listener, conn_limits);
     let server = tokio::spawn(
         builder
-            .layer(tower::util::MapResponseLayer::new(super::error::oversized_is_resource_exhausted))
+            .layer(ReplyLayer)
             .add_service(health_service)
             .add_service(InterceptedService::new(reflection_v1, auth.clone()))
             .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
@@ -590,7 +638,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         let t = Instant::now();
         let r = warm.one_sample(&pb::SampleRequest::default()).await;
         match r {
-            Ok(s) => tracing::info!(
+            Ok((s, _stream)) => tracing::info!(
                 ms = t.elapsed().as_secs_f64() * 1e3,
                 source = %s.source_id,
                 "warm-up sample made"

@@ -106,6 +106,13 @@ pub fn augment(text: &str, out: &mut OutputSpec, config: &ServiceConfig) -> Resu
         if w > side || h > side {
             return Err(invalid("augment.crop", format!("{w}x{h} is larger than the largest image side {side}")));
         }
+        let (pixels, most) = (u64::from(w) * u64::from(h), config.max_image_pixels);
+        if pixels > most {
+            return Err(invalid(
+                "augment.crop",
+                format!("{w}x{h} is {pixels} pixels, more than the largest image (max_image_pixels {most})"),
+            ));
+        }
     }
     out.augment = Some(a);
     Ok(())
@@ -245,6 +252,67 @@ pub fn stream_shape(r: &pb::StreamRequest, config: &ServiceConfig) -> Result<(u3
     Ok((r.rank, world, batch, prefetch.max(batch)))
 }
 
+/// The most pixels a sample of this request can have: the augmentation's crop, else the rendered
+/// frame's bound (`max_sample_pixels`) scaled by the augmentation's largest resize, else the
+/// request's crop (when it names both sides), else the frame's bound.
+pub fn sample_pixels_bound(out: &OutputSpec, config: &ServiceConfig) -> u64 {
+    let frame = config.max_sample_pixels();
+    match (&out.augment, &out.crop) {
+        (Some(a), _) => match a.params.crop {
+            Some((w, h)) => u64::from(w) * u64::from(h),
+            None => {
+                let p = &a.params;
+                let mut log2 = 0.0;
+                if p.spatial_prob > 0.0 {
+                    log2 += p.max_scale.max(0.0);
+                }
+                if p.stretch_prob > 0.0 {
+                    log2 += p.max_stretch.max(0.0);
+                }
+                // both axes scale
+                (frame as f64 * (2.0 * log2).exp2()).ceil().min(u64::MAX as f64) as u64
+            }
+        },
+        (None, Some(c)) if c.width > 0 && c.height > 0 => (u64::from(c.width) * u64::from(c.height)).min(frame),
+        _ => frame,
+    }
+}
+
+/// Admission by size, before any work: the largest sample of the request (its pixel bound times
+/// the bytes per pixel of its fields and frames, [`super::config::sample_bytes_bound`]) must fit
+/// the message limit and the byte budget of made-but-unsent samples; else RESOURCE_EXHAUSTED
+/// naming the fields that make it large.
+pub fn admit_size(out: &OutputSpec, frames: usize, config: &ServiceConfig, budget: u64) -> Result<(), ServiceError> {
+    use super::config::sample_bytes_bound;
+    let pixels = sample_pixels_bound(out, config);
+    let mut per_field = super::encode::bytes_per_pixel(&out.fields, frames, out.flow_f16);
+    let per_pixel: u64 = per_field.iter().map(|(_, b)| b).sum();
+    let bound = sample_bytes_bound(pixels, per_pixel, per_field.len() as u64);
+    let (limit, what) = {
+        let m = config.max_message_bytes();
+        if budget < m {
+            (budget, "the byte budget of unsent samples (max_buffered_mb)")
+        } else {
+            (m, "the message limit (Limits.max_message_bytes)")
+        }
+    };
+    if bound <= limit {
+        return Ok(());
+    }
+    per_field.sort_by_key(|(_, b)| std::cmp::Reverse(*b));
+    let mb = |b: u64| b as f64 / 1e6;
+    let largest: Vec<String> =
+        per_field.iter().take(4).map(|(name, b)| format!("{name} {:.1} MB", mb(b.saturating_mul(pixels)))).collect();
+    Err(ServiceError::LimitExceeded(format!(
+        "sample too large: up to {pixels} pixels x {frames} frames with {} fields is up to {:.1} MB, over {what} of \
+         {:.1} MB (largest: {}); ask for fewer fields or frames, f16 flow, a smaller crop, or a server with a smaller size",
+        per_field.len(),
+        mb(bound),
+        mb(limit),
+        largest.join(", ")
+    )))
+}
+
 /// The index list of a GetSamples request: 1 to [`MAX_INDICES`] indices, any order, duplicates
 /// allowed.
 pub fn indices(indices: &[u64]) -> Result<Vec<u64>, ServiceError> {
@@ -254,5 +322,65 @@ pub fn indices(indices: &[u64]) -> Result<Vec<u64>, ServiceError> {
     if indices.len() > MAX_INDICES {
         return Err(invalid("indices", format!("{} indices (at most {MAX_INDICES} per request)", indices.len())));
     }
+    if let Some(k) = indices.iter().position(|&i| i == super::pool::END_INDEX) {
+        return Err(invalid("indices", format!("[{k}] = 2^64 - 1 is the end of the index space, not a sample")));
+    }
     Ok(indices.to_vec())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn spec(fields: &[pb::Field]) -> OutputSpec {
+        OutputSpec { fields: fields.to_vec(), ..OutputSpec::default() }
+    }
+
+    /// The bound is what the encoder sends: a sample of every field of a pair at 64x48 fits its
+    /// bound, and the bound's tensors are those of `to_proto`.
+    #[test]
+    fn a_request_over_the_message_limit_is_refused_naming_its_largest_fields() {
+        // 4096x4096 frames: a clip with every field is 3 GB, over the 1 GiB message cap
+        let c = ServiceConfig { size: Some("4096x4096".into()), max_buffered_mb: 1 << 20, ..ServiceConfig::default() };
+        let all = crate::service::encode::ALL_FIELDS;
+        let e = admit_size(&spec(&all[..13]), 8, &c, c.buffered_budget_bytes()).unwrap_err();
+        assert_eq!(e.code(), tonic::Code::ResourceExhausted);
+        let m = e.to_string();
+        assert!(m.contains("message limit") && m.contains("flows ") && m.contains("flows_backward"), "{m}");
+        // a pair of the default fields fits, and so does f16 flow where f32 would not
+        assert!(admit_size(&spec(&DEFAULT_FIELDS), 2, &c, c.buffered_budget_bytes()).is_ok());
+        let mut flows = spec(&[pb::Field::Flow, pb::Field::FlowBackward]);
+        assert!(admit_size(&flows, 8, &c, c.buffered_budget_bytes()).is_err());
+        flows.flow_f16 = true;
+        let pairs_f16 = 7 * 2 * 2 * 2 * 4096 * 4096u64;
+        assert_eq!(admit_size(&flows, 8, &c, c.buffered_budget_bytes()).is_ok(), pairs_f16 < (1 << 30) - (1 << 20));
+        // the budget bounds it too, and is named when it is the smaller
+        let e = admit_size(&spec(&DEFAULT_FIELDS), 2, &c, 1 << 20).unwrap_err();
+        assert!(e.to_string().contains("max_buffered_mb"), "{e}");
+    }
+
+    #[test]
+    fn the_pixel_bound_follows_the_augmentation_and_the_crop() {
+        let c = ServiceConfig { size: Some("640x480".into()), ..ServiceConfig::default() };
+        let mut out = spec(&DEFAULT_FIELDS);
+        assert_eq!(sample_pixels_bound(&out, &c), 640 * 480);
+        out.crop = Some(CropSpec { width: 100, height: 50, random: false });
+        assert_eq!(sample_pixels_bound(&out, &c), 5000);
+        out.crop = Some(CropSpec { width: 0, height: 50, random: false });
+        assert_eq!(sample_pixels_bound(&out, &c), 640 * 480);
+        augment("raft-chairs", &mut out, &c).unwrap_err(); // one side alone with augment
+        out.crop = None;
+        augment("raft-chairs", &mut out, &c).unwrap();
+        let (w, h) = out.augment.as_ref().unwrap().params.crop.unwrap();
+        assert_eq!(sample_pixels_bound(&out, &c), u64::from(w) * u64::from(h));
+        let e = augment(r#"{"preset":"raft-chairs","crop":[8192,8192]}"#, &mut spec(&DEFAULT_FIELDS), &c);
+        assert!(e.unwrap_err().to_string().starts_with("augment.crop: 8192x8192 is 67108864 pixels"));
+    }
+
+    #[test]
+    fn the_end_of_the_index_space_is_refused_by_position() {
+        assert_eq!(indices(&[0, 1, u64::MAX - 1]).unwrap().len(), 3);
+        let e = indices(&[3, u64::MAX]).unwrap_err().to_string();
+        assert!(e.starts_with("indices: [1] = 2^64 - 1"), "{e}");
+    }
 }

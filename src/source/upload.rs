@@ -13,7 +13,7 @@
 //! instance-id PNG). Depth and mask attach to the image of the same name, sent in the same upload
 //! or already in the dataset.
 //!
-//! Names are **stems only**: 1 to 128 of `A-Z a-z 0-9 - _ .`, not starting with `.`, without
+//! Names are **stems only**: 1 to 128 (a dataset's: 64) of `A-Z a-z 0-9 - _ .`, not starting with `.`, without
 //! `..` (so no paths, ever). A file with a bad name or kind, over the per-file limit
 //! ([`ImageLimits::max_bytes`](crate::io::image::ImageLimits::max_bytes)), sent twice (the same
 //! name and kind anywhere in one upload: the name is rejected whole), with bytes after the end of
@@ -158,13 +158,28 @@ impl Item {
     }
 }
 
-/// Checks an upload name: 1 to 128 of `A-Z a-z 0-9 - _ .`, not starting with `.`, no `..`.
+/// Longest file name (stem) in an upload.
+pub const MAX_FILE_NAME: usize = 128;
+/// Longest dataset name (the names of configured datasets follow the same rule).
+pub const MAX_DATASET_NAME: usize = 64;
+
+/// Checks an upload's file name: 1 to [`MAX_FILE_NAME`] of `A-Z a-z 0-9 - _ .`, not starting
+/// with `.`, no `..`.
 pub fn validate_name(name: &str) -> Result<(), String> {
+    validate_name_within(name, MAX_FILE_NAME)
+}
+
+/// Checks an upload's dataset name: as [`validate_name`], at most [`MAX_DATASET_NAME`] bytes.
+pub fn validate_dataset_name(name: &str) -> Result<(), String> {
+    validate_name_within(name, MAX_DATASET_NAME)
+}
+
+fn validate_name_within(name: &str, most: usize) -> Result<(), String> {
     if name.is_empty() {
         return Err("empty name".into());
     }
-    if name.len() > 128 {
-        return Err(format!("name of {} bytes (at most 128)", name.len()));
+    if name.len() > most {
+        return Err(format!("name of {} bytes (at most {most})", name.len()));
     }
     if let Some(c) = name.chars().find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))) {
         return Err(format!("invalid character {c:?} (names are stems: letters, digits, '-', '_', '.'; no paths)"));
@@ -443,7 +458,7 @@ impl UploadSession {
     /// stored); rejected files are reported by [`finish`](Self::finish).
     pub fn push(&mut self, dataset: &str, name: &str, kind: &str, data: &[u8]) -> Result<(), SourceError> {
         if self.dataset.is_none() {
-            validate_name(dataset).map_err(|message| SourceError::Upload { field: "dataset", message })?;
+            validate_dataset_name(dataset).map_err(|message| SourceError::Upload { field: "dataset", message })?;
             self.dataset = Some(dataset.to_string());
         }
         let limits = self.store.limits;
@@ -654,5 +669,20 @@ fn printable(name: &str) -> String {
         format!("{s}...")
     } else {
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dataset_names_stop_at_64_bytes_and_file_names_at_128() {
+        let at = |n: usize| "a".repeat(n);
+        assert!(validate_dataset_name(&at(MAX_DATASET_NAME)).is_ok());
+        let e = validate_dataset_name(&at(MAX_DATASET_NAME + 1)).unwrap_err();
+        assert_eq!(e, format!("name of {} bytes (at most 64)", MAX_DATASET_NAME + 1));
+        assert!(validate_name(&at(MAX_FILE_NAME)).is_ok());
+        assert!(validate_name(&at(MAX_FILE_NAME + 1)).unwrap_err().ends_with("(at most 128)"));
     }
 }

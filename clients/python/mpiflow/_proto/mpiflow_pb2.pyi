@@ -394,7 +394,7 @@ class ModelInfo(_message.Message):
     def __init__(self, role: _Optional[str] = ..., name: _Optional[str] = ...) -> None: ...
 
 class Limits(_message.Message):
-    __slots__ = ("max_message_bytes", "max_streams", "max_batch_size", "max_prefetch", "max_image_side", "max_image_pixels", "max_upload_bytes", "max_indices", "max_buffered_bytes")
+    __slots__ = ("max_message_bytes", "max_streams", "max_batch_size", "max_prefetch", "max_image_side", "max_image_pixels", "max_upload_bytes", "max_indices", "max_buffered_bytes", "max_request_bytes", "max_random_access_calls", "max_connections", "max_connections_per_peer", "max_calls_per_connection", "idle_connection_timeout_s", "stall_timeout_s")
     MAX_MESSAGE_BYTES_FIELD_NUMBER: _ClassVar[int]
     MAX_STREAMS_FIELD_NUMBER: _ClassVar[int]
     MAX_BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
@@ -404,6 +404,13 @@ class Limits(_message.Message):
     MAX_UPLOAD_BYTES_FIELD_NUMBER: _ClassVar[int]
     MAX_INDICES_FIELD_NUMBER: _ClassVar[int]
     MAX_BUFFERED_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MAX_REQUEST_BYTES_FIELD_NUMBER: _ClassVar[int]
+    MAX_RANDOM_ACCESS_CALLS_FIELD_NUMBER: _ClassVar[int]
+    MAX_CONNECTIONS_FIELD_NUMBER: _ClassVar[int]
+    MAX_CONNECTIONS_PER_PEER_FIELD_NUMBER: _ClassVar[int]
+    MAX_CALLS_PER_CONNECTION_FIELD_NUMBER: _ClassVar[int]
+    IDLE_CONNECTION_TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
+    STALL_TIMEOUT_S_FIELD_NUMBER: _ClassVar[int]
     max_message_bytes: int
     max_streams: int
     max_batch_size: int
@@ -413,7 +420,14 @@ class Limits(_message.Message):
     max_upload_bytes: int
     max_indices: int
     max_buffered_bytes: int
-    def __init__(self, max_message_bytes: _Optional[int] = ..., max_streams: _Optional[int] = ..., max_batch_size: _Optional[int] = ..., max_prefetch: _Optional[int] = ..., max_image_side: _Optional[int] = ..., max_image_pixels: _Optional[int] = ..., max_upload_bytes: _Optional[int] = ..., max_indices: _Optional[int] = ..., max_buffered_bytes: _Optional[int] = ...) -> None: ...
+    max_request_bytes: int
+    max_random_access_calls: int
+    max_connections: int
+    max_connections_per_peer: int
+    max_calls_per_connection: int
+    idle_connection_timeout_s: float
+    stall_timeout_s: float
+    def __init__(self, max_message_bytes: _Optional[int] = ..., max_streams: _Optional[int] = ..., max_batch_size: _Optional[int] = ..., max_prefetch: _Optional[int] = ..., max_image_side: _Optional[int] = ..., max_image_pixels: _Optional[int] = ..., max_upload_bytes: _Optional[int] = ..., max_indices: _Optional[int] = ..., max_buffered_bytes: _Optional[int] = ..., max_request_bytes: _Optional[int] = ..., max_random_access_calls: _Optional[int] = ..., max_connections: _Optional[int] = ..., max_connections_per_peer: _Optional[int] = ..., max_calls_per_connection: _Optional[int] = ..., idle_connection_timeout_s: _Optional[float] = ..., stall_timeout_s: _Optional[float] = ...) -> None: ...
 
 class InfoResponse(_message.Message):
     __slots__ = ("version", "datasets", "models", "limits", "workers", "serving")

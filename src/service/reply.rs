@@ -1,0 +1,191 @@
+//! The server's HTTP layer around every gRPC call: it counts the call on its connection (a
+//! connection with no call open is idle and is closed after `idle_connection_timeout_s`, see
+//! [`super::conn`]), keeps what a handler attached to its reply (a [`ReplyHold`]: the budget a
+//! unary sample holds) until the reply's last byte has left, hands the reply body to HTTP/2 in
+//! pieces of at most [`PIECE_BYTES`] (so a reply the client does not read stays in this layer,
+//! counted, instead of in the transport's buffers), and rewrites the status of the replies tonic
+//! makes before any handler runs to the codes of the error table ([`super::error::transport_code`]).
+
+use std::any::Any;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
+
+use bytes::Bytes;
+use http::{HeaderValue, Request, Response};
+use http_body::{Body, Frame, SizeHint};
+use tonic::transport::server::TcpConnectInfo;
+
+use super::conn::{CallGuard, ConnInfo};
+
+/// The largest piece of a reply handed to HTTP/2 at once (HTTP/2's default frame size): the
+/// transport asks for the next piece only when the client's window has room, so an unread reply
+/// keeps at most about this much in the transport, uncounted.
+pub const PIECE_BYTES: usize = 16 << 10;
+
+/// Something a handler attaches to its reply (in the response's extensions) that must live until
+/// the reply is sent or abandoned: a unary sample's place in the byte budget.
+#[derive(Clone)]
+pub struct ReplyHold(pub Arc<dyn Any + Send + Sync>);
+
+impl std::fmt::Debug for ReplyHold {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ReplyHold")
+    }
+}
+
+/// The layer ([`tower::Layer`]) of the server.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ReplyLayer;
+
+impl<S> tower::Layer<S> for ReplyLayer {
+    type Service = Reply<S>;
+    fn layer(&self, inner: S) -> Self::Service {
+        Reply { inner }
+    }
+}
+
+/// The service of [`ReplyLayer`].
+#[derive(Clone, Debug)]
+pub struct Reply<S> {
+    inner: S,
+}
+
+/// The connection of a request: its [`ConnInfo`], on plaintext or under TLS.
+fn conn_info<B>(req: &Request<B>) -> Option<ConnInfo> {
+    let e = req.extensions();
+    e.get::<ConnInfo>()
+        .cloned()
+        .or_else(|| e.get::<tonic::transport::server::TlsConnectInfo<ConnInfo>>().map(|t| t.get_ref().clone()))
+}
+
+impl<S, ReqBody, ResBody> tower::Service<Request<ReqBody>> for Reply<S>
+where
+    S: tower::Service<Request<ReqBody>, Response = Response<ResBody>>,
+    S::Future: Send + 'static,
+    ResBody: Body<Data = Bytes> + Unpin,
+{
+    type Response = Response<ReplyBody<ResBody>>;
+    type Error = S::Error;
+    type Future = Pin<Box<dyn Future<Output = Result<Self::Response, Self::Error>> + Send>>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, mut req: Request<ReqBody>) -> Self::Future {
+        let info = conn_info(&req);
+        // tonic's `Request::remote_addr` reads the plain TCP info
+        if let Some(i) = &info {
+            req.extensions_mut().insert::<TcpConnectInfo>(i.tcp.clone());
+        }
+        let call = info.map(|i| i.activity.begin());
+        let fut = self.inner.call(req);
+        Box::pin(async move {
+            let mut response = fut.await?;
+            rewrite_status(&mut response);
+            let hold = response.extensions_mut().remove::<ReplyHold>();
+            Ok(response.map(|inner| ReplyBody { inner, piece: Bytes::new(), _call: call, _hold: hold }))
+        })
+    }
+}
+
+/// Rewrites the status of a trailers-only reply that tonic made itself (a request over the
+/// decoding limit, a malformed message) to the code of the error table.
+fn rewrite_status<B>(response: &mut Response<B>) {
+    let h = response.headers();
+    let Some(code) = h.get("grpc-status").and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<i32>().ok()) else {
+        return;
+    };
+    let message = h.get("grpc-message").and_then(|v| v.to_str().ok()).map(percent_decoded).unwrap_or_default();
+    if let Some(new) = super::error::transport_code(tonic::Code::from_i32(code), &message) {
+        let v = HeaderValue::from(new as i32);
+        response.headers_mut().insert("grpc-status", v);
+    }
+}
+
+/// A `grpc-message` header (percent-encoded) as text.
+fn percent_decoded(header: &str) -> String {
+    let mut plain = Vec::with_capacity(header.len());
+    let b = header.as_bytes();
+    let mut i = 0;
+    while i < b.len() {
+        let hex = |c: u8| char::from(c).to_digit(16);
+        if b[i] == b'%' && i + 3 <= b.len() {
+            if let (Some(hi), Some(lo)) = (hex(b[i + 1]), hex(b[i + 2])) {
+                plain.push((hi * 16 + lo) as u8);
+                i += 3;
+                continue;
+            }
+        }
+        plain.push(b[i]);
+        i += 1;
+    }
+    String::from_utf8_lossy(&plain).into_owned()
+}
+
+/// A reply body handed on in pieces of at most [`PIECE_BYTES`]; it keeps its call counted on the
+/// connection and its [`ReplyHold`] until it is dropped (sent, or abandoned with the call).
+pub struct ReplyBody<B> {
+    inner: B,
+    /// The rest of the current data frame.
+    piece: Bytes,
+    _call: Option<CallGuard>,
+    _hold: Option<ReplyHold>,
+}
+
+impl<B> ReplyBody<B> {
+    fn next_piece(&mut self) -> Frame<Bytes> {
+        let n = self.piece.len().min(PIECE_BYTES);
+        Frame::data(self.piece.split_to(n))
+    }
+}
+
+impl<B: Body<Data = Bytes> + Unpin> Body for ReplyBody<B> {
+    type Data = Bytes;
+    type Error = B::Error;
+
+    fn poll_frame(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, B::Error>>> {
+        if !self.piece.is_empty() {
+            return Poll::Ready(Some(Ok(self.next_piece())));
+        }
+        match Pin::new(&mut self.inner).poll_frame(cx) {
+            Poll::Ready(Some(Ok(frame))) => match frame.into_data() {
+                Ok(data) => {
+                    self.piece = data;
+                    Poll::Ready(Some(Ok(self.next_piece())))
+                }
+                Err(frame) => Poll::Ready(Some(Ok(frame))),
+            },
+            other => other,
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.piece.is_empty() && self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        let inner = self.inner.size_hint();
+        let extra = self.piece.len() as u64;
+        let mut h = SizeHint::new();
+        h.set_lower(inner.lower() + extra);
+        if let Some(u) = inner.upper() {
+            h.set_upper(u + extra);
+        }
+        h
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percent_decoding_reads_escapes_and_keeps_the_rest() {
+        assert_eq!(percent_decoded("failed%20to%20decode"), "failed to decode");
+        assert_eq!(percent_decoded("100%"), "100%");
+        assert_eq!(percent_decoded("%zz%41"), "%zzA");
+    }
+}

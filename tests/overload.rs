@@ -1,0 +1,416 @@
+//! No client can take the server: each way one client could hold the machine, tried on a real
+//! server over loopback with real clients (tonic, and raw HTTP/2 through the `h2` crate where a
+//! client must misbehave below gRPC: never read a reply, hold idle connections, send a malformed
+//! message, stop reading its socket). Samples are 64x48 to stay fast.
+
+use std::time::Duration;
+
+use bytes::Bytes;
+use mpiflow::service::client::client_for;
+use mpiflow::service::pb;
+use mpiflow::service::pb::mpi_flow_client::MpiFlowClient;
+use mpiflow::service::{start, RunningServer, ServiceConfig};
+use prost::Message;
+use tonic::transport::{Channel, Endpoint};
+use tonic::Code;
+
+const SIZE: &str = "64x48";
+
+fn config() -> ServiceConfig {
+    ServiceConfig {
+        addr: "127.0.0.1:0".into(),
+        size: Some(SIZE.into()),
+        workers: 2,
+        log_level: "warn".into(),
+        ..ServiceConfig::default()
+    }
+}
+
+async fn server(c: ServiceConfig) -> RunningServer {
+    start(c).await.expect("server starts")
+}
+
+async fn client(addr: impl ToString) -> MpiFlowClient<Channel> {
+    let ch = Endpoint::from_shared(format!("http://{}", addr.to_string())).unwrap().connect().await.expect("connects");
+    client_for(ch)
+}
+
+/// Waits until `done()` holds (an observable state), checking it every few milliseconds; the
+/// deadline only turns a hang into a failure.
+async fn until(what: &str, mut done: impl FnMut() -> bool) {
+    let wait = async {
+        while !done() {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    };
+    tokio::time::timeout(Duration::from_secs(120), wait).await.unwrap_or_else(|_| panic!("never: {what}"));
+}
+
+/// A raw HTTP/2 connection with `window` bytes of stream window: its replies are read only when
+/// the test reads them.
+async fn h2_connection(
+    addr: std::net::SocketAddr,
+    window: u32,
+) -> (h2::client::SendRequest<Bytes>, tokio::task::JoinHandle<Result<(), h2::Error>>) {
+    let tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let (send, conn) = h2::client::Builder::new().initial_window_size(window).handshake(tcp).await.expect("HTTP/2");
+    (send, tokio::spawn(conn))
+}
+
+/// One gRPC message frame (uncompressed) around `body`.
+fn grpc_frame(body: &[u8]) -> Bytes {
+    let mut f = Vec::with_capacity(body.len() + 5);
+    f.push(0);
+    f.extend_from_slice(&(body.len() as u32).to_be_bytes());
+    f.extend_from_slice(body);
+    Bytes::from(f)
+}
+
+/// Sends one call of `method` with `body` as its message and waits for the reply's headers
+/// (the body is left unread).
+async fn raw_call(
+    send: &mut h2::client::SendRequest<Bytes>,
+    method: &str,
+    body: &[u8],
+) -> http::Response<h2::RecvStream> {
+    let req = http::Request::post(format!("http://localhost/mpiflow.v1.MpiFlow/{method}"))
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .body(())
+        .unwrap();
+    let mut ready = send.clone().ready().await.expect("the connection takes a call");
+    let (response, mut stream) = ready.send_request(req, false).unwrap();
+    stream.send_data(grpc_frame(body), true).unwrap();
+    *send = ready;
+    response.await.expect("reply headers")
+}
+
+/// The grpc-status of a trailers-only reply.
+fn header_status(r: &http::Response<h2::RecvStream>) -> Option<i32> {
+    r.headers().get("grpc-status")?.to_str().ok()?.parse().ok()
+}
+
+/// A request whose largest sample cannot be sent or held is refused before any work, with
+/// RESOURCE_EXHAUSTED naming what makes it large, on every sample RPC; an augmentation crop over
+/// the pixel limit is refused by name; the server goes on serving.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn requests_whose_largest_sample_does_not_fit_are_refused_before_any_work() {
+    let s = server(config()).await;
+    let mut c = client(s.addr).await;
+    let huge = r#"{"preset":"raft-chairs","crop":[8192,8192]}"#;
+    let e =
+        c.get_sample(pb::SampleRequest { augment: huge.into(), ..Default::default() }).await.map(|_| ()).unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(e.message().starts_with("augment.crop: 8192x8192") && e.message().contains("max_image_pixels"), "{e:?}");
+    s.shutdown(Duration::from_millis(500)).await;
+
+    // 640x480 and 8 MiB of budget: a pair of the default fields (4.6 MB) fits, a clip of eight
+    // frames with every field (54 MB) does not
+    let s = server(ServiceConfig { size: Some("640x480".into()), max_buffered_mb: 8, ..config() }).await;
+    let mut c = client(s.addr).await;
+    let fields: Vec<i32> = (1..=13).collect();
+    let check = |e: tonic::Status| {
+        assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+        let m = e.message();
+        assert!(m.starts_with("sample too large") && m.contains("max_buffered_mb") && m.contains("flows"), "{m}");
+    };
+    let r = pb::StreamRequest { fields: fields.clone(), frames: 8, ..Default::default() };
+    check(c.stream_samples(r).await.map(|_| ()).unwrap_err());
+    let r = pb::SampleRequest { fields: fields.clone(), frames: 8, ..Default::default() };
+    check(c.get_sample(r).await.map(|_| ()).unwrap_err());
+    let r = pb::SamplesRequest { fields, frames: 8, indices: vec![0], ..Default::default() };
+    check(c.get_samples(r).await.map(|_| ()).unwrap_err());
+    // nothing was started for them (the warm-up sample's stream aside, gone once it is made)
+    until("the warm-up sample is made", || s.state.is_serving()).await;
+    assert_eq!(s.state.scheduler.stats().streams, 0);
+    let ok = c.get_sample(pb::SampleRequest { index: 3, ..Default::default() }).await.unwrap().into_inner();
+    assert_eq!((ok.width, ok.height), (640, 480));
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// 2^64 - 1 is the end of the index space, never a sample: GetSamples refuses it like GetSample.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_end_of_the_index_space_is_never_served() {
+    let s = server(config()).await;
+    let mut c = client(s.addr).await;
+    let e = c
+        .get_samples(pb::SamplesRequest { indices: vec![5, u64::MAX], ..Default::default() })
+        .await
+        .map(|_| ())
+        .unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(e.message().starts_with("indices: [1] = 2^64 - 1"), "{e:?}");
+    let e = c.get_sample(pb::SampleRequest { index: u64::MAX, ..Default::default() }).await.map(|_| ()).unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// A request message that is not valid protobuf is the client's fault: INVALID_ARGUMENT on every
+/// RPC (tonic itself says INTERNAL, which the error table keeps for samples that fail).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn malformed_request_messages_are_invalid_argument() {
+    let s = server(config()).await;
+    let (mut send, _conn) = h2_connection(s.addr, 1 << 20).await;
+    // field 1 says 5 bytes follow, and one does
+    let truncated = [0x0A, 0x05, 0x41];
+    for method in ["GetSample", "StreamSamples", "GetSamples", "GetInfo", "UploadSources"] {
+        let r = raw_call(&mut send, method, &truncated).await;
+        let code = match header_status(&r) {
+            Some(c) => c,
+            // a reply with a body (the upload reads its chunks in the handler): the trailers say it
+            None => {
+                let mut body = r.into_body();
+                while let Some(d) = body.data().await {
+                    let _ = d;
+                }
+                let t = body.trailers().await.unwrap().expect("trailers");
+                t.get("grpc-status").unwrap().to_str().unwrap().parse().unwrap()
+            }
+        };
+        assert_eq!(code, Code::InvalidArgument as i32, "{method}");
+    }
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// GetSample and GetSamples calls are bounded (`max_random_access_calls`, unsent replies
+/// included): over it a call is RESOURCE_EXHAUSTED at once, a stream keeps getting samples, and a
+/// slot comes back when a held reply goes away.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn random_access_calls_over_the_limit_are_refused() {
+    let s = server(ServiceConfig { max_random_access_calls: 2, ..config() }).await;
+    // two replies nobody reads (a one-byte window): each holds its slot
+    let (mut send, conn) = h2_connection(s.addr, 1).await;
+    let req = pb::SampleRequest { index: 1, fields: (1..=9).collect(), ..Default::default() }.encode_to_vec();
+    let held = vec![raw_call(&mut send, "GetSample", &req).await, raw_call(&mut send, "GetSample", &req).await];
+    assert!(held.iter().all(|r| header_status(r).is_none()), "both answered with a sample");
+    let mut c = client(s.addr).await;
+    let e = c.get_sample(pb::SampleRequest::default()).await.map(|_| ()).unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    assert!(e.message().contains("max_random_access_calls"), "{e:?}");
+    let e = c.get_samples(pb::SamplesRequest { indices: vec![0], ..Default::default() }).await.map(|_| ()).unwrap_err();
+    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+    // streams are not affected
+    let mut st = c.stream_samples(pb::StreamRequest { count: 5, ..Default::default() }).await.unwrap().into_inner();
+    let mut n = 0;
+    while let Some(b) = st.message().await.unwrap() {
+        n += b.samples.len();
+    }
+    assert_eq!(n, 5);
+    // the unread replies go: their slots come back
+    drop((held, send));
+    conn.abort();
+    let mut got = None;
+    until("a slot comes back", || s.state.scheduler.stats().streams == 0).await;
+    for _ in 0..100 {
+        match c.get_sample(pb::SampleRequest::default()).await {
+            Ok(r) => {
+                got = Some(r.into_inner());
+                break;
+            }
+            Err(e) => assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}"),
+        }
+        tokio::task::yield_now().await;
+    }
+    assert!(got.is_some(), "a GetSample is served again");
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// A unary reply the client does not read stays counted in the byte budget until it goes (it
+/// used to leave the budget when handed to the transport, where it then sat uncounted).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unread_unary_replies_count_in_the_byte_budget() {
+    let s = server(config()).await;
+    let all: Vec<i32> = (1..=9).collect();
+    let mut c = client(s.addr).await;
+    let one = c.get_sample(pb::SampleRequest { fields: all.clone(), ..Default::default() }).await.unwrap();
+    let sample = one.into_inner().encoded_len() as u64;
+    until("the read reply is released", || s.state.scheduler.stats().buffered == 0).await;
+    let (mut send, conn) = h2_connection(s.addr, 1).await;
+    let mut held = Vec::new();
+    for index in 0..3 {
+        let req = pb::SampleRequest { index, fields: all.clone(), ..Default::default() }.encode_to_vec();
+        held.push(raw_call(&mut send, "GetSample", &req).await);
+    }
+    let st = s.state.scheduler.stats();
+    assert!(st.buffered >= 3 * sample - 3 * 64, "three unread replies of ~{sample} bytes are held: {st:?}");
+    assert_eq!(st.streams, 3, "{st:?}");
+    drop((held, send));
+    conn.abort();
+    until("nothing is held once the client is gone", || {
+        let st = s.state.scheduler.stats();
+        st.buffered == 0 && st.streams == 0
+    })
+    .await;
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// Stalled streams with large batches hold their share of the budget plus one message, not a
+/// batch in the transport and another being filled: a batch is cut short at the share.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_batched_streams_stay_within_their_share() {
+    const MIB: u64 = 1 << 20;
+    let s = server(ServiceConfig { max_buffered_mb: 1, max_prefetch: 64, ..config() }).await;
+    let all: Vec<i32> = (1..=9).collect();
+    let mut c = client(s.addr).await;
+    let one = c.get_sample(pb::SampleRequest { fields: all.clone(), ..Default::default() }).await.unwrap();
+    let sample = one.into_inner().encoded_len() as u64;
+    assert!(64 * sample > 4 * MIB, "a batch of 64 is several budgets: {sample}");
+    let mut stalled = Vec::new();
+    for seed in 1..=4u64 {
+        let (mut send, conn) = h2_connection(s.addr, 1).await;
+        let req = pb::StreamRequest { seed, fields: all.clone(), batch_size: 64, prefetch: 64, ..Default::default() };
+        let r = raw_call(&mut send, "StreamSamples", &req.encode_to_vec()).await;
+        stalled.push((r, send, conn));
+    }
+    until("the stalled streams settle", || {
+        let st = s.state.scheduler.stats();
+        st.in_flight == 0 && st.eligible == 0 && st.per_stream.len() == 4
+    })
+    .await;
+    let st = s.state.scheduler.stats();
+    // no stream holds a batch of 64 (5 MB): what a stream sent was cut at its share then, and
+    // in all the budget holds, plus one sample per stream (started while holding nothing)
+    for held in &st.held {
+        assert!(*held <= MIB + sample, "a stream holds at most a share: {st:?}");
+    }
+    assert!(st.max_buffered_seen <= MIB + 4 * sample, "{st:?}");
+    for (_, _, conn) in &stalled {
+        conn.abort();
+    }
+    drop(stalled);
+    until("every stream is closed", || s.state.scheduler.stats().streams == 0).await;
+    assert_eq!(s.state.scheduler.stats().buffered, 0);
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// A connection with no call open is closed after the idle timeout even though it answers every
+/// ping; one with a call open (a health watch) stays; one address holds at most
+/// `max_connections_per_peer` connections, and a slot comes back when one closes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_connections_are_closed_and_each_peer_is_bounded() {
+    let s = server(ServiceConfig { idle_connection_timeout_s: 1.0, max_connections_per_peer: 3, ..config() }).await;
+    // a watch: a call open for as long as the client keeps it
+    let ch = Endpoint::from_shared(format!("http://{}", s.addr)).unwrap().connect().await.unwrap();
+    let mut health = tonic_health::pb::health_client::HealthClient::new(ch);
+    let mut watch =
+        health.watch(tonic_health::pb::HealthCheckRequest { service: String::new() }).await.unwrap().into_inner();
+    // two connections that answer pings (the h2 client does) and open no call
+    let (_a, idle_a) = h2_connection(s.addr, 1 << 20).await;
+    let (_b, idle_b) = h2_connection(s.addr, 1 << 20).await;
+    // the peer has 3 connections: a fourth is closed as it arrives
+    assert!(refused_connection(s.addr).await, "a connection over max_connections_per_peer is closed");
+    // the idle ones are closed by the server (their connection tasks end)
+    let closed_a = tokio::time::timeout(Duration::from_secs(60), idle_a).await;
+    assert!(closed_a.is_ok(), "an idle connection is closed");
+    let _ = tokio::time::timeout(Duration::from_secs(60), idle_b).await.expect("closed");
+    // one more idle connection and its close: the watch is now well past an idle timeout
+    assert!(!refused_connection(s.addr).await, "a slot came back");
+    let (_d, idle_d) = h2_connection(s.addr, 1 << 20).await;
+    let _ = tokio::time::timeout(Duration::from_secs(60), idle_d).await.expect("closed");
+    // ... while the watch, older than all of them, is still open
+    let polled = tokio::time::timeout(Duration::from_millis(1), watch.message()).await;
+    assert!(!matches!(polled, Ok(Ok(None)) | Ok(Err(_))), "the watch's connection stays: {polled:?}");
+    // the peer's slots came back: a new client is served
+    let mut c = client(s.addr).await;
+    assert!(c.get_info(pb::InfoRequest {}).await.is_ok());
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// Connects and makes a GetInfo call over raw HTTP/2; true when the server closed the connection
+/// instead of answering.
+async fn refused_connection(addr: std::net::SocketAddr) -> bool {
+    let tcp = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let Ok((send, conn)) = h2::client::handshake(tcp).await else { return true };
+    let conn = tokio::spawn(conn);
+    let call = async {
+        let mut ready = send.ready().await?;
+        let req = http::Request::post("http://localhost/mpiflow.v1.MpiFlow/GetInfo")
+            .header("content-type", "application/grpc")
+            .header("te", "trailers")
+            .body(())
+            .unwrap();
+        let (response, mut stream) = ready.send_request(req, false)?;
+        stream.send_data(grpc_frame(&[]), true)?;
+        response.await
+    };
+    let r = tokio::time::timeout(Duration::from_secs(30), call).await.expect("an answer or a close");
+    conn.abort();
+    r.is_err()
+}
+
+/// A client that stops reading its socket loses its connection after `stall_timeout_s`: its
+/// stream ends and the stream slot comes back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_stops_reading_is_cut_after_the_stall_timeout() {
+    let s = server(ServiceConfig { stall_timeout_s: 1.0, max_streams: 1, ..config() }).await;
+    let tcp = Frozen::new(tokio::net::TcpStream::connect(s.addr).await.unwrap());
+    let freeze = tcp.switch.clone();
+    let (send, conn) = h2::client::Builder::new()
+        .initial_window_size(i32::MAX as u32)
+        .initial_connection_window_size(i32::MAX as u32)
+        .handshake(tcp)
+        .await
+        .unwrap();
+    let conn = tokio::spawn(conn);
+    let mut send = send;
+    let all: Vec<i32> = (1..=9).collect();
+    let req = pb::StreamRequest { fields: all, ..Default::default() }.encode_to_vec();
+    let r = raw_call(&mut send, "StreamSamples", &req).await;
+    assert!(header_status(&r).is_none(), "the stream opened");
+    // the client stops reading: the server fills the socket, then waits
+    freeze.store(true, std::sync::atomic::Ordering::SeqCst);
+    until("the stalled stream is ended", || s.state.active_streams() == 0).await;
+    // its slot (max_streams = 1) serves another client
+    let mut c = client(s.addr).await;
+    let mut st = c.stream_samples(pb::StreamRequest { count: 2, ..Default::default() }).await.unwrap().into_inner();
+    assert_eq!(st.message().await.unwrap().unwrap().samples.len(), 1);
+    conn.abort();
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// A socket whose reads stop (stay pending) once its switch is set: a client that stops reading.
+struct Frozen {
+    inner: tokio::net::TcpStream,
+    switch: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl Frozen {
+    fn new(inner: tokio::net::TcpStream) -> Self {
+        Self { inner, switch: Default::default() }
+    }
+}
+
+impl tokio::io::AsyncRead for Frozen {
+    fn poll_read(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &mut tokio::io::ReadBuf<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        if self.switch.load(std::sync::atomic::Ordering::SeqCst) {
+            return std::task::Poll::Pending;
+        }
+        std::pin::Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl tokio::io::AsyncWrite for Frozen {
+    fn poll_write(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+        buf: &[u8],
+    ) -> std::task::Poll<std::io::Result<usize>> {
+        std::pin::Pin::new(&mut self.inner).poll_write(cx, buf)
+    }
+    fn poll_flush(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_flush(cx)
+    }
+    fn poll_shutdown(
+        mut self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<std::io::Result<()>> {
+        std::pin::Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+}
