@@ -561,8 +561,8 @@ async fn idle_client(addr: String, until: tokio::time::Instant, sh: Arc<Shared>)
                     sh.idle_closed.fetch_add(1, Ordering::Relaxed);
                 }
             }
-            // refused (the peer's connection bound): try again a little later
-            Ok(Err(_)) => tokio::time::sleep(Duration::from_millis(200)).await,
+            // refused (the peer's connection bound): try again a second later
+            Ok(Err(_)) => tokio::time::sleep(Duration::from_secs(1)).await,
             Err(_) => return,
         }
     }

@@ -63,8 +63,9 @@ def is_retryable(err: BaseException) -> bool:
     code = err.code()
     if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
         details = (err.details() or "").lower()
-        # The client's own receive limit: the same on every replica.
-        return "larger than max" not in details
+        # The client's own receive limit, and a request whose sample is too large for the
+        # server's limits (refused before any work): the same on every replica.
+        return "larger than max" not in details and "sample too large" not in details
     if code == grpc.StatusCode.INTERNAL:
         # "sample N: ..." = that sample cannot be made (the same on every replica); other
         # INTERNAL errors come from the transport (a reset stream, a broken connection).

@@ -8,6 +8,7 @@ import sys
 import threading
 import time
 
+import grpc
 import lz4.block
 import numpy as np
 import pytest
@@ -399,3 +400,26 @@ def test_motions_is_a_field_name_of_every_entry_point():
     assert kw["fields"] == [pb.FIELD_FLOW]
     with pytest.raises(ValueError):
         parse_fields(["motion"])
+
+
+class _Err(grpc.RpcError):
+    """A gRPC error value as a call raises it (code and details)."""
+
+    def __init__(self, code, details):
+        self._code, self._details = code, details
+
+    def code(self):
+        return self._code
+
+    def details(self):
+        return self._details
+
+
+def test_a_sample_too_large_is_not_retried_but_a_busy_server_is():
+    from mpiflow.client import is_retryable
+
+    too_large = _Err(grpc.StatusCode.RESOURCE_EXHAUSTED, "sample too large: up to 307200 pixels x 8 frames")
+    busy = _Err(grpc.StatusCode.RESOURCE_EXHAUSTED, "too many GetSample/GetSamples calls: 32 are open")
+    assert not is_retryable(too_large)
+    assert is_retryable(busy)
+    assert not is_retryable(_Err(grpc.StatusCode.INVALID_ARGUMENT, "indices: [1] = 2^64 - 1"))
