@@ -17,13 +17,14 @@
 //! - **uploading**: uploads two small photos with depth to its own dataset, checks that both are
 //!   accepted and pulls two samples of it; once a second.
 //!
-//! - **unary**: GetSample calls one after another, read whole (a flood when there are many).
+//! - **unary**: from 127.0.0.2, GetSample calls one after another, read whole (a flood when
+//!   there are many).
 //! - **unread**: from another loopback address (127.0.0.2), a raw HTTP/2 connection with a
 //!   one-byte window that keeps 8 GetSample calls of every field open and never reads them;
 //!   reconnects when the server closes it.
 //! - **idle**: from 127.0.0.2, a raw HTTP/2 connection that answers pings and opens no call;
 //!   reconnects when the server closes it.
-//! - **batch-stall**: like stalled, with batch 64.
+//! - **batch-stall**: like stalled, with batch 64, from 127.0.0.2.
 //!
 //! Every reading also times a newcomer: a new connection from 127.0.0.1 and a GetInfo call.
 //!
@@ -435,7 +436,14 @@ async fn stalled_client(
     until: tokio::time::Instant,
     sh: Arc<Shared>,
 ) {
-    let Some(mut client) = connected("stalled", &addr, until, &sh).await else { return };
+    // the batch-stalled client is a hostile one, from its own address
+    let from = (batch > 1).then_some(std::net::IpAddr::from(ATTACKER));
+    let options = crate::service::client::ClientOptions { local_address: from, ..Default::default() };
+    let mut client = match timeout_at(until, crate::service::client::connect_with(&addr, &options)).await {
+        Ok(Ok(c)) => c,
+        Ok(Err(e)) => return sh.error("stalled", "connect", &e.to_string(), false),
+        Err(_) => return,
+    };
     let mut round = 0u64;
     while tokio::time::Instant::now() < until {
         let req = pb::StreamRequest {
@@ -469,9 +477,14 @@ async fn stalled_client(
     }
 }
 
-/// GetSample calls one after another, each read whole.
+/// GetSample calls one after another from [`ATTACKER`], each read whole.
 async fn unary_client(addr: String, seed: u64, until: tokio::time::Instant, sh: Arc<Shared>) {
-    let Some(mut client) = connected("unary", &addr, until, &sh).await else { return };
+    let options = crate::service::client::ClientOptions { local_address: Some(ATTACKER.into()), ..Default::default() };
+    let mut client = match timeout_at(until, crate::service::client::connect_with(&addr, &options)).await {
+        Ok(Ok(c)) => c,
+        Ok(Err(e)) => return sh.error("unary", "connect", &e.to_string(), false),
+        Err(_) => return,
+    };
     let mut index = 0u64;
     while tokio::time::Instant::now() < until {
         index += 1;
@@ -480,9 +493,10 @@ async fn unary_client(addr: String, seed: u64, until: tokio::time::Instant, sh: 
                 sh.unary_samples.fetch_add(1, Ordering::Relaxed);
             }
             Ok(Err(status)) => {
-                sh.status("unary", &status, false);
-                // refused: a short pause before the next try (a flood, not a spin)
-                tokio::time::sleep(Duration::from_millis(20)).await;
+                // refused (its peer's call bound), or its connection refused (its peer's
+                // connection bound): the flood's own doing, expected; a pause before the next try
+                sh.error("unary", &format!("{:?}", status.code()), status.message(), true);
+                tokio::time::sleep(Duration::from_millis(200)).await;
             }
             Err(_) => return,
         }
@@ -557,8 +571,13 @@ async fn idle_client(addr: String, until: tokio::time::Instant, sh: Arc<Shared>)
     while tokio::time::Instant::now() < until {
         match timeout_at(until, raw_h2(&addr, 1 << 16)).await {
             Ok(Ok((_send, conn))) => {
+                let opened = tokio::time::Instant::now();
                 if timeout_at(until, conn).await.is_ok() {
-                    sh.idle_closed.fetch_add(1, Ordering::Relaxed);
+                    // closed at once: refused by the peer's connection bound; later: idle
+                    if opened.elapsed() > Duration::from_millis(500) {
+                        sh.idle_closed.fetch_add(1, Ordering::Relaxed);
+                    }
+                    tokio::time::sleep(Duration::from_secs(1)).await;
                 }
             }
             // refused (the peer's connection bound): try again a second later

@@ -48,6 +48,7 @@ impl ConnectArgs {
             tls_cert: self.tls_cert.clone(),
             tls_key: self.tls_key.clone(),
             tls_domain: self.tls_domain.clone(),
+            local_address: None,
         })
     }
 }

@@ -29,6 +29,8 @@ pub struct ClientOptions {
     pub tls_key: Option<PathBuf>,
     /// The name the server's certificate must carry (default: the address's host).
     pub tls_domain: Option<String>,
+    /// The local address to connect from (default: the system's choice).
+    pub local_address: Option<std::net::IpAddr>,
 }
 
 impl std::fmt::Debug for ClientOptions {
@@ -143,7 +145,8 @@ pub async fn channel(addr: &str, options: &ClientOptions) -> Result<Channel, Con
     let mut endpoint = Endpoint::from_shared(uri)?
         .tcp_nodelay(true)
         .connect_timeout(Duration::from_secs(10))
-        .max_frame_size(MAX_FRAME_BYTES);
+        .max_frame_size(MAX_FRAME_BYTES)
+        .local_address(options.local_address);
     if tls {
         let Some(ca) = &options.tls_ca else {
             return Err(ConnectError::Options(format!("{addr}: TLS needs the server's CA (--tls-ca)")));

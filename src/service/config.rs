@@ -169,8 +169,8 @@ pub struct ServiceConfig {
     /// Seconds a client may take less than 1 MiB while the server has bytes for it (it stopped
     /// reading) before its connection is closed, ending its streams and freeing their slots.
     pub stall_timeout_s: f64,
-    /// Concurrent GetSample and GetSamples calls over all clients; more are refused with
-    /// RESOURCE_EXHAUSTED (each takes a turn of the workers like a stream does).
+    /// Concurrent GetSample and GetSamples calls from one client address (unsent replies
+    /// included); more are refused with RESOURCE_EXHAUSTED.
     pub max_random_access_calls: usize,
     /// Most uploads in progress at once; more are RESOURCE_EXHAUSTED with nothing kept.
     pub max_concurrent_uploads: usize,

@@ -11,7 +11,6 @@ use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 
 use crate::sample::recipe::SampleError;
@@ -333,47 +332,45 @@ impl Metrics {
 }
 
 /// Serves `GET /metrics` (and `GET /healthz`, always 200) on `listener` until the task is
-/// dropped. A minimal HTTP/1.1 responder: one request per connection.
+/// dropped, over hyper's HTTP/1.1: one request per connection, [`METRICS_CONNECTIONS`] at once.
 pub async fn serve_metrics(listener: TcpListener, metrics: Arc<Metrics>) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(METRICS_CONNECTIONS));
     loop {
-        let Ok((mut sock, _)) = listener.accept().await else { continue };
+        let Ok((sock, _)) = listener.accept().await else { continue };
+        // a bounded number of scrapes at once; more are closed as they arrive
+        let Ok(slot) = slots.clone().try_acquire_owned() else { continue };
         let metrics = metrics.clone();
         tokio::spawn(async move {
-            let mut buf = vec![0u8; 8192];
-            let mut n = 0;
-            // read the request head (bounded; a slow client gets 5 s)
-            let read = tokio::time::timeout(std::time::Duration::from_secs(5), async {
-                while n < buf.len() {
-                    match sock.read(&mut buf[n..]).await {
-                        Ok(0) | Err(_) => break,
-                        Ok(k) => {
-                            n += k;
-                            if buf[..n].windows(4).any(|w| w == b"\r\n\r\n") {
-                                break;
-                            }
-                        }
-                    }
-                }
-            })
-            .await;
-            if read.is_err() {
-                return;
-            }
-            let head = String::from_utf8_lossy(&buf[..n]);
-            let path = head.split_whitespace().nth(1).unwrap_or("");
-            let (status, ctype, body) = match (head.starts_with("GET "), path) {
-                (true, "/metrics") => {
-                    ("200 OK", "application/openmetrics-text; version=1.0.0; charset=utf-8", metrics.render())
-                }
-                (true, "/healthz") => ("200 OK", "text/plain", "ok\n".to_string()),
-                _ => ("404 Not Found", "text/plain", "not found: try /metrics\n".to_string()),
-            };
-            let resp = format!(
-                "HTTP/1.1 {status}\r\nContent-Type: {ctype}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-                body.len()
-            );
-            let _ = sock.write_all(resp.as_bytes()).await;
-            let _ = sock.shutdown().await;
+            let service = hyper::service::service_fn(move |req: http::Request<hyper::body::Incoming>| {
+                let response = respond(&metrics, req.method(), req.uri().path());
+                async move { Ok::<_, std::convert::Infallible>(response) }
+            });
+            // one request per connection, its head within 5 s, the whole exchange within 30 s
+            let conn = hyper::server::conn::http1::Builder::new()
+                .timer(hyper_util::rt::TokioTimer::new())
+                .header_read_timeout(std::time::Duration::from_secs(5))
+                .keep_alive(false)
+                .serve_connection(hyper_util::rt::TokioIo::new(sock), service);
+            let _ = tokio::time::timeout(std::time::Duration::from_secs(30), conn).await;
+            drop(slot);
         });
     }
+}
+
+/// Scrapes served at once by the metrics endpoint.
+const METRICS_CONNECTIONS: usize = 16;
+
+/// The answer of the metrics endpoint: `GET /metrics` (OpenMetrics text), `GET /healthz`, else 404.
+fn respond(metrics: &Metrics, method: &http::Method, path: &str) -> http::Response<http_body_util::Full<bytes::Bytes>> {
+    let (status, ctype, body) = match (method == http::Method::GET, path) {
+        (true, "/metrics") => {
+            (http::StatusCode::OK, "application/openmetrics-text; version=1.0.0; charset=utf-8", metrics.render())
+        }
+        (true, "/healthz") => (http::StatusCode::OK, "text/plain", "ok\n".to_string()),
+        _ => (http::StatusCode::NOT_FOUND, "text/plain", "not found: try /metrics\n".to_string()),
+    };
+    let mut r = http::Response::new(http_body_util::Full::new(bytes::Bytes::from(body)));
+    *r.status_mut() = status;
+    r.headers_mut().insert(http::header::CONTENT_TYPE, http::HeaderValue::from_static(ctype));
+    r
 }

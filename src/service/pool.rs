@@ -1,7 +1,8 @@
 //! The worker pool: samples are made on worker threads (never on tokio threads) that take their
 //! jobs in the order they were started, each stream keeps a bounded queue (its prefetch depth),
-//! the total number of samples being made is bounded, and free slots go to the streams in
-//! round-robin order.
+//! the total number of samples being made is bounded, and free slots go round-robin first to the
+//! clients (peers: a key of their address), then to each client's streams, so that one client's
+//! many calls take one client's turn.
 //!
 //! # How it works
 //!
@@ -18,8 +19,9 @@
 //! wakes the stream. The stream is polled by tonic only when the transport can take a message,
 //! so a client that stops reading stops its stream after at most `prefetch` samples: back-pressure
 //! reaches the workers and memory stays bounded. Every change (a job done, a batch taken, a stream
-//! opened or closed) re-runs the dispatch ([`Scheduler::pump`]), which walks the streams from
-//! where it stopped last time, one job per stream per turn.
+//! opened or closed) re-runs the dispatch ([`Scheduler::pump`]), which walks the peers from the
+//! one after the peer served last, and within a peer its streams from the one after the stream
+//! served last: one job per turn.
 //!
 //! A stream may also carry an explicit index list (GetSamples, [`Scheduler::open_indices`]):
 //! position `k` is then the list's `k`-th entry, in the list's order; everything else (prefetch
@@ -46,7 +48,8 @@
 //! one, which it does once it has room for it), and, for each running job, the size of the
 //! stream's previous sample (its estimate; a stream whose sample size is not known yet runs one
 //! job at a time). A stream may start a job while what it holds plus the estimate stays within
-//! its fair share, `budget / open streams`; a stream holding nothing may always start one. When
+//! its fair share, `budget / peers with open streams / the peer's open streams`; a stream holding
+//! nothing may start one while its peer holds less than the peer's share. When
 //! a stream opens and the shares shrink, streams holding more than their new share drop their
 //! newest finished samples (made again, byte for byte, when the stream reads on) and make no
 //! more ahead until they send a message, so a stalled stream never keeps more than its share,
@@ -56,7 +59,8 @@
 //! so a batch larger than the share is sent in parts. Beyond its share, a job starts only while
 //! the whole budget has room for its estimate (a stream's message in the transport, made under a
 //! larger share before others opened, cannot be dropped; this keeps it inside the total). In all
-//! at most `budget` plus, per stream, one sample started while holding nothing is held. A unary
+//! at most `budget` plus, per peer, one sample per in-flight slot (started by streams holding
+//! nothing while their peer was within its share) is held. A unary
 //! reply (GetSample) keeps its stream, and so its bytes, until the reply has left
 //! (`service::reply`).
 
@@ -183,10 +187,23 @@ struct StreamState {
     draining: bool,
 }
 
+/// The bytes held by all streams of one peer (client address), shared by them.
+#[derive(Debug, Default)]
+struct PeerGroup {
+    held: AtomicU64,
+    /// The peer's share of the budget (budget / peers with open streams).
+    share: AtomicU64,
+}
+
 /// One stream's shared state.
 pub struct StreamShared {
     pub id: u64,
     pub spec: StreamSpec,
+    /// The client's address as a key (0 = not known): the fairness and the shares go by peer.
+    peer: u64,
+    group: Arc<PeerGroup>,
+    /// This stream's share of the budget: its peer's share / the peer's open streams.
+    share: AtomicU64,
     /// An explicit index list (position k = `indices[k]`) instead of the spec's sequence.
     indices: Option<Arc<[u64]>>,
     len: u64,
@@ -213,10 +230,15 @@ impl StreamShared {
         }
     }
 
-    /// Whether the stream may start a job now, with `share` its share of the budget and `room`
-    /// what the budget has left over all streams.
-    fn eligible(&self, s: &StreamState, share: u64, room: u64) -> bool {
-        let holds_nothing = s.held == 0 && s.running == 0;
+    /// Whether the stream may start a job now, with `room` what the budget has left over all
+    /// streams.
+    fn eligible(&self, s: &StreamState, room: u64) -> bool {
+        let share = self.share.load(Ordering::Acquire);
+        // a stream holding nothing may start one job while its peer is within the peer's share
+        // (so a new client always gets going, and one client's many calls hold its share and at
+        // most one job more per worker slot)
+        let peer_room = self.group.share.load(Ordering::Acquire) > self.group.held.load(Ordering::Acquire);
+        let holds_nothing = s.held == 0 && s.running == 0 && peer_room;
         // a batch is filled within the share too: a stream at its share sends the batch it has
         // (cut short, see `SampleStream::poll_next`); and within what the budget has left, so
         // that messages made under larger shares (still in the transport) keep the total bound
@@ -238,7 +260,10 @@ impl StreamShared {
 
 struct Sched {
     streams: Vec<Arc<StreamShared>>,
-    rr: usize,
+    /// The peer served last, and per peer the position of the stream served last.
+    rr_peer: u64,
+    rr_in_peer: std::collections::HashMap<u64, u64>,
+    groups: std::collections::HashMap<u64, Arc<PeerGroup>>,
     in_flight: usize,
     max_in_flight_seen: usize,
     draining: bool,
@@ -393,7 +418,9 @@ impl Scheduler {
             dropped: AtomicU64::new(0),
             inner: Mutex::new(Sched {
                 streams: Vec::new(),
-                rr: 0,
+                rr_peer: 0,
+                rr_in_peer: std::collections::HashMap::new(),
+                groups: std::collections::HashMap::new(),
                 in_flight: 0,
                 max_in_flight_seen: 0,
                 draining: false,
@@ -417,8 +444,13 @@ impl Scheduler {
         self.budget
     }
 
-    /// Adds `add` and takes `sub` bytes from the total held (one stream's change).
-    fn account(&self, add: u64, sub: u64) {
+    /// Adds `add` and takes `sub` bytes from the total held and from the stream's peer's.
+    fn account(&self, st: &StreamShared, add: u64, sub: u64) {
+        if add >= sub {
+            st.group.held.fetch_add(add - sub, Ordering::AcqRel);
+        } else {
+            st.group.held.fetch_sub(sub - add, Ordering::AcqRel);
+        }
         let now = if add >= sub {
             self.buffered.fetch_add(add - sub, Ordering::AcqRel) + (add - sub)
         } else {
@@ -430,13 +462,25 @@ impl Scheduler {
 
     /// Opens a stream; its samples are made as the returned stream is polled.
     pub fn open(self: &Arc<Self>, spec: StreamSpec, produce: Produce) -> Result<SampleStream, ServiceError> {
-        self.open_with(spec, None, produce)
+        self.open_with(0, spec, None, produce)
+    }
+
+    /// Opens a stream of the client `peer` (a key of its address; the workers' turns and the
+    /// budget's shares go first by peer, then by stream).
+    pub fn open_for(
+        self: &Arc<Self>,
+        peer: u64,
+        spec: StreamSpec,
+        produce: Produce,
+    ) -> Result<SampleStream, ServiceError> {
+        self.open_with(peer, spec, None, produce)
     }
 
     /// Opens a stream of an explicit index list (any order, duplicates allowed), delivered in
     /// the list's order, `batch_size` samples per batch and `prefetch` made ahead.
     pub fn open_indices(
         self: &Arc<Self>,
+        peer: u64,
         indices: Vec<u64>,
         batch_size: usize,
         prefetch: usize,
@@ -452,11 +496,12 @@ impl Scheduler {
             prefetch,
             max_message_bytes,
         };
-        self.open_with(spec, Some(indices.into()), produce)
+        self.open_with(peer, spec, Some(indices.into()), produce)
     }
 
     fn open_with(
         self: &Arc<Self>,
+        peer: u64,
         spec: StreamSpec,
         indices: Option<Arc<[u64]>>,
         produce: Produce,
@@ -472,9 +517,13 @@ impl Scheduler {
             }
             let id = s.next_id;
             s.next_id += 1;
+            let group = s.groups.entry(peer).or_default().clone();
             let shared = Arc::new(StreamShared {
                 id,
                 spec,
+                peer,
+                group,
+                share: AtomicU64::new(0),
                 len: indices.as_ref().map_or_else(|| spec.len(), |l| l.len() as u64),
                 indices,
                 produce,
@@ -495,9 +544,9 @@ impl Scheduler {
             });
             s.streams.push(shared.clone());
             self.open_streams.store(s.streams.len(), Ordering::Release);
-            let share = self.share(s.streams.len());
+            self.reshare(&s);
             for st in &s.streams {
-                self.trim(st, &mut lock(&st.state), share);
+                self.trim(st, &mut lock(&st.state));
             }
             shared
         };
@@ -518,27 +567,17 @@ impl Scheduler {
             self.pool.spawn(move || me.run_job(st, k, reserved));
         }
         while s.in_flight < self.capacity && !s.draining {
-            let n = s.streams.len();
-            let share = self.share(n);
-            let mut picked = None;
-            for off in 0..n {
-                let i = (s.rr + off) % n;
-                let st = &s.streams[i];
+            let Some(st) = self.next_eligible(&mut s) else { break };
+            let (k, reserved) = {
                 let mut g = lock(&st.state);
-                if st.eligible(&g, share, self.room()) {
-                    let k = g.dispatched;
-                    let reserved = g.estimate;
-                    g.dispatched += 1;
-                    g.running += 1;
-                    g.held += reserved;
-                    self.account(reserved, 0);
-                    picked = Some((st.clone(), k, reserved));
-                    drop(g);
-                    s.rr = (i + 1) % n;
-                    break;
-                }
-            }
-            let Some((st, k, reserved)) = picked else { break };
+                let k = g.dispatched;
+                let reserved = g.estimate;
+                g.dispatched += 1;
+                g.running += 1;
+                g.held += reserved;
+                self.account(&st, reserved, 0);
+                (k, reserved)
+            };
             if let Some(prepare) = &st.produce.prepare {
                 let (me, st2) = (self.clone(), st.clone());
                 let done: Box<dyn FnOnce() + Send> = Box::new(move || me.scene_ready(st2, k, reserved));
@@ -552,6 +591,46 @@ impl Scheduler {
             self.metrics.set_in_flight(s.in_flight, self.capacity);
             let me = self.clone();
             self.pool.spawn(move || me.run_job(st, k, reserved));
+        }
+    }
+
+    /// The next stream to start a job, round-robin first over the peers (in the order of their
+    /// keys, from the one after the peer served last), then over the peer's streams (in the order
+    /// they opened, from the one after the stream served last); None when no stream may.
+    fn next_eligible(&self, s: &mut Sched) -> Option<Arc<StreamShared>> {
+        let room = self.room();
+        let mut peers: Vec<u64> = s.groups.keys().copied().collect();
+        peers.sort_unstable();
+        let start = peers.iter().position(|&p| p > s.rr_peer).unwrap_or(0);
+        for off in 0..peers.len() {
+            let peer = peers[(start + off) % peers.len()];
+            let last = s.rr_in_peer.get(&peer).copied().unwrap_or(0);
+            let of_peer: Vec<&Arc<StreamShared>> = s.streams.iter().filter(|st| st.peer == peer).collect();
+            let first = of_peer.iter().position(|st| st.id > last).unwrap_or(0);
+            for j in 0..of_peer.len() {
+                let st = of_peer[(first + j) % of_peer.len()];
+                if st.eligible(&lock(&st.state), room) {
+                    let st = st.clone();
+                    s.rr_peer = peer;
+                    s.rr_in_peer.insert(peer, st.id);
+                    return Some(st);
+                }
+            }
+        }
+        None
+    }
+
+    /// Sets every peer's and stream's share of the budget: budget / peers with open streams,
+    /// then the peer's share / its open streams.
+    fn reshare(&self, s: &Sched) {
+        let peers = s.groups.len().max(1) as u64;
+        let peer_share = self.budget / peers;
+        for (peer, group) in &s.groups {
+            group.share.store(peer_share, Ordering::Release);
+            let n = s.streams.iter().filter(|st| st.peer == *peer).count().max(1) as u64;
+            for st in s.streams.iter().filter(|st| st.peer == *peer) {
+                st.share.store(peer_share / n, Ordering::Release);
+            }
         }
     }
 
@@ -570,19 +649,11 @@ impl Scheduler {
         self.budget.saturating_sub(self.buffered.load(Ordering::Acquire))
     }
 
-    fn open_streams(&self) -> usize {
-        self.open_streams.load(Ordering::Acquire)
-    }
-
-    /// A stream's fair share of the budget with `n` streams open.
-    fn share(&self, n: usize) -> u64 {
-        self.budget / n.max(1) as u64
-    }
-
-    /// Brings a stream back within `share` (its state locked by the caller): while it holds
+    /// Brings a stream back within its share (its state locked by the caller): while it holds
     /// more, it drops its newest finished sample from the end of what it has dispatched (a
     /// running job there stops it) and will make it again, byte for byte, when it reads on.
-    fn trim(&self, st: &StreamShared, g: &mut StreamState, share: u64) {
+    fn trim(&self, st: &StreamShared, g: &mut StreamState) {
+        let share = st.share.load(Ordering::Acquire);
         let mut freed = 0u64;
         // never the next sample to send (a stream always gets to send one)
         while g.held > share && g.dispatched > g.delivered + 1 {
@@ -601,7 +672,7 @@ impl Scheduler {
         }
         if freed > 0 {
             self.metrics.set_queue_depth(st.id, g.ready.len());
-            self.account(0, freed);
+            self.account(st, 0, freed);
         }
     }
 
@@ -634,7 +705,7 @@ impl Scheduler {
                 if size > 0 {
                     g.estimate = size;
                 }
-                self.account(size, reserved);
+                self.account(&st, size, reserved);
             }
             if let Some(item) = item {
                 if !g.closed {
@@ -642,9 +713,8 @@ impl Scheduler {
                     g.ready.insert(k, item);
                     self.metrics.set_queue_depth(st.id, g.ready.len());
                     // a job that was running when the shares shrank may leave the stream over its share
-                    let share = self.share(self.open_streams.load(Ordering::Acquire));
-                    if g.held > share {
-                        self.trim(&st, &mut g, share);
+                    if g.held > st.share.load(Ordering::Acquire) {
+                        self.trim(&st, &mut g);
                     }
                 }
             }
@@ -667,7 +737,7 @@ impl Scheduler {
             g.closed = true;
             g.ready.clear();
             // what running jobs reserved is released here; they hand back nothing when done
-            self.account(0, g.held);
+            self.account(st, 0, g.held);
             g.held = 0;
             g.in_transport = 0;
         }
@@ -675,9 +745,11 @@ impl Scheduler {
             let mut s = lock(&self.inner);
             s.streams.retain(|x| !Arc::ptr_eq(x, st));
             self.open_streams.store(s.streams.len(), Ordering::Release);
-            if s.rr >= s.streams.len() {
-                s.rr = 0;
+            if !s.streams.iter().any(|x| x.peer == st.peer) {
+                s.groups.remove(&st.peer);
+                s.rr_in_peer.remove(&st.peer);
             }
+            self.reshare(&s);
         }
         self.metrics.remove_stream(st.id);
         self.pump();
@@ -719,10 +791,7 @@ impl Scheduler {
             dropped: self.dropped.load(Ordering::Acquire),
             held: s.streams.iter().map(|st| lock(&st.state).held).collect(),
             waiting_scene: s.waiting_scene + s.ready_jobs.len(),
-            eligible: {
-                let share = self.share(s.streams.len());
-                s.streams.iter().filter(|st| st.eligible(&lock(&st.state), share, self.room())).count()
-            },
+            eligible: s.streams.iter().filter(|st| st.eligible(&lock(&st.state), self.room())).count(),
             per_stream: s
                 .streams
                 .iter()
@@ -772,7 +841,7 @@ impl Stream for SampleStream {
         let released = std::mem::take(&mut g.in_transport);
         if released > 0 {
             g.held -= released;
-            self.scheduler.account(0, released);
+            self.scheduler.account(&shared, 0, released);
             drop(g);
             self.scheduler.pump(); // the stream may start jobs again
             g = lock(&shared.state);
@@ -798,8 +867,7 @@ impl Stream for SampleStream {
         }
         let drained = g.draining && g.running == 0;
         // at its share of the budget, with nothing running, a stream sends the batch it has
-        let sc = &self.scheduler;
-        let at_share = g.running == 0 && !shared.eligible(&g, sc.share(sc.open_streams()), sc.room());
+        let at_share = g.running == 0 && !shared.eligible(&g, self.scheduler.room());
         if contiguous > 0 && (contiguous == want || drained || at_share) {
             let mut samples = Vec::with_capacity(contiguous);
             let mut bytes = 0usize;

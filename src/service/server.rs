@@ -43,9 +43,9 @@ pub struct State {
     serving: AtomicBool,
     draining: AtomicBool,
     active_streams: AtomicUsize,
-    /// GetSample and GetSamples calls open now (`max_random_access_calls`), replies not yet sent
-    /// included.
-    random_access_calls: AtomicUsize,
+    /// GetSample and GetSamples calls open now per peer (`max_random_access_calls`), replies not
+    /// yet sent included.
+    random_access_calls: std::sync::Mutex<std::collections::HashMap<u64, usize>>,
 }
 
 impl std::fmt::Debug for State {
@@ -144,7 +144,7 @@ impl State {
         Ok((ds, generator))
     }
 
-    fn open_stream(self: &Arc<Self>, r: &pb::StreamRequest) -> Result<CountedStream, ServiceError> {
+    fn open_stream(self: &Arc<Self>, r: &pb::StreamRequest, peer: u64) -> Result<CountedStream, ServiceError> {
         if self.draining.load(Ordering::SeqCst) {
             return Err(ServiceError::Draining);
         }
@@ -158,7 +158,7 @@ impl State {
         validate::outputs_fit_motion(&out, generator.config())?;
         validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
         // the stream limit
-        let admitted = self.admit(CallKind::Stream)?;
+        let admitted = self.admit(CallKind::Stream, peer)?;
         let spec = StreamSpec {
             start_index: r.start_index,
             rank: u64::from(rank),
@@ -169,7 +169,7 @@ impl State {
             max_message_bytes: self.config.max_message_bytes() as usize,
         };
         let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
-        let inner = self.scheduler.open(spec, produce)?;
+        let inner = self.scheduler.open_for(peer, spec, produce)?;
         self.metrics.active_streams.inc();
         tracing::info!(
             stream = inner.id(),
@@ -187,34 +187,55 @@ impl State {
         Ok(CountedStream { inner, _admitted: admitted })
     }
 
-    /// Counts a new call against its limit: `max_streams` for StreamSamples,
-    /// `max_random_access_calls` for GetSample and GetSamples (undone when the returned slot is
-    /// dropped, with the call's reply).
-    fn admit(self: &Arc<Self>, kind: CallKind) -> Result<Admitted, ServiceError> {
-        let (counter, limit) = self.counter(kind);
-        if counter.fetch_add(1, Ordering::SeqCst) >= limit {
-            counter.fetch_sub(1, Ordering::SeqCst);
-            return Err(match kind {
-                CallKind::Stream => ServiceError::TooManyStreams { limit },
-                CallKind::RandomAccess => ServiceError::LimitExceeded(format!(
-                    "too many GetSample/GetSamples calls: {limit} are open (max_random_access_calls); retry when \
-                     one has been answered"
-                )),
-            });
+    /// Counts a new call against its limit: `max_streams` for StreamSamples over all clients,
+    /// `max_random_access_calls` for the GetSample and GetSamples calls of one peer (undone when
+    /// the returned slot is dropped, with the call's reply).
+    fn admit(self: &Arc<Self>, kind: CallKind, peer: u64) -> Result<Admitted, ServiceError> {
+        match kind {
+            CallKind::Stream => {
+                let limit = self.config.max_streams;
+                if self.active_streams.fetch_add(1, Ordering::SeqCst) >= limit {
+                    self.active_streams.fetch_sub(1, Ordering::SeqCst);
+                    return Err(ServiceError::TooManyStreams { limit });
+                }
+            }
+            CallKind::RandomAccess => {
+                let limit = self.config.max_random_access_calls;
+                let mut calls = self.random_access_calls.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+                let n = calls.entry(peer).or_insert(0);
+                if *n >= limit {
+                    return Err(ServiceError::LimitExceeded(format!(
+                        "too many GetSample/GetSamples calls: {limit} of this client are open \
+                         (max_random_access_calls); retry when one has been answered"
+                    )));
+                }
+                *n += 1;
+            }
         }
-        Ok(Admitted { state: self.clone(), kind })
+        Ok(Admitted { state: self.clone(), kind, peer })
     }
 
-    fn counter(&self, kind: CallKind) -> (&AtomicUsize, usize) {
+    /// Gives a call's slot back.
+    fn release(&self, kind: CallKind, peer: u64) {
         match kind {
-            CallKind::Stream => (&self.active_streams, self.config.max_streams),
-            CallKind::RandomAccess => (&self.random_access_calls, self.config.max_random_access_calls),
+            CallKind::Stream => {
+                self.active_streams.fetch_sub(1, Ordering::SeqCst);
+            }
+            CallKind::RandomAccess => {
+                let mut calls = self.random_access_calls.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+                if let Some(n) = calls.get_mut(&peer) {
+                    *n -= 1;
+                    if *n == 0 {
+                        calls.remove(&peer);
+                    }
+                }
+            }
         }
     }
 
     /// The samples of an explicit index list, in its order (GetSamples): a stream of the pool
     /// with the list as its positions, counted against `max_streams`, one sample per message.
-    fn open_samples(self: &Arc<Self>, r: &pb::SamplesRequest) -> Result<CountedStream, ServiceError> {
+    fn open_samples(self: &Arc<Self>, r: &pb::SamplesRequest, peer: u64) -> Result<CountedStream, ServiceError> {
         if self.draining.load(Ordering::SeqCst) {
             return Err(ServiceError::Draining);
         }
@@ -227,7 +248,7 @@ impl State {
         let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
         validate::outputs_fit_motion(&out, generator.config())?;
         validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
-        let admitted = self.admit(CallKind::RandomAccess)?;
+        let admitted = self.admit(CallKind::RandomAccess, peer)?;
         // as many made ahead as keep every worker busy (within max_prefetch)
         let prefetch = (self.config.default_prefetch as usize)
             .max(self.scheduler.workers())
@@ -236,7 +257,7 @@ impl State {
         let n = indices.len();
         let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
         let max_bytes = self.config.max_message_bytes() as usize;
-        let inner = self.scheduler.open_indices(indices, 1, prefetch, max_bytes, produce)?;
+        let inner = self.scheduler.open_indices(peer, indices, 1, prefetch, max_bytes, produce)?;
         self.metrics.active_streams.inc();
         tracing::debug!(
             stream = inner.id(),
@@ -253,7 +274,11 @@ impl State {
     /// One sample through the worker pool (GetSample and the warm-up), with its place in the
     /// byte budget: the sample's bytes stay counted until the returned stream is dropped (with
     /// the reply, once sent: [`ReplyHold`]).
-    pub async fn one_sample(self: &Arc<Self>, r: &pb::SampleRequest) -> Result<(pb::Sample, SampleStream), Status> {
+    pub async fn one_sample(
+        self: &Arc<Self>,
+        r: &pb::SampleRequest,
+        peer: u64,
+    ) -> Result<(pb::Sample, SampleStream), Status> {
         if r.index == super::pool::END_INDEX {
             return Err(ServiceError::invalid("index", "2^64 - 1 is the end of the index space, not a sample").into());
         }
@@ -274,7 +299,7 @@ impl State {
             prefetch: 1,
             max_message_bytes: self.config.max_message_bytes() as usize,
         };
-        let mut stream = self.scheduler.open(spec, self.produce(ds, generator, r.seed, out))?;
+        let mut stream = self.scheduler.open_for(peer, spec, self.produce(ds, generator, r.seed, out))?;
         match stream.next().await {
             Some(Ok(mut b)) if !b.samples.is_empty() => Ok((b.samples.swap_remove(0), stream)),
             Some(Err(status)) => Err(Status::new(status.code(), status.message().to_string())),
@@ -390,11 +415,24 @@ enum CallKind {
 struct Admitted {
     state: Arc<State>,
     kind: CallKind,
+    peer: u64,
 }
 
 impl Drop for Admitted {
     fn drop(&mut self) {
-        self.state.counter(self.kind).0.fetch_sub(1, Ordering::SeqCst);
+        self.state.release(self.kind, self.peer);
+    }
+}
+
+/// The key of a call's client for the fairness between clients (its IP address; 0 = unknown).
+fn peer_key<T>(request: &Request<T>) -> u64 {
+    match request.remote_addr().map(|a| a.ip()) {
+        Some(std::net::IpAddr::V4(a)) => u64::from(u32::from(a)) + 1,
+        Some(std::net::IpAddr::V6(a)) => {
+            let b = u128::from(a);
+            ((b >> 64) as u64 ^ b as u64) | (1 << 63)
+        }
+        None => 0,
     }
 }
 
@@ -445,7 +483,7 @@ impl MpiFlow for Service {
         &self,
         request: Request<pb::StreamRequest>,
     ) -> Result<Response<Self::StreamSamplesStream>, Status> {
-        let stream = refused(&self.state, self.state.open_stream(request.get_ref()))?;
+        let stream = refused(&self.state, self.state.open_stream(request.get_ref(), peer_key(&request)))?;
         Ok(Response::new(Box::pin(stream)))
     }
 
@@ -453,8 +491,9 @@ impl MpiFlow for Service {
         if self.state.draining.load(Ordering::SeqCst) {
             return Err(refused::<()>(&self.state, Err(ServiceError::Draining)).unwrap_err());
         }
-        let admitted = refused(&self.state, self.state.admit(CallKind::RandomAccess))?;
-        let r = self.state.one_sample(request.get_ref()).await;
+        let peer = peer_key(&request);
+        let admitted = refused(&self.state, self.state.admit(CallKind::RandomAccess, peer))?;
+        let r = self.state.one_sample(request.get_ref(), peer).await;
         let (sample, stream) = r.inspect_err(|s| self.state.metrics.count_refused(s.code()))?;
         let mut response = Response::new(sample);
         // the sample's bytes and the call's slot are held until the reply has been sent
@@ -466,7 +505,7 @@ impl MpiFlow for Service {
         &self,
         request: Request<pb::SamplesRequest>,
     ) -> Result<Response<Self::GetSamplesStream>, Status> {
-        let stream = refused(&self.state, self.state.open_samples(request.get_ref()))?;
+        let stream = refused(&self.state, self.state.open_samples(request.get_ref(), peer_key(&request)))?;
         // one sample per batch (batch_size 1): each message is that sample
         let samples = stream.map(|b| {
             b.and_then(|b| {
@@ -549,7 +588,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         serving: AtomicBool::new(false),
         draining: AtomicBool::new(false),
         active_streams: AtomicUsize::new(0),
-        random_access_calls: AtomicUsize::new(0),
+        random_access_calls: std::sync::Mutex::new(std::collections::HashMap::new()),
     });
     state.set_health(ServingStatus::NotServing).await;
 
@@ -636,7 +675,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let warm = state.clone();
     let warmup = tokio::spawn(async move {
         let t = Instant::now();
-        let r = warm.one_sample(&pb::SampleRequest::default()).await;
+        let r = warm.one_sample(&pb::SampleRequest::default(), 0).await;
         match r {
             Ok((s, _stream)) => tracing::info!(
                 ms = t.elapsed().as_secs_f64() * 1e3,
