@@ -96,6 +96,9 @@ pub fn run(a: BakeArgs) -> Result<(), CliError> {
         segment_model: a.segment_model.clone(),
     };
     let stage = Arc::new(models.build_stage().map_err(CliError)?);
+    mpiflow::scene::stage::SourceScenes::new(source.clone(), stage.clone())
+        .check_can_make_scenes()
+        .map_err(|e| CliError(format!("--source {}: {e}", a.source.display())))?;
     let layout = match a.format.as_str() {
         "webdataset" => BakeLayout::WebDataset { items_per_shard: a.items_per_shard as usize },
         _ => BakeLayout::Reference,
