@@ -8,9 +8,11 @@
 
 pub mod builtin;
 pub mod cache;
+pub mod hub;
 pub mod masks;
 pub mod models;
 pub mod onnx;
+pub mod registry;
 pub mod scale;
 pub mod stage;
 
@@ -79,7 +81,7 @@ impl SceneError {
 
 /// Estimates disparity (scene scale, see the module docs) from an image.
 pub trait DepthEstimator: Send + Sync {
-    /// A short name for logs and sample metadata (e.g. `onnx:midas_small.onnx`).
+    /// A short name for logs and sample metadata (e.g. `onnx:model.onnx`).
     fn name(&self) -> String;
     /// Everything that makes this estimator's output what it is, for fingerprints (for a model:
     /// the content hash of its file and its contract). Default: [`Self::name`].
