@@ -358,22 +358,27 @@ fn the_registry_contract_feeds_the_named_tensors_normalised() {
     assert_eq!(m.inference_runs(), Some(0));
 }
 
-/// The Depth Anything V2 architecture itself (a reduced-width random-weight export made by
-/// `tools/export/depth_anything.py --random-init tiny`, in tests/data/models) through the real
-/// ONNX Runtime path with the registry entry's contract: a photo gives a depth map of its size
-/// in the scene scale, not a constant.
+/// Each named architecture itself (reduced-width random-weight exports in tests/data/models:
+/// `tools/export/depth_anything.py --random-init tiny`, `tools/export/midas_depth.py
+/// --random-init dpt-hybrid-tiny --hub-contract`) through the real ONNX Runtime path with its
+/// registry entry's contract: a photo gives a depth map of its size in the scene scale, not a
+/// constant.
 #[test]
-fn the_depth_anything_architecture_runs_with_the_registry_contract() {
-    let entry = registry::find("depth-anything-v2-small").unwrap().unwrap();
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/models/depth_anything_v2_tiny.onnx");
-    let resolved = registry::Resolved { path, contract: entry.contract.clone(), entry: Some(entry) };
-    let model = registry::load_depth(&resolved).unwrap();
-    let photo = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/photos/chelsea.png");
-    let image = mpiflow::io::image::load_rgb(&photo, &Default::default()).unwrap();
-    let d = model.estimate(&image).unwrap();
-    assert_eq!((d.width, d.height), (image.width, image.height));
-    assert!(d.data.iter().all(|v| v.is_finite() && (0.001..=1.0).contains(v)));
-    let (lo, hi) = d.data.iter().fold((f32::MAX, f32::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
-    assert!(lo < 0.5 && hi == 1.0, "a depth map, not a constant: {lo}..{hi}");
-    assert_eq!(model.inference_runs(), Some(1));
+fn each_named_architecture_runs_with_its_registry_contract() {
+    for (name, file) in
+        [("depth-anything-v2-small", "depth_anything_v2_tiny.onnx"), ("dpt-hybrid-midas", "dpt_hybrid_tiny.onnx")]
+    {
+        let entry = registry::find(name).unwrap().unwrap();
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/models").join(file);
+        let resolved = registry::Resolved { path, contract: entry.contract.clone(), entry: Some(entry) };
+        let model = registry::load_depth(&resolved).unwrap();
+        let photo = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/photos/chelsea.png");
+        let image = mpiflow::io::image::load_rgb(&photo, &Default::default()).unwrap();
+        let d = model.estimate(&image).unwrap();
+        assert_eq!((d.width, d.height), (image.width, image.height), "{name}");
+        assert!(d.data.iter().all(|v| v.is_finite() && (0.001..=1.0).contains(v)), "{name}");
+        let (lo, hi) = d.data.iter().fold((f32::MAX, f32::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+        assert!(lo < 0.5 && hi == 1.0, "{name}: a depth map, not a constant: {lo}..{hi}");
+        assert_eq!(model.inference_runs(), Some(1), "{name}");
+    }
 }
