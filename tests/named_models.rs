@@ -295,6 +295,20 @@ fn offline_without_the_file_names_the_url_and_where_to_put_it() {
     assert_eq!(text(&out.stdout).trim(), path.display().to_string());
 }
 
+/// Online, with nothing listening at the endpoint: the error names the URL, a mirror and the
+/// path where a file downloaded elsewhere goes; nothing is kept.
+#[test]
+fn an_unreachable_hub_names_the_url_and_the_path() {
+    let dir = tmp("unreachable");
+    let out = fetch(&dir, "http://127.0.0.1:1", false);
+    let err = text(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    let path = repo_cache(&dir).join("snapshots/main/onnx/model.onnx");
+    assert!(err.contains(&format!("http://127.0.0.1:1/{REPO}/resolve/main/onnx/model.onnx")), "{err}");
+    assert!(err.contains("HF_ENDPOINT") && err.contains(&path.display().to_string()), "{err}");
+    assert_eq!(files_under(&repo_cache(&dir)), Vec::<String>::new());
+}
+
 /// `models check FILE --image PHOTO`: a file with the hub's tensor names runs with the manifest
 /// beside it (and not without it); the preview is the photo's depth (the model's output grows
 /// with red, so the preview brightens left to right on a red ramp).

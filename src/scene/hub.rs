@@ -36,6 +36,12 @@ pub enum HubError {
     Offline { url: String, path: PathBuf },
     #[error("{url}: {message}")]
     Http { url: String, message: String },
+    #[error(
+        "{url}: {message}: the hub cannot be reached; set HF_ENDPOINT to a mirror, or download the file \
+         elsewhere and put it at {}",
+        .path.display()
+    )]
+    Unreachable { url: String, path: PathBuf, message: String },
     #[error("{url}: the download ended after {got} of {expected} bytes; nothing was kept (run it again)")]
     Interrupted { url: String, got: u64, expected: u64 },
     #[error("{what} has SHA-256 {actual}, but the registry pins {expected}: refused{kept}")]
@@ -147,7 +153,11 @@ impl Hub {
         let mut commit = None;
         let mut response = None;
         for _ in 0..=MAX_REDIRECTS {
-            let r = agent.get(&next).call().map_err(|err| http(err.to_string()))?;
+            let r = agent.get(&next).call().map_err(|err| HubError::Unreachable {
+                url: next.clone(),
+                path: self.cached_path(e),
+                message: err.to_string(),
+            })?;
             if commit.is_none() {
                 commit = r.headers().get("x-repo-commit").and_then(|v| v.to_str().ok()).map(str::to_string);
             }

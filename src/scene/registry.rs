@@ -234,17 +234,19 @@ fn parse(text: &str, path: &str) -> Result<Vec<Entry>, ModelError> {
     Ok(f.model)
 }
 
-/// The registry: the built-in entries, then those of [`REGISTRY_ENV`]'s file (replacing
-/// built-in entries of the same name).
+/// The registry: the built-in entries, then those of [`REGISTRY_ENV`]'s file (an entry with a
+/// built-in name replaces it in place; an empty variable is none).
 pub fn registry() -> Result<Vec<Entry>, ModelError> {
     let mut out = parse(BUILTIN, "(built in)")?;
-    if let Some(p) = std::env::var_os(REGISTRY_ENV) {
+    if let Some(p) = std::env::var_os(REGISTRY_ENV).filter(|p| !p.is_empty()) {
         let path = PathBuf::from(p);
         let text = std::fs::read_to_string(&path)
             .map_err(|e| ModelError::Registry { path: path.display().to_string(), message: e.to_string() })?;
         for e in parse(&text, &path.display().to_string())? {
-            out.retain(|o| o.name != e.name);
-            out.push(e);
+            match out.iter_mut().find(|o| o.name == e.name) {
+                Some(o) => *o = e,
+                None => out.push(e),
+            }
         }
     }
     Ok(out)
