@@ -394,5 +394,6 @@ fn each_named_architecture_runs_with_its_registry_contract() {
         let (lo, hi) = d.data.iter().fold((f32::MAX, f32::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
         assert!(lo < 0.5 && hi == 1.0, "{name}: a depth map, not a constant: {lo}..{hi}");
         assert_eq!(model.inference_runs(), Some(1), "{name}");
+        assert_eq!(model.name(), format!("{name} (onnx:{file})"));
     }
 }

@@ -341,12 +341,45 @@ impl DepthEstimator for MetricDepth {
     }
 }
 
+/// A depth model known by its registry name: shown as `NAME (onnx:FILE)` in logs, `GetInfo` and
+/// bake manifests; its identity (and so every fingerprint) is the model's own.
+struct NamedDepth {
+    name: String,
+    inner: Arc<dyn DepthEstimator>,
+}
+
+impl DepthEstimator for NamedDepth {
+    fn name(&self) -> String {
+        format!("{} ({})", self.name, self.inner.name())
+    }
+
+    fn identity(&self) -> String {
+        self.inner.identity()
+    }
+
+    fn estimate(&self, image: &RgbImage) -> Result<Disparity, SceneError> {
+        self.inner.estimate(image)
+    }
+
+    fn inference_runs(&self) -> Option<u64> {
+        self.inner.inference_runs()
+    }
+
+    fn content_hash(&self) -> Option<u64> {
+        self.inner.content_hash()
+    }
+}
+
 /// Loads a resolved depth model with its contract (sessions created and warmed here).
 pub fn load_depth(r: &Resolved) -> Result<Arc<dyn DepthEstimator>, SceneError> {
     let model = OnnxDepth::new(r.contract.depth_config(&r.path))?;
-    Ok(match r.contract.output_kind.unwrap_or_default() {
+    let model: Arc<dyn DepthEstimator> = match r.contract.output_kind.unwrap_or_default() {
         OutputKind::RelativeInverseDepth => Arc::new(model),
         OutputKind::MetricDepth => Arc::new(MetricDepth(model)),
+    };
+    Ok(match &r.entry {
+        Some(e) => Arc::new(NamedDepth { name: e.name.clone(), inner: model }),
+        None => model,
     })
 }
 
