@@ -397,3 +397,61 @@ fn each_named_architecture_runs_with_its_registry_contract() {
         assert_eq!(model.name(), format!("{name} (onnx:{file})"));
     }
 }
+
+/// A manifest's `output_kind = "metric-depth"`: the output is depth (larger = farther), inverted
+/// before the normalisation, so the depth map runs the other way than as inverse depth.
+#[test]
+fn a_metric_depth_manifest_inverts_the_output() {
+    let dir = tmp("metric");
+    let image =
+        RgbImage { width: 16, height: 4, data: (0..64).flat_map(|i| [(i % 16) as f32 / 15.0, 0.2, 0.2]).collect() };
+    let run = |kind: &str| {
+        let model = dir.join(format!("{kind}.onnx"));
+        std::fs::copy(models().join("depth_hub.onnx"), &model).unwrap();
+        let manifest = format!("input = \"pixel_values\"\noutput = \"predicted_depth\"\noutput_kind = \"{kind}\"\n");
+        std::fs::write(registry::manifest_path(&model), manifest).unwrap();
+        let hub = mpiflow::scene::hub::Hub { endpoint: String::new(), cache: dir.join("hub"), offline: true };
+        let r = registry::resolve(&model, registry::Role::Depth, &hub, false).unwrap();
+        registry::load_depth(&r).unwrap().estimate(&image).unwrap().data
+    };
+    let inverse = run("relative-inverse-depth");
+    let metric = run("metric-depth");
+    // red grows to the right: the output (2 R + G - 0.5 B + 3) grows, so as inverse depth the
+    // right is nearest (1), as metric depth the left is
+    assert_eq!((inverse[15], metric[0]), (1.0, 1.0));
+    assert!(inverse[0] < inverse[15] && metric[15] < metric[0]);
+    // metric: disparity ~ 1 / depth, min-max normalised
+    let d = |x: usize| 2.0 * (x as f32 / 15.0) + 0.2 - 0.1 + 3.0;
+    let inv: Vec<f32> = (0..16).map(|x| 1.0 / d(x)).collect();
+    let want = |x: usize| (inv[x] - inv[15]) / (inv[0] - inv[15]);
+    assert!((0..16).all(|x| (metric[x] - want(x).max(0.001)).abs() < 1e-4), "{metric:?}");
+}
+
+/// A segmentation file whose outputs have other names runs with a manifest naming them.
+#[test]
+fn a_segmentation_manifest_names_the_outputs() {
+    let dir = tmp("seg");
+    let model = dir.join("seg.onnx");
+    std::fs::copy(models().join("seg_wrong_names.onnx"), &model).unwrap();
+    let hub = mpiflow::scene::hub::Hub { endpoint: String::new(), cache: dir.join("hub"), offline: true };
+    let load = || {
+        let r = registry::resolve(&model, registry::Role::Segment, &hub, false).unwrap();
+        mpiflow::scene::onnx::OnnxSegmenter::new(r.contract.segment_config(&r.path))
+    };
+    let e = load().unwrap_err();
+    assert!(e.to_string().contains("has no output tensor `masks`"), "{e}");
+    std::fs::write(
+        registry::manifest_path(&model),
+        "masks_output = \"out_masks\"\nscores_output = \"out_scores\"\nlabels_output = \"out_labels\"\n",
+    )
+    .unwrap();
+    let seg = load().unwrap();
+    // channel 0 bright on the left half: one instance there (seg.onnx's known function)
+    let image = RgbImage {
+        width: 8,
+        height: 4,
+        data: (0..32).flat_map(|i| [if i % 8 < 4 { 1.0 } else { 0.0 }, 0.0, 0.0]).collect(),
+    };
+    let masks = mpiflow::scene::Segmenter::segment(&seg, &image).unwrap();
+    assert_eq!(masks.masks.len(), 1);
+}
