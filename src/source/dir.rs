@@ -49,7 +49,7 @@
 //! size is resized to cover that frame with its aspect kept (the image with the triangle filter,
 //! depth and masks as above) and cropped to the frame's centre ([`crate::raster::cover`]): every
 //! sample of the folder has one size, so a crop that fits its largest photo fits every sample. A
-//! folder of one size is read as it is. A given MPI
+//! folder of one size is read as it is, and so is an item with a given MPI. A given MPI
 //! must have the size of the (resized) image; it is never resized. Intrinsics are the reference's
 //! default (`0.58 W, 0.58 H`, centre; left to the scene stage) unless
 //! [`SourceOptions::intrinsics`] sets them for the run.
@@ -586,7 +586,8 @@ impl DirSource {
                 masks = masks.map(|m| m.resize_nearest(rw, rh));
             }
         }
-        if let Some((fw, fh)) = self.frame.filter(|f| *f != (image.width, image.height)) {
+        // an item with its MPI keeps its size: an MPI is never resized
+        if let Some((fw, fh)) = self.frame.filter(|f| *f != (image.width, image.height) && e.mpi.is_none()) {
             // cover the frame with the aspect kept, then its centre
             let (w0, h0) = (image.width, image.height);
             let (rw, rh, x0, y0) = cover(w0, h0, fw, fh);
@@ -636,11 +637,12 @@ impl DirSource {
 }
 
 /// The frame of a folder whose photos differ in size: the size of its largest photo (most
-/// pixels; among equals the wider, then the first listed), read from the image headers. `None`
+/// pixels; among equals the wider, then the first listed), read from the image headers; items
+/// with a given MPI are left out (they keep their size, as MPIs are never resized). `None`
 /// when every readable photo has one size (nothing is resized) or none is readable; a photo whose
 /// header cannot be read is left out here and fails when loaded.
 fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Option<(usize, usize)> {
-    let mut sizes = entries.iter().filter_map(|e| {
+    let mut sizes = entries.iter().filter(|e| e.mpi.is_none()).filter_map(|e| {
         let p = root.join(&e.image.rel);
         if e.image.size > limits.max_bytes {
             return None;
