@@ -840,13 +840,20 @@ fn generate_passes_over_a_failing_source_with_a_warning_and_counts_it() {
         assert_eq!(j["source_id"], "good");
     }
 
-    // nothing written at all: exit code 2 and a one-line error
+    // nothing written at all (the one depth file is corrupt): exit code 2 and a one-line error
+    std::fs::write(src.join("depths/good.npy"), b"not an array").unwrap();
+    let r = mpiflow(&["generate", "--source", src.to_str().unwrap(), "--count", "2", "--out", out.to_str().unwrap()]);
+    assert_eq!(r.status.code(), Some(2));
+    let stderr = text(&r.stderr);
+    assert!(stderr.lines().last().unwrap().starts_with("error: no sample written"), "{stderr}");
+
+    // no photo carries depth any more: refused before anything is made, naming the fix
     std::fs::remove_file(src.join("depths/good.npy")).unwrap();
     let r = mpiflow(&["generate", "--source", src.to_str().unwrap(), "--count", "2", "--out", out.to_str().unwrap()]);
     assert_eq!(r.status.code(), Some(2));
     let stderr = text(&r.stderr);
     let last = stderr.lines().last().unwrap();
-    assert!(last.starts_with("error: no sample written"), "{stderr}");
+    assert!(last.starts_with("error: ") && last.contains("pass --depth-model NAME|FILE"), "{stderr}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

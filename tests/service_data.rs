@@ -317,6 +317,13 @@ async fn uploads_in_progress_are_bounded() {
     drop(tx);
     assert_eq!(stalled.await.unwrap().unwrap().into_inner().sources, 1);
     assert_eq!(uploads.in_progress(), (0, 0));
-    assert_eq!(c.upload_sources(tokio_stream::iter(one)).await.unwrap().into_inner().sources, 0);
+    let depth_b = pb::SourceChunk {
+        name: "b".into(),
+        kind: "depth".into(),
+        data: depth_npy(W as usize, H as usize),
+        ..Default::default()
+    };
+    let again = one.into_iter().chain([depth_b]);
+    assert_eq!(c.upload_sources(tokio_stream::iter(again)).await.unwrap().into_inner().sources, 1);
     s.shutdown(Duration::from_secs(5)).await;
 }

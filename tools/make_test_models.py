@@ -13,6 +13,8 @@ depth_fixed.onnx         the same on a static 32x24 (W x H) input, output [1,1,2
 depth_nan.onnx           depth [1,1,h,w] = sqrt(R - 0.25): NaN wherever R < 0.25
 depth_wrong_input.onnx   like depth.onnx, input named `input`
 depth_wrong_output.onnx  like depth.onnx, output named `predicted_depth`
+depth_hub.onnx           like depth.onnx with the hub's tensor names (Depth Anything, DPT
+                         exports): pixel_values [1,3,h,w] -> predicted_depth [1,h,w]
 depth_two_channels.onnx  output [1,2,h,w] (wrong shape)
 depth_rank3_input.onnx   input [3,h,w] (wrong rank)
 mpi.onnx                 image [1,3,h,w], disparity [1,1,h,w] -> mpi [1,4,4,h,w]:
@@ -78,6 +80,7 @@ def depth_models(outdir):
     linear(squeeze=False, h=24, w=32, filename="depth_fixed.onnx")
     linear(input_name="input", filename="depth_wrong_input.onnx")
     linear(output_name="predicted_depth", filename="depth_wrong_output.onnx")
+    linear(input_name="pixel_values", output_name="predicted_depth", filename="depth_hub.onnx")
 
     # Two output channels: [1,2,h,w].
     w2 = const("w2", [[[[2.0]], [[1.0]], [[-0.5]]], [[[1.0]], [[1.0]], [[1.0]]]])

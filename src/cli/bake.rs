@@ -26,11 +26,12 @@ pub struct BakeArgs {
     /// shards of one bake.
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Depth model (ONNX) for items without depth.
-    #[arg(long, value_name = "FILE.onnx")]
+    /// Depth model for items without depth: a NAME (`mpiflow models list`; fetched and cached on
+    /// first use) or an ONNX FILE (optional manifest FILE.toml beside it; docs/models.md).
+    #[arg(long, value_name = "NAME|FILE")]
     depth_model: Option<PathBuf>,
-    /// Instance segmentation model (ONNX) for items without masks.
-    #[arg(long, value_name = "FILE.onnx")]
+    /// Instance segmentation model for items without masks: a NAME or an ONNX FILE.
+    #[arg(long, value_name = "NAME|FILE")]
     segment_model: Option<PathBuf>,
     /// MPI network (ONNX); its MPIs are baked into mpis/ (without it the server's built-in
     /// layering lifts the baked disparity, which needs no model).
@@ -96,6 +97,9 @@ pub fn run(a: BakeArgs) -> Result<(), CliError> {
         segment_model: a.segment_model.clone(),
     };
     let stage = Arc::new(models.build_stage().map_err(CliError)?);
+    mpiflow::scene::stage::SourceScenes::new(source.clone(), stage.clone())
+        .check_can_make_scenes()
+        .map_err(|e| CliError(format!("--source {}: {e}", a.source.display())))?;
     let layout = match a.format.as_str() {
         "webdataset" => BakeLayout::WebDataset { items_per_shard: a.items_per_shard as usize },
         _ => BakeLayout::Reference,

@@ -98,14 +98,15 @@ pub struct GenerateArgs {
     /// Resize every source image to WxH (default: keep sizes; the bundled scenes are 640x480).
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     size: Option<(usize, usize)>,
-    /// Depth model (ONNX, default contract) for source images without depth.
-    #[arg(long, value_name = "FILE.onnx")]
+    /// Depth model for sources without depth: a NAME (`mpiflow models list`; fetched and cached on
+    /// first use) or an ONNX FILE (optional manifest FILE.toml beside it; docs/models.md).
+    #[arg(long, value_name = "NAME|FILE")]
     depth_model: Option<PathBuf>,
     /// MPI network (ONNX, AdaMPI-style default contract) instead of the built-in layering.
     #[arg(long, value_name = "FILE.onnx")]
     mpi_model: Option<PathBuf>,
-    /// Instance segmentation model (ONNX, Mask R-CNN-style default contract) for images without masks.
-    #[arg(long, value_name = "FILE.onnx")]
+    /// Instance segmentation model for sources without masks: a NAME or an ONNX FILE.
+    #[arg(long, value_name = "NAME|FILE")]
     segment_model: Option<PathBuf>,
     /// Worker threads (default: all cores).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..=1024))]

@@ -7,6 +7,7 @@ mod bench_soak;
 mod connect;
 mod generate;
 mod health;
+mod models;
 mod pull;
 mod render;
 mod serve;
@@ -41,6 +42,9 @@ enum Command {
     Pull(pull::PullArgs),
     /// gRPC health check of a server: exit code 0 only when it is SERVING.
     Health(health::HealthArgs),
+    /// Named scene models: list them, fetch one into the hub cache, check one on a photo.
+    #[command(subcommand)]
+    Models(models::ModelsCommand),
 }
 
 /// A failure the user can act on: printed as one line, exit code 2.
@@ -75,6 +79,7 @@ pub fn run() -> i32 {
         Command::Serve(a) => serve::run(a),
         Command::Pull(a) => pull::run(a),
         Command::Health(a) => health::run(a),
+        Command::Models(c) => models::run(c),
     };
     match result {
         Ok(()) => 0,

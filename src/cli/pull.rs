@@ -190,9 +190,12 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
     let written = writer.join().map_err(|_| CliError("the writer thread panicked".into()))?;
     let report = report?;
     let written = written.map_err(CliError)?;
-    println!("pull: {}", report.summary());
-    if let Some(dir) = &a.out {
-        println!("pull: wrote {written} samples to {} ({} layout, previews in previews/)", dir.display(), a.format);
+    // a stream that failed before its first sample is its error alone (below)
+    if report.samples > 0 || report.error.is_none() {
+        println!("pull: {}", report.summary());
+        if let Some(dir) = &a.out {
+            println!("pull: wrote {written} samples to {} ({} layout, previews in previews/)", dir.display(), a.format);
+        }
     }
     if let Some(status) = &report.error {
         let cursor = cursor_of(status)

@@ -64,14 +64,15 @@ pub struct ServeArgs {
     /// Build the scenes of each stream's next indices ahead on the scene pool (true / false).
     #[arg(long, value_name = "BOOL")]
     prefetch_scenes: Option<bool>,
-    /// Depth model (ONNX) for sources without depth.
-    #[arg(long, value_name = "FILE.onnx")]
+    /// Depth model for sources without depth: a NAME (`mpiflow models list`; fetched and cached on
+    /// first use) or an ONNX FILE (optional manifest FILE.toml beside it; docs/models.md).
+    #[arg(long, value_name = "NAME|FILE")]
     depth_model: Option<PathBuf>,
     /// MPI network (ONNX) instead of the built-in layering.
     #[arg(long, value_name = "FILE.onnx")]
     mpi_model: Option<PathBuf>,
-    /// Instance segmentation model (ONNX) for sources without masks.
-    #[arg(long, value_name = "FILE.onnx")]
+    /// Instance segmentation model for sources without masks: a NAME or an ONNX FILE.
+    #[arg(long, value_name = "NAME|FILE")]
     segment_model: Option<PathBuf>,
     /// Planes of the built-in layering.
     #[arg(long, value_name = "N")]

@@ -285,6 +285,20 @@ impl InstanceMasks {
         self.resized(new_width, new_height, resize_nearest)
     }
 
+    /// The `cw x ch` window at `(x0, y0)` of every mask ([`crop`](super::resize::crop)), areas
+    /// recomputed.
+    pub fn cropped(&self, x0: usize, y0: usize, cw: usize, ch: usize) -> Self {
+        let masks = self
+            .masks
+            .iter()
+            .map(|m| {
+                let mask = super::resize::crop(&m.mask, self.width, 1, x0, y0, cw, ch);
+                Instance { area: binary_area(&mask), mask, ..m.clone() }
+            })
+            .collect();
+        InstanceMasks { width: cw, height: ch, masks }
+    }
+
     /// Every mask resized with [`resize_bilinear`], areas recomputed.
     pub fn resize_bilinear(&self, new_width: usize, new_height: usize) -> Self {
         self.resized(new_width, new_height, resize_bilinear)

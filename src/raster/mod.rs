@@ -194,6 +194,22 @@ mod tests {
     }
 
     #[test]
+    fn cover_keeps_the_aspect_and_centres_the_frame() {
+        // one size: nothing to do
+        assert_eq!(cover(64, 48, 64, 48), (64, 48, 0, 0));
+        // 451x300 into 496x368: height decides (368 / 300), the width overflows and is centred
+        let (rw, rh, x0, y0) = cover(451, 300, 496, 368);
+        assert_eq!((rh, y0), (368, 0));
+        assert_eq!(rw, (451.0f64 * 368.0 / 300.0).round() as usize);
+        assert_eq!(x0, (rw - 496) / 2);
+        // a portrait photo into a landscape frame: the width decides
+        assert_eq!(cover(40, 80, 80, 60), (80, 160, 0, 50));
+        // crop takes the window, channel-interleaved
+        let v: Vec<f32> = (0..24).map(|i| i as f32).collect(); // 4 x 3, 2 channels
+        assert_eq!(crop(&v, 4, 2, 1, 1, 2, 2), [10.0, 11.0, 12.0, 13.0, 18.0, 19.0, 20.0, 21.0]);
+    }
+
+    #[test]
     fn depth_resize_is_smooth_on_a_surface_and_sharp_at_its_edges() {
         // a slanted surface (1% per row) upsampled 1.5x: strictly increasing rows, no stair
         // steps (nearest repeats every third row), the values between the source's

@@ -109,3 +109,32 @@ pub fn resize_bilinear(mask: &[f32], w: usize, h: usize, new_w: usize, new_h: us
     }
     out
 }
+
+// ---------------------------------------------------------------------------------------------
+// cover and crop
+
+/// The size a `w x h` image is resized to so that it covers a `frame_w x frame_h` frame with its
+/// aspect kept, and the corner of the centred frame in it: `(rw, rh, x0, y0)`. The scale is
+/// `max(frame_w / w, frame_h / h)`; each resized side is rounded to the nearest pixel and at least
+/// the frame's; the frame is centred (`x0 = (rw - frame_w) / 2`, rounded down).
+pub fn cover(w: usize, h: usize, frame_w: usize, frame_h: usize) -> (usize, usize, usize, usize) {
+    let s = (frame_w as f64 / w.max(1) as f64).max(frame_h as f64 / h.max(1) as f64);
+    let rw = ((w as f64 * s).round() as usize).max(frame_w);
+    let rh = ((h as f64 * s).round() as usize).max(frame_h);
+    (rw, rh, (rw - frame_w) / 2, (rh - frame_h) / 2)
+}
+
+/// The `cw x ch` window at `(x0, y0)` of a row-major `w`-wide buffer of `channels` values per
+/// pixel.
+///
+/// # Panics
+/// If the window does not fit in the buffer.
+pub fn crop(v: &[f32], w: usize, channels: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> Vec<f32> {
+    assert!(x0 + cw <= w && (y0 + ch) * w * channels <= v.len(), "crop: the window is outside the buffer");
+    let mut out = Vec::with_capacity(cw * ch * channels);
+    for y in y0..y0 + ch {
+        let row = (y * w + x0) * channels;
+        out.extend_from_slice(&v[row..row + cw * channels]);
+    }
+    out
+}

@@ -129,7 +129,8 @@ impl std::fmt::Debug for Pipeline {
 
 impl Pipeline {
     /// The pipeline of `source` through `stage`, caching scenes in `cache` (which may be shared
-    /// with other pipelines), making samples by `config` (checked here).
+    /// with other pipelines), making samples by `config` (checked here). A collection that cannot
+    /// make scenes with this stage ([`SourceScenes::check_can_make_scenes`]) is refused here.
     pub fn new(
         source: Arc<dyn Source>,
         stage: Arc<SceneStage>,
@@ -137,6 +138,7 @@ impl Pipeline {
         config: SampleConfig,
     ) -> Result<Self, SampleError> {
         let loader = Arc::new(SourceScenes::new(source.clone(), stage));
+        loader.check_can_make_scenes().map_err(SampleError::Unusable)?;
         let generator = Arc::new(Generator::new(loader.clone() as Arc<dyn SceneLoader>, cache, config)?);
         Ok(Self { source, loader, generator })
     }

@@ -128,6 +128,10 @@ pub enum SampleError {
         #[source]
         source: PreblendError,
     },
+    /// The collection as a whole cannot make scenes (e.g. [`SceneError::NoDepthModel`]): a
+    /// configuration problem, found before any sample is made.
+    #[error("{0}")]
+    Unusable(SceneError),
     /// Every source item failed to load (see [`Generator::sample`]).
     #[error("all {items} source items failed to load (first: {first})")]
     NoGoodSource { items: usize, first: String },

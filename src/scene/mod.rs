@@ -8,9 +8,11 @@
 
 pub mod builtin;
 pub mod cache;
+pub mod hub;
 pub mod masks;
 pub mod models;
 pub mod onnx;
+pub mod registry;
 pub mod scale;
 pub mod stage;
 
@@ -51,6 +53,13 @@ pub enum SceneError {
     Mask(#[from] masks::MaskError),
     #[error(transparent)]
     Mpi(#[from] crate::mpi::MpiError),
+    /// A whole collection cannot make scenes: none of its items carries depth (or an MPI) and no
+    /// depth model is configured. The message names the fix.
+    #[error(
+        "photos carry no depth and no depth model is configured: pass --depth-model NAME|FILE (see \
+         docs/models.md), or ship depths/ beside images/"
+    )]
+    NoDepthModel,
     /// Anything else that makes this item's scene unusable (reported as [`FailureKind::Scene`]).
     #[error("{0}")]
     Invalid(String),
@@ -61,7 +70,7 @@ impl SceneError {
     /// `None` when it is not (the runtime, a model).
     pub fn failure_kind(&self) -> Option<FailureKind> {
         match self {
-            SceneError::Runtime(_) | SceneError::Model { .. } => None,
+            SceneError::Runtime(_) | SceneError::Model { .. } | SceneError::NoDepthModel => None,
             SceneError::Given { kind, .. } | SceneError::Data { kind, .. } => Some(*kind),
             SceneError::Mask(m) => Some(m.failure_kind()),
             SceneError::Mpi(_) => Some(FailureKind::Mpi),
@@ -72,7 +81,7 @@ impl SceneError {
 
 /// Estimates disparity (scene scale, see the module docs) from an image.
 pub trait DepthEstimator: Send + Sync {
-    /// A short name for logs and sample metadata (e.g. `onnx:midas_small.onnx`).
+    /// A short name for logs and sample metadata (e.g. `onnx:model.onnx`).
     fn name(&self) -> String;
     /// Everything that makes this estimator's output what it is, for fingerprints (for a model:
     /// the content hash of its file and its contract). Default: [`Self::name`].

@@ -8,7 +8,9 @@ use std::sync::Arc;
 use serde::{Deserialize, Serialize};
 
 use super::builtin::BuiltinMpi;
-use super::onnx::{OnnxDepth, OnnxDepthConfig, OnnxMpi, OnnxMpiConfig, OnnxSegmenter, OnnxSegmenterConfig};
+use super::hub::Hub;
+use super::onnx::{OnnxMpi, OnnxMpiConfig, OnnxSegmenter};
+use super::registry::{self, Role};
 use super::stage::SceneStage;
 use super::MpiBuilder;
 use crate::mpi::layering::{Layering, MAX_PLANES};
@@ -20,11 +22,12 @@ use crate::mpi::layering::{Layering, MAX_PLANES};
 pub struct ModelConfig {
     /// Planes of the built-in layering (when there is no MPI model). Default 32.
     pub planes: usize,
-    /// Depth model (ONNX) for sources without depth.
+    /// Depth model for sources without depth: a registry name (`mpiflow models list`, fetched
+    /// into the hub cache on first use) or an ONNX file (with an optional `FILE.toml` manifest).
     pub depth_model: Option<PathBuf>,
     /// MPI network (ONNX, AdaMPI-style) instead of the built-in layering.
     pub mpi_model: Option<PathBuf>,
-    /// Instance segmentation model (ONNX) for sources without masks.
+    /// Instance segmentation model for sources without masks: a registry name or an ONNX file.
     pub segment_model: Option<PathBuf>,
 }
 
@@ -50,12 +53,16 @@ impl ModelConfig {
             }
         };
         let mut stage = SceneStage::new(mpi);
+        let hub = Hub::from_env();
         if let Some(p) = &self.depth_model {
-            let m = OnnxDepth::new(OnnxDepthConfig::new(p)).map_err(|e| format!("depth model: {e}"))?;
-            stage = stage.with_depth(Arc::new(m));
+            let r = registry::resolve(p, Role::Depth, &hub, true).map_err(|e| e.to_string())?;
+            let m = registry::load_depth(&r).map_err(|e| format!("depth model: {e}"))?;
+            stage = stage.with_depth(m);
         }
         if let Some(p) = &self.segment_model {
-            let m = OnnxSegmenter::new(OnnxSegmenterConfig::new(p)).map_err(|e| format!("segment model: {e}"))?;
+            let r = registry::resolve(p, Role::Segment, &hub, true).map_err(|e| e.to_string())?;
+            let m =
+                OnnxSegmenter::new(r.contract.segment_config(&r.path)).map_err(|e| format!("segment model: {e}"))?;
             stage = stage.with_segmenter(Arc::new(m));
         }
         Ok(stage)

@@ -34,6 +34,7 @@ mod mpi;
 pub mod runtime;
 mod segment;
 
+pub(crate) use depth::normalize_disparity;
 pub use depth::{OnnxDepth, OnnxDepthConfig, RawDepth, DEFAULT_DISPARITY_FLOOR};
 pub use model::{InferenceStats, Normalization, SizePolicy};
 pub use mpi::{OnnxMpi, OnnxMpiConfig};

@@ -385,6 +385,17 @@ impl SourceScenes {
     pub fn needs_models(&self) -> bool {
         self.stage.needs_models(self.source.carried())
     }
+
+    /// Whether this collection can make scenes at all, as far as its listing tells: with no depth
+    /// model, a collection whose every item lacks depth and an MPI cannot
+    /// ([`SceneError::NoDepthModel`]). Items that fail later are skipped one by one instead.
+    pub fn check_can_make_scenes(&self) -> Result<(), SceneError> {
+        let n = self.source.len();
+        if self.stage.depth.is_none() && n > 0 && self.source.items_without_depth() == Some(n) {
+            return Err(SceneError::NoDepthModel);
+        }
+        Ok(())
+    }
 }
 
 impl SceneLoader for SourceScenes {

@@ -75,8 +75,10 @@ impl Dataset {
     ) -> Result<Self, ServiceError> {
         // the occlusion mask only for the requests that ask for it (`Overrides::occlusion`)
         config.occlusion = false;
-        let pipeline = Pipeline::new(source, stage, cache.clone(), config)
-            .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
+        let pipeline = Pipeline::new(source, stage, cache.clone(), config).map_err(|e| match e {
+            SampleError::Unusable(source) => ServiceError::Unusable { dataset: name.clone(), source },
+            e => ServiceError::Config(format!("dataset {name}: {e}")),
+        })?;
         Ok(Self {
             name,
             description: pipeline.describe(),
@@ -213,8 +215,10 @@ impl Datasets {
                 return Err(ServiceError::Config(format!("dataset {name}: {} has no images", source.describe())));
             }
             let sample = spec.sample.clone().unwrap_or_else(|| config.sample.clone());
-            let ds = Dataset::new(name.clone(), source, stage.clone(), cache.clone(), sample)
-                .map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
+            let ds = Dataset::new(name.clone(), source, stage.clone(), cache.clone(), sample).map_err(|e| match e {
+                e @ ServiceError::Unusable { .. } => e,
+                e => ServiceError::Config(format!("dataset {name}: {e}")),
+            })?;
             list.push(Arc::new(ds));
         }
         let upload_options = SourceOptions { resize, limits: config.image_limits(), ..SourceOptions::default() };

@@ -27,6 +27,15 @@ pub enum ServiceError {
         echo(dataset)
     )]
     FingerprintMismatch { dataset: String, requested: u64, actual: u64 },
+    /// A dataset that cannot make scenes with the configured models (e.g. photos without depth
+    /// and no depth model): refused at start-up (exit status 2) or when it is uploaded. The
+    /// message names the fix.
+    #[error("dataset {}: {source}", echo(dataset))]
+    Unusable {
+        dataset: String,
+        #[source]
+        source: crate::scene::SceneError,
+    },
     #[error("too many streams: {limit} are open (max_streams)")]
     TooManyStreams { limit: usize },
     #[error("{0}")]
@@ -58,7 +67,7 @@ impl ServiceError {
         match self {
             ServiceError::InvalidArgument { .. } => Code::InvalidArgument,
             ServiceError::UnknownDataset(_) => Code::NotFound,
-            ServiceError::FingerprintMismatch { .. } => Code::FailedPrecondition,
+            ServiceError::FingerprintMismatch { .. } | ServiceError::Unusable { .. } => Code::FailedPrecondition,
             ServiceError::TooManyStreams { .. } | ServiceError::LimitExceeded(_) => Code::ResourceExhausted,
             ServiceError::Draining => Code::Unavailable,
             ServiceError::Generation { .. } | ServiceError::Internal(_) | ServiceError::Config(_) => Code::Internal,

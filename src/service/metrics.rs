@@ -251,7 +251,7 @@ impl Metrics {
             SampleError::Render { .. } => "render",
             SampleError::Preblend { .. } => "preblend",
             SampleError::EmptySource => "empty",
-            SampleError::Config { .. } | SampleError::Motion(_) => "config",
+            SampleError::Config { .. } | SampleError::Motion(_) | SampleError::Unusable(_) => "config",
         };
         self.generation_errors.get_or_create(&label("reason", reason)).inc();
     }

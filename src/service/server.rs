@@ -328,6 +328,11 @@ impl State {
             }
             session.push(&dataset, &chunk.name, &chunk.kind, &chunk.data)?;
         }
+        // a new dataset of photos alone, with no depth model: nothing of it could make a scene
+        let fresh = !dataset.is_empty() && self.datasets.get(&dataset).is_err();
+        if fresh && self.datasets.stage.depth.is_none() && !session.has_depth() {
+            return Err(ServiceError::Unusable { dataset, source: crate::scene::SceneError::NoDepthModel });
+        }
         let datasets = self.datasets.clone();
         let summary = tokio::task::spawn_blocking(move || -> Result<_, ServiceError> {
             let summary = session.finish()?;

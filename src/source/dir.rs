@@ -43,7 +43,13 @@
 //! and no depth is invented between surfaces: [`crate::raster::resize_depth`]), as the reference
 //! resizes all its inputs to one size. With [`SourceOptions::resize`] every item is resized to
 //! that size: the image with an antialiasing triangle filter, depth and disparity the same way
-//! as above, masks by nearest neighbour. A given MPI
+//! as above, masks by nearest neighbour (the aspect is not kept). Without it, a folder whose photos
+//! differ in size gets one frame, the size of its largest photo (most pixels; among equals the
+//! wider, then the first listed; read from the image headers at open), and each item of another
+//! size is resized to cover that frame with its aspect kept (the image with the triangle filter,
+//! depth and masks as above) and cropped to the frame's centre ([`crate::raster::cover`]): every
+//! sample of the folder has one size, so a crop that fits its largest photo fits every sample. A
+//! folder of one size is read as it is, and so is an item with a given MPI. A given MPI
 //! must have the size of the (resized) image; it is never resized. Intrinsics are the reference's
 //! default (`0.58 W, 0.58 H`, centre; left to the scene stage) unless
 //! [`SourceOptions::intrinsics`] sets them for the run.
@@ -73,9 +79,9 @@ pub use super::given::{
 };
 use super::{Carried, FailureKind, Fnv64, GivenDepth, SkippedItem, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
-use crate::io::image::{load_rgb, ImageLimits};
+use crate::io::image::{load_rgb, ImageLimits, RgbImage};
 use crate::mpi::{Mpi, MpiError};
-use crate::raster::{resize_depth, InstanceMasks};
+use crate::raster::{cover, crop, resize_depth, InstanceMasks};
 use std::collections::HashMap;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -223,6 +229,9 @@ pub struct DirSource {
     skipped: Vec<SkippedItem>,
     /// The `bake.json` of a baked reference-layout folder.
     baked: Option<BakeManifest>,
+    /// The frame every item is brought to when the folder's photos differ in size and no
+    /// [`SourceOptions::resize`] is set ([`frame_of`]); `None` when they share one size.
+    frame: Option<(usize, usize)>,
 }
 
 const IMAGE_EXTS: [&str; 3] = ["png", "jpg", "jpeg"];
@@ -431,7 +440,12 @@ impl DirSource {
         let mut skipped = listing.skipped;
         skipped.sort_by(|a, b| a.item.cmp(&b.item));
         let baked = if layout == Layout::Reference { BakeManifest::read(path)? } else { None };
-        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked };
+        let frame = if options.resize.is_none() && layout != Layout::File {
+            frame_of(&root, &entries, &options.limits)
+        } else {
+            None
+        };
+        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked, frame };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
     }
@@ -495,6 +509,10 @@ impl DirSource {
             }
         }
         self.options.hash_into(&mut h);
+        // only folders of mixed sizes: a folder of one size keeps the fingerprint it had
+        if let Some((fw, fh)) = self.frame {
+            h.str("frame: cover, centre crop").u64(fw as u64).u64(fh as u64);
+        }
         if let Some(m) = &self.baked {
             h.str("baked").str(&m.stage_fingerprint);
             // f32 bakes keep the fingerprint they had before f16 was offered
@@ -568,6 +586,20 @@ impl DirSource {
                 masks = masks.map(|m| m.resize_nearest(rw, rh));
             }
         }
+        // an item with its MPI keeps its size: an MPI is never resized
+        if let Some((fw, fh)) = self.frame.filter(|f| *f != (image.width, image.height) && e.mpi.is_none()) {
+            // cover the frame with the aspect kept, then its centre
+            let (w0, h0) = (image.width, image.height);
+            let (rw, rh, x0, y0) = cover(w0, h0, fw, fh);
+            let resized = resize_rgb(&image, rw, rh);
+            image = RgbImage { width: fw, height: fh, data: crop(&resized.data, rw, 3, x0, y0, fw, fh) };
+            let fit_depth = |v: Vec<f32>| crop(&resize_depth(&v, w0, h0, rw, rh), rw, 1, x0, y0, fw, fh);
+            depth = depth.map(|d| match d {
+                GivenDepth::Depth(v) => GivenDepth::Depth(fit_depth(v)),
+                GivenDepth::Disparity(v) => GivenDepth::Disparity(fit_depth(v)),
+            });
+            masks = masks.map(|m| m.resize_nearest(rw, rh).cropped(x0, y0, fw, fh));
+        }
         if let (Some(m), Some(f)) = (&mpi, &e.mpi) {
             if (m.width, m.height) != (image.width, image.height) {
                 return Err(file_err(
@@ -602,6 +634,35 @@ impl DirSource {
         mpi.validate().map_err(|e| file_err(p, FailureKind::Mpi, mpi_message(e)))?;
         Ok(mpi)
     }
+}
+
+/// The frame of a folder whose photos differ in size: the size of its largest photo (most
+/// pixels; among equals the wider, then the first listed), read from the image headers; items
+/// with a given MPI are left out (they keep their size, as MPIs are never resized). `None`
+/// when every readable photo has one size (nothing is resized) or none is readable; a photo whose
+/// header cannot be read is left out here and fails when loaded.
+fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Option<(usize, usize)> {
+    let mut sizes = entries.iter().filter(|e| e.mpi.is_none()).filter_map(|e| {
+        let p = root.join(&e.image.rel);
+        if e.image.size > limits.max_bytes {
+            return None;
+        }
+        let (w, h) = ::image::ImageReader::open(&p).ok()?.with_guessed_format().ok()?.into_dimensions().ok()?;
+        // a photo over the limits fails when loaded: it does not set the frame
+        let within =
+            w <= limits.max_width && h <= limits.max_height && u64::from(w) * u64::from(h) <= limits.max_pixels;
+        within.then_some((w as usize, h as usize))
+    });
+    let first = sizes.next()?;
+    let mut mixed = false;
+    let mut best = first;
+    for s in sizes {
+        mixed |= s != first;
+        if (s.0 * s.1, s.0) > (best.0 * best.1, best.0) {
+            best = s;
+        }
+    }
+    mixed.then_some(best)
 }
 
 pub(crate) fn mpi_message(e: MpiError) -> String {
@@ -669,20 +730,28 @@ impl Source for DirSource {
         self.baked.as_ref().map(BakeManifest::describe)
     }
 
+    fn items_without_depth(&self) -> Option<usize> {
+        Some(self.entries.iter().filter(|e| e.depth.is_none() && e.disparity.is_none() && e.mpi.is_none()).count())
+    }
+
     fn describe(&self) -> String {
         let n = self.entries.len();
         let root = self.root.display();
         match self.layout {
-            Layout::Plain => format!("dir:{root} ({n} images)"),
+            Layout::Plain => match self.frame {
+                Some((w, h)) => format!("dir:{root} ({n} images of mixed sizes, each covering {w}x{h} centred)"),
+                None => format!("dir:{root} ({n} images)"),
+            },
             Layout::File => format!("file:{}", self.root.join(&self.entries[0].image.rel).display()),
             Layout::Reference => {
                 let count = |f: fn(&Entry) -> bool| self.entries.iter().filter(|e| f(e)).count();
                 format!(
-                    "dir:{root} ({n} images, reference layout: {} depths, {} disparities, {} masks, {} MPIs)",
+                    "dir:{root} ({n} images, reference layout: {} depths, {} disparities, {} masks, {} MPIs{})",
                     count(|e| e.depth.is_some()),
                     count(|e| e.disparity.is_some()),
                     count(|e| e.masks.is_some()),
-                    count(|e| e.mpi.is_some())
+                    count(|e| e.mpi.is_some()),
+                    self.frame.map_or(String::new(), |(w, h)| format!("; mixed sizes, each covering {w}x{h} centred"))
                 )
             }
         }

@@ -92,6 +92,12 @@ pub trait Source: Send + Sync {
     fn baked_with(&self) -> Option<String> {
         None
     }
+    /// How many items carry neither depth (or disparity) nor an MPI, known from the listing
+    /// without loading; `None` when the listing does not say (such a collection is never refused
+    /// for it before its items are loaded).
+    fn items_without_depth(&self) -> Option<usize> {
+        None
+    }
 }
 
 /// What every item of a collection carries (each `true` only when all items do).

@@ -568,4 +568,8 @@ impl Source for ShardSource {
         let all = |f: fn(&Entry) -> bool| self.entries.iter().all(f);
         Carried { depth: all(|e| e.depth.is_some()), masks: all(|e| e.masks.is_some()), mpi: all(|e| e.mpi.is_some()) }
     }
+
+    fn items_without_depth(&self) -> Option<usize> {
+        Some(self.entries.iter().filter(|e| e.depth.is_none() && e.mpi.is_none()).count())
+    }
 }

@@ -454,6 +454,12 @@ impl std::fmt::Debug for UploadSession {
 }
 
 impl UploadSession {
+    /// Whether any file of this upload so far (the one being received included) is a depth map.
+    pub fn has_depth(&self) -> bool {
+        self.files.iter().any(|(_, k, _)| *k == Kind::Depth)
+            || self.current.as_ref().is_some_and(|c| c.kind == Some(Kind::Depth) && !c.rejected)
+    }
+
     /// Takes one chunk (see the module documentation). An error ends the upload (nothing of it is
     /// stored); rejected files are reported by [`finish`](Self::finish).
     pub fn push(&mut self, dataset: &str, name: &str, kind: &str, data: &[u8]) -> Result<(), SourceError> {

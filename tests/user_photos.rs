@@ -1,0 +1,254 @@
+//! A new user's folder of photos through the real `mpiflow` binary and a real server on loopback:
+//! a dataset that cannot make scenes is refused at start-up with one line naming the fix (exit
+//! status 2) or, uploaded at run time, with FAILED_PRECONDITION and the same text; `pull` prints
+//! no "wrote 0 samples" line before an error.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use mpiflow::service::client::client_for;
+use mpiflow::service::pb;
+use mpiflow::service::{start, ServiceConfig};
+use tonic::transport::Endpoint;
+use tonic::Code;
+
+const BIN: &str = env!("CARGO_BIN_EXE_mpiflow");
+
+/// The fix the refusal names, word for word where the tests look for it.
+const FIX: &str = "photos carry no depth and no depth model is configured: pass --depth-model NAME|FILE (see \
+                   docs/models.md), or ship depths/ beside images/";
+
+fn tmp(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("user-photos-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A textured photo of `w` x `h` (a smooth pattern that differs with `seed`), PNG-encoded.
+fn photo_png(w: u32, h: u32, seed: u32) -> Vec<u8> {
+    let img = image::RgbImage::from_fn(w, h, |x, y| {
+        let v = |k: u32| ((x * (3 + k) + y * (5 + seed) + k * 40 + seed * 17) % 256) as u8;
+        image::Rgb([v(0), v(1), v(2)])
+    });
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).unwrap();
+    out.into_inner()
+}
+
+/// `mpiflow serve` with `args`; stdout's first line and the process.
+fn serve(args: &[&str]) -> (Child, String) {
+    let mut child = Command::new(BIN)
+        .args(["serve", "--addr", "127.0.0.1:0", "--log-level", "warn"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("mpiflow serve starts");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    (child, line)
+}
+
+#[test]
+fn serve_refuses_photos_without_depth_at_start_up_naming_the_fix() {
+    let dir = tmp("nodepth");
+    for (i, name) in ["a.png", "b.png"].iter().enumerate() {
+        std::fs::write(dir.join(name), photo_png(40, 30, i as u32)).unwrap();
+    }
+    let (child, first_line) = serve(&["--source", &format!("mine={}", dir.display())]);
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(first_line, "", "nothing is served");
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert_eq!(err.trim_end(), format!("error: dataset \"mine\": {FIX}"));
+    // a folder with one photo carrying depth is served (the others are skipped one by one)
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::create_dir_all(dir.join("depths")).unwrap();
+    for (i, name) in ["a", "b"].iter().enumerate() {
+        std::fs::rename(dir.join(format!("{name}.png")), dir.join(format!("images/{name}.png"))).unwrap();
+        if i == 0 {
+            let depth: Vec<f32> = (0..40 * 30).map(|k| 2.0 + (k % 40) as f32 * 0.05).collect();
+            mpiflow::io::npy::write_f32(&dir.join("depths/a.npy"), &[30, 40], &depth).unwrap();
+        }
+    }
+    let (mut child, line) = serve(&["--source", &dir.display().to_string()]);
+    assert!(line.starts_with("mpiflow serving on "), "{line:?}");
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
+
+#[test]
+fn serve_refuses_a_missing_depth_model_file_in_one_line() {
+    let dir = tmp("nomodel");
+    std::fs::write(dir.join("a.png"), photo_png(40, 30, 1)).unwrap();
+    let missing = dir.join("no-such-model.onnx");
+    let (child, first_line) =
+        serve(&["--source", &dir.display().to_string(), "--depth-model", &missing.display().to_string()]);
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(first_line, "");
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(err.contains("no-such-model.onnx") && err.contains("depth model"), "{err}");
+}
+
+/// Photos alone uploaded to a server without a depth model: FAILED_PRECONDITION with the fix,
+/// nothing kept; the same photos with their depth are accepted.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_upload_of_photos_without_depth_is_a_failed_precondition() {
+    let config = ServiceConfig {
+        addr: "127.0.0.1:0".into(),
+        size: Some("64x48".into()),
+        workers: 1,
+        log_level: "warn".into(),
+        ..ServiceConfig::default()
+    };
+    let s = start(config).await.unwrap();
+    let channel = Endpoint::from_shared(format!("http://{}", s.addr)).unwrap().connect().await.unwrap();
+    let mut c = client_for(channel);
+    let chunk = |name: &str, kind: &str, data: Vec<u8>| pb::SourceChunk {
+        dataset: "mine".into(),
+        name: name.into(),
+        kind: kind.into(),
+        data,
+    };
+    let photos = vec![chunk("a", "image", photo_png(64, 48, 1)), chunk("b", "image", photo_png(64, 48, 2))];
+    let e = c.upload_sources(tokio_stream::iter(photos)).await.unwrap_err();
+    assert_eq!(e.code(), Code::FailedPrecondition, "{e:?}");
+    assert_eq!(e.message(), format!("dataset \"mine\": {FIX}"));
+    let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    assert!(info.datasets.iter().all(|d| d.name != "mine"), "nothing of the refused upload is kept");
+    let mut depth = Vec::new();
+    let values: Vec<f32> = (0..64 * 48).map(|k| 2.0 + (k % 64) as f32 * 0.02).collect();
+    mpiflow::io::npy::write_f32_to(&mut depth, &[48, 64], &values).unwrap();
+    let with_depth = vec![chunk("a", "image", photo_png(64, 48, 1)), chunk("a", "depth", depth)];
+    let summary = c.upload_sources(tokio_stream::iter(with_depth)).await.unwrap().into_inner();
+    assert_eq!((summary.sources, summary.rejected.len()), (1, 0), "{summary:?}");
+    s.shutdown(std::time::Duration::from_secs(5)).await;
+}
+
+/// A stream that fails at its first sample (every photo's depth file is corrupt): `pull --out`
+/// prints the error alone (no "wrote 0 samples ... previews" line), exit status 2.
+#[test]
+fn pull_prints_no_wrote_line_before_an_error() {
+    let dir = tmp("pull");
+    std::fs::create_dir_all(dir.join("src/images")).unwrap();
+    std::fs::create_dir_all(dir.join("src/depths")).unwrap();
+    std::fs::write(dir.join("src/images/a.png"), photo_png(64, 48, 1)).unwrap();
+    std::fs::write(dir.join("src/depths/a.npy"), b"not an array").unwrap();
+    let (mut server, line) = serve(&["--size", "64x48", "--source", &dir.join("src").display().to_string()]);
+    let addr = line.trim().strip_prefix("mpiflow serving on ").unwrap_or_else(|| panic!("{line:?}")).to_string();
+    let out = Command::new(BIN).args(["pull", "--addr", &addr, "--count", "2", "--out"]).arg(dir.join("out")).output();
+    server.kill().unwrap();
+    server.wait().unwrap();
+    let out = out.unwrap();
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert_eq!(out.status.code(), Some(2), "{stdout}{stderr}");
+    assert!(!stdout.contains("wrote"), "{stdout}");
+    assert!(stderr.contains("the stream ended with") && stderr.contains("a.npy"), "{stderr}");
+}
+
+/// A reference-layout folder of photos of four sizes (and aspects), each with its depth.
+fn mixed_folder(name: &str) -> PathBuf {
+    let dir = tmp(name);
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::create_dir_all(dir.join("depths")).unwrap();
+    for (i, (w, h)) in [(96u32, 64u32), (80, 80), (120, 72), (60, 45)].into_iter().enumerate() {
+        std::fs::write(dir.join(format!("images/p{i}.png")), photo_png(w, h, i as u32)).unwrap();
+        let depth: Vec<f32> = (0..w * h).map(|k| 1.5 + ((k % w) as f32 / w as f32) + (k / w) as f32 * 0.01).collect();
+        mpiflow::io::npy::write_f32(&dir.join(format!("depths/p{i}.npy")), &[h as u64, w as u64], &depth).unwrap();
+    }
+    dir
+}
+
+async fn pull_all(addr: std::net::SocketAddr, r: pb::StreamRequest) -> Vec<pb::Sample> {
+    let channel = Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap();
+    let mut c = client_for(channel);
+    let mut stream = c.stream_samples(r).await.unwrap().into_inner();
+    let mut out = Vec::new();
+    while let Some(b) = stream.message().await.unwrap() {
+        out.extend(b.samples.into_iter().map(|mut s| {
+            s.timings = None;
+            s
+        }));
+    }
+    out
+}
+
+/// Photos of mixed sizes with no `--size`: every sample has the frame of the largest photo
+/// (120x72 here), so a crop that fits it fits every photo's samples (before, the crop was
+/// refused on the smaller photos); two servers give the same bytes; `--size` still sets the size.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn photos_of_mixed_sizes_serve_one_frame_and_any_crop_that_fits_it() {
+    let dir = mixed_folder("mixed");
+    let config = |size: Option<&str>| ServiceConfig {
+        addr: "127.0.0.1:0".into(),
+        size: size.map(str::to_string),
+        workers: 2,
+        log_level: "warn".into(),
+        datasets: vec![mpiflow::service::config::DatasetConfig::parse(&dir.display().to_string()).unwrap()],
+        ..ServiceConfig::default()
+    };
+    let request = pb::StreamRequest {
+        seed: 3,
+        count: 8,
+        motions_per_image: Some(1),
+        crop: Some(pb::OutputCrop { width: 112, height: 64, mode: pb::CropMode::Center as i32 }),
+        ..Default::default()
+    };
+    let a = start(config(None)).await.unwrap();
+    let b = start(config(None)).await.unwrap();
+    let (sa, sb) = (pull_all(a.addr, request.clone()).await, pull_all(b.addr, request.clone()).await);
+    assert_eq!(sa.len(), 8);
+    let ids: std::collections::BTreeSet<&str> = sa.iter().map(|s| s.source_id.as_str()).collect();
+    assert_eq!(ids.len(), 4, "every photo is served: {ids:?}");
+    for s in &sa {
+        assert_eq!((s.width, s.height), (112, 64), "{}", s.source_id);
+        let image1 = s.tensors.iter().find(|t| t.name == "image1").unwrap();
+        assert_eq!(image1.shape, [64, 112, 3]);
+    }
+    assert_eq!(sa, sb, "same address, same bytes");
+    // the frame is the largest photo's: a crop wider than it is refused, naming 120x72
+    let wide = pb::StreamRequest {
+        crop: Some(pb::OutputCrop { width: 121, height: 64, mode: pb::CropMode::Center as i32 }),
+        ..request.clone()
+    };
+    let channel = Endpoint::from_shared(format!("http://{}", a.addr)).unwrap().connect().await.unwrap();
+    let mut stream = client_for(channel).stream_samples(wide).await.unwrap().into_inner();
+    let e = loop {
+        match stream.message().await {
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("a crop wider than the frame was served"),
+            Err(e) => break e,
+        }
+    };
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("120x72"), "{}", e.message());
+    // --size still sets the frame
+    let c = start(config(Some("64x48"))).await.unwrap();
+    let sc = pull_all(c.addr, pb::StreamRequest { crop: None, ..request }).await;
+    assert!(sc.iter().all(|s| (s.width, s.height) == (64, 48)));
+    for s in [a, b, c] {
+        s.shutdown(std::time::Duration::from_secs(5)).await;
+    }
+}
+
+/// `mpiflow generate` on the same mixed folder writes every sample at the frame's size.
+#[test]
+fn generate_exports_photos_of_mixed_sizes_at_one_size() {
+    let dir = mixed_folder("mixed-generate");
+    let out = dir.join("out");
+    let r = Command::new(BIN)
+        .args(["generate", "--source", &dir.display().to_string(), "--count", "4", "--motions-per-image", "1"])
+        .args(["--format", "flo", "--out", &out.display().to_string()])
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    for i in 0..4 {
+        let (w, h) = image::image_dimensions(out.join(format!("{i:08}_img1.png"))).unwrap();
+        assert_eq!((w, h), (120, 72), "sample {i}");
+    }
+}
