@@ -373,7 +373,7 @@ fn empty3<'a>() -> (&'a mut [f32], &'a mut [f32], &'a mut [f32]) {
 
 /// [`target_view`] with `NL` links (`consts[..NL]`, their flow, depth and front-fraction buffers
 /// in `lb[..NL]`).
-#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
+#[allow(clippy::too_many_arguments)]
 fn target_view_n<T: Real, const NL: usize>(
     mpi: &Mpi,
     p: &RenderParams,
@@ -437,7 +437,7 @@ fn target_view_n<T: Real, const NL: usize>(
 }
 
 /// [`target_view_n`] with the plane sampler of the render's kernel.
-#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
+#[allow(clippy::too_many_arguments)]
 fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
     mpi: &Mpi,
     p: &RenderParams,
@@ -456,52 +456,16 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         Channels::PerPlane => (mpi.extra_channels, (0..n).map(|i| mpi.plane_extras(i)).collect()),
         Channels::Broadcast(mask) => (1, vec![mask; n]),
     };
-    let (ks, kt) = (p.k_src, p.k_tgt);
-    let rt = p.pose.rotation.transpose();
-    let centre = p.pose.target_centre_in_source();
-    let k = -centre.z;
-    let planes: Vec<PlaneConst<T>> = mpi
-        .disparity
-        .iter()
-        .map(|&disp| PlaneConst {
-            a: T::of(1.0 + k * disp),
-            depth: T::of(plane_depth(disp)),
-            disp: T::of(disp),
-            ox: T::of(ks.fx * centre.x * disp + ks.cx),
-            oy: T::of(ks.fy * centre.y * disp + ks.cy),
-        })
-        .collect();
-    let r = |i: usize| [T::of(rt.row(i).x), T::of(rt.row(i).y), T::of(rt.row(i).z)];
-    let rt_t = [r(0), r(1), r(2)];
-    let (fxs, fys) = (T::of(ks.fx), T::of(ks.fy));
-    let (lo, hix, hiy) = (T::of(-0.5), T::of(w as f64 - 0.5), T::of(h as f64 - 0.5));
-    let (wm, hm) = (T::of((w - 1) as f64), T::of((h - 1) as f64));
-    let t_eps = T::of32(p.skip.transmittance_eps);
-    let delta_last = T::of(DELTA_LAST);
-    let ux: Vec<T> = (win.x0..win.x1).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect();
-    let uy: Vec<T> = (win.y0..win.y1).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect();
+    let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } =
+        TargetGeometry::new(mpi, p, win);
     let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
         let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
         (v, (ux * ux + uy * uy + T::one()).sqrt())
     };
     let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
     // four pixels at a time where T is f32, without links and with at most one extra channel
-    let lanes = (T::LANES && NL == 0 && c <= 1).then(|| TargetLanes {
-        a: planes.iter().map(|p| p.a.f32()).collect(),
-        depth: planes.iter().map(|p| p.depth.f32()).collect(),
-        ox: planes.iter().map(|p| p.ox.f32()).collect(),
-        oy: planes.iter().map(|p| p.oy.f32()).collect(),
-        fxs: fxs.f32(),
-        fys: fys.f32(),
-        lo: lo.f32(),
-        hix: hix.f32(),
-        hiy: hiy.f32(),
-        wm: wm.f32(),
-        hm: hm.f32(),
-        t_eps: t_eps.f32(),
-        w,
-        h,
-    });
+    let lanes = (T::LANES && NL == 0 && c <= 1)
+        .then(|| TargetLanes::new(&planes, [fxs, fys, lo, hix, hiy, wm, hm, t_eps], w, h));
     let ex_lanes = (c == 1).then_some(ex_planes.as_slice());
     let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
 
@@ -525,14 +489,8 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         for tx0 in (win.x0..win.x1).step_by(TILE) {
             let tx1 = (tx0 + TILE).min(win.x1) - 1;
             let ty1 = fy0 + rows - 1;
-            match occ {
-                Some(o) => tile_activity(o, &planes, &ray, &source_px, [tx0, fy0, tx1, ty1], &mut active),
-                None => active.iter_mut().for_each(|a| *a = true),
-            }
-            fwd.clear();
-            fwd.extend((0..n).filter(|&i| active[i]));
-            rev.clear();
-            rev.extend(fwd.iter().rev());
+            let tile = [tx0, fy0, tx1, ty1];
+            tile_planes(occ, &planes, &ray, &source_px, tile, &mut active, &mut fwd, &mut rev);
             stats.skipped_tile += ((n - fwd.len()) * rows * (tx1 + 1 - tx0)) as u64;
             for ry in 0..rows {
                 let uy_y = uy[y0 + ry];
@@ -577,20 +535,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                             }
                             let q_raw = (qx, qy);
                             // inside [-0.5, W-0.5) x [-0.5, H-0.5): clamp the half-pixel border onto the edge pixels
-                            let qx = if qx < T::zero() {
-                                T::zero()
-                            } else if qx > wm {
-                                wm
-                            } else {
-                                qx
-                            };
-                            let qy = if qy < T::zero() {
-                                T::zero()
-                            } else if qy > hm {
-                                hm
-                            } else {
-                                qy
-                            };
+                            let (qx, qy) = (clamp_edge(qx, wm), clamp_edge(qy, hm));
                             let tap = Tap::new(qx, qy, w, h);
                             let texel = sampler.texel(&tap, i);
                             let sigma = texel[3];
@@ -616,20 +561,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                             }
                             sum_w += wgt;
                             sum_z += wgt * lambda;
-                            for (acc, lc) in lacc.iter_mut().zip(consts) {
-                                let m = &lc.m;
-                                let (qx, qy) = q_raw;
-                                let hz = m[2][0] * qx + m[2][1] * qy + m[2][2];
-                                let hzb = hz + lc.b[2] * pl.disp;
-                                if hzb > z_min * (hz.abs() + T::one()) {
-                                    let hx = m[0][0] * qx + m[0][1] * qy + m[0][2] + lc.b[0] * pl.disp;
-                                    let hy = m[1][0] * qx + m[1][1] * qy + m[1][2] + lc.b[1] * pl.disp;
-                                    acc[0] += wgt * (hx / hzb - px);
-                                    acc[1] += wgt * (hy / hzb - py);
-                                    acc[2] += wgt * cap(hzb * pl.depth, DEPTH_MAX);
-                                    acc[3] += wgt;
-                                }
-                            }
+                            accumulate_links(&mut lacc, consts, q_raw, pl, wgt, (px, py), z_min);
                             if c == 1 {
                                 acc1 += wgt * tap.sample1(ex_planes[i]);
                             } else if c > 0 {
@@ -641,33 +573,175 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                         }
                     }
                     let o = ry * ww + (x - win.x0);
-                    for k in 0..3 {
-                        b[0][3 * o + k] = rgb[k].f32();
-                    }
-                    b[1][o] = if sum_w > T::of(1e-6) { (sum_z / sum_w).f32() } else { 0.0 };
-                    b[2][o] = sum_w.f32();
-                    if c == 1 {
-                        b[3][o] = acc1.f32();
-                    } else {
-                        for k in 0..c {
-                            b[3][c * o + k] = acc_ex[k].f32();
-                        }
-                    }
-                    for (l, acc) in lacc.iter().enumerate() {
-                        let j = 4 + 3 * l;
-                        if acc[3] > T::of(1e-6) {
-                            b[j][2 * o] = (acc[0] / acc[3]).f32();
-                            b[j][2 * o + 1] = (acc[1] / acc[3]).f32();
-                            b[j + 1][o] = (acc[2] / acc[3]).f32();
-                        }
-                        b[j + 2][o] = if sum_w > T::zero() { (acc[3] / sum_w).f32() } else { 0.0 };
-                    }
+                    write_pixel(b, o, c, rgb, [sum_w, sum_z, acc1], &acc_ex, &lacc);
                     x += 1;
                 }
             }
         }
         stats
     })
+}
+
+/// The per-render constants of the target view: the target intrinsics, the planes' constants,
+/// R^T, the source focal lengths, the bounds of the "leaves the source image" test and of the
+/// edge clamp, the early-termination threshold, the last gap, and the window's columns and rows
+/// as u = K_t^-1 p.
+struct TargetGeometry<T> {
+    kt: crate::geometry::Intrinsics,
+    planes: Vec<PlaneConst<T>>,
+    rt_t: [[T; 3]; 3],
+    fxs: T,
+    fys: T,
+    lo: T,
+    hix: T,
+    hiy: T,
+    wm: T,
+    hm: T,
+    t_eps: T,
+    delta_last: T,
+    ux: Vec<T>,
+    uy: Vec<T>,
+}
+
+impl<T: Real> TargetGeometry<T> {
+    fn new(mpi: &Mpi, p: &RenderParams, win: &Rect) -> Self {
+        let (w, h) = (mpi.width, mpi.height);
+        let (ks, kt) = (p.k_src, p.k_tgt);
+        let rt = p.pose.rotation.transpose();
+        let centre = p.pose.target_centre_in_source();
+        let k = -centre.z;
+        let planes: Vec<PlaneConst<T>> = mpi
+            .disparity
+            .iter()
+            .map(|&disp| PlaneConst {
+                a: T::of(1.0 + k * disp),
+                depth: T::of(plane_depth(disp)),
+                disp: T::of(disp),
+                ox: T::of(ks.fx * centre.x * disp + ks.cx),
+                oy: T::of(ks.fy * centre.y * disp + ks.cy),
+            })
+            .collect();
+        let r = |i: usize| [T::of(rt.row(i).x), T::of(rt.row(i).y), T::of(rt.row(i).z)];
+        Self {
+            kt,
+            planes,
+            rt_t: [r(0), r(1), r(2)],
+            fxs: T::of(ks.fx),
+            fys: T::of(ks.fy),
+            lo: T::of(-0.5),
+            hix: T::of(w as f64 - 0.5),
+            hiy: T::of(h as f64 - 0.5),
+            wm: T::of((w - 1) as f64),
+            hm: T::of((h - 1) as f64),
+            t_eps: T::of32(p.skip.transmittance_eps),
+            delta_last: T::of(DELTA_LAST),
+            ux: (win.x0..win.x1).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect(),
+            uy: (win.y0..win.y1).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect(),
+        }
+    }
+}
+
+/// The planes that may contribute in a tile (`tile` = [x0, y0, x1, y1] of the frame), into
+/// `active`, and in the order a ray with s > 0 (`fwd`) or s < 0 (`rev`) meets them: all
+/// without an occupancy, else those [`tile_activity`] keeps.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn tile_planes<T: Real>(
+    occ: Option<&Occupancy>,
+    planes: &[PlaneConst<T>],
+    ray: &impl Fn(f64, f64) -> ([T; 3], T),
+    source_px: &impl Fn(&PlaneConst<T>, &[T; 3], T) -> (T, T),
+    tile: [usize; 4],
+    active: &mut [bool],
+    fwd: &mut Vec<usize>,
+    rev: &mut Vec<usize>,
+) {
+    match occ {
+        Some(o) => tile_activity(o, planes, ray, source_px, tile, active),
+        None => active.iter_mut().for_each(|a| *a = true),
+    }
+    fwd.clear();
+    fwd.extend((0..planes.len()).filter(|&i| active[i]));
+    rev.clear();
+    rev.extend(fwd.iter().rev());
+}
+
+/// `q` clamped onto [0, `max`]: a point inside [-0.5, W-0.5) x [-0.5, H-0.5) with its
+/// half-pixel border taken onto the edge pixels.
+#[inline(always)]
+fn clamp_edge<T: Real>(q: T, max: T) -> T {
+    if q < T::zero() {
+        T::zero()
+    } else if q > max {
+        max
+    } else {
+        q
+    }
+}
+
+/// Adds a plane sample of weight `wgt` (its source pixel `q`, unclamped, on plane `pl`) to each
+/// link's sums `lacc` (flow u, v, depth and weight of the planes in front of the link's view;
+/// `(px, py)` is the target pixel).
+#[inline(always)]
+fn accumulate_links<T: Real, const NL: usize>(
+    lacc: &mut [[T; 4]; NL],
+    consts: &[LinkConst<T>],
+    (qx, qy): (T, T),
+    pl: &PlaneConst<T>,
+    wgt: T,
+    (px, py): (T, T),
+    z_min: T,
+) {
+    for (acc, lc) in lacc.iter_mut().zip(consts) {
+        let m = &lc.m;
+        let hz = m[2][0] * qx + m[2][1] * qy + m[2][2];
+        let hzb = hz + lc.b[2] * pl.disp;
+        if hzb > z_min * (hz.abs() + T::one()) {
+            let hx = m[0][0] * qx + m[0][1] * qy + m[0][2] + lc.b[0] * pl.disp;
+            let hy = m[1][0] * qx + m[1][1] * qy + m[1][2] + lc.b[1] * pl.disp;
+            acc[0] += wgt * (hx / hzb - px);
+            acc[1] += wgt * (hy / hzb - py);
+            acc[2] += wgt * cap(hzb * pl.depth, DEPTH_MAX);
+            acc[3] += wgt;
+        }
+    }
+}
+
+/// Writes pixel `o` of the band's buffers `b` from the scalar loop's sums: the image, the depth
+/// and coverage from `[sum_w, sum_z, acc1]`, the `c` extra channels (one in `acc1`, more in
+/// `acc_ex`), and each link's flow, depth and front fraction.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn write_pixel<T: Real, const NL: usize>(
+    b: &mut [&mut [f32]; 10],
+    o: usize,
+    c: usize,
+    rgb: [T; 3],
+    [sum_w, sum_z, acc1]: [T; 3],
+    acc_ex: &[T],
+    lacc: &[[T; 4]; NL],
+) {
+    for k in 0..3 {
+        b[0][3 * o + k] = rgb[k].f32();
+    }
+    b[1][o] = if sum_w > T::of(1e-6) { (sum_z / sum_w).f32() } else { 0.0 };
+    b[2][o] = sum_w.f32();
+    if c == 1 {
+        b[3][o] = acc1.f32();
+    } else {
+        for k in 0..c {
+            b[3][c * o + k] = acc_ex[k].f32();
+        }
+    }
+    for (l, acc) in lacc.iter().enumerate() {
+        let j = 4 + 3 * l;
+        if acc[3] > T::of(1e-6) {
+            b[j][2 * o] = (acc[0] / acc[3]).f32();
+            b[j][2 * o + 1] = (acc[1] / acc[3]).f32();
+            b[j + 1][o] = (acc[2] / acc[3]).f32();
+        }
+        b[j + 2][o] = if sum_w > T::zero() { (acc[3] / sum_w).f32() } else { 0.0 };
+    }
 }
 
 /// The target view's per-pixel loop for four adjacent pixels of a row at once (`f32`, without
@@ -703,6 +777,28 @@ fn lane_mask(on: [bool; 4]) -> wide::f32x4 {
 }
 
 impl TargetLanes {
+    /// The lanes' copy of the scalar loop's constants: the planes', and `[fxs, fys, lo, hix, hiy,
+    /// wm, hm, t_eps]` in `f32`.
+    fn new<T: Real>(planes: &[PlaneConst<T>], k: [T; 8], w: usize, h: usize) -> Self {
+        let [fxs, fys, lo, hix, hiy, wm, hm, t_eps] = k;
+        TargetLanes {
+            a: planes.iter().map(|p| p.a.f32()).collect(),
+            depth: planes.iter().map(|p| p.depth.f32()).collect(),
+            ox: planes.iter().map(|p| p.ox.f32()).collect(),
+            oy: planes.iter().map(|p| p.oy.f32()).collect(),
+            fxs: fxs.f32(),
+            fys: fys.f32(),
+            lo: lo.f32(),
+            hix: hix.f32(),
+            hiy: hiy.f32(),
+            wm: wm.f32(),
+            hm: hm.f32(),
+            t_eps: t_eps.f32(),
+            w,
+            h,
+        }
+    }
+
     /// Pixels `o .. o + 4` of the band's buffers `b` (image, depth, coverage, the extra channel
     /// when `ex` is given) for the rays `rays` (direction, |u|): false, with nothing written,
     /// when the four rays do not all meet the planes in the same order (the scalar loop then
