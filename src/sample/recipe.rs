@@ -14,7 +14,8 @@
 //!    the same address gives the same numbers on any run, thread count or machine, and one
 //!    purpose never shifts another's numbers.
 //! 3. **Renders** (exact mode by default): the scene under the camera motion (whole frame, work
-//!    skipping with the scene's tile occupancy, which the [`Generator`] keeps per cached scene);
+//!    skipping with the scene's tile occupancy, which `Generator` (`pipeline.rs`) keeps per cached
+//!    scene);
 //!    with objects, the union mask's channel under the camera motion and each object under its
 //!    own motion, each rendered only over the window of the frame where its channel can be
 //!    non-zero, straight from the shared MPI ([`super::object`]: the same values as full-frame
@@ -23,7 +24,7 @@
 //!    slower). Without objects (`max_objects = 0`, no instances, none large enough) there is no
 //!    mask channel and no second render: the object stage costs nothing.
 //! 4. **Merge** ([`super::merge`]) by the configured rule, then **inpainting** of the holes with
-//!    Telea's method in u8 ([`InpaintMethod`], radius 3 by default, as the reference's radius),
+//!    Telea's method in u8 ([`InpaintMethod`](super::config::InpaintMethod), radius 3 by default, as the reference's radius),
 //!    on crops around the holes ([`inpaint_holes`]: the whole-frame result, bit for bit).
 //!
 //! Per-pixel work runs on the current rayon pool; every output is independent of the pool's size
@@ -34,11 +35,11 @@
 //! [`assemble`] had to build it), `objects_ms` (choosing and rendering objects and the
 //! scene mask), `merge_ms` (merge and image1), `inpaint_ms`, `total_ms`.
 //!
-//! **Bad sources** ([`Generator::sample`]): when the address's source item fails to load because
+//! **Bad sources** (`Generator::sample`): when the address's source item fails to load because
 //! of its data (corrupt, truncated or too large image, bad depth, masks or MPI), the next items
 //! (mod the collection's length) are tried in order and the first good one is used with the
-//! address's own motions; failed items are remembered and counted by their [`FailureKind`]
-//! ([`Generator::skip_counts`]), [`Sample::skipped_sources`] says how many were passed over. The
+//! address's own motions; failed items are remembered and counted by their
+//! [`FailureKind`](crate::source::FailureKind) (`Generator::skip_counts`), [`Sample::skipped_sources`] says how many were passed over. The
 //! result depends only on which items are bad, not on what was asked before. Runtime, model,
 //! configuration and render errors are not the item's and are returned.
 //!
@@ -76,76 +77,25 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::background::{cut_planes, fill_from_planes, Background, Frame};
-pub use super::config::{InpaintMethod, MotionSpec, SampleConfig};
-pub use super::holes::inpaint_holes;
+pub use super::config::MotionSpec;
+use super::config::SampleConfig;
+use super::error::SampleError;
+use super::holes::inpaint_holes;
 use super::merge::{
     merge, merge_link, merge_target, units_to_u8, MergeRule, Merged, ObjectView, OtherFrame, SceneView, TargetSide,
 };
-use super::motion::{Motion, MotionError};
+use super::motion::Motion;
 use super::object::{
-    choose_objects, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect, Rect,
-    WindowRender,
+    choose_objects, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect,
 };
-pub use super::pipeline::Generator;
-use super::preblend::{preblend, PreblendError};
-use super::rng::{Purpose, SampleRng};
-use super::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
+use super::preblend::preblend;
+use super::types::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
 use crate::geometry::Pose;
-use crate::render::{render, Fields, Link, Mode, Occupancy, RenderError, RenderOutput, RenderParams, Resample, View};
-use crate::scene::{Scene, SceneError};
-use crate::source::FailureKind;
-
-/// Errors of sample generation; each names the source it concerns.
-#[derive(Debug, thiserror::Error)]
-pub enum SampleError {
-    /// A configuration field out of range: `field` names it (`max_objects`,
-    /// `skip.tile_sigma_eps`, ...), `message` gives the value and what was expected.
-    #[error("invalid sample configuration: {field} = {message}")]
-    Config { field: &'static str, message: String },
-    #[error("invalid sample configuration: {0}")]
-    Motion(#[from] MotionError),
-    #[error("the source collection is empty: there is nothing to make samples from")]
-    EmptySource,
-    #[error("source item {item} ({id}): {source}")]
-    Scene {
-        item: usize,
-        id: String,
-        #[source]
-        source: Box<SceneError>,
-    },
-    #[error("scene {id}: {message}")]
-    InvalidScene { id: String, message: String },
-    #[error("scene {id}: the {stage} render failed: {source}")]
-    Render {
-        id: String,
-        stage: &'static str,
-        #[source]
-        source: Box<RenderError>,
-    },
-    #[error("scene {id}: {source}")]
-    Preblend {
-        id: String,
-        #[source]
-        source: PreblendError,
-    },
-    /// Every source item failed to load (see [`Generator::sample`]).
-    #[error("all {items} source items failed to load (first: {first})")]
-    NoGoodSource { items: usize, first: String },
-}
-
-impl SampleError {
-    /// The failure kind when the error makes its source item bad (skipped: the item's data is
-    /// corrupt, truncated, too large, or its depth, masks, MPI or scene are unusable), or `None`
-    /// for failures that are not the item's (the runtime, a model, the configuration, a render):
-    /// those are returned to the caller.
-    pub fn bad_source_kind(&self) -> Option<FailureKind> {
-        match self {
-            SampleError::Scene { source, .. } => source.failure_kind(),
-            SampleError::InvalidScene { .. } => Some(FailureKind::Scene),
-            _ => None,
-        }
-    }
-}
+use crate::render::{
+    render, Fields, Link, Mode, Occupancy, Rect, RenderError, RenderOutput, RenderParams, Resample, View, WindowRender,
+};
+use crate::rng::{Purpose, SampleRng};
+use crate::scene::Scene;
 
 /// Applies what the configuration does to a freshly loaded scene (the pre-blend), once, before
 /// it goes into the cache.

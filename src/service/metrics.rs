@@ -14,7 +14,7 @@ use prometheus_client::registry::Registry;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpListener;
 
-use crate::sample::recipe::SampleError;
+use crate::sample::error::SampleError;
 use crate::sample::StageTimings;
 use crate::scene::cache::SceneCache;
 use crate::source::FailureKind;

@@ -27,7 +27,7 @@ use super::pb::mpi_flow_server::{MpiFlow, MpiFlowServer};
 use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
 use super::security::{server_tls, RequireToken};
 use super::validate;
-use crate::sample::recipe::Generator;
+use crate::sample::pipeline::Generator;
 
 /// The gRPC service name health reports on (besides "").
 pub const SERVICE_NAME: &str = "mpiflow.v1.MpiFlow";
