@@ -34,9 +34,9 @@
 //! their four-lane twins ([`TargetLanes`], [`SourceLanes`]) together with the per-plane constants
 //! they share, since each twin must follow its loop operation for operation. And
 //! `target_view_with` (about 190 lines) is the target view's band loop, which the compiler must
-//! see whole: its set-up is outside it ([`TargetGeometry`], [`TargetLanes::new`]), but taking
-//! the tile's planes, the edge clamp, the link sums or the pixel's writes out into inlined
-//! functions cost 1.9% more instructions in the band loop of the bilinear target pass
+//! see whole: its set-up is outside it ([`TargetGeometry`], [`TargetLanes::new`]), but the
+//! tile's planes, the edge clamp, the link sums or the pixel's writes as inlined functions of
+//! their own cost 1.9% more instructions in the band loop of the bilinear target pass
 //! (cachegrind, `mpiflow bench render --threads 1 --pass target --resample bilinear`).
 
 use super::band::{for_each_band, mark_valid};
