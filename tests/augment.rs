@@ -10,8 +10,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use mpiflow::sample::augment::{apply_plan, Augment, AugmentParams, AugmentPreset};
+use mpiflow::sample::config::SampleConfig;
 use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-use mpiflow::sample::recipe::SampleConfig;
 use mpiflow::sample::Sample;
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;

@@ -8,12 +8,13 @@ use mpiflow::bench::quality::label_laws;
 use mpiflow::geometry::Intrinsics;
 use mpiflow::io::image::RgbImage;
 use mpiflow::mpi::Mpi;
+use mpiflow::raster::{Instance, InstanceMasks};
 use mpiflow::sample::background::Background;
+use mpiflow::sample::config::{MotionSpec, SampleConfig};
 use mpiflow::sample::merge::{unit_to_u8, MergeRule};
 use mpiflow::sample::motion::{Axes, Component, MotionRanges, RigidLaw, RotationKind};
-use mpiflow::sample::recipe::{assemble, assemble_with_target_depth, MotionSpec, SampleConfig};
+use mpiflow::sample::recipe::{assemble, assemble_with_target_depth};
 use mpiflow::sample::SampleAddress;
-use mpiflow::scene::masks::{Instance, InstanceMasks};
 use mpiflow::scene::{Disparity, Scene};
 
 const W: usize = 96;

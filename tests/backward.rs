@@ -12,9 +12,10 @@ use std::sync::Arc;
 
 use mpiflow::bench::quality::photometric_error;
 use mpiflow::render::{render, RenderParams};
+use mpiflow::sample::config::SampleConfig;
 use mpiflow::sample::motion::MotionPreset;
 use mpiflow::sample::pipeline::{dataset_fingerprint, open_source, OpenOptions, Pipeline, SourceSpec};
-use mpiflow::sample::recipe::{assemble, trajectory, SampleConfig};
+use mpiflow::sample::recipe::{assemble, trajectory};
 use mpiflow::sample::{Sample, SampleAddress};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;

@@ -8,7 +8,9 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use mpiflow::io::image::{jpeg_truncation, ImageLimits};
-use mpiflow::sample::recipe::{Generator, SampleConfig, SampleError};
+use mpiflow::sample::config::SampleConfig;
+use mpiflow::sample::error::SampleError;
+use mpiflow::sample::pipeline::Generator;
 use mpiflow::sample::{Sample, StageTimings};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::stage::{SceneStage, SourceScenes};

@@ -12,10 +12,10 @@ use mpiflow::bench::quality::{label_laws, quality, thin_line_runs, LawCounts, Qu
 use mpiflow::io::npy;
 use mpiflow::raster::InstanceMasks;
 use mpiflow::sample::background::Background;
+use mpiflow::sample::config::{MotionSpec, SampleConfig};
 use mpiflow::sample::merge::{LabelRule, MergeRule};
 use mpiflow::sample::motion::{Axes, Component, MotionPreset, MotionRanges, RigidLaw, RotationKind};
 use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;
 

@@ -8,8 +8,8 @@ use std::collections::BTreeMap;
 
 use glam::DVec3;
 use mpiflow::geometry::Pose;
+use mpiflow::raster::{rle_decode_counts, rle_encode, rle_from_string, rle_to_string};
 use mpiflow::sample::SampleAddress;
-use mpiflow::scene::masks::{rle_decode_counts, rle_encode, rle_from_string, rle_to_string};
 use mpiflow::service::encode::{crop_window, CropSpec};
 use mpiflow::service::pool::StreamSpec;
 use proptest::prelude::*;

@@ -1,6 +1,10 @@
 //! The house has one direction: no module of `src/` names (`crate::...`) a module above it in
 //! the layering of docs/design.md §7, and modules on one level do not name each other, so there
-//! is no import cycle between modules. Scans the source text, so a new upward import fails here.
+//! is no import cycle between modules. The rooms inside `render/` and `sample/` keep the same
+//! rule among themselves ([`ROOMS`]), and their front doors (`mod.rs`) are above every room: a
+//! room names its siblings, never an item of the front door (a name the front door re-exports
+//! counts as the sibling that defines it). Scans the source text, so a new upward import fails
+//! here.
 
 use std::path::Path;
 
@@ -16,6 +20,35 @@ const LEVELS: &[&[&str]] = &[
     &["sample"],
     &["export", "service"],
     &["bench"],
+];
+
+/// The rooms of the modules with a front door, from the leaves up (see docs/design.md §7).
+const ROOMS: &[(&str, &[&[&str]])] = &[
+    (
+        "render",
+        &[
+            &["types", "simd"],
+            &["real", "window"],
+            &["tap"],
+            &["band", "guard", "store"],
+            &["mip", "occupancy", "resample"],
+            &["exact", "reference"],
+            &["cut"],
+        ],
+    ),
+    (
+        "sample",
+        &[
+            &["inpaint", "motion", "object", "preblend"],
+            &["error", "types"],
+            &["merge", "noise"],
+            &["background"],
+            &["config"],
+            &["augment", "holes"],
+            &["recipe"],
+            &["pipeline"],
+        ],
+    ),
 ];
 
 fn level(module: &str) -> Option<usize> {
@@ -82,4 +115,126 @@ fn the_scanner_sees_references() {
     assert_eq!(crate_refs("use crate::mpi::Mpi; // see crate::render"), ["mpi", "render"]);
     assert_eq!(level("render"), Some(4));
     assert!(level("render") > level("mpi"));
+}
+
+/// The first identifier of every path that follows `prefix` in `text`; a group
+/// (`prefix{a, b::c}`) gives the first identifier of each of its items. `prefix` must not be
+/// preceded by `::` or an identifier character (so `super::` does not match in `super::super::`).
+fn names_after<'a>(text: &'a str, prefix: &str) -> Vec<&'a str> {
+    let ident = |t: &'a str| &t[..t.find(|c: char| !(c.is_ascii_alphanumeric() || c == '_')).unwrap_or(t.len())];
+    let mut out = Vec::new();
+    let mut from = 0;
+    while let Some(i) = text[from..].find(prefix) {
+        let at = from + i;
+        from = at + prefix.len();
+        let before = text[..at].chars().next_back();
+        if before.is_some_and(|c| c == ':' || c.is_ascii_alphanumeric() || c == '_') {
+            continue;
+        }
+        let tail = &text[from..];
+        if let Some(group) = tail.strip_prefix('{') {
+            let (mut depth, mut item_start) = (0, true);
+            for (k, c) in group.char_indices() {
+                match c {
+                    '{' => depth += 1,
+                    '}' if depth == 0 => break,
+                    '}' => depth -= 1,
+                    ',' if depth == 0 => item_start = true,
+                    c if item_start && (c.is_ascii_alphanumeric() || c == '_') => {
+                        out.push(ident(&group[k..]));
+                        item_start = false;
+                    }
+                    _ => {}
+                }
+            }
+        } else {
+            out.push(ident(tail));
+        }
+    }
+    out
+}
+
+/// The names a room of `dir` gives to its siblings or its front door: `crate::DIR::NAME` and
+/// `super::NAME` (`super::super::NAME` in its inline test module, where `super::` is the room).
+fn room_refs<'a>(text: &'a str, dir: &str) -> Vec<&'a str> {
+    let (main, tests) = text.split_at(text.find("mod tests {").unwrap_or(text.len()));
+    let mut out = names_after(text, &format!("crate::{dir}::"));
+    out.extend(names_after(main, "super::"));
+    out.extend(names_after(tests, "super::super::"));
+    out.retain(|n| !n.is_empty() && *n != "self" && *n != "super");
+    out
+}
+
+/// The names the front door `mod.rs` re-exports (`pub use ROOM::...`), with their room.
+fn front_door_exports(text: &str) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    for stmt in text.split(';') {
+        let Some(rest) = stmt.trim().strip_prefix("pub use ") else { continue };
+        let Some((room, items)) = rest.split_once("::") else { continue };
+        for name in items.trim_matches(|c: char| c == '{' || c == '}' || c.is_whitespace()).split(',') {
+            let name = name.trim();
+            if !name.is_empty() {
+                out.push((name.to_string(), room.to_string()));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn rooms_name_only_the_rooms_below_them() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut bad = Vec::new();
+    let mut checked = 0;
+    for (dir, levels) in ROOMS {
+        let level = |room: &str| levels.iter().position(|l| l.contains(&room));
+        let front = std::fs::read_to_string(src.join(dir).join("mod.rs")).unwrap();
+        let exports = front_door_exports(&front);
+        let mut rooms = Vec::new();
+        for e in std::fs::read_dir(src.join(dir)).unwrap() {
+            let p = e.unwrap().path();
+            let stem = p.file_stem().unwrap().to_string_lossy().to_string();
+            if stem != "mod" {
+                rooms.push((stem, p));
+            }
+        }
+        for (room, path) in &rooms {
+            let own = level(room).unwrap_or_else(|| panic!("src/{dir}/{room}: not in ROOMS"));
+            if path.is_dir() {
+                continue;
+            }
+            let text = std::fs::read_to_string(path).unwrap();
+            for name in room_refs(&text, dir) {
+                let target = if rooms.iter().any(|(r, _)| r == name) {
+                    name.to_string()
+                } else if let Some((_, r)) = exports.iter().find(|(n, _)| n == name) {
+                    r.clone()
+                } else {
+                    bad.push(format!("src/{dir}/{room}.rs names `{name}` of the front door (src/{dir}/mod.rs)"));
+                    continue;
+                };
+                if target == *room {
+                    continue;
+                }
+                checked += 1;
+                let other = level(&target).unwrap_or_else(|| panic!("src/{dir}/{target}: not in ROOMS"));
+                if other >= own {
+                    bad.push(format!("src/{dir}/{room}.rs (level {own}) names `{name}` of `{target}` (level {other})"));
+                }
+            }
+        }
+    }
+    assert!(checked > 50, "the scan found only {checked} references between rooms");
+    assert!(bad.is_empty(), "imports against the rooms' order:\n{}", bad.join("\n"));
+}
+
+#[test]
+fn the_room_scanner_sees_references() {
+    let text = "use super::{exact, mip::{a, b}, Tap};\nuse super::super::x;\n/// [`crate::render::cut`]\n\
+                mod tests {\n    use super::*;\n    use super::super::simd::f;\n}";
+    assert_eq!(room_refs(text, "render"), ["cut", "exact", "mip", "Tap", "simd"]);
+    assert_eq!(
+        front_door_exports("pub use real::Real;\npub use types::{\n    Mode, View,\n};\nmod x;"),
+        [("Real".into(), "real".into()), ("Mode".into(), "types".into()), ("View".into(), "types".into())]
+    );
 }

@@ -1,7 +1,7 @@
 //! Instance masks: COCO RLE and polygons against pycocotools' vectors, instance-index PNGs,
 //! COCO annotation JSON, object selection, resizing, and malformed input.
 
-use mpiflow::scene::masks::{
+use mpiflow::raster::{
     mask_bbox, polygon_to_mask, polygon_to_rle, resize_bilinear, resize_nearest, rle_area, rle_bbox, rle_decode,
     rle_decode_counts, rle_encode, rle_from_string, rle_to_string, Instance, InstanceMasks, MaskError, RleCounts,
 };

@@ -6,10 +6,10 @@ use std::f64::consts::PI;
 
 use glam::DVec3;
 use mpiflow::geometry::rotation_from_axis_angle;
+use mpiflow::rng::{Purpose, SampleRng};
 use mpiflow::sample::motion::{
     euler_zyx_matrix, Component, Motion, MotionError, MotionPreset, MotionRanges, RotationKind,
 };
-use mpiflow::sample::rng::{Purpose, SampleRng};
 
 const N: u64 = 2000;
 const FINGERPRINT: u64 = 0xfeed_beef;

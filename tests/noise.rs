@@ -8,10 +8,10 @@ use std::path::Path;
 use std::sync::Arc;
 
 use mpiflow::bench::quality::{noise_sigma, quality_same_motions};
+use mpiflow::sample::config::{MotionSpec, SampleConfig};
 use mpiflow::sample::motion::MotionPreset;
 use mpiflow::sample::noise::channel_sigmas;
 use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;
 

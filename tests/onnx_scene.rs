@@ -575,8 +575,8 @@ fn repeated_inference_is_identical_and_counted() {
 /// (or under another name) do not.
 #[test]
 fn the_fingerprint_covers_model_content_not_file_names() {
+    use mpiflow::sample::config::SampleConfig;
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-    use mpiflow::sample::recipe::SampleConfig;
     use mpiflow::scene::cache::SceneCache;
     use mpiflow::scene::models::ModelConfig;
 

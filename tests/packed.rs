@@ -7,12 +7,12 @@
 
 use mpiflow::geometry::{Intrinsics, Pose};
 use mpiflow::mpi::Mpi;
-use mpiflow::render::cut::{render_cut, DensityCut};
-use mpiflow::render::occupancy::Occupancy;
+use mpiflow::render::cut::render_cut;
 use mpiflow::render::resample::prefilter;
 use mpiflow::render::store::{pack, packs};
 use mpiflow::render::{
-    render, render_window, Channels, Fields, Mode, Rect, RenderOutput, RenderParams, Resample, Skip, View,
+    render, render_window, Channels, DensityCut, Fields, Mode, Occupancy, Rect, RenderOutput, RenderParams, Resample,
+    Skip, View,
 };
 use mpiflow::rng::SplitMix64 as Stream;
 use proptest::prelude::*;

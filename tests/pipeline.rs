@@ -9,8 +9,8 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 
+use mpiflow::sample::config::SampleConfig;
 use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-use mpiflow::sample::recipe::SampleConfig;
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;
 use mpiflow::service::pb;

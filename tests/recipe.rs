@@ -9,16 +9,17 @@ use std::sync::Arc;
 use mpiflow::geometry::Intrinsics;
 use mpiflow::io::image::RgbImage;
 use mpiflow::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions};
+use mpiflow::raster::InstanceMasks;
+use mpiflow::sample::config::{InpaintMethod, MotionSpec, SampleConfig};
+use mpiflow::sample::error::SampleError;
+use mpiflow::sample::holes::inpaint_holes;
 use mpiflow::sample::merge::MergeRule;
 use mpiflow::sample::motion::{Component, Motion, MotionPreset, RigidLaw, RotationKind};
 use mpiflow::sample::object::ObjectChoice;
-use mpiflow::sample::recipe::Generator;
-use mpiflow::sample::recipe::{
-    assemble, assemble_merged, inpaint_holes, InpaintMethod, MotionSpec, SampleConfig, SampleError,
-};
+use mpiflow::sample::pipeline::Generator;
+use mpiflow::sample::recipe::{assemble, assemble_merged};
 use mpiflow::sample::{Sample, StageTimings};
 use mpiflow::scene::cache::SceneCache;
-use mpiflow::scene::masks::InstanceMasks;
 use mpiflow::scene::{Disparity, Scene, SceneError, SceneLoader};
 use mpiflow::source::{FailureKind, Fnv64};
 

@@ -242,9 +242,9 @@ fn higher_order_kernels_keep_a_photos_detail_under_lateral_translation() {
 fn the_ideal_warp_interpolates_and_an_unmoved_camera_keeps_every_detail() {
     use mpiflow::bench::quality::ideal_warp_sharpness;
     use mpiflow::render::resample::SplineImage;
+    use mpiflow::sample::config::{MotionSpec, SampleConfig};
     use mpiflow::sample::motion::{Component, MotionPreset};
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-    use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
     use mpiflow::scene::cache::SceneCache;
     use mpiflow::scene::models::ModelConfig;
     use std::sync::Arc;

@@ -9,8 +9,8 @@ use std::time::Duration;
 use mpiflow::geometry::Intrinsics;
 use mpiflow::io::image::RgbImage;
 use mpiflow::mpi::Mpi;
+use mpiflow::raster::InstanceMasks;
 use mpiflow::scene::cache::{SceneCache, SceneKey};
-use mpiflow::scene::masks::InstanceMasks;
 use mpiflow::scene::{Disparity, Scene};
 
 /// A scene of `w` x `h` pixels and `planes` planes (its byte size grows with both).

@@ -5,7 +5,7 @@
 use mpiflow::geometry::Intrinsics;
 use mpiflow::io::image::{save_gray16_png, save_gray_png, save_rgb_png, ImageLimits, RgbImage};
 use mpiflow::io::npy::write_f32;
-use mpiflow::scene::masks::InstanceMasks;
+use mpiflow::raster::InstanceMasks;
 use mpiflow::scene::scale::{
     disparity_from_depth, disparity_from_given, disparity_from_unit, fill_nearest, normalise_relative, DISPARITY_FLOOR,
 };

@@ -22,7 +22,9 @@
 
 use crate::render::OCCLUSION_TOLERANCE;
 use crate::sample::config::SampleConfig;
-use crate::sample::recipe::{assemble_with_target_depth, Generator, SampleError};
+use crate::sample::error::SampleError;
+use crate::sample::pipeline::Generator;
+use crate::sample::recipe::assemble_with_target_depth;
 use crate::sample::{Sample, SampleAddress};
 
 /// Counts of the label laws over one or more samples (see the module documentation).

@@ -9,11 +9,13 @@ use super::Timing;
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
 use crate::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions};
+use crate::raster::{Instance, InstanceMasks};
 use crate::sample::augment::Augment;
-use crate::sample::recipe::{Generator, SampleConfig, SampleError};
+use crate::sample::config::SampleConfig;
+use crate::sample::error::SampleError;
+use crate::sample::pipeline::Generator;
 use crate::sample::StageTimings;
 use crate::scene::cache::SceneCache;
-use crate::scene::masks::{Instance, InstanceMasks};
 use crate::scene::{Disparity, Scene, SceneError, SceneLoader};
 use crate::source::Fnv64;
 

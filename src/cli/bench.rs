@@ -184,9 +184,9 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
 fn quality(q: QualityBench) -> Result<(), CliError> {
     use mpiflow::bench::quality::{quality, quality_same_motions, QualityReport};
     use mpiflow::sample::background::Background;
+    use mpiflow::sample::config::{MotionSpec, SampleConfig};
     use mpiflow::sample::merge::{LabelRule, MergeRule};
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
-    use mpiflow::sample::recipe::{MotionSpec, SampleConfig};
     use mpiflow::scene::cache::SceneCache;
     use mpiflow::scene::models::ModelConfig;
     use std::sync::Arc;
@@ -422,7 +422,7 @@ fn render(b: RenderBench) -> Result<(), CliError> {
 
 fn sample(b: SampleBench) -> Result<(), CliError> {
     use mpiflow::bench::sample::{bench_sample, SampleBenchConfig};
-    use mpiflow::sample::recipe::SampleConfig;
+    use mpiflow::sample::config::SampleConfig;
     if b.width < 16 || b.height < 16 || b.width * b.height > 16 << 20 || b.planes == 0 || b.planes > 256 {
         return Err(CliError("bench sizes must be 16x16 to 16 Mpx and 1 to 256 planes".into()));
     }

@@ -5,24 +5,18 @@
 //! density of plane `i` at a tap scaled by `1 - c`, where `c` is the bilinear mean over the tap's
 //! four pixels of `mask`, each pixel counted only on the planes it cuts (`i <= last`).
 
-use super::{exact, Mode, Occupancy, Real, Rect, RenderError, RenderOutput, RenderParams, WindowRender};
+use super::exact;
+use super::guard::{check_inputs, repair_nonfinite};
+use super::occupancy::{tile_occupancy, Occupancy};
+use super::real::Real;
+use super::types::{DensityCut, Mode, RenderError, RenderOutput, RenderParams};
+use super::window::{Rect, WindowRender};
 use crate::mpi::Mpi;
-
-/// Which planes are taken out where: at source pixel `p` with `mask[p] > 0`, planes
-/// `0..=last[p]` (the nearest first) keep `1 - mask[p]` of their density; the planes behind
-/// `last[p]` and every plane elsewhere are untouched.
-#[derive(Clone, Copy, Debug)]
-pub struct DensityCut<'a> {
-    /// H x W, in [0, 1].
-    pub mask: &'a [f32],
-    /// H x W: the farthest plane cut at each pixel.
-    pub last: &'a [u8],
-}
 
 /// The target view (image premultiplied by coverage, depth, coverage) of `window` of `mpi`
 /// with `cut` applied, in exact mode with bilinear sampling whatever `params.resample` says;
 /// no flow, links or extra channels (`extras` holds the rendered cut mask). Errors as
-/// [`super::render_window`], and for a cut of the wrong size, a reference-mode `params` or links.
+/// `render_window`, and for a cut of the wrong size, a reference-mode `params` or links.
 pub fn render_cut<T: Real>(
     mpi: &Mpi,
     params: &RenderParams,
@@ -30,7 +24,7 @@ pub fn render_cut<T: Real>(
     window: &Rect,
     cut: &DensityCut<'_>,
 ) -> Result<WindowRender, RenderError> {
-    super::check_inputs(mpi, params)?;
+    check_inputs(mpi, params)?;
     let (w, h) = (mpi.width, mpi.height);
     let bad = |m: String| Err(RenderError::Request(m));
     if cut.mask.len() != w * h || cut.last.len() != w * h {
@@ -52,13 +46,13 @@ pub fn render_cut<T: Real>(
         return bad(format!("window {window:?} is not inside the {w} x {h} frame"));
     }
     let mut built = None;
-    let occ = super::tile_occupancy(mpi, params, occupancy, &mut built);
+    let occ = tile_occupancy(mpi, params, occupancy, &mut built);
     out.image = crate::buf::zeros(ww * wh * 3);
     out.depth = crate::buf::zeros(ww * wh);
     out.coverage = crate::buf::zeros(ww * wh);
     out.extras = crate::buf::zeros(ww * wh);
     let stats = exact::target_view_cut::<T>(mpi, params, occ, window, cut, &mut out);
     out.stats += stats;
-    out.stats.repaired += super::repair_nonfinite(&mut out);
+    out.stats.repaired += repair_nonfinite(&mut out);
     Ok(WindowRender { win: *window, out })
 }

@@ -20,7 +20,7 @@
 //! constants, [`tile_activity`]); [`SourceLanes`] and [`TargetLanes`] run the same loops for
 //! four adjacent pixels at once in `f32` lanes, operation for operation, so with the same bits
 //! (the scalar loops are their reference and take the rest). Every exact render goes through
-//! it: the full frame, and windows of it ([`crate::render::render_window`]). Both passes take a
+//! it: the full frame, and windows of it (`render_window`). Both passes take a
 //! window `win` of the frame and write window-sized buffers (pixel (x, y) of them is frame pixel
 //! (win.x0 + x, win.y0 + y)); rays, sampling and the "leaves the source image" test always use
 //! the whole frame, so a pixel's value does not depend on the window it is rendered in. Tiles
@@ -29,19 +29,30 @@
 //! (the default) contribute nothing, so tile alignment does not change values either. Extra
 //! channels are sampled per plane from the MPI or from one H x W mask shared by every plane
 //! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
+//!
+//! Two things here stay large on purpose. The file (over 1,100 lines) keeps the scalar loops and
+//! their four-lane twins ([`TargetLanes`], [`SourceLanes`]) together with the per-plane constants
+//! they share, since each twin must follow its loop operation for operation. And
+//! `target_view_with` (about 190 lines) is the target view's band loop, which the compiler must
+//! see whole: its set-up is outside it ([`TargetGeometry`], [`TargetLanes::new`]), but the
+//! tile's planes, the edge clamp, the link sums or the pixel's writes as inlined functions of
+//! their own cost 1.9% more instructions in the band loop of the bilinear target pass
+//! (cachegrind, `mpiflow bench render --threads 1 --pass target --resample bilinear`).
 
+use super::band::{for_each_band, mark_valid};
 use super::mip::{mip_planes, missing_levels, plane_lods, MipPlane};
 use super::occupancy::Occupancy;
+use super::real::Real;
 use super::resample::{
     bspline_bricks, sample_rgb_bricks_weighted, sample_rgb_weighted, Bspline3, Bspline5, Kernel, Keys, Lanczos3,
-    Resample,
 };
 use super::store::Rgba;
-use super::{for_each_band, mark_valid, Channels, Rect, RenderOutput, RenderParams, RenderStats, Tap, View};
+use super::tap::Tap;
+use super::types::{Channels, DensityCut, RenderOutput, RenderParams, RenderStats, Resample, View};
+use super::window::Rect;
 use crate::mpi::bricks::Bricks;
 use crate::mpi::planes::{plane_depth, plane_gaps, DELTA_LAST, DEPTH_MAX};
 use crate::mpi::Mpi;
-use crate::render::real::Real;
 
 /// Width of a target tile for plane skipping (its height is the band height).
 const TILE: usize = 16;
@@ -373,7 +384,7 @@ fn empty3<'a>() -> (&'a mut [f32], &'a mut [f32], &'a mut [f32]) {
 
 /// [`target_view`] with `NL` links (`consts[..NL]`, their flow, depth and front-fraction buffers
 /// in `lb[..NL]`).
-#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
+#[allow(clippy::too_many_arguments)]
 fn target_view_n<T: Real, const NL: usize>(
     mpi: &Mpi,
     p: &RenderParams,
@@ -437,7 +448,7 @@ fn target_view_n<T: Real, const NL: usize>(
 }
 
 /// [`target_view_n`] with the plane sampler of the render's kernel.
-#[allow(clippy::too_many_arguments, clippy::too_many_lines)]
+#[allow(clippy::too_many_arguments)]
 fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
     mpi: &Mpi,
     p: &RenderParams,
@@ -456,52 +467,16 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         Channels::PerPlane => (mpi.extra_channels, (0..n).map(|i| mpi.plane_extras(i)).collect()),
         Channels::Broadcast(mask) => (1, vec![mask; n]),
     };
-    let (ks, kt) = (p.k_src, p.k_tgt);
-    let rt = p.pose.rotation.transpose();
-    let centre = p.pose.target_centre_in_source();
-    let k = -centre.z;
-    let planes: Vec<PlaneConst<T>> = mpi
-        .disparity
-        .iter()
-        .map(|&disp| PlaneConst {
-            a: T::of(1.0 + k * disp),
-            depth: T::of(plane_depth(disp)),
-            disp: T::of(disp),
-            ox: T::of(ks.fx * centre.x * disp + ks.cx),
-            oy: T::of(ks.fy * centre.y * disp + ks.cy),
-        })
-        .collect();
-    let r = |i: usize| [T::of(rt.row(i).x), T::of(rt.row(i).y), T::of(rt.row(i).z)];
-    let rt_t = [r(0), r(1), r(2)];
-    let (fxs, fys) = (T::of(ks.fx), T::of(ks.fy));
-    let (lo, hix, hiy) = (T::of(-0.5), T::of(w as f64 - 0.5), T::of(h as f64 - 0.5));
-    let (wm, hm) = (T::of((w - 1) as f64), T::of((h - 1) as f64));
-    let t_eps = T::of32(p.skip.transmittance_eps);
-    let delta_last = T::of(DELTA_LAST);
-    let ux: Vec<T> = (win.x0..win.x1).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect();
-    let uy: Vec<T> = (win.y0..win.y1).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect();
+    let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } =
+        TargetGeometry::new(mpi, p, win);
     let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
         let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
         (v, (ux * ux + uy * uy + T::one()).sqrt())
     };
     let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
     // four pixels at a time where T is f32, without links and with at most one extra channel
-    let lanes = (T::LANES && NL == 0 && c <= 1).then(|| TargetLanes {
-        a: planes.iter().map(|p| p.a.f32()).collect(),
-        depth: planes.iter().map(|p| p.depth.f32()).collect(),
-        ox: planes.iter().map(|p| p.ox.f32()).collect(),
-        oy: planes.iter().map(|p| p.oy.f32()).collect(),
-        fxs: fxs.f32(),
-        fys: fys.f32(),
-        lo: lo.f32(),
-        hix: hix.f32(),
-        hiy: hiy.f32(),
-        wm: wm.f32(),
-        hm: hm.f32(),
-        t_eps: t_eps.f32(),
-        w,
-        h,
-    });
+    let lanes = (T::LANES && NL == 0 && c <= 1)
+        .then(|| TargetLanes::new(&planes, [fxs, fys, lo, hix, hiy, wm, hm, t_eps], w, h));
     let ex_lanes = (c == 1).then_some(ex_planes.as_slice());
     let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
 
@@ -670,6 +645,65 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
     })
 }
 
+/// The per-render constants of the target view: the target intrinsics, the planes' constants,
+/// R^T, the source focal lengths, the bounds of the "leaves the source image" test and of the
+/// edge clamp, the early-termination threshold, the last gap, and the window's columns and rows
+/// as u = K_t^-1 p.
+struct TargetGeometry<T> {
+    kt: crate::geometry::Intrinsics,
+    planes: Vec<PlaneConst<T>>,
+    rt_t: [[T; 3]; 3],
+    fxs: T,
+    fys: T,
+    lo: T,
+    hix: T,
+    hiy: T,
+    wm: T,
+    hm: T,
+    t_eps: T,
+    delta_last: T,
+    ux: Vec<T>,
+    uy: Vec<T>,
+}
+
+impl<T: Real> TargetGeometry<T> {
+    fn new(mpi: &Mpi, p: &RenderParams, win: &Rect) -> Self {
+        let (w, h) = (mpi.width, mpi.height);
+        let (ks, kt) = (p.k_src, p.k_tgt);
+        let rt = p.pose.rotation.transpose();
+        let centre = p.pose.target_centre_in_source();
+        let k = -centre.z;
+        let planes: Vec<PlaneConst<T>> = mpi
+            .disparity
+            .iter()
+            .map(|&disp| PlaneConst {
+                a: T::of(1.0 + k * disp),
+                depth: T::of(plane_depth(disp)),
+                disp: T::of(disp),
+                ox: T::of(ks.fx * centre.x * disp + ks.cx),
+                oy: T::of(ks.fy * centre.y * disp + ks.cy),
+            })
+            .collect();
+        let r = |i: usize| [T::of(rt.row(i).x), T::of(rt.row(i).y), T::of(rt.row(i).z)];
+        Self {
+            kt,
+            planes,
+            rt_t: [r(0), r(1), r(2)],
+            fxs: T::of(ks.fx),
+            fys: T::of(ks.fy),
+            lo: T::of(-0.5),
+            hix: T::of(w as f64 - 0.5),
+            hiy: T::of(h as f64 - 0.5),
+            wm: T::of((w - 1) as f64),
+            hm: T::of((h - 1) as f64),
+            t_eps: T::of32(p.skip.transmittance_eps),
+            delta_last: T::of(DELTA_LAST),
+            ux: (win.x0..win.x1).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect(),
+            uy: (win.y0..win.y1).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect(),
+        }
+    }
+}
+
 /// The target view's per-pixel loop for four adjacent pixels of a row at once (`f32`, without
 /// links, with no or one extra channel; the scalar loop of [`target_view_with`] stays the
 /// reference and runs everything else). The ray set-up, the plane intersection, the "leaves the
@@ -703,6 +737,28 @@ fn lane_mask(on: [bool; 4]) -> wide::f32x4 {
 }
 
 impl TargetLanes {
+    /// The lanes' copy of the scalar loop's constants: the planes', and `[fxs, fys, lo, hix, hiy,
+    /// wm, hm, t_eps]` in `f32`.
+    fn new<T: Real>(planes: &[PlaneConst<T>], k: [T; 8], w: usize, h: usize) -> Self {
+        let [fxs, fys, lo, hix, hiy, wm, hm, t_eps] = k;
+        TargetLanes {
+            a: planes.iter().map(|p| p.a.f32()).collect(),
+            depth: planes.iter().map(|p| p.depth.f32()).collect(),
+            ox: planes.iter().map(|p| p.ox.f32()).collect(),
+            oy: planes.iter().map(|p| p.oy.f32()).collect(),
+            fxs: fxs.f32(),
+            fys: fys.f32(),
+            lo: lo.f32(),
+            hix: hix.f32(),
+            hiy: hiy.f32(),
+            wm: wm.f32(),
+            hm: hm.f32(),
+            t_eps: t_eps.f32(),
+            w,
+            h,
+        }
+    }
+
     /// Pixels `o .. o + 4` of the band's buffers `b` (image, depth, coverage, the extra channel
     /// when `ex` is given) for the rays `rays` (direction, |u|): false, with nothing written,
     /// when the four rays do not all meet the planes in the same order (the scalar loop then
@@ -1104,12 +1160,12 @@ impl SourceLanes<'_> {
     }
 }
 
-/// A density cut ([`crate::render::cut::DensityCut`]) over a bilinear sampler: plane `i`'s
+/// A density cut ([`DensityCut`]) over a bilinear sampler: plane `i`'s
 /// density at a tap is scaled by `1 - c`, `c` the bilinear mean of the cut's mask over the tap's
 /// four pixels, each counted only where plane `i` is one it cuts there.
 struct CutSampler<'a> {
     inner: Bilinear<'a>,
-    cut: &'a super::cut::DensityCut<'a>,
+    cut: &'a DensityCut<'a>,
 }
 
 impl<T: Real> PlaneSampler<T> for CutSampler<'_> {
@@ -1136,7 +1192,7 @@ pub(super) fn target_view_cut<T: Real>(
     p: &RenderParams,
     occ: Option<&Occupancy>,
     win: &Rect,
-    cut: &super::cut::DensityCut<'_>,
+    cut: &DensityCut<'_>,
     out: &mut RenderOutput,
 ) -> RenderStats {
     let sampler = CutSampler { inner: Bilinear { rgba: Rgba::of(mpi), mip: &[] }, cut };

@@ -1,7 +1,7 @@
 //! Alias-free minification of the target view: where the view shrinks a
 //! plane (the camera moves back, a zoom-out), sampling the plane's colour at the target's pixel
 //! spacing skips source pixels, and detail finer than the target's grid aliases into patterns
-//! image1 does not have. With [`crate::render::RenderParams::minify`], each plane whose local
+//! image1 does not have. With [`RenderParams::minify`], each plane whose local
 //! scale `s` (source pixels per target pixel, the larger of the two axes of the plane's mapping
 //! at the frame's centre, so the same for every window) exceeds 1 is sampled from a pyramid of
 //! prefiltered levels at the level of detail `lod = log2 s`: between level `floor(lod)` and the
@@ -20,7 +20,7 @@
 use rayon::prelude::*;
 
 use super::real::Real;
-use super::RenderParams;
+use super::types::RenderParams;
 use crate::mpi::{MipLevel, MipLevels, Mpi};
 
 /// Levels kept with a prepared scene (1 to 4: planes shrunk up to 16 times get exact levels;

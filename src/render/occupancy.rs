@@ -2,6 +2,8 @@
 //! threshold, as 2-D prefix counts, so the renderer can ask in O(1) whether a plane is empty over
 //! the footprint of a target tile and skip it there.
 
+use super::store::Rgba;
+use super::types::{Mode, RenderParams};
 use crate::mpi::Mpi;
 
 pub const BLOCK: usize = 8;
@@ -27,7 +29,7 @@ impl Occupancy {
         let bh = h.div_ceil(BLOCK);
         let mut prefix = Vec::with_capacity(mpi.planes());
         let mut plane_any = Vec::with_capacity(mpi.planes());
-        let rgba = super::store::Rgba::of(mpi);
+        let rgba = Rgba::of(mpi);
         for i in 0..mpi.planes() {
             let mut occ = vec![false; bw * bh];
             for y in 0..h {
@@ -67,6 +69,23 @@ impl Occupancy {
         let s = self.bw + 1;
         let count = p[(by1 + 1) * s + bx1 + 1] + p[by0 * s + bx0] - p[by0 * s + bx1 + 1] - p[(by1 + 1) * s + bx0];
         count > 0
+    }
+}
+
+/// The tile occupancy an exact render with tile skipping uses: `given` when it was built with
+/// the render's threshold, else one built into `built`; none in reference mode or without tiles.
+pub(crate) fn tile_occupancy<'a>(
+    mpi: &Mpi,
+    params: &RenderParams,
+    given: Option<&'a Occupancy>,
+    built: &'a mut Option<Occupancy>,
+) -> Option<&'a Occupancy> {
+    if params.mode != Mode::Exact || !params.skip.tiles {
+        return None;
+    }
+    match given {
+        Some(o) if o.sigma_eps == params.skip.tile_sigma_eps => Some(o),
+        _ => Some(built.insert(Occupancy::build(mpi, params.skip.tile_sigma_eps))),
     }
 }
 

@@ -2,6 +2,8 @@
 
 use std::ops::{AddAssign, MulAssign};
 
+use super::simd::{EXP2_TAYLOR, KERNEL_COLS};
+
 pub trait Real: num_traits::Float + AddAssign + MulAssign + Send + Sync + Default + 'static {
     fn of(x: f64) -> Self;
     fn of32(x: f32) -> Self;
@@ -51,14 +53,6 @@ pub trait Real: num_traits::Float + AddAssign + MulAssign + Send + Sync + Defaul
         col
     }
 }
-
-/// The most values of a kernel row ([`Real::kernel_cols`]): 6 taps of 4 values.
-pub(crate) const KERNEL_COLS: usize = 24;
-
-/// 2^f = e^(f ln 2) for f in [-0.5, 0.5]: the Taylor coefficients of e^y at y = f ln 2 (the
-/// polynomial of [`exp_neg_f32`] and of its four-lane twin [`super::simd::exp_neg4`]).
-pub(crate) const EXP2_TAYLOR: [f32; 7] =
-    [1.0, std::f32::consts::LN_2, 0.240_226_5, 0.055_504_11, 0.009_618_129, 0.001_333_355_8, 0.000_154_035_3];
 
 /// exp(-x) in f32 for x in [0, 80], inlined: 2^(-x log2 e) split into an integer power (set in
 /// the exponent bits) and a degree-6 polynomial for 2^f, f in [-0.5, 0.5]. Absolute error below
@@ -206,20 +200,6 @@ mod tests {
             let got = super::super::simd::exp_neg4(wide::f32x4::from(v)).to_array();
             for (k, &x) in v.iter().enumerate() {
                 assert_eq!(got[k].to_bits(), exp_neg_f32(x).to_bits(), "exp(-{x})");
-            }
-        }
-    }
-
-    /// `floor_index` is `(q as usize).min(n - 1)` for every q: the random spread, its negatives,
-    /// NaN, infinities and values past i32's range.
-    #[test]
-    fn floor_index_is_the_saturating_usize_conversion() {
-        let mut qs: Vec<f32> =
-            [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, 3e9, -3e9, 2.1e9, 0.0, -0.0, 639.999].into_iter().collect();
-        qs.extend((0..500).flat_map(|s| values(8, s)).flat_map(|v| [v, v * 700.0]));
-        for n in [1usize, 2, 640, 4096] {
-            for &q in &qs {
-                assert_eq!(super::super::floor_index(q, n), (q as usize).min(n - 1), "q = {q}, n = {n}");
             }
         }
     }

@@ -4,19 +4,22 @@
 //! border, sigma zeroed where the warped Z < 0, T_i = prod_{j<i}(exp(-sigma_j delta_j) + 1e-6),
 //! last delta 1e3, depth = sum w Z / (sum w + 1e-5), flow = clip(sum w_src flow_i, -200, 200).
 //! One addition keeps it finite where the reference is not: plane depths are capped at
-//! [`DEPTH_MAX`](super::DEPTH_MAX), so a plane at disparity 0 sits very far away instead of at infinity.
+//! [`DEPTH_MAX`](crate::mpi::planes::DEPTH_MAX), so a plane at disparity 0 sits very far away instead of at infinity.
 
 /// Plane depth as the reference uses it, capped so that disparity 0 stays finite.
 fn plane_depth(mpi: &Mpi, i: usize) -> f64 {
     planes::plane_depth(mpi.disparity[i])
 }
 
-use super::{for_each_band, Rect, RenderOutput, RenderParams, RenderStats, DELTA_LAST};
+use super::band::{for_each_band, mark_valid};
+use super::real::Real;
+use super::tap::Tap;
+use super::types::{RenderOutput, RenderParams, RenderStats};
+use super::window::Rect;
 use crate::geometry::plane_homography;
 use crate::mpi::planes;
+use crate::mpi::planes::DELTA_LAST;
 use crate::mpi::Mpi;
-use crate::render::real::Real;
-use crate::render::{mark_valid, Tap};
 
 type M3<T> = [[T; 3]; 3];
 

@@ -31,70 +31,13 @@
 //! mirrored (whole-sample symmetric, the prefilter's boundary condition). The reference mode
 //! ignores this option: it is bilinear formula for formula.
 
-use super::floor_index;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 use super::real::Real;
+use super::tap::floor_index;
+use super::types::Resample;
 use crate::mpi::bricks::Bricks;
 use crate::mpi::Mpi;
-
-/// The reconstruction kernel of the target render's colour (see the module documentation).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Resample {
-    /// 2 x 2 bilinear (the reference's kernel).
-    Bilinear,
-    /// 4 x 4 Keys cubic convolution (a = -1/2).
-    Bicubic,
-    /// 4 x 4 cubic B-spline interpolation (prefiltered coefficients); the default.
-    #[default]
-    Bspline3,
-    /// 6 x 6 quintic B-spline interpolation (prefiltered coefficients).
-    Bspline5,
-    /// 6 x 6 Lanczos-3 (normalised windowed sinc).
-    Lanczos3,
-}
-
-impl Resample {
-    pub const ALL: [Resample; 5] =
-        [Resample::Bilinear, Resample::Bicubic, Resample::Bspline3, Resample::Bspline5, Resample::Lanczos3];
-
-    pub fn name(self) -> &'static str {
-        match self {
-            Resample::Bilinear => "bilinear",
-            Resample::Bicubic => "bicubic",
-            Resample::Bspline3 => "bspline3",
-            Resample::Bspline5 => "bspline5",
-            Resample::Lanczos3 => "lanczos3",
-        }
-    }
-
-    /// The B-spline degree of a kernel that samples prefiltered coefficients instead of the
-    /// colours themselves.
-    pub fn bspline_degree(self) -> Option<u32> {
-        match self {
-            Resample::Bspline3 => Some(3),
-            Resample::Bspline5 => Some(5),
-            _ => None,
-        }
-    }
-}
-
-impl std::fmt::Display for Resample {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl std::str::FromStr for Resample {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Resample::ALL.into_iter().find(|r| r.name() == s).ok_or_else(|| {
-            format!("unknown resample kernel `{s}` (expected bilinear, bicubic, bspline3, bspline5 or lanczos3)")
-        })
-    }
-}
 
 /// The weights of a separable kernel at fractional offset `t` in [0, 1) from the tap
 /// `floor(q)`; tap `k` sits at `floor(q) + k - (N / 2 - 1)`.

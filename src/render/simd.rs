@@ -1,10 +1,18 @@
 //! Four-lane f32 arithmetic for the render's taps (`wide::f32x4`: SSE2 on x86-64, NEON on
 //! aarch64, scalar elsewhere). Each function does, lane for lane, exactly the operations of its
 //! scalar twin (no fused multiply-add, the same order), so the results are bit-identical to the
-//! scalar formulas of [`super::real::Real`] (tested in `render::real`).
+//! scalar formulas of the `Real` trait (`real.rs`, which tests them against each other).
 
 use wide::bytemuck::cast;
 use wide::{f32x4, i32x4};
+
+/// The most values of a kernel row (`Real::kernel_cols`, [`kernel_cols`]): 6 taps of 4 values.
+pub(crate) const KERNEL_COLS: usize = 24;
+
+/// 2^f = e^(f ln 2) for f in [-0.5, 0.5]: the Taylor coefficients of e^y at y = f ln 2 (the
+/// polynomial of [`exp_neg4`] and of its scalar twin, `exp_neg_f32` in `real.rs`).
+pub(crate) const EXP2_TAYLOR: [f32; 7] =
+    [1.0, std::f32::consts::LN_2, 0.240_226_5, 0.055_504_11, 0.009_618_129, 0.001_333_355_8, 0.000_154_035_3];
 
 #[inline(always)]
 fn load(s: &[f32]) -> f32x4 {
@@ -24,7 +32,7 @@ pub(crate) fn lerp4(a: &[f32], b: &[f32], c: &[f32], d: &[f32], wx: f32, wy: f32
     (top + wy * (bot - top)).to_array()
 }
 
-/// exp(-x) of four values: [`super::real`]'s `exp_neg_f32`, operation for operation in every
+/// exp(-x) of four values: `exp_neg_f32` of `real.rs`, operation for operation in every
 /// lane (the same clamps, argument reduction, polynomial and exponent bits), so the same bits.
 #[inline(always)]
 pub(crate) fn exp_neg4(x: f32x4) -> f32x4 {
@@ -35,7 +43,7 @@ pub(crate) fn exp_neg4(x: f32x4) -> f32x4 {
     let magic = f32x4::splat(12_582_912.0);
     let n = (t + magic) - magic;
     let f = t - n;
-    let c = |k: usize| f32x4::splat(super::real::EXP2_TAYLOR[k]);
+    let c = |k: usize| f32x4::splat(EXP2_TAYLOR[k]);
     let p = c(0) + f * (c(1) + f * (c(2) + f * (c(3) + f * (c(4) + f * (c(5) + f * c(6))))));
     let n = n.trunc_int();
     // n / 2 rounded toward zero, as Rust's integer division: one more before the shift when n < 0
@@ -50,7 +58,7 @@ pub(crate) fn gather(s: &[f32], at: usize, stride: usize) -> f32x4 {
     f32x4::from([s[at], s[at + stride], s[at + 2 * stride], s[at + 3 * stride]])
 }
 
-/// [`super::real::Real::kernel_cols`] for `f32`: the column sums four values at a time (the
+/// `Real::kernel_cols` for `f32`: the column sums four values at a time (the
 /// vectors of a row, then the row's last `N S mod 4` values one by one), each value's sum in
 /// the scalar order, so the same bits.
 #[inline(always)]
@@ -59,9 +67,9 @@ pub(crate) fn kernel_cols<const N: usize, const S: usize>(
     start: usize,
     row_len: usize,
     wy: &[f32; N],
-) -> [f32; super::real::KERNEL_COLS] {
+) -> [f32; KERNEL_COLS] {
     let (nv, len) = ((N * S) / 4, N * S);
-    let mut vec = [f32x4::splat(0.0); super::real::KERNEL_COLS / 4];
+    let mut vec = [f32x4::splat(0.0); KERNEL_COLS / 4];
     let mut tail = [0.0f32; 4];
     for (j, &wyj) in wy.iter().enumerate() {
         let row = &src[start + j * row_len..start + j * row_len + len];
@@ -73,7 +81,7 @@ pub(crate) fn kernel_cols<const N: usize, const S: usize>(
             *t += wyj * x;
         }
     }
-    let mut col = [0.0f32; super::real::KERNEL_COLS];
+    let mut col = [0.0f32; KERNEL_COLS];
     for (v, acc) in vec[..nv].iter().enumerate() {
         col[4 * v..4 * v + 4].copy_from_slice(&acc.to_array());
     }

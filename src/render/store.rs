@@ -5,7 +5,8 @@
 //! out has no density anywhere its reads reach.
 
 use super::real::Real;
-use super::Tap;
+use super::tap::Tap;
+use super::types::{Mode, Resample};
 use crate::mpi::bricks::Bricks;
 use crate::mpi::Mpi;
 use std::sync::Arc;
@@ -98,9 +99,9 @@ pub fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
 /// exact mode, with a kernel that reads colour only where there is density (bilinear and the
 /// B-splines, whose coefficients are computed before), and without minification (its levels
 /// read colour around the density).
-pub fn packs(mode: super::Mode, resample: super::Resample, minify: bool) -> bool {
-    use super::Resample as R;
-    mode == super::Mode::Exact && !minify && matches!(resample, R::Bilinear | R::Bspline3 | R::Bspline5)
+pub fn packs(mode: Mode, resample: Resample, minify: bool) -> bool {
+    use Resample as R;
+    mode == Mode::Exact && !minify && matches!(resample, R::Bilinear | R::Bspline3 | R::Bspline5)
 }
 
 /// Packs the planes into blocks ([`crate::mpi::Mpi::rgba_blocks`]): the blocks of

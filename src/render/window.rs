@@ -6,7 +6,7 @@
 //! `win.height()` (times the channels of each field), row-major, and pixel `(x, y)` of them is
 //! frame pixel `(win.x0 + x, win.y0 + y)`, in the target view as in the source view.
 
-use super::RenderOutput;
+use super::types::RenderOutput;
 
 /// A pixel rectangle `[x0, x1) x [y0, y1)`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]

@@ -33,8 +33,8 @@ use serde::{Deserialize, Serialize};
 use super::merge::unit_to_u8;
 use super::object::{scene_mask_window, support_rect};
 use crate::geometry::{Intrinsics, Pose};
-use crate::render::cut::{render_cut, DensityCut};
-use crate::render::{Occupancy, Rect, RenderError, RenderParams, Skip};
+use crate::render::cut::render_cut;
+use crate::render::{DensityCut, Occupancy, Rect, RenderError, RenderParams, Skip};
 use crate::scene::Scene;
 
 /// What fills the holes of image2 before 2-D inpainting.

@@ -5,10 +5,10 @@
 use serde::{Deserialize, Serialize};
 
 use super::background::Background;
+use super::error::SampleError;
 use super::merge::{LabelRule, MergeRule};
 use super::motion::{MotionPreset, MotionRanges};
 use super::object::ObjectChoice;
-use super::recipe::SampleError;
 use crate::render::{Mode, Resample, Skip};
 
 /// The motion laws: a preset name or explicit ranges. In JSON: `"paper-kitti"` or a
@@ -111,7 +111,7 @@ pub struct SampleConfig {
     /// [`super::preblend`]). Default false.
     pub preblend: bool,
     /// Frames per sample, [`MIN_FRAMES`] to [`MAX_FRAMES`]: 2 = a pair (image1, image2), more =
-    /// a clip along the constant-velocity trajectory ([`super::recipe`], "Clips"). Default 2.
+    /// a clip along the constant-velocity trajectory (`sample::recipe`, "Clips"). Default 2.
     /// Part of the fingerprint when not 2 (so pairs keep the addresses they always had).
     #[serde(skip_serializing_if = "is_pair")]
     pub frames: usize,
@@ -121,7 +121,7 @@ pub struct SampleConfig {
     /// fields a request asks for. Default false (none of their work is done).
     #[serde(skip)]
     pub backward: bool,
-    /// Compute the forward occlusion mask of the first pair ([`super::Sample::occlusion`]; all 0
+    /// Compute the forward occlusion mask of the first pair ([`Sample::occlusion`](super::types::Sample::occlusion); all 0
     /// without it). An output selection like `backward`: it changes no other byte and is not
     /// part of the fingerprint. Default true; the service turns it off for requests that do not
     /// ask for the occlusion field.

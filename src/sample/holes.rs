@@ -3,7 +3,7 @@
 
 use super::config::InpaintMethod;
 use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};
-use super::object::Rect;
+use crate::render::Rect;
 
 /// Fills the pixels where `hole` is non-zero in the u8 RGB image (`w` x `h` x 3) with `method`.
 ///

@@ -2,6 +2,9 @@
 //! Marching Method", 2004) of holes in channel-interleaved f32 and u8 images: the paper's
 //! first-order method ([`inpaint_telea`], [`inpaint_telea_with`]) and an OpenCV-compatible variant
 //! ([`inpaint_telea_opencv`], what `cv2.inpaint(..., cv2.INPAINT_TELEA)` computes).
+//! The two variants share the front's machinery (the band, the arrival times, the heap keys)
+//! and are measured against each other below, so they stay in one file of about 900 lines
+//! (and its unit tests).
 //!
 //! # The method
 //!

@@ -95,9 +95,8 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::object::{Rect, WindowRender};
-use super::LinkFields;
-use crate::render::{Link, OCCLUSION_TOLERANCE};
+use super::types::LinkFields;
+use crate::render::{Link, Rect, WindowRender, OCCLUSION_TOLERANCE};
 
 /// How scene and object renders are merged.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]

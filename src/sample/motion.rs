@@ -50,8 +50,8 @@ use std::str::FromStr;
 use glam::{DMat3, DQuat, DVec3};
 use serde::{Deserialize, Serialize};
 
-use super::rng::SampleRng;
 use crate::geometry::{rotation_from_axis_angle, Pose};
+use crate::rng::SampleRng;
 
 /// The public reference script's default `ext_cz` (extra forward distance of the camera).
 pub const REFERENCE_EXT_CZ: f64 = 0.15;

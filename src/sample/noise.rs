@@ -16,7 +16,7 @@ use rayon::prelude::*;
 
 use crate::rng::{mix64, Purpose, SampleRng};
 
-use super::SampleAddress;
+use super::types::SampleAddress;
 
 /// The purpose number of the noise stream (`Purpose::Other(NOISE_PURPOSE)`): "nois".
 pub const NOISE_PURPOSE: u32 = 0x6e6f_6973;

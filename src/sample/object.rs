@@ -50,13 +50,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::{Intrinsics, Pose};
 use crate::mpi::Mpi;
+use crate::raster::InstanceMasks;
 use crate::render::{
-    render, render_window, Channels, Fields, Mode, Occupancy, RenderError, RenderParams, Resample, Skip, View,
+    render, render_window, Channels, Fields, Mode, Occupancy, Rect, RenderError, RenderParams, Resample, Skip, View,
+    WindowRender,
 };
-pub use crate::render::{Rect, WindowRender};
-use crate::scene::masks::InstanceMasks;
-
-use super::rng::SampleRng;
+use crate::rng::SampleRng;
 
 /// Pixels added around every window (bilinear support and rounding).
 pub const WINDOW_PAD: usize = 3;

@@ -24,8 +24,9 @@ use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
 
 use super::config::SampleConfig;
-use super::recipe::{assemble_with_target_depth, check_scene, ms, prepare_scene, SampleError};
-use super::{Sample, SampleAddress};
+use super::error::SampleError;
+use super::recipe::{assemble_with_target_depth, check_scene, ms, prepare_scene};
+use super::types::{Sample, SampleAddress};
 use crate::io::image::ImageLimits;
 use crate::render::{Mode, Occupancy};
 use crate::scene::cache::{SceneCache, SceneKey};

@@ -16,7 +16,7 @@
 //! puts the photo's colour on every plane where it is visible, so there the source view stays
 //! the same (to 1e-7, tested) and novel views change only where bilinear sampling at a layer's
 //! edge mixes in the colour of an empty plane pixel. It is applied once per scene, when the
-//! scene is prepared for the cache ([`crate::sample::recipe::SampleConfig::preblend`]); the
+//! scene is prepared for the cache (`SampleConfig::preblend`); the
 //! cache key carries the option. Cost: one pass over the planes, in parallel over row bands.
 //! The `+1e-6` and the in-place colour update make this a pass of its own rather than a call of
 //! the renderer (whose source view has neither); only the gap rule is shared.

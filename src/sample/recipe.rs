@@ -14,7 +14,8 @@
 //!    the same address gives the same numbers on any run, thread count or machine, and one
 //!    purpose never shifts another's numbers.
 //! 3. **Renders** (exact mode by default): the scene under the camera motion (whole frame, work
-//!    skipping with the scene's tile occupancy, which the [`Generator`] keeps per cached scene);
+//!    skipping with the scene's tile occupancy, which `Generator` (`pipeline.rs`) keeps per cached
+//!    scene);
 //!    with objects, the union mask's channel under the camera motion and each object under its
 //!    own motion, each rendered only over the window of the frame where its channel can be
 //!    non-zero, straight from the shared MPI ([`super::object`]: the same values as full-frame
@@ -23,7 +24,7 @@
 //!    slower). Without objects (`max_objects = 0`, no instances, none large enough) there is no
 //!    mask channel and no second render: the object stage costs nothing.
 //! 4. **Merge** ([`super::merge`]) by the configured rule, then **inpainting** of the holes with
-//!    Telea's method in u8 ([`InpaintMethod`], radius 3 by default, as the reference's radius),
+//!    Telea's method in u8 ([`InpaintMethod`](super::config::InpaintMethod), radius 3 by default, as the reference's radius),
 //!    on crops around the holes ([`inpaint_holes`]: the whole-frame result, bit for bit).
 //!
 //! Per-pixel work runs on the current rayon pool; every output is independent of the pool's size
@@ -34,11 +35,11 @@
 //! [`assemble`] had to build it), `objects_ms` (choosing and rendering objects and the
 //! scene mask), `merge_ms` (merge and image1), `inpaint_ms`, `total_ms`.
 //!
-//! **Bad sources** ([`Generator::sample`]): when the address's source item fails to load because
+//! **Bad sources** (`Generator::sample`): when the address's source item fails to load because
 //! of its data (corrupt, truncated or too large image, bad depth, masks or MPI), the next items
 //! (mod the collection's length) are tried in order and the first good one is used with the
-//! address's own motions; failed items are remembered and counted by their [`FailureKind`]
-//! ([`Generator::skip_counts`]), [`Sample::skipped_sources`] says how many were passed over. The
+//! address's own motions; failed items are remembered and counted by their
+//! [`FailureKind`](crate::source::FailureKind) (`Generator::skip_counts`), [`Sample::skipped_sources`] says how many were passed over. The
 //! result depends only on which items are bad, not on what was asked before. Runtime, model,
 //! configuration and render errors are not the item's and are returned.
 //!
@@ -76,80 +77,25 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::background::{cut_planes, fill_from_planes, Background, Frame};
-pub use super::config::{InpaintMethod, MotionSpec, SampleConfig};
-pub use super::holes::inpaint_holes;
+pub use super::config::MotionSpec;
+use super::config::SampleConfig;
+use super::error::SampleError;
+use super::holes::inpaint_holes;
 use super::merge::{
-    merge, merge_link, merge_target, units_to_u8, MergeRule, ObjectView, OtherFrame, SceneView, TargetSide,
+    merge, merge_link, merge_target, units_to_u8, MergeRule, Merged, ObjectView, OtherFrame, SceneView, TargetSide,
 };
-use super::motion::MotionError;
+use super::motion::Motion;
 use super::object::{
-    choose_objects, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect, Rect,
-    WindowRender,
+    choose_objects, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect,
 };
-pub use super::pipeline::Generator;
-use super::preblend::{preblend, PreblendError};
-use super::rng::{Purpose, SampleRng};
-use super::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
+use super::preblend::preblend;
+use super::types::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
 use crate::geometry::Pose;
-use crate::render::{render, Fields, Link, Mode, Occupancy, RenderError, RenderOutput, RenderParams, Resample, View};
-use crate::scene::{Scene, SceneError};
-use crate::source::FailureKind;
-
-/// Errors of sample generation; each names the source it concerns.
-#[derive(Debug, thiserror::Error)]
-pub enum SampleError {
-    /// A configuration field out of range: `field` names it (`max_objects`,
-    /// `skip.tile_sigma_eps`, ...), `message` gives the value and what was expected.
-    #[error("invalid sample configuration: {field} = {message}")]
-    Config { field: &'static str, message: String },
-    #[error("invalid sample configuration: {0}")]
-    Motion(#[from] MotionError),
-    #[error("the source collection is empty: there is nothing to make samples from")]
-    EmptySource,
-    #[error("source item {item} ({id}): {source}")]
-    Scene {
-        item: usize,
-        id: String,
-        #[source]
-        source: Box<SceneError>,
-    },
-    #[error("scene {id}: {message}")]
-    InvalidScene { id: String, message: String },
-    #[error("scene {id}: the {stage} render failed: {source}")]
-    Render {
-        id: String,
-        stage: &'static str,
-        #[source]
-        source: Box<RenderError>,
-    },
-    #[error("scene {id}: {source}")]
-    Preblend {
-        id: String,
-        #[source]
-        source: PreblendError,
-    },
-    /// The collection as a whole cannot make scenes (e.g. [`SceneError::NoDepthModel`]): a
-    /// configuration problem, found before any sample is made.
-    #[error("{0}")]
-    Unusable(SceneError),
-    /// Every source item failed to load (see [`Generator::sample`]).
-    #[error("all {items} source items failed to load (first: {first})")]
-    NoGoodSource { items: usize, first: String },
-}
-
-impl SampleError {
-    /// The failure kind when the error makes its source item bad (skipped: the item's data is
-    /// corrupt, truncated, too large, or its depth, masks, MPI or scene are unusable), or `None`
-    /// for failures that are not the item's (the runtime, a model, the configuration, a render):
-    /// those are returned to the caller.
-    pub fn bad_source_kind(&self) -> Option<FailureKind> {
-        match self {
-            SampleError::Scene { source, .. } => source.failure_kind(),
-            SampleError::InvalidScene { .. } => Some(FailureKind::Scene),
-            _ => None,
-        }
-    }
-}
+use crate::render::{
+    render, Fields, Link, Mode, Occupancy, Rect, RenderError, RenderOutput, RenderParams, Resample, View, WindowRender,
+};
+use crate::rng::{Purpose, SampleRng};
+use crate::scene::Scene;
 
 /// Applies what the configuration does to a freshly loaded scene (the pre-blend), once, before
 /// it goes into the cache.
@@ -273,7 +219,10 @@ pub fn assemble_merged(
 }
 
 /// [`assemble_merged`] without the copy of the hole mask (it is [`Sample::holes`]), with the
-/// merge's target depth of every source pixel.
+/// merge's target depth of every source pixel. The stages, in order: the draws
+/// ([`draw_motions`]), the scene's tile occupancy, the union mask ([`union_mask`]), every
+/// frame's renders ([`render_frames`]), the merges with the background fill ([`merge_frame2`],
+/// [`merge_later_frames`]), the links ([`merge_links`]), image1 and depth1 ([`image1_depth1`]).
 fn assemble_merged_sample(
     scene: &Scene,
     address: SampleAddress,
@@ -283,14 +232,98 @@ fn assemble_merged_sample(
     let start = Instant::now();
     config.validate()?;
     check_scene(scene)?;
-    let ranges = config.motion.ranges();
     let mpi = &*scene.mpi;
     let (w, h) = (mpi.width, mpi.height);
-    let rng = |p: Purpose| SampleRng::new(address.dataset, address.seed, address.index, p);
     let mut timings = StageTimings::default();
 
-    // ---- motions and objects
     let t = Instant::now();
+    let draws = draw_motions(scene, address, config);
+    let mut objects_ms = ms(t);
+
+    let windowed = config.windowed && config.mode == Mode::Exact;
+    // the scene MPI's tile occupancy, shared by the scene render and the windowed renders
+    let t = Instant::now();
+    let built;
+    let occupancy = match occupancy {
+        Some(o) if o.sigma_eps == config.skip.tile_sigma_eps => Some(o),
+        _ if config.mode == Mode::Exact && config.skip.tiles => {
+            built = Occupancy::build(mpi, config.skip.tile_sigma_eps);
+            Some(&built)
+        }
+        _ => None,
+    };
+    let occupancy_ms = ms(t);
+
+    let union = union_mask(scene, &draws.chosen);
+    let chosen = draws.chosen.as_slice();
+
+    let cam_traj = trajectory(&draws.cam_pose, config.frames);
+    let ctx = FrameCtx { scene, config, windowed, occupancy, union: union.as_deref(), chosen };
+    let mut renders = render_frames(&ctx, &cam_traj, &draws.poses)?;
+    let (mut render_ms, mut objects_extra_ms) = (occupancy_ms, 0.0);
+    for r in &renders {
+        render_ms += r.render_ms;
+        objects_extra_ms += r.objects_ms;
+    }
+    timings.render_ms = render_ms;
+    objects_ms += objects_extra_ms;
+    timings.objects_ms = objects_ms;
+
+    // merge: frame 2 both sides (image2 and the forward flow), later frames their target side
+    let t = Instant::now();
+    let fill = BackgroundFill::new(scene, config, occupancy, union.as_deref());
+    let (merged, coverage, frame2) = merge_frame2(&ctx, renders.remove(0), &fill, &cam_traj)?;
+    let later = merge_later_frames(&ctx, &mut renders, &fill, &cam_traj)?;
+    let (backward, clip) = merge_links(&ctx, &merged, &frame2, &renders, later);
+    drop(frame2);
+    let (image1, depth1) = image1_depth1(scene, coverage);
+    timings.merge_ms = ms(t);
+
+    timings.total_ms = ms(start);
+
+    let sample = Sample {
+        address,
+        source_id: scene.id.clone(),
+        width: w,
+        height: h,
+        image1,
+        image2: merged.image2,
+        flow: merged.flow,
+        valid: merged.valid,
+        occlusion: merged.occlusion,
+        mask1: merged.mask1,
+        mask2: merged.mask2,
+        camera: draws.camera,
+        objects: draws.records,
+        depth1,
+        depth2: merged.depth2,
+        holes: merged.hole,
+        inpainted_pixels: merged.holes,
+        backward,
+        clip,
+        skipped_sources: 0,
+        provenance: scene.provenance.clone(),
+        intrinsics: scene.intrinsics,
+        timings,
+    };
+    Ok((sample, merged.target_depth))
+}
+
+/// The draws of a sample: the camera's motion, the chosen objects and their motions.
+struct Draws {
+    camera: Motion,
+    cam_pose: Pose,
+    /// indices into the scene's instance masks, slot order
+    chosen: Vec<usize>,
+    records: Vec<ObjectRecord>,
+    /// each chosen object's pose (composed with the camera's when objects follow it)
+    poses: Vec<Pose>,
+}
+
+/// Draws the camera motion, the moved objects and their motions, each from its own stream.
+fn draw_motions(scene: &Scene, address: SampleAddress, config: &SampleConfig) -> Draws {
+    let ranges = config.motion.ranges();
+    let rng = |p: Purpose| SampleRng::new(address.dataset, address.seed, address.index, p);
     let camera = ranges.sample_camera_motion(&mut rng(Purpose::CameraMotion));
     let cam_pose = camera.to_pose();
     // stereo laws move no object: a rectified pair is one rigid camera motion
@@ -320,24 +353,13 @@ fn assemble_merged_sample(
             motion,
         });
     }
-    let mut objects_ms = ms(t);
+    Draws { camera, cam_pose, chosen, records, poses }
+}
 
-    let windowed = config.windowed && config.mode == Mode::Exact;
-    // the scene MPI's tile occupancy, shared by the scene render and the windowed renders
-    let t = Instant::now();
-    let built;
-    let occupancy = match occupancy {
-        Some(o) if o.sigma_eps == config.skip.tile_sigma_eps => Some(o),
-        _ if config.mode == Mode::Exact && config.skip.tiles => {
-            built = Occupancy::build(mpi, config.skip.tile_sigma_eps);
-            Some(&built)
-        }
-        _ => None,
-    };
-    let occupancy_ms = ms(t);
-
-    // ---- the union mask of the moved objects (the scene mask channel is 1 - U)
-    let union: Option<Cow<'_, [f32]>> = match chosen.as_slice() {
+/// The union mask of the moved objects (the scene mask channel is 1 - U); none without objects.
+fn union_mask<'a>(scene: &'a Scene, chosen: &[usize]) -> Option<Cow<'a, [f32]>> {
+    let (w, h) = (scene.mpi.width, scene.mpi.height);
+    match chosen {
         [] => None,
         [one] => Some(Cow::Borrowed(&scene.masks.masks[*one].mask)),
         many => {
@@ -349,37 +371,108 @@ fn assemble_merged_sample(
             }
             Some(Cow::Owned(u))
         }
-    };
+    }
+}
 
-    // ---- every frame's renders: frame f (0-based; f = 1 is image2) under pose^f of the camera
-    // and of each object; links: slot 0 the previous frame (backward fields), slot 1 the next
+/// Every frame's renders: frame f (0-based; f = 1 is image2) under pose^f of the camera
+/// (`cam_traj`) and of each object (`poses`); links: slot 0 the previous frame (backward
+/// fields), slot 1 the next.
+fn render_frames(c: &FrameCtx<'_>, cam_traj: &[Pose], poses: &[Pose]) -> Result<Vec<FrameRender>, SampleError> {
+    let config = c.config;
     let frames = config.frames;
-    let cam_traj = trajectory(&cam_pose, frames);
     let obj_traj: Vec<Vec<Pose>> = poses.iter().map(|p| trajectory(p, frames)).collect();
     let links_of = |traj: &[Pose], f: usize| -> [Option<View>; 2] {
         let prev = config.backward.then(|| if f == 1 { View::Source } else { View::Pose(traj[f - 1]) });
         [prev, (f + 1 < frames).then(|| View::Pose(traj[f + 1]))]
     };
-    let ctx = FrameCtx { scene, config, windowed, occupancy, union: union.as_deref(), chosen: &chosen };
     let mut renders: Vec<FrameRender> = Vec::with_capacity(frames - 1);
     for f in 1..frames {
         let obj_poses: Vec<(Pose, [Option<View>; 2])> =
             obj_traj.iter().map(|traj| (traj[f], links_of(traj, f))).collect();
-        let r = render_frame(&ctx, (cam_traj[f], links_of(&cam_traj, f)), &obj_poses, f == 1)?;
+        let r = render_frame(c, (cam_traj[f], links_of(cam_traj, f)), &obj_poses, f == 1)?;
         renders.push(r);
     }
-    let (mut render_ms, mut objects_extra_ms) = (occupancy_ms, 0.0);
-    for r in &renders {
-        render_ms += r.render_ms;
-        objects_extra_ms += r.objects_ms;
-    }
-    timings.render_ms = render_ms;
-    objects_ms += objects_extra_ms;
-    timings.objects_ms = objects_ms;
+    Ok(renders)
+}
 
-    // ---- merge: frame 2 both sides (image2 and the forward flow), later frames their target side
-    let t = Instant::now();
-    let mut first = renders.remove(0);
+/// The MPI's planes behind the moved objects, which fill what they can of a frame's holes
+/// ([`super::background`]); nothing unless the configuration asks for it and the scene allows.
+struct BackgroundFill<'a> {
+    scene: &'a Scene,
+    config: &'a SampleConfig,
+    occupancy: Option<&'a Occupancy>,
+    /// the union mask and the cut planes
+    cut: Option<(&'a [f32], Vec<u8>)>,
+}
+
+impl<'a> BackgroundFill<'a> {
+    fn new(
+        scene: &'a Scene,
+        config: &'a SampleConfig,
+        occupancy: Option<&'a Occupancy>,
+        union: Option<&'a [f32]>,
+    ) -> Self {
+        let (w, h) = (scene.mpi.width, scene.mpi.height);
+        let cut = match union {
+            Some(u)
+                if config.background == Background::Planes
+                    && config.merge == MergeRule::DepthAware
+                    && config.mode == Mode::Exact
+                    && scene.disparity.data.len() == w * h =>
+            {
+                Some((u, cut_planes(scene, u)))
+            }
+            _ => None,
+        };
+        Self { scene, config, occupancy, cut }
+    }
+
+    /// Fills the holes of the frame at camera `pose`; returns how many it filled.
+    fn fill(&self, pose: Pose, image: &mut [u8], hole: &mut [u8], depth: &mut [f32]) -> Result<u64, SampleError> {
+        let Some((u, last)) = &self.cut else { return Ok(0) };
+        let scene = self.scene;
+        fill_from_planes(
+            scene,
+            &scene.intrinsics,
+            self.occupancy,
+            self.config.skip,
+            u,
+            last,
+            self.config.mask_threshold,
+            Frame { pose, image, hole, depth },
+        )
+        .map_err(|source| SampleError::Render {
+            id: scene.id.clone(),
+            stage: "background",
+            source: Box::new(source),
+        })
+    }
+}
+
+/// What the links read of frame 2 besides its merged fields.
+struct Frame2 {
+    /// the scene render's links
+    links: [Link; 2],
+    /// the source camera's depth of each source pixel (the backward occlusion test)
+    source_depth: Vec<f32>,
+    /// the holes as the renders left them (the links keep them), when the fill changed them
+    rendered_hole: Option<Vec<u8>>,
+    /// what frame 2 shows (inf at holes), for the links that land in it (clips only)
+    shown: Vec<f32>,
+    objects: Vec<WindowRender>,
+}
+
+/// Frame 2 merged on both sides (image2 and the forward flow) and filled from the planes;
+/// returns the merge, the scene render's coverage (the buffer depth1 reuses) and what the
+/// links read.
+fn merge_frame2(
+    c: &FrameCtx<'_>,
+    mut first: FrameRender,
+    fill: &BackgroundFill<'_>,
+    cam_traj: &[Pose],
+) -> Result<(Merged, Vec<f32>, Frame2), SampleError> {
+    let (scene, config) = (c.scene, c.config);
+    let (w, h) = (scene.mpi.width, scene.mpi.height);
     let scene_links = std::mem::take(&mut first.scene.links);
     let source_depth = std::mem::take(&mut first.scene.source_depth);
     let RenderOutput { image, depth, coverage, flow, source_depth_in_target, valid, .. } = first.scene;
@@ -394,56 +487,43 @@ fn assemble_merged_sample(
         valid,
         source_depth: source_depth_in_target,
     };
-    let views1 = object_views(scene, &chosen, &first.objects);
+    let views1 = object_views(scene, c.chosen, &first.objects);
     let mut merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold, config.occlusion);
+    drop(views1);
     drop(image);
-    // ---- the MPI's planes behind the moved objects fill what they can of the holes
-    // (super::background); the links keep the holes as the renders left them
-    let cut: Option<(&[f32], Vec<u8>)> = match union.as_deref() {
-        Some(u)
-            if config.background == Background::Planes
-                && config.merge == MergeRule::DepthAware
-                && config.mode == Mode::Exact
-                && scene.disparity.data.len() == w * h =>
-        {
-            Some((u, cut_planes(scene, u)))
-        }
-        _ => None,
-    };
-    let fill = |pose: Pose, image: &mut [u8], hole: &mut [u8], depth: &mut [f32]| -> Result<u64, SampleError> {
-        let Some((u, last)) = &cut else { return Ok(0) };
-        fill_from_planes(
-            scene,
-            &scene.intrinsics,
-            occupancy,
-            config.skip,
-            u,
-            last,
-            config.mask_threshold,
-            Frame { pose, image, hole, depth },
-        )
-        .map_err(|source| SampleError::Render {
-            id: scene.id.clone(),
-            stage: "background",
-            source: Box::new(source),
-        })
-    };
-    let rendered_hole2 = cut.as_ref().map(|_| merged.hole.clone());
-    let filled = fill(cam_traj[1], &mut merged.image2, &mut merged.hole, &mut merged.depth2)?;
+    let rendered_hole = fill.cut.as_ref().map(|_| merged.hole.clone());
+    let filled = fill.fill(cam_traj[1], &mut merged.image2, &mut merged.hole, &mut merged.depth2)?;
     merged.holes -= filled;
-    let hole2_for_links: &[u8] = rendered_hole2.as_deref().unwrap_or(&merged.hole);
-    // what frame 2 shows (inf at holes), for the links that land in it
-    let shown2: Vec<f32> = if frames > 2 {
+    let shown: Vec<f32> = if config.frames > 2 {
         merged.depth2.iter().zip(&merged.hole).map(|(&d, &o)| if o != 0 { f32::INFINITY } else { d }).collect()
     } else {
         Vec::new()
     };
-    let mut later: Vec<(TargetSide, [Link; 2])> = Vec::with_capacity(renders.len());
-    // the holes of the later frames as their renders left them, for the links
-    let mut rendered_holes: Vec<Vec<u8>> = Vec::with_capacity(renders.len());
+    let frame2 = Frame2 { links: scene_links, source_depth, rendered_hole, shown, objects: first.objects };
+    Ok((merged, coverage, frame2))
+}
+
+/// A later frame (3, 4, ...) merged on its target side and filled from the planes, with its
+/// scene render's links and its holes as the renders left them (for the links).
+struct LaterFrame {
+    target: TargetSide,
+    links: [Link; 2],
+    rendered_hole: Vec<u8>,
+}
+
+/// The target sides of the frames after frame 2 (`renders`, frame 3 first).
+fn merge_later_frames(
+    c: &FrameCtx<'_>,
+    renders: &mut [FrameRender],
+    fill: &BackgroundFill<'_>,
+    cam_traj: &[Pose],
+) -> Result<Vec<LaterFrame>, SampleError> {
+    let (scene, config) = (c.scene, c.config);
+    let (w, h) = (scene.mpi.width, scene.mpi.height);
+    let mut later = Vec::with_capacity(renders.len());
     for (j, r) in renders.iter_mut().enumerate() {
         let links = std::mem::take(&mut r.scene.links);
-        let views = object_views(scene, &chosen, &r.objects);
+        let views = object_views(scene, c.chosen, &r.objects);
         let depth = std::mem::take(&mut r.scene.depth);
         let target = merge_target(
             w,
@@ -457,52 +537,72 @@ fn assemble_merged_sample(
             config.mask_threshold,
         );
         let mut target = target;
-        rendered_holes.push(target.hole.clone());
-        let n = fill(cam_traj[j + 2], &mut target.image, &mut target.hole, &mut target.shown_depth)?;
+        let rendered_hole = target.hole.clone();
+        let n = fill.fill(cam_traj[j + 2], &mut target.image, &mut target.hole, &mut target.shown_depth)?;
         target.holes -= n;
-        later.push((target, links));
+        later.push(LaterFrame { target, links, rendered_hole });
     }
+    Ok(later)
+}
 
-    // ---- links: the backward fields of every frame and the forward flows from frame 2 on
+/// The links: the backward fields of every frame and the forward flows from frame 2 on; returns
+/// the pair's backward fields and the clip's later frames.
+fn merge_links(
+    c: &FrameCtx<'_>,
+    merged: &Merged,
+    frame2: &Frame2,
+    renders: &[FrameRender],
+    later: Vec<LaterFrame>,
+) -> (LinkFields, Vec<ClipFrame>) {
+    let (scene, config, chosen) = (c.scene, c.config, c.chosen);
+    let (w, h) = (scene.mpi.width, scene.mpi.height);
+    let hole2_for_links: &[u8] = frame2.rendered_hole.as_deref().unwrap_or(&merged.hole);
     let image1_labels = &merged.mask1;
     // what frame f (>= 1) shows
     let frame_of = |f: usize| -> OtherFrame<'_> {
         if f == 1 {
-            OtherFrame { depth: &shown2, labels: &merged.mask2 }
+            OtherFrame { depth: &frame2.shown, labels: &merged.mask2 }
         } else {
-            OtherFrame { depth: &later[f - 2].0.shown_depth, labels: &later[f - 2].0.mask }
+            OtherFrame { depth: &later[f - 2].target.shown_depth, labels: &later[f - 2].target.mask }
         }
     };
     let backward = if config.backward {
-        let other = OtherFrame { depth: &source_depth, labels: image1_labels };
-        merge_link(0, &scene_links[0], &views1, &merged.mask2, hole2_for_links, other, w, h, config.label_rule)
+        let views1 = object_views(scene, chosen, &frame2.objects);
+        let other = OtherFrame { depth: &frame2.source_depth, labels: image1_labels };
+        merge_link(0, &frame2.links[0], &views1, &merged.mask2, hole2_for_links, other, w, h, config.label_rule)
     } else {
         LinkFields::default()
     };
     let mut clip = Vec::with_capacity(later.len());
-    for (j, (target, links)) in later.iter().enumerate() {
+    for (j, lf) in later.iter().enumerate() {
         // frame f = j + 2 (0-based): its previous frame is f - 1
         let f = j + 2;
         let (prev_links, prev_mask, prev_hole, prev_views) = if f == 2 {
-            (&scene_links, &merged.mask2, hole2_for_links, object_views(scene, &chosen, &first.objects))
+            (&frame2.links, &merged.mask2, hole2_for_links, object_views(scene, chosen, &frame2.objects))
         } else {
-            let (pt, pl) = &later[j - 1];
-            (pl, &pt.mask, rendered_holes[j - 1].as_slice(), object_views(scene, &chosen, &renders[j - 1].objects))
+            let pf = &later[j - 1];
+            (
+                &pf.links,
+                &pf.target.mask,
+                pf.rendered_hole.as_slice(),
+                object_views(scene, chosen, &renders[j - 1].objects),
+            )
         };
         let forward =
             merge_link(1, &prev_links[1], &prev_views, prev_mask, prev_hole, frame_of(f), w, h, config.label_rule);
         let backward = if config.backward {
-            let views = object_views(scene, &chosen, &renders[j].objects);
-            merge_link(0, &links[0], &views, &target.mask, &rendered_holes[j], frame_of(f - 1), w, h, config.label_rule)
+            let views = object_views(scene, chosen, &renders[j].objects);
+            let (links, target) = (&lf.links, &lf.target);
+            merge_link(0, &links[0], &views, &target.mask, &lf.rendered_hole, frame_of(f - 1), w, h, config.label_rule)
         } else {
             LinkFields::default()
         };
         clip.push((forward, backward));
     }
-    let clip: Vec<ClipFrame> = later
+    let clip = later
         .into_iter()
         .zip(clip)
-        .map(|((t, _), (forward, backward))| ClipFrame {
+        .map(|(LaterFrame { target: t, .. }, (forward, backward))| ClipFrame {
             image: t.image,
             forward,
             backward,
@@ -511,12 +611,15 @@ fn assemble_merged_sample(
             holes: t.hole,
         })
         .collect();
-    drop(views1);
-    drop(first.objects);
+    (backward, clip)
+}
+
+/// image1 (the photo in u8) and depth1 = 1 / disparity, written over `coverage` (the scene
+/// render's, no longer needed; a buffer already in memory costs no page faults).
+fn image1_depth1(scene: &Scene, coverage: Vec<f32>) -> (Vec<u8>, Vec<f32>) {
+    let (w, h) = (scene.mpi.width, scene.mpi.height);
     let mut image1 = crate::buf::zeros::<u8>(scene.image.data.len());
     units_to_u8(&scene.image.data, &mut image1);
-    // depth1 = 1 / disparity, written over the scene render's coverage (no longer needed; a
-    // buffer already in memory costs no page faults)
     let mut depth1 = coverage;
     if depth1.len() != w * h {
         depth1 = crate::buf::zeros(w * h);
@@ -529,36 +632,7 @@ fn assemble_merged_sample(
             }
         });
     }
-    timings.merge_ms = ms(t);
-
-    timings.total_ms = ms(start);
-
-    let sample = Sample {
-        address,
-        source_id: scene.id.clone(),
-        width: w,
-        height: h,
-        image1,
-        image2: merged.image2,
-        flow: merged.flow,
-        valid: merged.valid,
-        occlusion: merged.occlusion,
-        mask1: merged.mask1,
-        mask2: merged.mask2,
-        camera,
-        objects: records,
-        depth1,
-        depth2: merged.depth2,
-        holes: merged.hole,
-        inpainted_pixels: merged.holes,
-        backward,
-        clip,
-        skipped_sources: 0,
-        provenance: scene.provenance.clone(),
-        intrinsics: scene.intrinsics,
-        timings,
-    };
-    Ok((sample, merged.target_depth))
+    (image1, depth1)
 }
 
 /// `[identity, pose, pose^2, ..., pose^(frames - 1)]`: the constant-velocity trajectory (each

@@ -9,7 +9,6 @@
 pub mod builtin;
 pub mod cache;
 pub mod hub;
-pub mod masks;
 pub mod models;
 pub mod onnx;
 pub mod registry;
@@ -21,8 +20,8 @@ use std::sync::Arc;
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
 use crate::mpi::Mpi;
+use crate::raster::InstanceMasks;
 use crate::source::FailureKind;
-use masks::InstanceMasks;
 
 /// A disparity map in the scene scale: H x W values in [0, 1], 1 = nearest (depth 1), every
 /// value finite (unknown pixels are filled by whoever produced the map).
@@ -50,7 +49,7 @@ pub enum SceneError {
     #[error("{message}")]
     Data { kind: FailureKind, message: String },
     #[error(transparent)]
-    Mask(#[from] masks::MaskError),
+    Mask(#[from] crate::raster::MaskError),
     #[error(transparent)]
     Mpi(#[from] crate::mpi::MpiError),
     /// A whole collection cannot make scenes: none of its items carries depth (or an MPI) and no

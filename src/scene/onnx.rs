@@ -24,7 +24,7 @@
 //! feed, NaN or infinite outputs, failed inference (with ONNX Runtime's message).
 //!
 //! # Resizing
-//! Image, disparity and outputs are resized with [`crate::scene::masks::resize_bilinear`]
+//! Image, disparity and outputs are resized with [`crate::raster::resize_bilinear`]
 //! (pixel centres aligned, i.e. PyTorch's `align_corners=False`, no antialiasing). AdaMPI's own
 //! scripts resize with `align_corners=True`; the difference is below half a pixel.
 

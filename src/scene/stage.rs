@@ -27,13 +27,13 @@
 //! `["depth: given metric depth, nearest 2.5 -> disparity 1", "mpi: builtin soft 32",
 //! "masks: given (3 instances)"]`.
 
-use super::masks::InstanceMasks;
 use super::scale::{self, DISPARITY_FLOOR};
 use super::{DepthEstimator, Disparity, MpiBuilder, Scene, SceneError, SceneLoader, Segmenter};
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
 use crate::mpi::planes::plane_gaps;
 use crate::mpi::Mpi;
+use crate::raster::InstanceMasks;
 use crate::source::{Carried, FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use std::sync::Arc;
 

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use crate::io::image::ImageLimits;
-use crate::sample::recipe::SampleConfig;
+use crate::sample::config::SampleConfig;
 pub use crate::scene::models::ModelConfig;
 
 use super::error::ServiceError;

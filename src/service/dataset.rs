@@ -6,9 +6,11 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, RwLock};
 
+use crate::sample::config::{MotionSpec, SampleConfig};
+use crate::sample::error::SampleError;
 use crate::sample::motion::{MotionPreset, MotionRanges};
+use crate::sample::pipeline::Generator;
 use crate::sample::pipeline::{open_source, OpenOptions, Pipeline};
-use crate::sample::recipe::{Generator, MotionSpec, SampleConfig, SampleError};
 use crate::scene::cache::SceneCache;
 use crate::scene::stage::{SceneStage, SourceScenes};
 use crate::source::dir::SourceOptions;

@@ -6,9 +6,9 @@ use half::f16;
 
 use super::pb;
 use crate::geometry::Intrinsics;
+use crate::rng::{Purpose, SampleRng};
 use crate::sample::augment::{clear_valid_outside, Augment};
 use crate::sample::motion::{Motion, RotationKind};
-use crate::sample::rng::{Purpose, SampleRng};
 use crate::sample::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
 
 /// The random stream of a sample's crop position: `Purpose::Other(CROP_PURPOSE)` of its address.

@@ -5,7 +5,7 @@ use tonic::metadata::MetadataValue;
 use tonic::{Code, Status};
 
 use crate::failure::{echo, printable};
-use crate::sample::recipe::SampleError;
+use crate::sample::error::SampleError;
 use crate::source::SourceError;
 
 /// Trailer key of the next index an interrupted stream would have sent.

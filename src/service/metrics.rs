@@ -13,7 +13,7 @@ use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
 use tokio::net::TcpListener;
 
-use crate::sample::recipe::SampleError;
+use crate::sample::error::SampleError;
 use crate::sample::StageTimings;
 use crate::scene::cache::SceneCache;
 use crate::source::FailureKind;
@@ -257,7 +257,7 @@ impl Metrics {
     }
 
     /// Records the bad source items of `dataset` known so far, by failure kind (a generator's
-    /// [`skip_counts`](crate::sample::recipe::Generator::skip_counts), or what a source left out
+    /// [`skip_counts`](crate::sample::pipeline::Generator::skip_counts), or what a source left out
     /// when opened); the `reason` label is [`FailureKind::as_str`]. Counts only grow. True when a
     /// count grew (something new was skipped).
     pub fn record_skips(&self, dataset: &str, counts: &BTreeMap<FailureKind, u64>) -> bool {

@@ -28,7 +28,7 @@ use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
 use super::reply::{ReplyHold, ReplyLayer};
 use super::security::{server_tls, RequireToken};
 use super::validate;
-use crate::sample::recipe::Generator;
+use crate::sample::pipeline::Generator;
 
 /// The gRPC service name health reports on (besides "").
 pub const SERVICE_NAME: &str = "mpiflow.v1.MpiFlow";

@@ -9,8 +9,8 @@ use super::pb;
 use crate::failure::{echo, printable, ECHO_CHARS};
 use crate::render::Resample;
 use crate::sample::augment::Augment;
+use crate::sample::config::SampleConfig;
 use crate::sample::motion::{MotionPreset, MotionRanges};
-use crate::sample::recipe::SampleConfig;
 
 /// Largest `world_size` accepted.
 pub const MAX_WORLD_SIZE: u32 = 1 << 20;

@@ -27,10 +27,9 @@ use crate::geometry::{Intrinsics, Pose};
 use crate::io::image::{ImageError, RgbImage};
 use crate::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions, ALPHA_MAX};
 use crate::mpi::npz::{load_npz_bytes_limited, save_npz_as, MpiDtype};
+use crate::mpi::planes::DELTA_LAST;
 use crate::mpi::{Mpi, MpiError};
-use crate::render::{
-    render, Fields, Mode, Occupancy, Real, RenderError, RenderOutput, RenderParams, Resample, Skip, DELTA_LAST,
-};
+use crate::render::{render, Fields, Mode, Occupancy, Real, RenderError, RenderOutput, RenderParams, Resample, Skip};
 use glam::DVec3;
 use rayon::prelude::*;
 use std::fmt::Write as _;

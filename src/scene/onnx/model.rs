@@ -15,7 +15,7 @@ use ort::value::{Outlet, TensorElementType, TensorRef, ValueType};
 
 use super::runtime;
 use crate::io::image::RgbImage;
-use crate::scene::masks::resize_bilinear;
+use crate::raster::resize_bilinear;
 use crate::scene::SceneError;
 use crate::source::Fnv64;
 

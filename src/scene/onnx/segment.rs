@@ -7,7 +7,7 @@ use super::model::{
     check_image, dims_string, image_tensor, resize_map, InferenceStats, Input, Normalization, OnnxModel, SizePolicy,
 };
 use crate::io::image::RgbImage;
-use crate::scene::masks::{Instance, InstanceMasks, MAX_INSTANCES};
+use crate::raster::{Instance, InstanceMasks, MAX_INSTANCES};
 use crate::scene::{SceneError, Segmenter};
 
 /// Configuration of [`OnnxSegmenter`].
