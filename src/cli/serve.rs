@@ -169,7 +169,7 @@ pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
         c.auth_token_file = Some(p.clone());
     }
     if let Some(p) = a.preset {
-        c.sample.motion = mpiflow::sample::recipe::MotionSpec::Preset(p);
+        c.sample.motion = mpiflow::sample::config::MotionSpec::Preset(p);
     }
     if !a.source.is_empty() {
         c.datasets = a

@@ -77,7 +77,6 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::background::{cut_planes, fill_from_planes, Background, Frame};
-pub use super::config::MotionSpec;
 use super::config::SampleConfig;
 use super::error::SampleError;
 use super::holes::inpaint_holes;

@@ -350,7 +350,7 @@ impl ServiceConfig {
                 "SEGMENT_MODEL" => self.models.segment_model = opt_path(&value),
                 "PRESET" => {
                     let p: crate::sample::motion::MotionPreset = env_parse(&key, &value)?;
-                    self.sample.motion = crate::sample::recipe::MotionSpec::Preset(p);
+                    self.sample.motion = crate::sample::config::MotionSpec::Preset(p);
                 }
                 "MAX_OBJECTS" => self.sample.max_objects = env_parse(&key, &value)?,
                 "MOTIONS_PER_IMAGE" => self.sample.motions_per_image = env_parse(&key, &value)?,
