@@ -157,56 +157,62 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
         if b.clients == 0 {
             return Ok(());
         }
-        let phase = Duration::from_secs_f64(b.memory_s);
-        let idle = rss_mib(pid).unwrap_or(0.0);
-        // stalled: streams opened and never read
-        let mut stalled = Vec::new();
-        for _ in 0..b.clients {
-            let mut c = connect(&addr).await.map_err(|e| CliError(e.to_string()))?;
-            let s = c.stream_samples(request(&b, 2, 0)).await.map_err(|s| CliError(s.to_string()))?;
-            stalled.push((c, s));
-        }
-        tokio::time::sleep(phase).await;
-        let stalled_rss = rss_mib(pid).unwrap_or(0.0);
-        drop(stalled);
-        tokio::time::sleep(Duration::from_millis(500)).await;
-        // fast: streams read as fast as they come
-        let mut tasks = Vec::new();
-        for i in 0..b.clients {
-            let addr = addr.clone();
-            let req = request(&b, 3 + i as u64, 0);
-            tasks.push(tokio::spawn(async move {
-                let mut c = connect(&addr).await.ok()?;
-                let mut s = c.stream_samples(req).await.ok()?.into_inner();
-                let stop = Instant::now() + phase;
-                let mut n = 0u64;
-                while Instant::now() < stop {
-                    match s.message().await {
-                        Ok(Some(batch)) => n += batch.samples.len() as u64,
-                        _ => break,
-                    }
-                }
-                Some(n)
-            }));
-        }
-        let mut peak = 0.0f64;
-        let start = Instant::now();
-        while start.elapsed() < phase {
-            tokio::time::sleep(Duration::from_millis(200)).await;
-            peak = peak.max(rss_mib(pid).unwrap_or(0.0));
-        }
-        let mut fast_samples = 0;
-        for t in tasks {
-            fast_samples += t.await.ok().flatten().unwrap_or(0);
-        }
-        println!(
-            "server memory (RSS): {idle:.0} MiB idle after the runs; {stalled_rss:.0} MiB with {n} stalled clients \
-             after {s:.0} s; peak {peak:.0} MiB with {n} fast clients ({fast_samples} samples in {s:.0} s)",
-            n = b.clients,
-            s = b.memory_s
-        );
-        Ok(())
+        memory_phase(&b, &addr, pid).await
     });
     server.terminate(Duration::from_secs(30));
     result
+}
+
+/// The memory phase: the server's RSS idle, with `b.clients` streams opened and never read, and
+/// at its peak with as many read as fast as they come.
+async fn memory_phase(b: &ServeBench, addr: &str, pid: u32) -> Result<(), CliError> {
+    let phase = Duration::from_secs_f64(b.memory_s);
+    let idle = rss_mib(pid).unwrap_or(0.0);
+    // stalled: streams opened and never read
+    let mut stalled = Vec::new();
+    for _ in 0..b.clients {
+        let mut c = connect(addr).await.map_err(|e| CliError(e.to_string()))?;
+        let s = c.stream_samples(request(b, 2, 0)).await.map_err(|s| CliError(s.to_string()))?;
+        stalled.push((c, s));
+    }
+    tokio::time::sleep(phase).await;
+    let stalled_rss = rss_mib(pid).unwrap_or(0.0);
+    drop(stalled);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    // fast: streams read as fast as they come
+    let mut tasks = Vec::new();
+    for i in 0..b.clients {
+        let addr = addr.to_string();
+        let req = request(b, 3 + i as u64, 0);
+        tasks.push(tokio::spawn(async move {
+            let mut c = connect(&addr).await.ok()?;
+            let mut s = c.stream_samples(req).await.ok()?.into_inner();
+            let stop = Instant::now() + phase;
+            let mut n = 0u64;
+            while Instant::now() < stop {
+                match s.message().await {
+                    Ok(Some(batch)) => n += batch.samples.len() as u64,
+                    _ => break,
+                }
+            }
+            Some(n)
+        }));
+    }
+    let mut peak = 0.0f64;
+    let start = Instant::now();
+    while start.elapsed() < phase {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        peak = peak.max(rss_mib(pid).unwrap_or(0.0));
+    }
+    let mut fast_samples = 0;
+    for t in tasks {
+        fast_samples += t.await.ok().flatten().unwrap_or(0);
+    }
+    println!(
+        "server memory (RSS): {idle:.0} MiB idle after the runs; {stalled_rss:.0} MiB with {n} stalled clients \
+         after {s:.0} s; peak {peak:.0} MiB with {n} fast clients ({fast_samples} samples in {s:.0} s)",
+        n = b.clients,
+        s = b.memory_s
+    );
+    Ok(())
 }

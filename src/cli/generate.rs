@@ -15,7 +15,9 @@ use std::time::{Duration, Instant};
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
-use mpiflow::export::{sample_key, EncodedSample, ExportFormat, ExportOptions, Exporter, PreviewOptions};
+use mpiflow::export::{
+    sample_key, EncodedSample, ExportFormat, ExportOptions, ExportSummary, Exporter, PreviewOptions,
+};
 use mpiflow::geometry::Intrinsics;
 use mpiflow::mpi::layering::MAX_PLANES;
 use mpiflow::sample::config::SampleConfig;
@@ -337,9 +339,15 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     for (item, id, reason) in &bad {
         eprintln!("warning: source item {item} ({id}) skipped, its samples use the next good source: {reason}");
     }
+    report(&summary, skipped, bad.len(), secs, &a)
+}
+
+/// The closing line of a run (what was written, how fast), and the error when nothing was.
+fn report(summary: &ExportSummary, skipped: u64, bad: usize, secs: f64, a: &GenerateArgs) -> Result<(), CliError> {
+    let format = a.format;
     let mut extra = format!("{} preview sheet(s)", summary.previews.len());
-    if !bad.is_empty() {
-        extra.push_str(&format!(", {} bad source(s) passed over", bad.len()));
+    if bad > 0 {
+        extra.push_str(&format!(", {bad} bad source(s) passed over"));
     }
     if format == ExportFormat::WebDataset {
         extra.push_str(&format!(", {} shard(s)", summary.shards.len()));

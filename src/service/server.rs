@@ -677,29 +677,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         "listening"
     );
 
-    let warm = state.clone();
-    let warmup = tokio::spawn(async move {
-        let t = Instant::now();
-        let r = warm.one_sample(&pb::SampleRequest::default(), 0).await;
-        match r {
-            Ok((s, _stream)) => tracing::info!(
-                ms = t.elapsed().as_secs_f64() * 1e3,
-                source = %s.source_id,
-                "warm-up sample made"
-            ),
-            // the server keeps running (NOT_SERVING) so that the failure can be seen
-            Err(e) => {
-                tracing::error!(error = %e.message(), "warm-up sample failed: staying NOT_SERVING");
-                return;
-            }
-        }
-        tokio::time::sleep(Duration::from_millis(warm.config.warmup_delay_ms)).await;
-        if !warm.draining.load(Ordering::SeqCst) {
-            warm.serving.store(true, Ordering::SeqCst);
-            warm.set_health(ServingStatus::Serving).await;
-            tracing::info!("serving");
-        }
-    });
+    let warmup = spawn_warmup(state.clone());
 
     Ok(RunningServer {
         addr,
@@ -711,6 +689,32 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         metrics_task,
         health_task,
         warmup,
+    })
+}
+
+/// The warm-up: one sample of the default dataset, then (after `warmup_delay_ms`) health
+/// SERVING; on failure the server keeps running NOT_SERVING so that the failure can be seen.
+fn spawn_warmup(warm: Arc<State>) -> JoinHandle<()> {
+    tokio::spawn(async move {
+        let t = Instant::now();
+        let r = warm.one_sample(&pb::SampleRequest::default(), 0).await;
+        match r {
+            Ok((s, _stream)) => tracing::info!(
+                ms = t.elapsed().as_secs_f64() * 1e3,
+                source = %s.source_id,
+                "warm-up sample made"
+            ),
+            Err(e) => {
+                tracing::error!(error = %e.message(), "warm-up sample failed: staying NOT_SERVING");
+                return;
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(warm.config.warmup_delay_ms)).await;
+        if !warm.draining.load(Ordering::SeqCst) {
+            warm.serving.store(true, Ordering::SeqCst);
+            warm.set_health(ServingStatus::Serving).await;
+            tracing::info!("serving");
+        }
     })
 }
 
