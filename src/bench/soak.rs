@@ -798,43 +798,14 @@ pub fn run_soak(cfg: &SoakConfig, log: &mut dyn FnMut(&str)) -> Result<SoakRepor
     Ok(report)
 }
 
-async fn mix(
+/// Starts every client of the mix but the solo one; each stops at `until`.
+fn spawn_clients(
     cfg: &SoakConfig,
     addr: &str,
-    pid: u32,
-    metrics: Option<&str>,
-    log: &mut dyn FnMut(&str),
-) -> Result<SoakReport, SoakError> {
-    let mut report = SoakReport::default();
-    // warm the scene cache
-    let mut client = connect(addr).await.map_err(|e| SoakError(format!("{addr}: {e}")))?;
-    let warm = pb::StreamRequest { seed: 1, count: 8, ..Default::default() };
-    let w = crate::service::client::pull(&mut client, warm, |_| {}).await.map_err(|s| SoakError(s.to_string()))?;
-    if let Some(e) = w.error {
-        return Err(SoakError(format!("warm-up pull: {e}")));
-    }
-    drop(client);
-    report.idle_rss_mib = rss_mib(pid).unwrap_or(0.0);
-
-    // one fast client alone
-    let solo = Arc::new(Shared::default());
-    let t = Instant::now();
-    let until = tokio::time::Instant::now() + cfg.solo;
-    fast_client(addr.to_string(), 2, 0, 1, until, solo.clone()).await;
-    report.solo_per_s = solo.fast_samples.load(Ordering::Relaxed) as f64 / t.elapsed().as_secs_f64();
-    log(&format!(
-        "solo: {:.2} samples/s ({} samples in {:.0} s); idle RSS {:.0} MiB",
-        report.solo_per_s,
-        solo.fast_samples.load(Ordering::Relaxed),
-        t.elapsed().as_secs_f64(),
-        report.idle_rss_mib
-    ));
-
-    // the mix
-    let sh = Arc::new(Shared::default());
-    let start = tokio::time::Instant::now();
-    let until = start + cfg.duration;
-    let hold = (cfg.duration / 3).min(Duration::from_secs(30));
+    until: tokio::time::Instant,
+    hold: Duration,
+    sh: &Arc<Shared>,
+) -> Vec<(&'static str, tokio::task::JoinHandle<()>)> {
     let mut tasks = Vec::new();
     for k in 0..cfg.fast {
         tasks.push((
@@ -873,6 +844,47 @@ async fn mix(
     for k in 0..cfg.uploading {
         tasks.push(("uploading", tokio::spawn(uploading_client(addr.to_string(), k, until, sh.clone()))));
     }
+    tasks
+}
+
+async fn mix(
+    cfg: &SoakConfig,
+    addr: &str,
+    pid: u32,
+    metrics: Option<&str>,
+    log: &mut dyn FnMut(&str),
+) -> Result<SoakReport, SoakError> {
+    let mut report = SoakReport::default();
+    // warm the scene cache
+    let mut client = connect(addr).await.map_err(|e| SoakError(format!("{addr}: {e}")))?;
+    let warm = pb::StreamRequest { seed: 1, count: 8, ..Default::default() };
+    let w = crate::service::client::pull(&mut client, warm, |_| {}).await.map_err(|s| SoakError(s.to_string()))?;
+    if let Some(e) = w.error {
+        return Err(SoakError(format!("warm-up pull: {e}")));
+    }
+    drop(client);
+    report.idle_rss_mib = rss_mib(pid).unwrap_or(0.0);
+
+    // one fast client alone
+    let solo = Arc::new(Shared::default());
+    let t = Instant::now();
+    let until = tokio::time::Instant::now() + cfg.solo;
+    fast_client(addr.to_string(), 2, 0, 1, until, solo.clone()).await;
+    report.solo_per_s = solo.fast_samples.load(Ordering::Relaxed) as f64 / t.elapsed().as_secs_f64();
+    log(&format!(
+        "solo: {:.2} samples/s ({} samples in {:.0} s); idle RSS {:.0} MiB",
+        report.solo_per_s,
+        solo.fast_samples.load(Ordering::Relaxed),
+        t.elapsed().as_secs_f64(),
+        report.idle_rss_mib
+    ));
+
+    // the mix
+    let sh = Arc::new(Shared::default());
+    let start = tokio::time::Instant::now();
+    let until = start + cfg.duration;
+    let hold = (cfg.duration / 3).min(Duration::from_secs(30));
+    let tasks = spawn_clients(cfg, addr, until, hold, &sh);
     let every = cfg.report_every.max(Duration::from_millis(200));
     let (mut last_n, mut last_t) = (0u64, start);
     let mut peak = report.idle_rss_mib;
