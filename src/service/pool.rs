@@ -66,7 +66,7 @@
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::task::{Context, Poll, Waker};
 use std::time::Instant;
@@ -357,8 +357,6 @@ pub struct Scheduler {
     budget: u64,
     /// Bytes held now over all streams.
     buffered: AtomicU64,
-    /// Streams open now (for the share, read without the streams lock).
-    open_streams: AtomicUsize,
     /// The most bytes held at once so far.
     max_buffered_seen: AtomicU64,
     /// Finished samples dropped to bring a stream back to its share (made again later).
@@ -413,7 +411,6 @@ impl Scheduler {
             capacity: capacity.max(1),
             budget: budget.max(1),
             buffered: AtomicU64::new(0),
-            open_streams: AtomicUsize::new(0),
             max_buffered_seen: AtomicU64::new(0),
             dropped: AtomicU64::new(0),
             inner: Mutex::new(Sched {
@@ -543,7 +540,6 @@ impl Scheduler {
                 }),
             });
             s.streams.push(shared.clone());
-            self.open_streams.store(s.streams.len(), Ordering::Release);
             self.reshare(&s);
             for st in &s.streams {
                 self.trim(st, &mut lock(&st.state));
@@ -744,7 +740,6 @@ impl Scheduler {
         {
             let mut s = lock(&self.inner);
             s.streams.retain(|x| !Arc::ptr_eq(x, st));
-            self.open_streams.store(s.streams.len(), Ordering::Release);
             if !s.streams.iter().any(|x| x.peer == st.peer) {
                 s.groups.remove(&st.peer);
                 s.rr_in_peer.remove(&st.peer);
