@@ -63,7 +63,7 @@ fn layering(c: &mut Criterion) {
     let mut g = c.benchmark_group("build_mpi 640x480x32");
     g.sample_size(10);
     for layering in [Layering::Hard, Layering::Soft] {
-        let o = LayeringOptions { planes: 32, layering, disparity_range: None };
+        let o = LayeringOptions { planes: 32, layering, disparity_range: None, backdrop: false };
         g.bench_function(format!("{layering:?}"), |b| b.iter(|| build_mpi(&rgb, &depth, w, h, &o).unwrap()));
     }
     g.finish();

@@ -91,7 +91,8 @@ impl SceneLoader for Procedural {
                 rgb[3 * o..3 * o + 3].copy_from_slice(&c);
             }
         }
-        let opts = LayeringOptions { planes: self.planes, layering: Layering::Soft, disparity_range: None };
+        let opts =
+            LayeringOptions { planes: self.planes, layering: Layering::Soft, disparity_range: None, backdrop: false };
         let mpi = build_mpi_for_camera(&rgb, &depth, W, H, &opts, &k)?;
         let mut masks = InstanceMasks::from_index_map(&ids, W, H)?;
         // distinct scores so that the ranking is by score: id 2 first, then 1, then 3

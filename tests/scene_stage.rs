@@ -251,6 +251,7 @@ fn item_intrinsics_are_used() {
 #[test]
 fn builtin_mpi_names_and_reproduces_disparity() {
     assert_eq!(BuiltinMpi::default().name(), "builtin soft 32");
+    assert_eq!(BuiltinMpi { backdrop: true, ..BuiltinMpi::default() }.name(), "builtin soft 32 backdrop");
     assert_eq!(BuiltinMpi::new(16, Layering::Hard).name(), "builtin hard 16");
     let ranged = BuiltinMpi { disparity_range: Some((1.0, 0.001)), ..BuiltinMpi::default() };
     assert_eq!(ranged.name(), "builtin soft 32 range 1-0.001");
@@ -308,6 +309,11 @@ fn source_scenes_loads_and_fingerprints_the_configuration() {
     let hard =
         SourceScenes::new(Arc::new(TwoItems), Arc::new(SceneStage::new(Arc::new(BuiltinMpi::new(32, Layering::Hard)))));
     assert_ne!(a.fingerprint(), hard.fingerprint());
+    let backdrop = SourceScenes::new(
+        Arc::new(TwoItems),
+        Arc::new(SceneStage::new(Arc::new(BuiltinMpi { backdrop: true, ..BuiltinMpi::default() }))),
+    );
+    assert_ne!(a.fingerprint(), backdrop.fingerprint());
     let with_depth = SourceScenes::new(
         Arc::new(TwoItems),
         Arc::new(SceneStage::builtin().with_depth(Arc::new(FakeDepth(AtomicUsize::new(0))))),

@@ -3,6 +3,7 @@
 
 pub mod accuracy;
 pub mod quality;
+pub mod realism;
 pub mod sample;
 pub mod soak;
 

@@ -20,6 +20,7 @@
 //! Each law's violations are counted over the valid, non-occluded pixels (a pixel that breaks
 //! the label law is not counted again under the depth law).
 
+use crate::bench::realism::{RealismAccumulator, RealismReport};
 use crate::render::OCCLUSION_TOLERANCE;
 use crate::sample::config::SampleConfig;
 use crate::sample::error::SampleError;
@@ -313,6 +314,9 @@ pub struct QualityReport {
     /// ideally, and image2 over the same pixels (0 when no sample has them).
     pub ideal_sharpness: f64,
     pub ideal_image2_sharpness: f64,
+    /// The realism figures ([`crate::bench::realism`]): patch classifiers, revealed regions,
+    /// forward-backward residual.
+    pub realism: RealismReport,
 }
 
 /// Accumulates [`QualityReport`] over samples.
@@ -329,6 +333,7 @@ pub struct QualityAccumulator {
     sharpness: Vec<f64>,
     noise: Vec<(f64, f64)>,
     ideal: Vec<(f64, f64)>,
+    realism: RealismAccumulator,
 }
 
 impl QualityAccumulator {
@@ -349,6 +354,7 @@ impl QualityAccumulator {
         self.sharpness.extend(sharpness_ratio(s));
         self.noise.extend(noise_pair(s));
         self.ideal.extend(ideal_warp_sharpness(s));
+        self.realism.add(s);
         let n = (s.width * s.height) as u64;
         self.pixels += n;
         self.holes += s.holes.iter().filter(|&&v| v != 0).count() as u64;
@@ -393,6 +399,7 @@ impl QualityAccumulator {
             r.noise1 = self.noise.iter().map(|n| n.0).sum::<f64>() / k;
             r.noise2 = self.noise.iter().map(|n| n.1).sum::<f64>() / k;
         }
+        r.realism = self.realism.finish();
         self.report
     }
 }

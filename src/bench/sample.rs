@@ -8,7 +8,7 @@ use std::time::Instant;
 use super::Timing;
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
-use crate::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions};
+use crate::mpi::layering::{build_mpi_for_scene, LayeringOptions};
 use crate::raster::{Instance, InstanceMasks};
 use crate::sample::augment::Augment;
 use crate::sample::config::SampleConfig;
@@ -53,8 +53,9 @@ pub fn synthetic_scene(width: usize, height: usize, planes: usize, object: bool)
             rgb[3 * i..3 * i + 3].copy_from_slice(&c);
         }
     }
-    let opts = LayeringOptions { planes, layering: Layering::Soft, disparity_range: None };
-    let mpi = build_mpi_for_camera(&rgb, &depth, w, h, &opts, &k)?;
+    let opts = LayeringOptions { planes, ..LayeringOptions::default() };
+    let union: Vec<bool> = mask.iter().map(|&m| m >= 0.5).collect();
+    let mpi = build_mpi_for_scene(&rgb, &depth, w, h, &opts, &k, &union)?;
     let near = depth.iter().copied().fold(f32::MAX, f32::min);
     let masks = if object {
         InstanceMasks { width: w, height: h, masks: vec![Instance::new(1, 1.0, mask)] }

@@ -40,6 +40,13 @@ pub struct BakeArgs {
     /// MPI planes of the built-in layering (recorded; used to check items).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
+    /// Layering of the built-in MPI: soft (the default) or hard (recorded; used to check items).
+    #[arg(long, default_value = "soft")]
+    layering: mpiflow::mpi::layering::Layering,
+    /// Complete the background behind objects and depth edges once per scene, and align the
+    /// object masks with their depth edges (built-in layering; docs/quality.md).
+    #[arg(long)]
+    backdrop: bool,
     /// This job's part of the items: I of N (items whose id hashes to I mod N).
     #[arg(long, value_name = "I/N", default_value = "0/1")]
     shard: Shard,
@@ -92,6 +99,8 @@ pub fn run(a: BakeArgs) -> Result<(), CliError> {
     }
     let models = ModelConfig {
         planes: a.planes,
+        layering: a.layering,
+        backdrop: a.backdrop,
         depth_model: a.depth_model.clone(),
         mpi_model: a.mpi_model.clone(),
         segment_model: a.segment_model.clone(),

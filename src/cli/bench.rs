@@ -61,6 +61,13 @@ pub struct QualityBench {
     /// ratio image2 / image1 with its range, photometric error, hole fraction, flow p50 / p95).
     #[arg(long)]
     sharpness: bool,
+    /// Only the realism table: the default merge with each fill (planes, inpaint), 0 and 1
+    /// objects: hole fraction, revealed share of image2, detail and noise of the revealed
+    /// background against image2's other background, the patch classifiers' AUC (revealed
+    /// image2 patches against image1's background; image2 against image1), photometric error
+    /// and the forward-backward residual (docs/quality.md).
+    #[arg(long)]
+    realism: bool,
     /// Every row on the same motions (the addresses of the default configuration of the
     /// preset) instead of each configuration's own draws: a paired comparison of the rules.
     #[arg(long)]
@@ -76,6 +83,13 @@ pub struct QualityBench {
     /// with it).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
+    /// Layering of the built-in MPI: soft (the default) or hard.
+    #[arg(long, default_value = "soft")]
+    layering: mpiflow::mpi::layering::Layering,
+    /// Complete the background behind objects and depth edges and align the masks with them
+    /// (the built-in layering's `backdrop`).
+    #[arg(long)]
+    backdrop: bool,
 }
 
 #[derive(Args, Debug)]
@@ -181,6 +195,11 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
     }
 }
 
+/// A figure with three decimals, or `-` when there is none.
+fn opt3(v: Option<f64>) -> String {
+    v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"))
+}
+
 fn quality(q: QualityBench) -> Result<(), CliError> {
     use mpiflow::bench::quality::{quality, quality_same_motions, QualityReport};
     use mpiflow::sample::background::Background;
@@ -196,7 +215,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     let spec = q.source.clone().map_or(SourceSpec::Builtin, SourceSpec::Path);
     let source = open_source(&spec, &OpenOptions { resize: q.size, ..OpenOptions::default() })
         .map_err(|e| CliError(e.to_string()))?;
-    let models = ModelConfig { planes: q.planes, ..ModelConfig::default() };
+    let models = ModelConfig { planes: q.planes, layering: q.layering, backdrop: q.backdrop, ..ModelConfig::default() };
     let stage = Arc::new(models.build_stage().map_err(|e| CliError(e.to_string()))?);
     let mut base = SampleConfig::with_preset(q.preset);
     let mut motion = q.preset.to_string();
@@ -234,8 +253,8 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         let run = |c: &SampleConfig| {
             quality_same_motions(p.generator(), c, q.seed, q.count).map_err(|e| CliError(e.to_string()))
         };
-        println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | noise img1 / img2 (levels) | photometric | background | hole fraction | flow p50 / p95 px |");
-        println!("|---|---|---|---|---|---|---|---|");
+        println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | img2 / ideal | AUC img2 vs img1 | noise img1 / img2 (levels) | photometric | background | fb residual px | hole fraction | flow p50 / p95 px |");
+        println!("|---|---|---|---|---|---|---|---|---|---|---|");
         let mut variants = vec![(false, false)];
         if q.restore_noise {
             variants.push((true, false));
@@ -253,20 +272,47 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
                 _ => resample.to_string(),
             };
             println!(
-                "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.2} / {:.2} | {:.4} | {:.4} | {:.4} | {:.2} / {:.2} |",
+                "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.0}% | {} | {:.2} / {:.2} | {:.4} | {:.4} | {} | {:.4} | {:.2} / {:.2} |",
                 r.sharpness,
                 r.sharpness_min,
                 r.sharpness_max,
                 r.ideal_sharpness,
                 r.ideal_image2_sharpness,
+                if r.ideal_sharpness > 0.0 { 100.0 * r.ideal_image2_sharpness / r.ideal_sharpness } else { 0.0 },
+                opt3(r.realism.auc_pair),
                 r.noise1,
                 r.noise2,
                 r.photometric,
                 r.photometric_background,
+                opt3(r.realism.fb_residual),
                 r.hole_fraction,
                 r.flow_p50,
                 r.flow_p95
             );
+        }
+        return Ok(());
+    }
+    if q.realism {
+        println!("| fill | objects | hole fraction | revealed | revealed detail / noise vs other background | AUC revealed vs img1 background | AUC img2 vs img1 | photometric | label laws | fb residual px |");
+        println!("|---|---|---|---|---|---|---|---|---|---|");
+        for background in [Background::Planes, Background::Inpaint] {
+            for objects in [0, 1] {
+                let c = SampleConfig { background, max_objects: objects, backward: true, ..base.clone() };
+                let r = run(&c)?;
+                let laws = r.laws.holes + r.laws.label + r.laws.depth;
+                println!(
+                    "| {background} | {objects} ({} moved) | {:.4} | {:.4} | {} / {} | {} | {} | {:.4} | {laws} | {} |",
+                    r.with_objects,
+                    r.hole_fraction,
+                    r.realism.revealed,
+                    opt3(r.realism.revealed_detail),
+                    opt3(r.realism.revealed_noise),
+                    opt3(r.realism.auc_revealed),
+                    opt3(r.realism.auc_pair),
+                    r.photometric,
+                    opt3(r.realism.fb_residual),
+                );
+            }
         }
         return Ok(());
     }

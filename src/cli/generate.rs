@@ -94,6 +94,13 @@ pub struct GenerateArgs {
     /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
     #[arg(long, value_name = "N", default_value_t = 32)]
     planes: usize,
+    /// Layering of the built-in MPI: soft (the default) or hard (each pixel on its nearest plane; docs/quality.md).
+    #[arg(long, default_value = "soft")]
+    layering: mpiflow::mpi::layering::Layering,
+    /// Complete the background behind objects and depth edges once per scene, and align the
+    /// object masks with their depth edges (built-in layering; docs/quality.md).
+    #[arg(long)]
+    backdrop: bool,
     /// Camera intrinsics fx,fy,cx,cy in pixels for every source image (default 0.58 W, 0.58 H,
     /// centre). Only with --source.
     #[arg(long, value_name = "FX,FY,CX,CY", value_parser = parse_floats::<4>, allow_hyphen_values = true)]
@@ -149,6 +156,8 @@ fn parse_format(s: &str) -> Result<ExportFormat, String> {
 fn model_config(a: &GenerateArgs) -> ModelConfig {
     ModelConfig {
         planes: a.planes,
+        layering: a.layering,
+        backdrop: a.backdrop,
         depth_model: a.depth_model.clone(),
         mpi_model: a.mpi_model.clone(),
         segment_model: a.segment_model.clone(),

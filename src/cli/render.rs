@@ -103,7 +103,7 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
                 LayeringArg::Hard => Layering::Hard,
                 LayeringArg::Soft => Layering::Soft,
             };
-            let opts = LayeringOptions { planes: a.planes as usize, layering, disparity_range: None };
+            let opts = LayeringOptions { planes: a.planes as usize, layering, ..LayeringOptions::default() };
             let mpi = build_mpi(&rgb.data, &depth, rgb.width, rgb.height, &opts)
                 .map_err(|e| CliError(format!("{}: {e}", dep.display())))?;
             (mpi, Some(rgb))

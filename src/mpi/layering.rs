@@ -92,7 +92,13 @@ pub const ALPHA_MAX: f64 = 1.0 - 1e-6;
 pub const MIN_RELATIVE_RANGE: f64 = 1e-3;
 
 /// How pixels are assigned to planes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+///
+/// `Soft` is the default. Under rotation and forward motion the two copies of a `Soft` pixel
+/// reproject to different places and blur image2 (and its labels) by up to a plane spacing's
+/// parallax; a `Hard` pixel moves as one and keeps more detail, but a smooth slope becomes
+/// stripes whose seams show as thin lines (docs/quality.md, "Layering").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum Layering {
     /// Each pixel goes to its nearest plane (in disparity).
     Hard,
@@ -101,18 +107,41 @@ pub enum Layering {
     Soft,
 }
 
+impl std::fmt::Display for Layering {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Layering::Hard => "hard",
+            Layering::Soft => "soft",
+        })
+    }
+}
+
+impl std::str::FromStr for Layering {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "hard" => Ok(Layering::Hard),
+            "soft" => Ok(Layering::Soft),
+            _ => Err(format!("unknown layering `{s}` (expected hard or soft)")),
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LayeringOptions {
     pub planes: usize,
     pub layering: Layering,
     /// (nearest, farthest) plane disparities; None = the scene's own disparity range.
     pub disparity_range: Option<(f64, f64)>,
+    /// Complete the background behind foreground ([`super::backdrop`]) and put it on the planes
+    /// behind each pixel that hides it (step 7 of the method).
+    pub backdrop: bool,
 }
 
 impl Default for LayeringOptions {
-    /// 32 planes, soft layering, the scene's own disparity range.
+    /// 32 planes, soft layering, the scene's own disparity range, no completed background.
     fn default() -> Self {
-        Self { planes: 32, layering: Layering::Soft, disparity_range: None }
+        Self { planes: 32, layering: Layering::Soft, disparity_range: None, backdrop: false }
     }
 }
 
@@ -125,7 +154,7 @@ pub fn build_mpi(
     height: usize,
     opts: &LayeringOptions,
 ) -> Result<Mpi, MpiError> {
-    build(rgb, depth, width, height, opts, None)
+    build(rgb, depth, width, height, opts, None, None)
 }
 
 /// As [`build_mpi`], but the densities also divide by each source pixel's ray length
@@ -145,8 +174,40 @@ pub fn build_mpi_for_camera(
             "layering: invalid intrinsics {k:?}: focal lengths must be finite and non-zero"
         )));
     }
-    build(rgb, depth, width, height, opts, Some(k))
+    build(rgb, depth, width, height, opts, Some(k), None)
 }
+
+/// As [`build_mpi_for_camera`], with the scene's object masks (H x W, true = an object that may
+/// move): with `opts.backdrop` the background behind them is completed as well as behind depth
+/// edges ([`super::backdrop`]).
+pub fn build_mpi_for_scene(
+    rgb: &[f32],
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    opts: &LayeringOptions,
+    k: &Intrinsics,
+    masks: &[bool],
+) -> Result<Mpi, MpiError> {
+    if !k.is_valid() {
+        return Err(MpiError::Invalid(format!(
+            "layering: invalid intrinsics {k:?}: focal lengths must be finite and non-zero"
+        )));
+    }
+    if masks.len() != width * height {
+        return Err(MpiError::Invalid(format!(
+            "layering: masks of {} values for an image of {width}x{height}",
+            masks.len()
+        )));
+    }
+    build(rgb, depth, width, height, opts, Some(k), Some(masks))
+}
+
+/// How far (chessboard, pixels) a hard plane reaches over the plane just behind it at a seam.
+pub const SEAM_REACH: usize = 3;
+
+/// No hidden surface at a pixel.
+const NO_HIDDEN: u16 = u16::MAX;
 
 /// The plane disparities the layering uses for a scene whose (known) disparities span
 /// `[scene_far, scene_near]`: uniform from near to far, strictly decreasing, >= 0. With
@@ -243,6 +304,7 @@ fn build(
     height: usize,
     opts: &LayeringOptions,
     k: Option<&Intrinsics>,
+    masks: Option<&[bool]>,
 ) -> Result<Mpi, MpiError> {
     if width == 0 || height == 0 {
         return Err(MpiError::Invalid(format!("layering: empty image size {width}x{height}")));
@@ -305,7 +367,52 @@ fn build(
     // > 0 on plane i. For every layering above that is exactly `i <= far`; the farthest content
     // is a source for every plane (so that planes behind all content still have sources).
     let lim: Vec<u8> = slots.iter().zip(&disp).map(|(s, &d)| if d <= dmin { (n - 1) as u8 } else { s.far }).collect();
+    // 7. the completed background: a hidden surface on the nearest plane to its disparity, kept
+    // only strictly behind the first plane behind the pixel (what a density cut of the pixel's
+    // own planes leaves standing)
+    let no_masks = vec![false; if masks.is_none() { len } else { 0 }];
+    let back = opts.backdrop.then(|| super::backdrop::complete(rgb, &disp, masks.unwrap_or(&no_masks), width, height));
+    let hidden: Vec<u16> = match &back {
+        Some(b) => (0..len)
+            .into_par_iter()
+            .map(|p| {
+                if !b.behind[p] {
+                    return NO_HIDDEN;
+                }
+                let j = planes.partition_point(|&q| q >= disp[p]);
+                let hb = assign(b.disparity[p], &planes, Layering::Hard).near as usize;
+                if hb > j {
+                    hb as u16
+                } else {
+                    NO_HIDDEN
+                }
+            })
+            .collect(),
+        None => Vec::new(),
+    };
+    let back_rgb: &[f32] = back.as_ref().map_or(&[], |b| &b.rgb);
     drop(disp);
+    // 8. seams: a hard pixel within SEAM_REACH of a pixel on the plane just in front of its own
+    // is also put on that plane (in front: the source view shows the same colour, that plane's
+    // fill at the pixel being the pixel's own), so the two planes overlap and no crack opens
+    // between them when they part under motion by up to SEAM_REACH pixels
+    let seam: Vec<bool> = if opts.layering == Layering::Hard {
+        (0..len)
+            .into_par_iter()
+            .map(|p| {
+                let f = slots[p].far;
+                if f == 0 {
+                    return false;
+                }
+                let (x, y) = (p % width, p / width);
+                let (x0, x1) = (x.saturating_sub(SEAM_REACH), (x + SEAM_REACH).min(width - 1));
+                let (y0, y1) = (y.saturating_sub(SEAM_REACH), (y + SEAM_REACH).min(height - 1));
+                (y0..=y1).any(|yy| (x0..=x1).any(|xx| slots[yy * width + xx].far == f - 1))
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
 
     // 5. per-plane gaps exactly as the renderer computes them, per-pixel ray lengths
     let gap: Vec<f64> = plane_gaps(&planes);
@@ -319,7 +426,7 @@ fn build(
     let mut mpi = Mpi::new(width, height, planes, 0);
     let plane_len = len * 4;
     // 6. colours of plane i: own colour where alpha > 0, background fill elsewhere; densities
-    let ctx = PlaneCtx { rgb, w: width, h: height, lim: &lim };
+    let ctx = PlaneCtx { rgb, w: width, h: height, lim: &lim, hidden: &hidden, back: back_rgb };
     mpi.rgba.par_chunks_mut(plane_len).enumerate().for_each_init(Vec::new, |levels, (i, out)| {
         fill_plane(&ctx, i, levels, out);
         let ray = |p: usize| ray_len.as_ref().map_or(1.0, |r| r[p] as f64);
@@ -340,6 +447,10 @@ fn build(
                 }
             } else if i == near {
                 density(s.a_near as f64, gap[i] * ray(p))
+            } else if (!seam.is_empty() && seam[p] && i + 1 == far)
+                || (!hidden.is_empty() && usize::from(hidden[p]) == i)
+            {
+                density(1.0, gap[i] * ray(p))
             } else {
                 0.0
             };
@@ -352,7 +463,8 @@ fn build(
         back.par_chunks_mut(4 * width).enumerate().for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(4).enumerate() {
                 let p = y * width + x;
-                let j = lim[p] as usize + 1;
+                let behind = hidden.get(p).map_or(0, |&hb| if hb == NO_HIDDEN { 0 } else { hb as usize });
+                let j = (lim[p] as usize).max(behind) + 1;
                 if j < n - 1 {
                     let q = j * plane_len + 4 * p;
                     px[..3].copy_from_slice(&front[q..q + 3]);
@@ -405,6 +517,10 @@ struct PlaneCtx<'a> {
     h: usize,
     /// Pixel p is a colour source of plane i when i <= lim[p].
     lim: &'a [u8],
+    /// Empty, or per pixel the plane of its hidden surface ([`NO_HIDDEN`]: none): the pixel is
+    /// a source of the completed colour `back` for that plane.
+    hidden: &'a [u16],
+    back: &'a [f32],
 }
 
 /// One level of the push-pull pyramid: colours and which of them are known.
@@ -502,7 +618,16 @@ fn push(fine: &mut Level, coarse: &Level) {
 /// unknown cells, level by level). Plane i always has a source: the farthest content.
 fn fill_plane(ctx: &PlaneCtx, i: usize, levels: &mut Vec<Level>, out: &mut [f32]) {
     let (w, h, rgb, lim) = (ctx.w, ctx.h, ctx.rgb, ctx.lim);
-    let px = |p: usize| [rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]];
+    let (hidden, back) = (ctx.hidden, ctx.back);
+    let source = |p: usize| -> Option<[f32; 3]> {
+        if lim[p] as usize >= i {
+            Some([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]])
+        } else if !hidden.is_empty() && usize::from(hidden[p]) == i {
+            Some([back[3 * p], back[3 * p + 1], back[3 * p + 2]])
+        } else {
+            None
+        }
+    };
     if lim.iter().all(|&l| l as usize >= i) {
         for (o, c) in out.chunks_exact_mut(4).zip(rgb.chunks_exact(3)) {
             o[..3].copy_from_slice(c);
@@ -517,7 +642,7 @@ fn fill_plane(ctx: &PlaneCtx, i: usize, levels: &mut Vec<Level>, out: &mut [f32]
             levels.push(Level::default());
         }
         if depth == 0 {
-            pull(w, h, |p| (lim[p] as usize >= i).then(|| px(p)), &mut levels[0]);
+            pull(w, h, source, &mut levels[0]);
         } else {
             let (prev, next) = levels.split_at_mut(depth);
             let l = &prev[depth - 1];
@@ -537,7 +662,7 @@ fn fill_plane(ctx: &PlaneCtx, i: usize, levels: &mut Vec<Level>, out: &mut [f32]
         let row = &mut out[4 * y * w..4 * (y + 1) * w];
         for ((x, &tx), o) in xs.iter().enumerate().zip(row.chunks_exact_mut(4)) {
             let p = y * w + x;
-            let c = if lim[p] as usize >= i { px(p) } else { bilinear(&top.c, top.w, tx, ty) };
+            let c = source(p).unwrap_or_else(|| bilinear(&top.c, top.w, tx, ty));
             o[..3].copy_from_slice(&c);
         }
     }
@@ -548,7 +673,7 @@ mod tests {
     use super::*;
 
     fn opts(planes: usize, layering: Layering) -> LayeringOptions {
-        LayeringOptions { planes, layering, disparity_range: None }
+        LayeringOptions { planes, layering, disparity_range: None, backdrop: false }
     }
 
     #[test]
@@ -625,7 +750,7 @@ mod tests {
                 rgb[3 * p..3 * p + 3].copy_from_slice(&[1.0, 0.0, 0.0]);
             }
         }
-        let ctx = PlaneCtx { rgb: &rgb, w, h, lim: &lim };
+        let ctx = PlaneCtx { rgb: &rgb, w, h, lim: &lim, hidden: &[], back: &[] };
         let mut out = vec![0.0f32; w * h * 4];
         fill_plane(&ctx, 2, &mut Vec::new(), &mut out);
         for px in out.chunks_exact(4) {

@@ -4,6 +4,7 @@
 //! [`planes::DELTA_LAST`], [`planes::DEPTH_MAX`]) lives in [`planes`]; `mpi` depends on nothing
 //! above it (not on `render`).
 
+pub mod backdrop;
 pub mod bricks;
 pub mod layering;
 pub mod npz;

@@ -22,11 +22,17 @@
 //! cannot break a label law. The links (backward and clip flows) keep treating filled pixels as
 //! holes: their surface is not in the source frame's visible scene.
 //!
+//! With the built-in layering's completed background ([`crate::mpi::backdrop`]) the planes hold,
+//! behind every object, the photo's own background texture at the depth of the background
+//! around it, so what a moved object uncovers is rendered like the rest of the scene (right
+//! parallax, the photo's detail and noise) and only what no plane covers is left to Telea
+//! (`mpiflow bench quality --realism`, docs/quality.md).
+//!
 //! [`Background::Inpaint`] leaves every hole to Telea (the paper's rule; the reference merge rule
 //! always does). It is the default: on RGB-D photos whose object masks span many depths (a mask
 //! that includes part of the floor), the planes' render over the holes alternates row by row
-//! between the floor and what lies behind it (`tests/labels.rs`, thin-line runs: 75 in image2
-//! against 6 in image1 with `planes`, 6 or fewer with `inpaint`), which Telea's blend hides.
+//! between the floor and what lies behind it, which Telea's blend hides (`tests/labels.rs`,
+//! thin-line runs; `mpiflow bench quality`, column "lines img2 / img1").
 
 use serde::{Deserialize, Serialize};
 

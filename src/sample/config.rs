@@ -88,7 +88,8 @@ pub struct SampleConfig {
     /// What fills image2's holes before 2-D inpainting with the depth-aware merge
     /// ([`Background`]: the MPI's planes behind the moved objects, or Telea alone); the reference
     /// merge always inpaints, as the paper. Default `inpaint`; part of the fingerprint when not
-    /// `inpaint` (so samples keep the addresses they had before the option).
+    /// `inpaint`. With the layering's completed background (`backdrop`), `planes` leaves few
+    /// holes to Telea (docs/quality.md).
     #[serde(skip_serializing_if = "is_inpaint")]
     pub background: Background,
     /// The mask threshold of the merge (the reference's 0.99).

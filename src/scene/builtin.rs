@@ -5,17 +5,20 @@
 //! most 1000) and layered with [`build_mpi_for_camera`] for the scene's intrinsics: `planes`
 //! planes uniform in disparity over the scene's own disparity range (or over
 //! `disparity_range`, e.g. the reference's `(1.0, 0.001)`), each pixel on its nearest plane
-//! ([`Layering::Hard`]) or split between its two neighbouring planes ([`Layering::Soft`], the
-//! default, whose composite reproduces the disparity exactly). Its name, which goes into
-//! provenance and the dataset fingerprint, is `builtin soft 32` (plus ` range NEAR-FAR` when a
-//! range is set).
+//! ([`Layering::Hard`]: each pixel moves as one, so image2 keeps more detail) or split between its
+//! two neighbouring planes ([`Layering::Soft`], the default, whose composite reproduces the
+//! disparity exactly); with `backdrop`, the background behind objects and depth edges is
+//! completed ([`crate::mpi::backdrop`]) and the object masks are aligned with their depth edges
+//! ([`super::matte`]). Its name, which goes into provenance and the dataset fingerprint, is
+//! `builtin soft 32` (plus ` range NEAR-FAR` when a range is set, ` backdrop` with it).
 
 use super::scale::depth_from_disparity;
 use super::{Disparity, MpiBuilder, SceneError};
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
-use crate::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions, MAX_PLANES};
+use crate::mpi::layering::{build_mpi_for_camera, build_mpi_for_scene, Layering, LayeringOptions, MAX_PLANES};
 use crate::mpi::Mpi;
+use crate::raster::InstanceMasks;
 
 /// The built-in layering as an [`MpiBuilder`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -25,18 +28,29 @@ pub struct BuiltinMpi {
     pub layering: Layering,
     /// (nearest, farthest) plane disparities; `None` = the scene's own range.
     pub disparity_range: Option<(f64, f64)>,
+    /// Complete the background behind objects and depth edges ([`crate::mpi::backdrop`]).
+    pub backdrop: bool,
 }
 
 impl Default for BuiltinMpi {
-    /// 32 planes, soft layering, the scene's own range.
+    /// 32 planes, soft layering, the scene's own range, no completed background.
     fn default() -> Self {
-        BuiltinMpi { planes: 32, layering: Layering::Soft, disparity_range: None }
+        BuiltinMpi { planes: 32, layering: Layering::Soft, disparity_range: None, backdrop: false }
     }
 }
 
 impl BuiltinMpi {
+    fn options(&self) -> LayeringOptions {
+        LayeringOptions {
+            planes: self.planes,
+            layering: self.layering,
+            disparity_range: self.disparity_range,
+            backdrop: self.backdrop,
+        }
+    }
+
     pub fn new(planes: usize, layering: Layering) -> Self {
-        BuiltinMpi { planes, layering, disparity_range: None }
+        BuiltinMpi { planes, layering, disparity_range: None, backdrop: false }
     }
 
     /// Checks the configuration (planes in range, range ordered), for start-up validation.
@@ -60,13 +74,11 @@ impl BuiltinMpi {
 
 impl MpiBuilder for BuiltinMpi {
     fn name(&self) -> String {
-        let kind = match self.layering {
-            Layering::Hard => "hard",
-            Layering::Soft => "soft",
-        };
+        let kind = self.layering;
+        let completed = if self.backdrop { " backdrop" } else { "" };
         match self.disparity_range {
-            None => format!("builtin {kind} {}", self.planes),
-            Some((near, far)) => format!("builtin {kind} {} range {near}-{far}", self.planes),
+            None => format!("builtin {kind} {}{completed}", self.planes),
+            Some((near, far)) => format!("builtin {kind} {} range {near}-{far}{completed}", self.planes),
         }
     }
 
@@ -79,8 +91,29 @@ impl MpiBuilder for BuiltinMpi {
             )));
         }
         let depth = depth_from_disparity(disparity);
-        let opts =
-            LayeringOptions { planes: self.planes, layering: self.layering, disparity_range: self.disparity_range };
-        Ok(build_mpi_for_camera(&image.data, &depth, image.width, image.height, &opts, k)?)
+        Ok(build_mpi_for_camera(&image.data, &depth, image.width, image.height, &self.options(), k)?)
+    }
+
+    fn aligns_masks(&self) -> bool {
+        self.backdrop
+    }
+
+    fn build_with_masks(
+        &self,
+        image: &RgbImage,
+        disparity: &Disparity,
+        masks: &InstanceMasks,
+        k: &Intrinsics,
+    ) -> Result<Mpi, SceneError> {
+        let n = image.width * image.height;
+        if (masks.width, masks.height) != (image.width, image.height) || masks.masks.iter().any(|m| m.mask.len() != n) {
+            return self.build(image, disparity, k);
+        }
+        if (disparity.width, disparity.height) != (image.width, image.height) || disparity.data.len() != n {
+            return self.build(image, disparity, k);
+        }
+        let union: Vec<bool> = (0..n).map(|p| masks.masks.iter().any(|m| m.mask[p] >= 0.5)).collect();
+        let depth = depth_from_disparity(disparity);
+        Ok(build_mpi_for_scene(&image.data, &depth, image.width, image.height, &self.options(), k, &union)?)
     }
 }

@@ -9,6 +9,7 @@
 pub mod builtin;
 pub mod cache;
 pub mod hub;
+pub mod matte;
 pub mod models;
 pub mod onnx;
 pub mod registry;
@@ -108,6 +109,22 @@ pub trait MpiBuilder: Send + Sync {
         self.name()
     }
     fn build(&self, image: &RgbImage, disparity: &Disparity, k: &Intrinsics) -> Result<Mpi, SceneError>;
+    /// [`MpiBuilder::build`] knowing the scene's instance masks (the objects that may move), for
+    /// a builder that completes the background behind them; the default ignores them.
+    fn build_with_masks(
+        &self,
+        image: &RgbImage,
+        disparity: &Disparity,
+        _masks: &InstanceMasks,
+        k: &Intrinsics,
+    ) -> Result<Mpi, SceneError> {
+        self.build(image, disparity, k)
+    }
+    /// Whether the scene's object masks are aligned with their depth edges before the build
+    /// ([`matte::align_to_depth`]); the builder's name says so when they are.
+    fn aligns_masks(&self) -> bool {
+        false
+    }
     /// Inferences run so far (warm-up excluded), or `None` when this is not a model (a built-in
     /// rule that costs no inference): what `mpiflow_model_runs_total` counts.
     fn inference_runs(&self) -> Option<u64> {

@@ -22,6 +22,14 @@ use crate::mpi::layering::{Layering, MAX_PLANES};
 pub struct ModelConfig {
     /// Planes of the built-in layering (when there is no MPI model). Default 32.
     pub planes: usize,
+    /// How the built-in layering assigns pixels to planes: `soft` (split between two planes, the
+    /// default) or `hard` (each pixel on its nearest plane: sharper image2, seams on slopes;
+    /// docs/quality.md).
+    pub layering: Layering,
+    /// Complete the background behind objects and depth edges once per scene and align the
+    /// object masks with their depth edges (the built-in layering; default false: what motion
+    /// reveals then shows the photo's texture, docs/quality.md).
+    pub backdrop: bool,
     /// Depth model for sources without depth: a registry name (`mpiflow models list`, fetched
     /// into the hub cache on first use) or an ONNX file (with an optional `FILE.toml` manifest).
     pub depth_model: Option<PathBuf>,
@@ -33,7 +41,14 @@ pub struct ModelConfig {
 
 impl Default for ModelConfig {
     fn default() -> Self {
-        Self { planes: 32, depth_model: None, mpi_model: None, segment_model: None }
+        Self {
+            planes: 32,
+            layering: Layering::default(),
+            backdrop: false,
+            depth_model: None,
+            mpi_model: None,
+            segment_model: None,
+        }
     }
 }
 
@@ -47,7 +62,7 @@ impl ModelConfig {
                 if !(1..=MAX_PLANES).contains(&self.planes) {
                     return Err(format!("planes = {}: expected 1 to {MAX_PLANES}", self.planes));
                 }
-                let b = BuiltinMpi::new(self.planes, Layering::Soft);
+                let b = BuiltinMpi { backdrop: self.backdrop, ..BuiltinMpi::new(self.planes, self.layering) };
                 b.validate().map_err(|e| e.to_string())?;
                 Arc::new(b)
             }

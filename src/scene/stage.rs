@@ -186,6 +186,36 @@ impl SceneStage {
         }
         let mut provenance = Vec::with_capacity(3);
 
+        let masks_note;
+        let mut masks = match masks {
+            Some(m) => {
+                let m = if (m.width, m.height) != (w, h) { m.resize_nearest(w, h) } else { m };
+                masks_note = format!("masks: given ({} instances)", m.masks.len());
+                m
+            }
+            None => match &self.segmenter {
+                Some(seg) => {
+                    let m = seg.segment(&image)?;
+                    if (m.width, m.height) != (w, h) || m.masks.iter().any(|i| i.mask.len() != w * h) {
+                        return Err(SceneError::Model {
+                            kind: "segmentation",
+                            model: seg.name(),
+                            message: format!(
+                                "source {id}: masks of {} x {} for an image of {w} x {h}",
+                                m.width, m.height
+                            ),
+                        });
+                    }
+                    masks_note = format!("masks: {} ({} instances)", seg.name(), m.masks.len());
+                    m
+                }
+                None => {
+                    masks_note = "masks: none (no masks given and no segmenter configured)".to_string();
+                    InstanceMasks::new(w, h)
+                }
+            },
+        };
+
         let (disparity, mpi, intrinsics) = if let Some(given) = mpi {
             let (mpi, note) = prepare_given_mpi(&id, given, w, h)?;
             let k = intrinsics.or(mpi.intrinsics).unwrap_or_else(|| Intrinsics::reference_default(w, h));
@@ -230,7 +260,12 @@ impl SceneStage {
             };
             let k = intrinsics.unwrap_or_else(|| Intrinsics::reference_default(w, h));
             let mpi = if build_mpi {
-                let mpi = self.mpi.build(&image, &disparity, &k)?;
+                // a scene's masks follow its depth edges; parts without the MPI (what a bake
+                // writes) keep the masks as given, and are aligned when their scene is built
+                if self.mpi.aligns_masks() {
+                    super::matte::align_to_depth(&mut masks, &disparity.data);
+                }
+                let mpi = self.mpi.build_with_masks(&image, &disparity, &masks, &k)?;
                 if (mpi.width, mpi.height) != (w, h) {
                     return Err(SceneError::Invalid(format!(
                         "MPI builder {} made a {} x {} MPI for the {w} x {h} image of source {id}",
@@ -247,35 +282,7 @@ impl SceneStage {
             (disparity, mpi, k)
         };
 
-        let masks = match masks {
-            Some(m) => {
-                let m = if (m.width, m.height) != (w, h) { m.resize_nearest(w, h) } else { m };
-                provenance.push(format!("masks: given ({} instances)", m.masks.len()));
-                m
-            }
-            None => match &self.segmenter {
-                Some(seg) => {
-                    let m = seg.segment(&image)?;
-                    if (m.width, m.height) != (w, h) || m.masks.iter().any(|i| i.mask.len() != w * h) {
-                        return Err(SceneError::Model {
-                            kind: "segmentation",
-                            model: seg.name(),
-                            message: format!(
-                                "source {id}: masks of {} x {} for an image of {w} x {h}",
-                                m.width, m.height
-                            ),
-                        });
-                    }
-                    provenance.push(format!("masks: {} ({} instances)", seg.name(), m.masks.len()));
-                    m
-                }
-                None => {
-                    provenance.push("masks: none (no masks given and no segmenter configured)".to_string());
-                    InstanceMasks::new(w, h)
-                }
-            },
-        };
-
+        provenance.push(masks_note);
         Ok(SceneParts { id, image, disparity, mpi, masks, intrinsics, provenance })
     }
 }

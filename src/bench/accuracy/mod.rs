@@ -230,7 +230,7 @@ struct SceneCtx<'a> {
 }
 
 fn layer(scene: &Scene, planes: usize, layering: Layering) -> Result<Mpi, AccuracyError> {
-    let opts = LayeringOptions { planes, layering, disparity_range: None };
+    let opts = LayeringOptions { planes, layering, disparity_range: None, backdrop: false };
     Ok(build_mpi_for_camera(&scene.rgb, &scene.depth, scene.width, scene.height, &opts, &scene.k)?)
 }
 
