@@ -1,6 +1,7 @@
 //! The gRPC sample service (`mpiflow.v1.MpiFlow`): a thin tonic layer over the sample generator.
 //!
-//! A request is validated ([`validate`]), resolved to a dataset and a generator ([`dataset`]),
+//! A request's sample options ([`spec`]: one message for all three calls) are validated once
+//! ([`validate`]), resolved to a dataset and a generator ([`dataset`]),
 //! and served through the worker pool ([`pool`]: rayon workers, a bounded queue per stream, a
 //! global in-flight bound, round-robin between streams); samples are cropped and encoded on the
 //! workers ([`encode`]). Errors map to gRPC codes in one place ([`error`]). The server
@@ -29,6 +30,7 @@ pub mod pool;
 pub mod reply;
 pub mod security;
 pub mod server;
+pub mod spec;
 pub mod validate;
 
 pub use config::ServiceConfig;
