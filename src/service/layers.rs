@@ -183,11 +183,13 @@ fn set(table: &mut Table, path: &[String], value: Option<Value>) {
 }
 
 /// `value` as its key at `path` accepts it: as a TOML value (a number, a boolean, ...) if it is
-/// one and the key takes it, else as a string; the error is the key's own (what it expects).
+/// one and the key takes it, else as a string, else in lower case (names of presets, kernels and
+/// formats are matched ignoring ASCII case); the error is the key's own (what it expects).
 fn typed(path: &[String], value: &str) -> Result<Value, String> {
     let literal = format!("v = {value}").parse::<Table>().ok().and_then(|mut t| t.remove("v"));
+    let text = [value.to_string(), value.to_ascii_lowercase()].map(Value::String);
     let mut first_error = None;
-    for candidate in literal.into_iter().chain([Value::String(value.to_string())]) {
+    for candidate in literal.into_iter().chain(text) {
         let mut alone = Table::new();
         set(&mut alone, path, Some(candidate.clone()));
         match alone.try_into::<ServiceConfig>() {
@@ -203,6 +205,7 @@ fn typed(path: &[String], value: &str) -> Result<Value, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sample::motion::MotionPreset;
 
     #[test]
     fn every_key_has_one_environment_name() {
@@ -229,6 +232,12 @@ mod tests {
         assert_eq!(c.auth_token.as_deref(), Some("12345"));
         let c = env("MAX_IMAGE_SIDE", " 640 ").unwrap().apply(&ServiceConfig::default()).unwrap();
         assert_eq!(c.max_image_side, 640);
+        let c = env("PRESET", "Paper-KITTI").unwrap().apply(&ServiceConfig::default()).unwrap();
+        assert_eq!(c.sample.motion, crate::sample::config::MotionSpec::Preset(MotionPreset::PaperKitti));
+        let c = env("LOG_FORMAT", "JSON").unwrap().apply(&ServiceConfig::default()).unwrap();
+        assert_eq!(c.log_format, crate::service::config::LogFormat::Json);
+        let c = env("AUTH_TOKEN", "AbC").unwrap().apply(&ServiceConfig::default()).unwrap();
+        assert_eq!(c.auth_token.as_deref(), Some("AbC"), "a string keeps its case");
         let e = env("WORKERS", "-1").unwrap_err();
         assert!(e.starts_with("MPIFLOW_WORKERS=\"-1\": ") && e.contains("usize"), "{e}");
         let e = env("PREFETCH_SCENES", "yes").unwrap_err();
