@@ -155,12 +155,8 @@ async fn same_address_and_augment_give_the_same_bytes_on_every_path() {
     let s = start(config()).await.expect("server starts");
     let mut c = client(&s).await;
     let fields = vec![1, 2, 3, 4, 5, 6, 8];
-    let one = |index: u64, augment: &str| pb::SampleRequest {
-        seed: 7,
-        index,
-        fields: fields.clone(),
-        augment: augment.into(),
-        ..Default::default()
+    let one = |index: u64, augment: &str| {
+        pb::SampleSpec { seed: 7, fields: fields.clone(), augment: augment.into(), ..Default::default() }.sample(index)
     };
     // RAFT's chairs stage: 496x368 crops of a 64x48 render (the frame is brought up to the crop)
     let a = c.get_sample(one(4, "raft-chairs")).await.expect("raft-chairs is served").into_inner();
@@ -177,13 +173,10 @@ async fn same_address_and_augment_give_the_same_bytes_on_every_path() {
     // GetSamples and a stream give the same bytes as GetSample
     let json = r#"{"preset": "raft-things", "crop": [96, 72]}"#;
     let mut list = c
-        .get_samples(pb::SamplesRequest {
-            seed: 7,
-            indices: vec![5, 2],
-            fields: fields.clone(),
-            augment: json.into(),
-            ..Default::default()
-        })
+        .get_samples(
+            pb::SampleSpec { seed: 7, fields: fields.clone(), augment: json.into(), ..Default::default() }
+                .samples(vec![5, 2]),
+        )
         .await
         .unwrap()
         .into_inner();
@@ -193,12 +186,9 @@ async fn same_address_and_augment_give_the_same_bytes_on_every_path() {
     }
     let mut st = c
         .stream_samples(pb::StreamRequest {
-            seed: 7,
             start_index: 2,
             count: 4,
-            fields: fields.clone(),
-            augment: json.into(),
-            ..Default::default()
+            ..pb::SampleSpec { seed: 7, fields: fields.clone(), augment: json.into(), ..Default::default() }.stream()
         })
         .await
         .unwrap()
@@ -218,7 +208,7 @@ async fn same_address_and_augment_give_the_same_bytes_on_every_path() {
     assert_ne!(content(got[0].clone()).tensors, content(got[1].clone()).tensors, "indices differ");
     // a request crop of both sides replaces the preset's
     let mut r = one(3, "raft-sintel");
-    r.crop = Some(pb::OutputCrop { width: 80, height: 50, mode: 0 });
+    r.spec.as_mut().unwrap().crop = Some(pb::OutputCrop { width: 80, height: 50, mode: 0 });
     let x = c.get_sample(r).await.unwrap().into_inner();
     assert_eq!((x.width, x.height), (80, 50));
     s.shutdown(Duration::from_secs(5)).await;
@@ -228,12 +218,14 @@ async fn same_address_and_augment_give_the_same_bytes_on_every_path() {
 async fn bad_augments_and_crops_are_refused_naming_the_field() {
     let s = start(config()).await.expect("server starts");
     let mut c = client(&s).await;
-    let req = |augment: &str, crop: Option<(u32, u32)>| pb::SampleRequest {
-        seed: 1,
-        index: 0,
-        augment: augment.into(),
-        crop: crop.map(|(width, height)| pb::OutputCrop { width, height, mode: 0 }),
-        ..Default::default()
+    let req = |augment: &str, crop: Option<(u32, u32)>| {
+        pb::SampleSpec {
+            seed: 1,
+            augment: augment.into(),
+            crop: crop.map(|(width, height)| pb::OutputCrop { width, height, mode: 0 }),
+            ..Default::default()
+        }
+        .sample(0)
     };
     for (augment, crop, field) in [
         ("raft-chair", None, "augment"),

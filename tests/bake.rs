@@ -610,7 +610,10 @@ async fn serving_a_baked_folder_runs_no_model() {
     assert_eq!(shards.sources, 5);
 
     let metrics = s.metrics_addr.unwrap().to_string();
-    let pull = |dataset: &str| pb::StreamRequest { dataset: dataset.into(), seed: 3, count: 6, ..Default::default() };
+    let pull = |dataset: &str| pb::StreamRequest {
+        count: 6,
+        ..pb::SampleSpec { dataset: dataset.into(), seed: 3, ..Default::default() }.stream()
+    };
     let mut got = 0;
     let mut st = c.stream_samples(pull("baked")).await.unwrap().into_inner();
     while let Some(b) = st.message().await.unwrap() {

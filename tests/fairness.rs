@@ -37,13 +37,16 @@ async fn cancelling(addr: String, seed: u64, rounds: u64, busy: Arc<AtomicU64>) 
     };
     for round in 1..=rounds {
         if round % 2 == 0 {
-            let req = pb::SamplesRequest { seed, indices: vec![round, round + 7, round * 3], ..Default::default() };
+            let req = pb::SampleSpec { seed, ..Default::default() }.samples(vec![round, round + 7, round * 3]);
             let before = busy.load(Ordering::SeqCst);
             let mut s = c.get_samples(req).await.unwrap().into_inner();
             assert!(s.message().await.unwrap().is_some());
             wait(&mut worst, before, round);
         } else {
-            let req = pb::StreamRequest { seed, start_index: round * 100, ..Default::default() };
+            let req = pb::StreamRequest {
+                start_index: round * 100,
+                ..pb::SampleSpec { seed, ..Default::default() }.stream()
+            };
             let mut s = c.stream_samples(req).await.unwrap().into_inner();
             for _ in 0..round % 4 {
                 let before = busy.load(Ordering::SeqCst);
@@ -73,8 +76,11 @@ async fn clients_that_open_and_drop_streams_are_not_starved_by_a_busy_stream() {
     let busy = Arc::new(AtomicU64::new(0));
     let b = busy.clone();
     let mut c = client_for(Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap());
-    let mut stream =
-        c.stream_samples(pb::StreamRequest { seed: 3, count: FEED, ..Default::default() }).await.unwrap().into_inner();
+    let mut stream = c
+        .stream_samples(pb::StreamRequest { count: FEED, ..pb::SampleSpec { seed: 3, ..Default::default() }.stream() })
+        .await
+        .unwrap()
+        .into_inner();
     let reader = tokio::spawn(async move {
         while let Ok(Some(m)) = stream.message().await {
             b.fetch_add(m.samples.len() as u64, Ordering::SeqCst);

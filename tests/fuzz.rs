@@ -1062,26 +1062,30 @@ fn request_seeds() -> Vec<Vec<u8>> {
     vec![
         stream(pb::StreamRequest::default()),
         stream(pb::StreamRequest {
-            dataset: "photos".into(),
-            seed: 7,
             rank: 1,
             world_size: 4,
             start_index: 100,
             count: 10,
-            fields: vec![1, 2, 3],
-            flow_dtype: 2,
-            compression: 2,
-            crop,
-            motion_preset: "reference".into(),
-            motion_ranges_json: ranges.clone(),
-            max_objects: Some(3),
-            motions_per_image: Some(2),
             batch_size: 4,
             prefetch: 8,
-            ..Default::default()
+            ..pb::SampleSpec {
+                dataset: "photos".into(),
+                seed: 7,
+                fields: vec![1, 2, 3],
+                flow_dtype: 2,
+                compression: 2,
+                crop,
+                motion_preset: "reference".into(),
+                motion_ranges_json: ranges.clone(),
+                max_objects: Some(3),
+                motions_per_image: Some(2),
+                ..Default::default()
+            }
+            .stream()
         }),
         stream(pb::StreamRequest { start_index: u64::MAX - 3, count: 2, world_size: 2, ..Default::default() }),
-        pb::SamplesRequest { indices: vec![0, 5, u64::MAX], motion_ranges_json: ranges, crop, ..Default::default() }
+        pb::SampleSpec { motion_ranges_json: ranges, crop, ..Default::default() }
+            .samples(vec![0, 5, u64::MAX])
             .encode_to_vec(),
     ]
 }
@@ -1122,21 +1126,24 @@ fn fuzz_requests() {
                     world_size: pick32(rng),
                     start_index: pick64(rng),
                     count: pick64(rng),
-                    fields: (0..rng.random_range(0..12)).map(|_| rng.random_range(-2..14)).collect(),
-                    flow_dtype: rng.random_range(-1..4),
-                    compression: rng.random_range(-1..4),
-                    crop: rng.random_bool(0.5).then(|| pb::OutputCrop {
-                        width: pick32(rng),
-                        height: pick32(rng),
-                        mode: rng.random_range(-1..4),
-                    }),
-                    motion_preset: if rng.random() { long.clone() } else { "paper-kitti".into() },
-                    motion_ranges_json: json,
-                    max_objects: rng.random_bool(0.5).then(|| pick32(rng)),
-                    motions_per_image: rng.random_bool(0.5).then(|| pick32(rng)),
                     batch_size: pick32(rng),
                     prefetch: pick32(rng),
-                    ..Default::default()
+                    ..pb::SampleSpec {
+                        fields: (0..rng.random_range(0..12)).map(|_| rng.random_range(-2..14)).collect(),
+                        flow_dtype: rng.random_range(-1..4),
+                        compression: rng.random_range(-1..4),
+                        crop: rng.random_bool(0.5).then(|| pb::OutputCrop {
+                            width: pick32(rng),
+                            height: pick32(rng),
+                            mode: rng.random_range(-1..4),
+                        }),
+                        motion_preset: if rng.random() { long.clone() } else { "paper-kitti".into() },
+                        motion_ranges_json: json,
+                        max_objects: rng.random_bool(0.5).then(|| pick32(rng)),
+                        motions_per_image: rng.random_bool(0.5).then(|| pick32(rng)),
+                        ..Default::default()
+                    }
+                    .stream()
                 }
                 .encode_to_vec()
             } else {
@@ -1167,22 +1174,9 @@ fn fuzz_requests() {
                     }
                     Err(e) => check_service_error("stream_shape", e)?,
                 }
-                if let Err(e) = mpiflow::service::validate::output_spec(
-                    &r.fields,
-                    r.flow_dtype,
-                    r.compression,
-                    r.crop.as_ref(),
-                    &config,
-                ) {
-                    check_service_error("output_spec", e)?;
-                }
-                if let Err(e) = mpiflow::service::validate::overrides(
-                    &r.motion_preset,
-                    &r.motion_ranges_json,
-                    r.max_objects,
-                    r.motions_per_image,
-                ) {
-                    check_service_error("overrides", e)?;
+                let spec = r.spec.unwrap_or_default();
+                if let Err(e) = mpiflow::service::spec::Spec::try_from((&spec, &config)) {
+                    check_service_error("spec", e)?;
                 }
             }
             if let Ok(r) = pb::SamplesRequest::decode(input) {

@@ -208,7 +208,7 @@ fn serve_one_sample(cmd: &mut Command) -> Vec<u8> {
         let channel =
             tonic::transport::Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap();
         let mut c = mpiflow::service::client::client_for(channel);
-        c.get_sample(mpiflow::service::pb::SampleRequest { seed: 1, ..Default::default() }).await
+        c.get_sample(mpiflow::service::pb::SampleSpec { seed: 1, ..Default::default() }.sample(0)).await
     });
     child.kill().unwrap();
     child.wait().unwrap();

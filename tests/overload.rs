@@ -98,8 +98,11 @@ async fn requests_whose_largest_sample_does_not_fit_are_refused_before_any_work(
     let s = server(config()).await;
     let mut c = client(s.addr).await;
     let huge = r#"{"preset":"raft-chairs","crop":[8192,8192]}"#;
-    let e =
-        c.get_sample(pb::SampleRequest { augment: huge.into(), ..Default::default() }).await.map(|_| ()).unwrap_err();
+    let e = c
+        .get_sample(pb::SampleSpec { augment: huge.into(), ..Default::default() }.sample(0))
+        .await
+        .map(|_| ())
+        .unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
     assert!(e.message().starts_with("augment.crop: 8192x8192") && e.message().contains("max_image_pixels"), "{e:?}");
     s.shutdown(Duration::from_millis(500)).await;
@@ -114,11 +117,11 @@ async fn requests_whose_largest_sample_does_not_fit_are_refused_before_any_work(
         let m = e.message();
         assert!(m.starts_with("sample too large") && m.contains("max_buffered_mb") && m.contains("flows"), "{m}");
     };
-    let r = pb::StreamRequest { fields: fields.clone(), frames: 8, ..Default::default() };
+    let r = pb::SampleSpec { fields: fields.clone(), frames: 8, ..Default::default() }.stream();
     check(c.stream_samples(r).await.map(|_| ()).unwrap_err());
-    let r = pb::SampleRequest { fields: fields.clone(), frames: 8, ..Default::default() };
+    let r = pb::SampleSpec { fields: fields.clone(), frames: 8, ..Default::default() }.sample(0);
     check(c.get_sample(r).await.map(|_| ()).unwrap_err());
-    let r = pb::SamplesRequest { fields, frames: 8, indices: vec![0], ..Default::default() };
+    let r = pb::SampleSpec { fields, frames: 8, ..Default::default() }.samples(vec![0]);
     check(c.get_samples(r).await.map(|_| ()).unwrap_err());
     // nothing was started for them (the warm-up sample's stream aside, gone once it is made)
     until("the warm-up sample is made", || s.state.is_serving()).await;
@@ -180,7 +183,7 @@ async fn random_access_calls_over_the_limit_are_refused() {
     let s = server(ServiceConfig { max_random_access_calls: 2, ..config() }).await;
     // two replies nobody reads (a one-byte window): each holds its slot
     let (mut send, conn) = h2_connection(s.addr, 1).await;
-    let req = pb::SampleRequest { index: 1, fields: (1..=9).collect(), ..Default::default() }.encode_to_vec();
+    let req = pb::SampleSpec { fields: (1..=9).collect(), ..Default::default() }.sample(1).encode_to_vec();
     let held = vec![raw_call(&mut send, "GetSample", &req).await, raw_call(&mut send, "GetSample", &req).await];
     assert!(held.iter().all(|r| header_status(r).is_none()), "both answered with a sample");
     let mut c = client(s.addr).await;
@@ -222,13 +225,13 @@ async fn unread_unary_replies_count_in_the_byte_budget() {
     let s = server(config()).await;
     let all: Vec<i32> = (1..=9).collect();
     let mut c = client(s.addr).await;
-    let one = c.get_sample(pb::SampleRequest { fields: all.clone(), ..Default::default() }).await.unwrap();
+    let one = c.get_sample(pb::SampleSpec { fields: all.clone(), ..Default::default() }.sample(0)).await.unwrap();
     let sample = one.into_inner().encoded_len() as u64;
     until("the read reply is released", || s.state.scheduler.stats().buffered == 0).await;
     let (mut send, conn) = h2_connection(s.addr, 1).await;
     let mut held = Vec::new();
     for index in 0..3 {
-        let req = pb::SampleRequest { index, fields: all.clone(), ..Default::default() }.encode_to_vec();
+        let req = pb::SampleSpec { fields: all.clone(), ..Default::default() }.sample(index).encode_to_vec();
         held.push(raw_call(&mut send, "GetSample", &req).await);
     }
     let st = s.state.scheduler.stats();
@@ -252,13 +255,17 @@ async fn stalled_batched_streams_stay_within_their_share() {
     let s = server(ServiceConfig { max_buffered_mb: 1, max_prefetch: 64, ..config() }).await;
     let all: Vec<i32> = (1..=9).collect();
     let mut c = client(s.addr).await;
-    let one = c.get_sample(pb::SampleRequest { fields: all.clone(), ..Default::default() }).await.unwrap();
+    let one = c.get_sample(pb::SampleSpec { fields: all.clone(), ..Default::default() }.sample(0)).await.unwrap();
     let sample = one.into_inner().encoded_len() as u64;
     assert!(64 * sample > 4 * MIB, "a batch of 64 is several budgets: {sample}");
     let mut stalled = Vec::new();
     for seed in 1..=4u64 {
         let (mut send, conn) = h2_connection(s.addr, 1).await;
-        let req = pb::StreamRequest { seed, fields: all.clone(), batch_size: 64, prefetch: 64, ..Default::default() };
+        let req = pb::StreamRequest {
+            batch_size: 64,
+            prefetch: 64,
+            ..pb::SampleSpec { seed, fields: all.clone(), ..Default::default() }.stream()
+        };
         let r = raw_call(&mut send, "StreamSamples", &req.encode_to_vec()).await;
         stalled.push((r, send, conn));
     }
@@ -354,7 +361,7 @@ async fn a_client_that_stops_reading_is_cut_after_the_stall_timeout() {
     let conn = tokio::spawn(conn);
     let mut send = send;
     let all: Vec<i32> = (1..=9).collect();
-    let req = pb::StreamRequest { fields: all, ..Default::default() }.encode_to_vec();
+    let req = pb::SampleSpec { fields: all, ..Default::default() }.stream().encode_to_vec();
     let r = raw_call(&mut send, "StreamSamples", &req).await;
     assert!(header_status(&r).is_none(), "the stream opened");
     // the client stops reading: the server fills the socket, then waits

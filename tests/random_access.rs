@@ -49,23 +49,7 @@ async fn get_samples(c: &mut MpiFlowClient<Channel>, r: pb::SamplesRequest) -> R
 }
 
 fn sample_request(r: &pb::SamplesRequest, index: u64) -> pb::SampleRequest {
-    pb::SampleRequest {
-        dataset: r.dataset.clone(),
-        fingerprint: r.fingerprint,
-        seed: r.seed,
-        index,
-        fields: r.fields.clone(),
-        flow_dtype: r.flow_dtype,
-        compression: r.compression,
-        crop: r.crop,
-        motion_preset: r.motion_preset.clone(),
-        motion_ranges_json: r.motion_ranges_json.clone(),
-        max_objects: r.max_objects,
-        motions_per_image: r.motions_per_image,
-        augment: r.augment.clone(),
-        frames: r.frames,
-        resample: r.resample.clone(),
-    }
+    r.spec.clone().unwrap_or_default().sample(index)
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -73,14 +57,14 @@ async fn get_samples_of_an_unordered_list_equals_get_sample_per_index() {
     let s = server(config()).await;
     let mut c = client(&s).await;
     let indices = vec![9, 2, 17, 2, 0, 33, 9, 5];
-    let r = pb::SamplesRequest {
+    let r = pb::SampleSpec {
         seed: 11,
-        indices: indices.clone(),
         fields: vec![1, 2, 3, 4, 5],
         compression: pb::Compression::Lz4 as i32,
         crop: Some(pb::OutputCrop { width: 40, height: 30, mode: pb::CropMode::Random as i32 }),
         ..Default::default()
-    };
+    }
+    .samples(indices.clone());
     let got = get_samples(&mut c, r.clone()).await.expect("GetSamples serves the list");
     assert_eq!(got.iter().map(|x| x.index).collect::<Vec<_>>(), indices, "request order, duplicates kept");
     for g in &got {
@@ -90,15 +74,7 @@ async fn get_samples_of_an_unordered_list_equals_get_sample_per_index() {
     }
     // the same index list from a stream's point of view: index 5 of a plain stream
     let mut st = c
-        .stream_samples(pb::StreamRequest {
-            seed: 11,
-            start_index: 5,
-            count: 1,
-            fields: r.fields.clone(),
-            compression: r.compression,
-            crop: r.crop,
-            ..Default::default()
-        })
+        .stream_samples(pb::StreamRequest { start_index: 5, count: 1, ..r.spec.clone().unwrap().stream() })
         .await
         .unwrap()
         .into_inner();
@@ -123,9 +99,13 @@ async fn the_index_list_is_bounded_and_refusals_name_their_field() {
     let list = |n: usize| pb::SamplesRequest { indices: (0..n as u64).collect(), ..Default::default() };
     refused(get_samples(&mut c, list(MAX_INDICES + 1)).await.unwrap_err(), inv, "indices");
     refused(get_samples(&mut c, list(0)).await.unwrap_err(), inv, "indices");
-    let e = get_samples(&mut c, pb::SamplesRequest { fields: vec![42], ..list(1) }).await.unwrap_err();
+    let e = get_samples(&mut c, pb::SampleSpec { fields: vec![42], ..Default::default() }.samples(vec![0]))
+        .await
+        .unwrap_err();
     refused(e, inv, "fields");
-    let e = get_samples(&mut c, pb::SamplesRequest { fingerprint: 7, ..list(1) }).await.unwrap_err();
+    let e = get_samples(&mut c, pb::SampleSpec { fingerprint: 7, ..Default::default() }.samples(vec![0]))
+        .await
+        .unwrap_err();
     refused(e, Code::FailedPrecondition, "fingerprint");
     // exactly the limit is accepted (the first sample is enough to see it served)
     let mut full = c.get_samples(list(MAX_INDICES)).await.expect("256 indices are accepted").into_inner();
@@ -143,21 +123,22 @@ async fn a_crop_larger_than_the_frame_is_refused_with_both_sizes() {
     let mut c = client(&s).await;
     let crop = |w, h| Some(pb::OutputCrop { width: w, height: h, mode: pb::CropMode::Center as i32 });
     for (w, h, asked) in [(65, 48, "65x48"), (64, 49, "64x49"), (0, 60, "64x60")] {
-        let e = c.get_sample(pb::SampleRequest { crop: crop(w, h), ..Default::default() }).await.unwrap_err();
+        let e = c.get_sample(pb::SampleSpec { crop: crop(w, h), ..Default::default() }.sample(0)).await.unwrap_err();
         assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
         let m = e.message();
         assert!(m.starts_with("crop: ") && m.contains(asked) && m.contains("64x48"), "{m:?}");
         // a stream and GetSamples end with the same refusal
-        let mut st = c.stream_samples(pb::StreamRequest { crop: crop(w, h), ..Default::default() }).await.unwrap();
+        let mut st =
+            c.stream_samples(pb::SampleSpec { crop: crop(w, h), ..Default::default() }.stream()).await.unwrap();
         let e = st.get_mut().message().await.unwrap_err();
         assert_eq!((e.code(), e.message()), (Code::InvalidArgument, m));
-        let r = pb::SamplesRequest { indices: vec![3], crop: crop(w, h), ..Default::default() };
+        let r = pb::SampleSpec { crop: crop(w, h), ..Default::default() }.samples(vec![3]);
         let e = get_samples(&mut c, r).await.unwrap_err();
         assert_eq!((e.code(), e.message()), (Code::InvalidArgument, m));
     }
     // the frame's own size is no crop at all: the same bytes as without one
     let full = c.get_sample(pb::SampleRequest { index: 1, ..Default::default() }).await.unwrap().into_inner();
-    let same = c.get_sample(pb::SampleRequest { index: 1, crop: crop(64, 48), ..Default::default() }).await;
+    let same = c.get_sample(pb::SampleSpec { crop: crop(64, 48), ..Default::default() }.sample(1)).await;
     assert_eq!(content(same.unwrap().into_inner()), content(full));
     s.shutdown(Duration::from_secs(5)).await;
 }

@@ -152,7 +152,13 @@ async fn prefetched_scenes_give_the_same_samples_and_are_measured() {
         let mut c = client_for(ch);
         let mut samples = Vec::new();
         for rank in 0..2 {
-            let r = pb::StreamRequest { seed: 9, count: 8, rank, world_size: 2, prefetch: 4, ..Default::default() };
+            let r = pb::StreamRequest {
+                count: 8,
+                rank,
+                world_size: 2,
+                prefetch: 4,
+                ..pb::SampleSpec { seed: 9, ..Default::default() }.stream()
+            };
             let mut st = c.stream_samples(r).await.unwrap().into_inner();
             while let Some(b) = st.message().await.unwrap() {
                 samples.extend(b.samples.into_iter().map(|mut x| {

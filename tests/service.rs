@@ -109,7 +109,7 @@ fn content(mut s: pb::Sample) -> pb::Sample {
 }
 
 fn req(seed: u64, start_index: u64, count: u64) -> pb::StreamRequest {
-    pb::StreamRequest { seed, start_index, count, ..Default::default() }
+    pb::StreamRequest { start_index, count, ..pb::SampleSpec { seed, ..Default::default() }.stream() }
 }
 
 /// A `mpiflow serve` child process.
@@ -167,7 +167,8 @@ async fn two_server_processes_give_byte_identical_samples() {
     assert_eq!(ia.datasets[0].fingerprint, ib.datasets[0].fingerprint);
     assert_ne!(ia.datasets[0].fingerprint, 0);
     let all = vec![1, 2, 3, 4, 5, 6, 7];
-    let r = pb::StreamRequest { fields: all, ..req(7, 3, 6) };
+    let r =
+        pb::StreamRequest { spec: Some(pb::SampleSpec { fields: all, seed: 7, ..Default::default() }), ..req(7, 3, 6) };
     let pa = pull_all(&mut ca, r.clone()).await;
     let pb_ = pull_all(&mut cb, r).await;
     assert!(pa.end.is_none() && pb_.end.is_none());
@@ -178,12 +179,7 @@ async fn two_server_processes_give_byte_identical_samples() {
     assert!(sa.iter().all(|s| s.fingerprint == ia.datasets[0].fingerprint && s.seed == 7));
     // GetSample gives the same sample as the stream
     let one = cb
-        .get_sample(pb::SampleRequest {
-            seed: 7,
-            index: 5,
-            fields: [1, 2, 3, 4, 5, 6, 7].to_vec(),
-            ..Default::default()
-        })
+        .get_sample(pb::SampleSpec { seed: 7, fields: [1, 2, 3, 4, 5, 6, 7].to_vec(), ..Default::default() }.sample(5))
         .await
         .unwrap()
         .into_inner();
@@ -341,6 +337,7 @@ async fn refusals_have_the_right_code_and_name_the_field() {
     let s = server(ServiceConfig { max_streams: 2, ..config() }).await;
     let mut c = client(s.addr).await;
     let d = pb::StreamRequest::default;
+    let spec = pb::SampleSpec::default;
     let inv = Code::InvalidArgument;
     let crop = |w, h, mode| Some(pb::OutputCrop { width: w, height: h, mode });
     let cases: Vec<(pb::StreamRequest, Code, &str)> = vec![
@@ -348,32 +345,32 @@ async fn refusals_have_the_right_code_and_name_the_field() {
         (pb::StreamRequest { rank: 2, world_size: 2, ..d() }, inv, "rank"),
         (pb::StreamRequest { rank: 1, ..d() }, inv, "rank"),
         (pb::StreamRequest { batch_size: 65, ..d() }, inv, "batch_size"),
-        (pb::StreamRequest { fields: vec![42], ..d() }, inv, "fields"),
-        (pb::StreamRequest { fields: vec![0], ..d() }, inv, "fields"),
-        (pb::StreamRequest { fields: vec![99], ..d() }, inv, "fields"),
-        (pb::StreamRequest { frames: 1, ..d() }, inv, "frames"),
-        (pb::StreamRequest { frames: 9, ..d() }, inv, "frames"),
-        (pb::StreamRequest { frames: 3, augment: "raft-chairs".into(), ..d() }, inv, "augment"),
-        (pb::StreamRequest { fields: vec![11], augment: "raft-chairs".into(), ..d() }, inv, "augment"),
-        (pb::StreamRequest { flow_dtype: 9, ..d() }, inv, "flow_dtype"),
-        (pb::StreamRequest { compression: 9, ..d() }, inv, "compression"),
-        (pb::StreamRequest { crop: crop(9000, 0, 0), ..d() }, inv, "crop.width"),
-        (pb::StreamRequest { crop: crop(0, 9000, 0), ..d() }, inv, "crop.height"),
-        (pb::StreamRequest { crop: crop(8, 8, 7), ..d() }, inv, "crop.mode"),
-        (pb::StreamRequest { motion_preset: "warp".into(), ..d() }, inv, "motion_preset"),
-        (pb::StreamRequest { motion_ranges_json: "{".into(), ..d() }, inv, "motion_ranges_json"),
-        (pb::StreamRequest { max_objects: Some(300), ..d() }, inv, "max_objects"),
-        (pb::StreamRequest { motions_per_image: Some(0), ..d() }, inv, "motions_per_image"),
-        (pb::StreamRequest { resample: "cubic".into(), ..d() }, inv, "resample"),
+        (pb::SampleSpec { fields: vec![42], ..spec() }.stream(), inv, "fields"),
+        (pb::SampleSpec { fields: vec![0], ..spec() }.stream(), inv, "fields"),
+        (pb::SampleSpec { fields: vec![99], ..spec() }.stream(), inv, "fields"),
+        (pb::SampleSpec { frames: 1, ..spec() }.stream(), inv, "frames"),
+        (pb::SampleSpec { frames: 9, ..spec() }.stream(), inv, "frames"),
+        (pb::SampleSpec { frames: 3, augment: "raft-chairs".into(), ..spec() }.stream(), inv, "augment"),
+        (pb::SampleSpec { fields: vec![11], augment: "raft-chairs".into(), ..spec() }.stream(), inv, "augment"),
+        (pb::SampleSpec { flow_dtype: 9, ..spec() }.stream(), inv, "flow_dtype"),
+        (pb::SampleSpec { compression: 9, ..spec() }.stream(), inv, "compression"),
+        (pb::SampleSpec { crop: crop(9000, 0, 0), ..spec() }.stream(), inv, "crop.width"),
+        (pb::SampleSpec { crop: crop(0, 9000, 0), ..spec() }.stream(), inv, "crop.height"),
+        (pb::SampleSpec { crop: crop(8, 8, 7), ..spec() }.stream(), inv, "crop.mode"),
+        (pb::SampleSpec { motion_preset: "warp".into(), ..spec() }.stream(), inv, "motion_preset"),
+        (pb::SampleSpec { motion_ranges_json: "{".into(), ..spec() }.stream(), inv, "motion_ranges_json"),
+        (pb::SampleSpec { max_objects: Some(300), ..spec() }.stream(), inv, "max_objects"),
+        (pb::SampleSpec { motions_per_image: Some(0), ..spec() }.stream(), inv, "motions_per_image"),
+        (pb::SampleSpec { resample: "cubic".into(), ..spec() }.stream(), inv, "resample"),
         (pb::StreamRequest { start_index: u64::MAX, rank: 1, world_size: 2, ..d() }, inv, "start_index"),
         (pb::StreamRequest { count: 3, start_index: u64::MAX - 1, ..d() }, inv, "count"),
         // 2^64 - 1 is the end cursor, never a sample: the same rule for every count
         (pb::StreamRequest { count: 1, start_index: u64::MAX, ..d() }, inv, "count"),
         (pb::StreamRequest { count: 2, start_index: u64::MAX - 1, ..d() }, inv, "count"),
-        (pb::StreamRequest { dataset: "nope".into(), ..d() }, Code::NotFound, "nope"),
+        (pb::SampleSpec { dataset: "nope".into(), ..spec() }.stream(), Code::NotFound, "nope"),
         // a huge name is echoed short: the client sees NOT_FOUND, not a metadata-size error
-        (pb::StreamRequest { dataset: "n".repeat(15_000), ..d() }, Code::NotFound, "(14800 more characters)"),
-        (pb::StreamRequest { fingerprint: 0x1234, ..d() }, Code::FailedPrecondition, "fingerprint"),
+        (pb::SampleSpec { dataset: "n".repeat(15_000), ..spec() }.stream(), Code::NotFound, "(14800 more characters)"),
+        (pb::SampleSpec { fingerprint: 0x1234, ..spec() }.stream(), Code::FailedPrecondition, "fingerprint"),
     ];
     for (r, code, needle) in cases {
         expect_refused(&mut c, r, code, needle).await;
@@ -381,34 +378,37 @@ async fn refusals_have_the_right_code_and_name_the_field() {
     // GetSample refuses alike
     let e = c.get_sample(pb::SampleRequest { index: u64::MAX, ..Default::default() }).await.unwrap_err();
     assert_eq!((e.code(), e.message().starts_with("index")), (inv, true), "{e:?}");
-    let e = c.get_sample(pb::SampleRequest { crop: crop(9000, 0, 0), ..Default::default() }).await.unwrap_err();
+    let e = c.get_sample(pb::SampleSpec { crop: crop(9000, 0, 0), ..Default::default() }.sample(0)).await.unwrap_err();
     assert_eq!((e.code(), e.message().starts_with("crop.width")), (inv, true), "{e:?}");
-    let e = c.get_sample(pb::SampleRequest { fingerprint: 7, ..Default::default() }).await.unwrap_err();
+    let e = c.get_sample(pb::SampleSpec { fingerprint: 7, ..Default::default() }.sample(0)).await.unwrap_err();
     assert_eq!(e.code(), Code::FailedPrecondition);
     // a valid motion_ranges_json is accepted (and changes the fingerprint)
     let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
     let ranges = serde_json::to_string(&mpiflow::sample::motion::MotionPreset::PaperKitti.ranges()).unwrap();
     let one = c
-        .get_sample(pb::SampleRequest { motion_ranges_json: ranges.clone(), ..Default::default() })
+        .get_sample(pb::SampleSpec { motion_ranges_json: ranges.clone(), ..Default::default() }.sample(0))
         .await
         .unwrap()
         .into_inner();
     assert_ne!(one.fingerprint, info.datasets[0].fingerprint);
     // ... and a request naming that fingerprint with the same override is served
-    let again = pb::SampleRequest { motion_ranges_json: ranges, fingerprint: one.fingerprint, ..Default::default() };
+    let again =
+        pb::SampleSpec { motion_ranges_json: ranges, fingerprint: one.fingerprint, ..Default::default() }.sample(0);
     assert!(c.get_sample(again).await.is_ok());
-    let stale = pb::SampleRequest { fingerprint: one.fingerprint, ..Default::default() };
+    let stale = pb::SampleSpec { fingerprint: one.fingerprint, ..Default::default() }.sample(0);
     assert_eq!(c.get_sample(stale).await.unwrap_err().code(), Code::FailedPrecondition);
     // a colour kernel other than the dataset's: another fingerprint (so other motions too)
     let fields = vec![pb::Field::Image2 as i32];
-    let default = c.get_sample(pb::SampleRequest { fields: fields.clone(), ..Default::default() }).await.unwrap();
-    let bilinear = pb::SampleRequest { resample: "bilinear".into(), fields, ..Default::default() };
+    let default =
+        c.get_sample(pb::SampleSpec { fields: fields.clone(), ..Default::default() }.sample(0)).await.unwrap();
+    let bilinear = pb::SampleSpec { resample: "bilinear".into(), fields, ..Default::default() }.sample(0);
     let bilinear = c.get_sample(bilinear).await.unwrap().into_inner();
     let default = default.into_inner();
     assert_ne!(bilinear.fingerprint, default.fingerprint);
     let image2 = |s: &pb::Sample| s.tensors.iter().find(|t| t.name == "image2").unwrap().data.clone();
     assert_ne!(image2(&bilinear), image2(&default));
-    let e = c.get_sample(pb::SampleRequest { resample: "nearest".into(), ..Default::default() }).await.unwrap_err();
+    let e =
+        c.get_sample(pb::SampleSpec { resample: "nearest".into(), ..Default::default() }.sample(0)).await.unwrap_err();
     assert_eq!((e.code(), e.message().starts_with("resample")), (inv, true), "{e:?}");
     // an upload without a dataset name (more upload cases in tests/service_data.rs)
     let chunks = tokio_stream::iter(vec![pb::SourceChunk::default()]);
@@ -487,18 +487,20 @@ async fn lz4_f16_and_crops_round_trip() {
     let mut c = client(s.addr).await;
     let fields = vec![1, 2, 3, 4];
     let plain = c
-        .get_sample(pb::SampleRequest { index: 2, fields: fields.clone(), ..Default::default() })
+        .get_sample(pb::SampleSpec { fields: fields.clone(), ..Default::default() }.sample(2))
         .await
         .unwrap()
         .into_inner();
     let packed = c
-        .get_sample(pb::SampleRequest {
-            index: 2,
-            fields: fields.clone(),
-            compression: pb::Compression::Lz4 as i32,
-            flow_dtype: pb::FlowDtype::F16 as i32,
-            ..Default::default()
-        })
+        .get_sample(
+            pb::SampleSpec {
+                fields: fields.clone(),
+                compression: pb::Compression::Lz4 as i32,
+                flow_dtype: pb::FlowDtype::F16 as i32,
+                ..Default::default()
+            }
+            .sample(2),
+        )
         .await
         .unwrap()
         .into_inner();
@@ -517,12 +519,9 @@ async fn lz4_f16_and_crops_round_trip() {
     // centre crop: the middle of the full sample, intrinsics shifted
     let crop = |mode: pb::CropMode| Some(pb::OutputCrop { width: 32, height: 24, mode: mode as i32 });
     let center = c
-        .get_sample(pb::SampleRequest {
-            index: 2,
-            fields: fields.clone(),
-            crop: crop(pb::CropMode::Center),
-            ..Default::default()
-        })
+        .get_sample(
+            pb::SampleSpec { fields: fields.clone(), crop: crop(pb::CropMode::Center), ..Default::default() }.sample(2),
+        )
         .await
         .unwrap()
         .into_inner();
@@ -547,7 +546,7 @@ async fn lz4_f16_and_crops_round_trip() {
         }
     }
     // random crop: reproducible, inside the frame
-    let r = pb::SampleRequest { index: 2, fields, crop: crop(pb::CropMode::Random), ..Default::default() };
+    let r = pb::SampleSpec { fields, crop: crop(pb::CropMode::Random), ..Default::default() }.sample(2);
     let a = c.get_sample(r.clone()).await.unwrap().into_inner();
     let b = c.get_sample(r).await.unwrap().into_inner();
     assert_eq!(content(a.clone()), content(b));
@@ -585,7 +584,7 @@ async fn a_sample_over_grpc_default_4_mib_limit_arrives() {
     let limits = info.limits.unwrap();
     assert!(limits.max_message_bytes >= 26 * limits.max_image_pixels, "{limits:?}");
     let all = vec![1, 2, 3, 4, 5, 6, 7];
-    let one = c.get_sample(pb::SampleRequest { fields: all, ..Default::default() }).await.unwrap().into_inner();
+    let one = c.get_sample(pb::SampleSpec { fields: all, ..Default::default() }.sample(0)).await.unwrap().into_inner();
     assert_eq!((one.width, one.height), (640, 480));
     let bytes: usize = one.tensors.iter().map(|t| t.data.len()).sum();
     assert!(bytes > 4 << 20, "{bytes}");
@@ -737,9 +736,9 @@ async fn an_oversized_request_is_resource_exhausted() {
     let ch = channel(&s.addr.to_string()).await;
     let mut c = MpiFlowClient::new(ch).max_encoding_message_size(usize::MAX).max_decoding_message_size(usize::MAX);
     let huge = "d".repeat(limit + 1000);
-    let e = c.get_sample(pb::SampleRequest { dataset: huge.clone(), ..Default::default() }).await.unwrap_err();
+    let e = c.get_sample(pb::SampleSpec { dataset: huge.clone(), ..Default::default() }.sample(0)).await.unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
-    let e = c.stream_samples(pb::StreamRequest { dataset: huge, ..Default::default() }).await.unwrap_err();
+    let e = c.stream_samples(pb::SampleSpec { dataset: huge, ..Default::default() }.stream()).await.unwrap_err();
     assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
     assert!(c.get_info(pb::InfoRequest {}).await.is_ok());
 }
@@ -770,7 +769,10 @@ async fn stalled_streams_hold_at_most_their_share_of_the_buffered_budget() {
     let addr = s.addr.to_string();
     wait_serving(&addr).await;
     let all: Vec<i32> = (1..=9).collect();
-    let stalled_req = |seed| pb::StreamRequest { seed, fields: all.clone(), prefetch: 64, ..Default::default() };
+    let stalled_req = |seed| pb::StreamRequest {
+        prefetch: 64,
+        ..pb::SampleSpec { seed, fields: all.clone(), ..Default::default() }.stream()
+    };
     // the size of one such sample (its estimate on the server)
     let mut c = client(&addr).await;
     let one = pull_all(&mut c, pb::StreamRequest { count: 1, ..stalled_req(1) }).await;
@@ -891,11 +893,9 @@ async fn the_occlusion_mask_is_made_when_asked_for_and_is_the_librarys() {
 
     let srv = server(c0).await;
     let mut c = client(&srv.addr).await;
-    let get = |fields: Vec<pb::Field>| pb::SampleRequest {
-        seed: 3,
-        index,
-        fields: fields.into_iter().map(|f| f as i32).collect(),
-        ..Default::default()
+    let get = |fields: Vec<pb::Field>| {
+        pb::SampleSpec { seed: 3, fields: fields.into_iter().map(|f| f as i32).collect(), ..Default::default() }
+            .sample(index)
     };
     let with = c.get_sample(get(vec![pb::Field::Image2, pb::Field::Flow, pb::Field::Occlusion])).await.unwrap();
     let without = c.get_sample(get(vec![pb::Field::Image2, pb::Field::Flow])).await.unwrap();

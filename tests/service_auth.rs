@@ -135,7 +135,7 @@ async fn serving(c: ServiceConfig, o: &ClientOptions) -> RunningServer {
 }
 
 fn req(count: u64) -> pb::StreamRequest {
-    pb::StreamRequest { seed: 3, count, ..Default::default() }
+    pb::StreamRequest { count, ..pb::SampleSpec { seed: 3, ..Default::default() }.stream() }
 }
 
 /// Connects with `o` and pulls `count` samples: their indices, or the first error.

@@ -121,7 +121,10 @@ async fn bad_sources_are_passed_over_deterministically_and_reported() {
     let mut c = client(s.addr).await;
     let fields =
         vec![pb::Field::Image1 as i32, pb::Field::Flow as i32, pb::Field::Depth1 as i32, pb::Field::Depth2 as i32];
-    let r = pb::StreamRequest { count: 10, seed: 3, fields: fields.clone(), ..Default::default() };
+    let r = pb::StreamRequest {
+        count: 10,
+        ..pb::SampleSpec { seed: 3, fields: fields.clone(), ..Default::default() }.stream()
+    };
     let got = pull(&mut c, r.clone()).await;
     assert_eq!(got.iter().map(|s| s.index).collect::<Vec<_>>(), (0..10).collect::<Vec<_>>());
     // items 1 (b) and 3 (d) are bad: their indices come from the next good item
@@ -199,11 +202,15 @@ async fn shards_serve_and_uploads_make_datasets() {
     let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
     let mine = info.datasets.iter().find(|d| d.name == "mine").expect("listed");
     assert_eq!((mine.sources, mine.fingerprint), (2, summary.fingerprint));
-    let got = pull(&mut c, pb::StreamRequest { dataset: "mine".into(), count: 3, ..Default::default() }).await;
+    let got = pull(
+        &mut c,
+        pb::StreamRequest { count: 3, ..pb::SampleSpec { dataset: "mine".into(), ..Default::default() }.stream() },
+    )
+    .await;
     let ids: Vec<&str> = got.iter().map(|s| s.source_id.as_str()).collect();
     assert_eq!(ids, ["p1", "p2", "p1"]);
     let one = c
-        .get_sample(pb::SampleRequest { dataset: "mine".into(), index: 1, ..Default::default() })
+        .get_sample(pb::SampleSpec { dataset: "mine".into(), ..Default::default() }.sample(1))
         .await
         .unwrap()
         .into_inner();
@@ -270,7 +277,11 @@ async fn uploads_that_could_never_make_a_scene_are_rejected_at_the_door() {
             summary.rejected
         );
     }
-    let got = pull(&mut c, pb::StreamRequest { dataset: "door".into(), count: 2, ..Default::default() }).await;
+    let got = pull(
+        &mut c,
+        pb::StreamRequest { count: 2, ..pb::SampleSpec { dataset: "door".into(), ..Default::default() }.stream() },
+    )
+    .await;
     assert!(got.iter().all(|s| s.source_id == "good"), "the stored item streams");
     s.shutdown(Duration::from_secs(5)).await;
 }

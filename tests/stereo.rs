@@ -200,12 +200,9 @@ async fn stereo_over_grpc() {
     let server = start(config).await.expect("server starts");
     let mut c = MpiFlowClient::connect(format!("http://{}", server.addr)).await.unwrap();
     let fields = vec![pb::Field::Flow as i32, pb::Field::Valid as i32, pb::Field::Disparity as i32];
-    let req = |preset: &str| pb::SampleRequest {
-        index: 3,
-        fields: fields.clone(),
-        motion_preset: preset.into(),
-        ..Default::default()
-    };
+    let spec =
+        |preset: &str| pb::SampleSpec { fields: fields.clone(), motion_preset: preset.into(), ..Default::default() };
+    let req = |preset: &str| spec(preset).sample(3);
     let s = c.get_sample(req("stereo")).await.unwrap().into_inner();
     let names: Vec<&str> = s.tensors.iter().map(|t| t.name.as_str()).collect();
     assert_eq!(names, ["flow", "valid", "disparity"]);
@@ -220,7 +217,7 @@ async fn stereo_over_grpc() {
     let e = c.get_sample(req("reference")).await.unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().starts_with("fields") && e.message().contains("stereo"), "{}", e.message());
-    let flipped = pb::SampleRequest { augment: "raft-chairs".into(), ..req("stereo") };
+    let flipped = pb::SampleSpec { augment: "raft-chairs".into(), ..spec("stereo") }.sample(3);
     let e = c.get_sample(flipped).await.unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().starts_with("augment.h_flip_prob"), "{}", e.message());
@@ -228,11 +225,7 @@ async fn stereo_over_grpc() {
     let mut wide = MotionPreset::Stereo.ranges();
     wide.name = "wide-baseline".into();
     wide.camera.translation.x = Component::constant(-0.4);
-    let custom = pb::SampleRequest {
-        motion_preset: String::new(),
-        motion_ranges_json: serde_json::to_string(&wide).unwrap(),
-        ..req("")
-    };
+    let custom = pb::SampleSpec { motion_ranges_json: serde_json::to_string(&wide).unwrap(), ..spec("") }.sample(3);
     let s = c.get_sample(custom).await.unwrap().into_inner();
     assert_eq!(s.camera.as_ref().unwrap().translation, [-0.4, 0.0, 0.0]);
     let not_stereo = MotionSpec::Ranges(Box::new(MotionPreset::Reference.ranges()));

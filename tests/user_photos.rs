@@ -192,13 +192,12 @@ async fn photos_of_mixed_sizes_serve_one_frame_and_any_crop_that_fits_it() {
         datasets: vec![mpiflow::service::config::DatasetConfig::parse(&dir.display().to_string()).unwrap()],
         ..ServiceConfig::default()
     };
-    let request = pb::StreamRequest {
-        seed: 3,
-        count: 8,
-        motions_per_image: Some(1),
-        crop: Some(pb::OutputCrop { width: 112, height: 64, mode: pb::CropMode::Center as i32 }),
-        ..Default::default()
+    let spec = |crop: Option<pb::OutputCrop>| {
+        let spec = pb::SampleSpec { seed: 3, motions_per_image: Some(1), crop, ..Default::default() };
+        pb::StreamRequest { count: 8, ..spec.stream() }
     };
+    let center = |width, height| Some(pb::OutputCrop { width, height, mode: pb::CropMode::Center as i32 });
+    let request = spec(center(112, 64));
     let a = start(config(None)).await.unwrap();
     let b = start(config(None)).await.unwrap();
     let (sa, sb) = (pull_all(a.addr, request.clone()).await, pull_all(b.addr, request.clone()).await);
@@ -212,10 +211,7 @@ async fn photos_of_mixed_sizes_serve_one_frame_and_any_crop_that_fits_it() {
     }
     assert_eq!(sa, sb, "same address, same bytes");
     // the frame is the largest photo's: a crop wider than it is refused, naming 120x72
-    let wide = pb::StreamRequest {
-        crop: Some(pb::OutputCrop { width: 121, height: 64, mode: pb::CropMode::Center as i32 }),
-        ..request.clone()
-    };
+    let wide = spec(center(121, 64));
     let channel = Endpoint::from_shared(format!("http://{}", a.addr)).unwrap().connect().await.unwrap();
     let mut stream = client_for(channel).stream_samples(wide).await.unwrap().into_inner();
     let e = loop {
@@ -229,7 +225,7 @@ async fn photos_of_mixed_sizes_serve_one_frame_and_any_crop_that_fits_it() {
     assert!(e.message().contains("120x72"), "{}", e.message());
     // --size still sets the frame
     let c = start(config(Some("64x48"))).await.unwrap();
-    let sc = pull_all(c.addr, pb::StreamRequest { crop: None, ..request }).await;
+    let sc = pull_all(c.addr, spec(None)).await;
     assert!(sc.iter().all(|s| (s.width, s.height) == (64, 48)));
     for s in [a, b, c] {
         s.shutdown(std::time::Duration::from_secs(5)).await;

@@ -34,7 +34,7 @@ def fast(seconds, out):
     ch = grpc.insecure_channel(addr, options=[("grpc.max_receive_message_length", 1 << 30)])
     stub = pbg.MpiFlowStub(ch)
     n = 0; t0 = time.time()
-    it = stub.StreamSamples(pb.StreamRequest(seed=999, fields=[1, 2, 3, 4], prefetch=4))
+    it = stub.StreamSamples(pb.StreamRequest(spec=pb.SampleSpec(seed=999, fields=[1, 2, 3, 4]), prefetch=4))
     for b in it:
         n += len(b.samples)
         if time.time() - t0 > seconds:
@@ -49,7 +49,7 @@ print(f"idle RSS {rss()} MiB, solo fast rate {solo[0]:.2f} samples/s", flush=Tru
 chans, its = [], []
 for i in range(n_stalled):
     ch = grpc.insecure_channel(addr, options=[("grpc.max_receive_message_length", 1 << 30)])
-    it = pbg.MpiFlowStub(ch).StreamSamples(pb.StreamRequest(seed=i, fields=ALL, prefetch=64))
+    it = pbg.MpiFlowStub(ch).StreamSamples(pb.StreamRequest(spec=pb.SampleSpec(seed=i, fields=ALL), prefetch=64))
     next(it)
     chans.append(ch); its.append(it)
 print(f"{n_stalled} stalled streams open", flush=True)

@@ -367,7 +367,12 @@ async fn fast_client(addr: String, seed: u64, rank: u32, world: u32, until: toki
     let mut expected = u64::from(rank);
     let mut start = 0u64;
     while tokio::time::Instant::now() < until {
-        let req = pb::StreamRequest { seed, rank, world_size: world, start_index: start, ..Default::default() };
+        let req = pb::StreamRequest {
+            rank,
+            world_size: world,
+            start_index: start,
+            ..pb::SampleSpec { seed, ..Default::default() }.stream()
+        };
         let mut stream = match timeout_at(until, client.stream_samples(req)).await {
             Ok(Ok(s)) => s.into_inner(),
             Ok(Err(s)) => {
@@ -447,11 +452,9 @@ async fn stalled_client(
     let mut round = 0u64;
     while tokio::time::Instant::now() < until {
         let req = pb::StreamRequest {
-            seed: seed + round,
             prefetch: 64,
             batch_size: batch,
-            fields: all_fields(),
-            ..Default::default()
+            ..pb::SampleSpec { seed: seed + round, fields: all_fields(), ..Default::default() }.stream()
         };
         round += 1;
         match timeout_at(until, client.stream_samples(req)).await {
@@ -488,7 +491,7 @@ async fn unary_client(addr: String, seed: u64, until: tokio::time::Instant, sh: 
     let mut index = 0u64;
     while tokio::time::Instant::now() < until {
         index += 1;
-        match timeout_at(until, client.get_sample(pb::SampleRequest { seed, index, ..Default::default() })).await {
+        match timeout_at(until, client.get_sample(pb::SampleSpec { seed, ..Default::default() }.sample(index))).await {
             Ok(Ok(_)) => {
                 sh.unary_samples.fetch_add(1, Ordering::Relaxed);
             }
@@ -524,7 +527,7 @@ async fn raw_h2(
 /// Keeps `calls` GetSample calls of every field open on a raw connection with a one-byte window,
 /// never reading them; reconnects when the server closes the connection.
 async fn unread_client(addr: String, calls: usize, until: tokio::time::Instant, sh: Arc<Shared>) {
-    let body = pb::SampleRequest { fields: all_fields(), ..Default::default() }.encode_to_vec();
+    let body = pb::SampleSpec { fields: all_fields(), ..Default::default() }.sample(0).encode_to_vec();
     let mut frame = vec![0u8];
     frame.extend_from_slice(&(body.len() as u32).to_be_bytes());
     frame.extend_from_slice(&body);
@@ -599,7 +602,7 @@ async fn newcomer(addr: &str) -> Option<f64> {
 async fn slow_client(addr: String, seed: u64, until: tokio::time::Instant, sh: Arc<Shared>) {
     let Some(mut client) = connected("slow", &addr, until, &sh).await else { return };
     while tokio::time::Instant::now() < until {
-        let req = pb::StreamRequest { seed, ..Default::default() };
+        let req = pb::SampleSpec { seed, ..Default::default() }.stream();
         let mut s = match timeout_at(until, client.stream_samples(req)).await {
             Ok(Ok(s)) => s.into_inner(),
             Ok(Err(status)) => {
@@ -635,7 +638,7 @@ async fn cancelling_client(addr: String, seed: u64, until: tokio::time::Instant,
         round += 1;
         let reads = round % 4;
         let opened = if round.is_multiple_of(2) {
-            let req = pb::SamplesRequest { seed, indices: vec![round, round + 7, round * 3], ..Default::default() };
+            let req = pb::SampleSpec { seed, ..Default::default() }.samples(vec![round, round + 7, round * 3]);
             match timeout_at(until, client.get_samples(req)).await {
                 Ok(Ok(s)) => {
                     let mut s = s.into_inner();
@@ -648,7 +651,10 @@ async fn cancelling_client(addr: String, seed: u64, until: tokio::time::Instant,
                 Err(_) => return,
             }
         } else {
-            let req = pb::StreamRequest { seed, start_index: round * 100, ..Default::default() };
+            let req = pb::StreamRequest {
+                start_index: round * 100,
+                ..pb::SampleSpec { seed, ..Default::default() }.stream()
+            };
             match timeout_at(until, client.stream_samples(req)).await {
                 Ok(Ok(s)) => {
                     let mut s = s.into_inner();
@@ -732,8 +738,10 @@ async fn uploading_client(addr: String, k: usize, until: tokio::time::Instant, s
                     sh.error("uploading", "not accepted", &m, false);
                 } else {
                     sh.uploads.fetch_add(1, Ordering::Relaxed);
-                    let req =
-                        pb::StreamRequest { dataset: dataset.clone(), seed: round, count: 2, ..Default::default() };
+                    let req = pb::StreamRequest {
+                        count: 2,
+                        ..pb::SampleSpec { dataset: dataset.clone(), seed: round, ..Default::default() }.stream()
+                    };
                     match timeout_at(until, crate::service::client::pull(&mut client, req, |_| {})).await {
                         Ok(Ok(p)) => {
                             if let Some(s) = p.error {
@@ -857,7 +865,7 @@ async fn mix(
     let mut report = SoakReport::default();
     // warm the scene cache
     let mut client = connect(addr).await.map_err(|e| SoakError(format!("{addr}: {e}")))?;
-    let warm = pb::StreamRequest { seed: 1, count: 8, ..Default::default() };
+    let warm = pb::StreamRequest { count: 8, ..pb::SampleSpec { seed: 1, ..Default::default() }.stream() };
     let w = crate::service::client::pull(&mut client, warm, |_| {}).await.map_err(|s| SoakError(s.to_string()))?;
     if let Some(e) = w.error {
         return Err(SoakError(format!("warm-up pull: {e}")));

@@ -45,11 +45,14 @@ pub struct ServeBench {
 
 fn request(b: &ServeBench, seed: u64, count: u64) -> pb::StreamRequest {
     pb::StreamRequest {
-        seed,
         count,
         batch_size: b.batch_size,
-        compression: if b.lz4 { pb::Compression::Lz4 } else { pb::Compression::None } as i32,
-        ..Default::default()
+        ..pb::SampleSpec {
+            seed,
+            compression: if b.lz4 { pb::Compression::Lz4 } else { pb::Compression::None } as i32,
+            ..Default::default()
+        }
+        .stream()
     }
 }
 

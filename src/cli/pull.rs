@@ -120,14 +120,10 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
     if a.backward {
         fields.extend([pb::Field::FlowBackward, pb::Field::ValidBackward, pb::Field::OcclusionBackward]);
     }
-    Ok(pb::StreamRequest {
+    let spec = pb::SampleSpec {
         dataset: a.dataset.clone(),
         fingerprint,
         seed: a.seed,
-        rank: a.rank,
-        world_size: a.world_size,
-        start_index: a.start_index,
-        count: a.count,
         fields: fields.into_iter().map(|f| f as i32).collect(),
         flow_dtype: if a.f16 { pb::FlowDtype::F16 } else { pb::FlowDtype::F32 } as i32,
         compression: if a.lz4 { pb::Compression::Lz4 } else { pb::Compression::None } as i32,
@@ -136,11 +132,18 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
         motion_ranges_json: String::new(),
         max_objects: a.objects,
         motions_per_image: a.motions_per_image,
-        batch_size: a.batch_size,
-        prefetch: a.prefetch,
         augment: a.augment.clone().unwrap_or_default(),
         frames: a.frames,
         resample: a.resample.clone(),
+    };
+    Ok(pb::StreamRequest {
+        spec: Some(spec),
+        rank: a.rank,
+        world_size: a.world_size,
+        start_index: a.start_index,
+        count: a.count,
+        batch_size: a.batch_size,
+        prefetch: a.prefetch,
     })
 }
 

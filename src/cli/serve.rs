@@ -6,8 +6,9 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::Args;
-use mpiflow::service::config::{parse_size, DatasetConfig, LogFormat};
+use mpiflow::service::config::{DatasetConfig, LogFormat};
 use mpiflow::service::ServiceConfig;
+use serde::Serialize;
 use std::io::Write;
 
 use super::CliError;
@@ -17,13 +18,22 @@ pub struct ServeArgs {
     /// TOML configuration file (see deploy/mpiflow.toml for every key and its default).
     #[arg(long, value_name = "FILE")]
     config: Option<PathBuf>,
-    /// Listen address (port 0 = any free port). Default 127.0.0.1:50051.
-    #[arg(long, value_name = "HOST:PORT")]
-    addr: Option<String>,
     /// A dataset: a folder of photos (or the reference layout), or NAME=PATH. Repeatable; the
     /// first is the default. Default: the bundled scenes as dataset `builtin`.
     #[arg(long, value_name = "DIR")]
     source: Vec<String>,
+    #[command(flatten)]
+    keys: KeyFlags,
+}
+
+/// The flags that set configuration keys: each field is named (in serde) after the key it sets,
+/// the nested ones after the section's key, so the mapping is derived
+/// ([`mpiflow::service::layers`]); a flag given overrides the file and the environment.
+#[derive(Args, Debug, Serialize)]
+struct KeyFlags {
+    /// Listen address (port 0 = any free port). Default 127.0.0.1:50051.
+    #[arg(long, value_name = "HOST:PORT")]
+    addr: Option<String>,
     /// Serve Prometheus metrics on http://HOST:PORT/metrics.
     #[arg(long, value_name = "HOST:PORT")]
     metrics_addr: Option<String>,
@@ -41,8 +51,8 @@ pub struct ServeArgs {
     #[arg(long, value_name = "MIB")]
     max_buffered_mb: Option<u64>,
     /// Samples made ahead per stream when a request says 0 (default 4).
-    #[arg(long, value_name = "N")]
-    prefetch: Option<u32>,
+    #[arg(long = "prefetch", value_name = "N")]
+    default_prefetch: Option<u32>,
     /// Resize every source image to WxH (the bundled scenes are 640x480).
     #[arg(long, value_name = "WxH")]
     size: Option<String>,
@@ -64,31 +74,6 @@ pub struct ServeArgs {
     /// Build the scenes of each stream's next indices ahead on the scene pool (true / false).
     #[arg(long, value_name = "BOOL")]
     prefetch_scenes: Option<bool>,
-    /// Depth model for sources without depth: a NAME (`mpiflow models list`; fetched and cached on
-    /// first use) or an ONNX FILE (optional manifest FILE.toml beside it; docs/models.md).
-    #[arg(long, value_name = "NAME|FILE")]
-    depth_model: Option<PathBuf>,
-    /// MPI network (ONNX) instead of the built-in layering.
-    #[arg(long, value_name = "FILE.onnx")]
-    mpi_model: Option<PathBuf>,
-    /// Instance segmentation model for sources without masks: a NAME or an ONNX FILE.
-    #[arg(long, value_name = "NAME|FILE")]
-    segment_model: Option<PathBuf>,
-    /// Planes of the built-in layering.
-    #[arg(long, value_name = "N")]
-    planes: Option<usize>,
-    /// Default motion preset of the datasets: reference, paper-kitti, depthstillation, mixed or stereo.
-    #[arg(long, value_name = "NAME")]
-    preset: Option<mpiflow::sample::motion::MotionPreset>,
-    /// Default objects moved per sample.
-    #[arg(long, value_name = "K")]
-    objects: Option<usize>,
-    /// Default consecutive samples per source photo.
-    #[arg(long, value_name = "M")]
-    motions_per_image: Option<u64>,
-    /// Default colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
-    #[arg(long, value_name = "KERNEL")]
-    resample: Option<mpiflow::render::Resample>,
     /// Also serve grpc.health.v1 alone, in plaintext, on this address (for probes that cannot
     /// do TLS).
     #[arg(long, value_name = "HOST:PORT")]
@@ -109,68 +94,65 @@ pub struct ServeArgs {
     /// Extra wait after the warm-up sample before health says SERVING.
     #[arg(long, value_name = "MS", hide = true)]
     warmup_delay_ms: Option<u64>,
+    #[command(flatten)]
+    models: ModelFlags,
+    #[command(flatten)]
+    sample: SampleFlags,
 }
 
-/// The configuration of `mpiflow serve`: file, then environment, then flags.
+/// Flags of `[models]` keys.
+#[derive(Args, Debug, Serialize)]
+struct ModelFlags {
+    /// Depth model for sources without depth: a NAME (`mpiflow models list`; fetched and cached on
+    /// first use) or an ONNX FILE (optional manifest FILE.toml beside it; docs/models.md).
+    #[arg(long, value_name = "NAME|FILE")]
+    depth_model: Option<PathBuf>,
+    /// MPI network (ONNX) instead of the built-in layering.
+    #[arg(long, value_name = "FILE.onnx")]
+    mpi_model: Option<PathBuf>,
+    /// Instance segmentation model for sources without masks: a NAME or an ONNX FILE.
+    #[arg(long, value_name = "NAME|FILE")]
+    segment_model: Option<PathBuf>,
+    /// Planes of the built-in layering.
+    #[arg(long, value_name = "N")]
+    planes: Option<usize>,
+}
+
+/// Flags of `[sample]` keys (the datasets' default sample configuration).
+#[derive(Args, Debug, Serialize)]
+struct SampleFlags {
+    /// Default motion preset of the datasets: reference, paper-kitti, depthstillation, mixed or stereo.
+    #[arg(long = "preset", value_name = "NAME")]
+    motion: Option<mpiflow::sample::motion::MotionPreset>,
+    /// Default objects moved per sample.
+    #[arg(long = "objects", value_name = "K")]
+    max_objects: Option<usize>,
+    /// Default consecutive samples per source photo.
+    #[arg(long, value_name = "M")]
+    motions_per_image: Option<u64>,
+    /// Default colour kernel of the target render: bilinear, bicubic, bspline3, bspline5 or
+    /// lanczos3.
+    #[arg(long, value_name = "KERNEL")]
+    resample: Option<mpiflow::render::Resample>,
+}
+
+/// The configuration of `mpiflow serve`: defaults, then the file, then the environment, then
+/// the flags.
 pub fn build_config(a: &ServeArgs) -> Result<ServiceConfig, CliError> {
+    build_config_with(a, std::env::vars())
+}
+
+/// [`build_config`] with the environment `vars`.
+fn build_config_with(
+    a: &ServeArgs,
+    vars: impl IntoIterator<Item = (String, String)>,
+) -> Result<ServiceConfig, CliError> {
     let mut c = match &a.config {
         Some(p) => ServiceConfig::from_file(p)?,
         None => ServiceConfig::default(),
     };
-    c.apply_env()?;
-    macro_rules! set {
-        ($flag:ident => $($field:tt)+) => {
-            if let Some(v) = a.$flag.clone() {
-                c.$($field)+ = v.into();
-            }
-        };
-    }
-    set!(addr => addr);
-    set!(workers => workers);
-    set!(max_in_flight => max_in_flight);
-    set!(max_streams => max_streams);
-    set!(prefetch => default_prefetch);
-    set!(max_buffered_mb => max_buffered_mb);
-    set!(drain_timeout_s => drain_timeout_s);
-    set!(log_format => log_format);
-    set!(log_level => log_level);
-    set!(cache_mb => cache_mb);
-    set!(follow_source_links => follow_source_links);
-    set!(prefetch_scenes => prefetch_scenes);
-    set!(planes => models.planes);
-    set!(objects => sample.max_objects);
-    set!(motions_per_image => sample.motions_per_image);
-    set!(resample => sample.resample);
-    set!(warmup_delay_ms => warmup_delay_ms);
-    if let Some(m) = &a.metrics_addr {
-        c.metrics_addr = Some(m.clone());
-    }
-    if let Some(h) = &a.health_addr {
-        c.health_addr = Some(h.clone());
-    }
-    if let Some(s) = &a.size {
-        parse_size(s).map_err(|e| CliError(format!("--size: {e}")))?;
-        c.size = Some(s.clone());
-    }
-    for (flag, slot) in [
-        (&a.depth_model, &mut c.models.depth_model),
-        (&a.mpi_model, &mut c.models.mpi_model),
-        (&a.segment_model, &mut c.models.segment_model),
-        (&a.tls_cert, &mut c.tls_cert),
-        (&a.tls_key, &mut c.tls_key),
-        (&a.tls_client_ca, &mut c.tls_client_ca),
-    ] {
-        if let Some(p) = flag {
-            *slot = Some(p.clone());
-        }
-    }
-    if let Some(p) = &a.auth_token_file {
-        c.auth_token = None;
-        c.auth_token_file = Some(p.clone());
-    }
-    if let Some(p) = a.preset {
-        c.sample.motion = mpiflow::sample::config::MotionSpec::Preset(p);
-    }
+    c.apply_env_vars(vars).map_err(CliError)?;
+    c.apply_flags(&a.keys).map_err(CliError)?;
     if !a.source.is_empty() {
         c.datasets = a
             .source
@@ -246,4 +228,62 @@ pub fn run(a: ServeArgs) -> Result<(), CliError> {
         server.shutdown(drain).await;
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+    use mpiflow::sample::config::MotionSpec;
+    use mpiflow::sample::motion::MotionPreset;
+
+    #[derive(Parser)]
+    struct Serve {
+        #[command(flatten)]
+        args: ServeArgs,
+    }
+
+    fn config(file: &str, env: &[(&str, &str)], flags: &[&str]) -> Result<ServiceConfig, CliError> {
+        let dir = std::env::temp_dir().join(format!("mpiflow-serve-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        static FILES: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let path = dir.join(format!("{}.toml", FILES.fetch_add(1, std::sync::atomic::Ordering::Relaxed)));
+        std::fs::write(&path, file).unwrap();
+        let mut argv = vec!["serve".to_string(), "--config".into(), path.display().to_string()];
+        argv.extend(flags.iter().map(|f| (*f).to_string()));
+        let a = Serve::try_parse_from(argv).map_err(|e| CliError(e.to_string()))?.args;
+        build_config_with(&a, env.iter().map(|(k, v)| ((*k).to_string(), (*v).to_string())))
+    }
+
+    /// Each layer overrides the ones below it, key by key: defaults < file < environment < flags,
+    /// in sections too, and a flag sets the key it is named after.
+    #[test]
+    fn defaults_then_file_then_environment_then_flags() {
+        let file = "workers = 3\nmax_streams = 5\ncache_mb = 100\n[sample]\nmax_objects = 2\nmotions_per_image = 4\n";
+        let env = [("MPIFLOW_MAX_STREAMS", "6"), ("MPIFLOW_CACHE_MB", "200"), ("MPIFLOW_MAX_OBJECTS", "1")];
+        let flags = ["--cache-mb", "300", "--objects", "0", "--prefetch", "7", "--preset", "paper-kitti"];
+        let c = config(file, &env, &flags).unwrap();
+        let d = ServiceConfig::default();
+        assert_eq!((c.max_prefetch, c.addr.as_str()), (d.max_prefetch, d.addr.as_str()), "defaults");
+        assert_eq!((c.workers, c.sample.motions_per_image), (3, 4), "the file over the defaults");
+        assert_eq!(c.max_streams, 6, "the environment over the file");
+        assert_eq!((c.cache_mb, c.sample.max_objects), (300, 0), "the flags over the environment");
+        assert_eq!(c.default_prefetch, 7);
+        assert_eq!(c.sample.motion, MotionSpec::Preset(MotionPreset::PaperKitti));
+        // the same environment without the flags
+        let c = config(file, &env, &[]).unwrap();
+        assert_eq!((c.cache_mb, c.sample.max_objects, c.sample.motions_per_image), (200, 1, 4));
+    }
+
+    #[test]
+    fn a_bad_value_names_its_variable_or_key_and_what_it_expects() {
+        let e = config("", &[("MPIFLOW_MAX_STREAMS", "lots")], &[]).unwrap_err().0;
+        assert!(e.starts_with("MPIFLOW_MAX_STREAMS=\"lots\": ") && e.contains("usize"), "{e}");
+        let e = config("", &[("MPIFLOW_LOG_FORMAT", "xml")], &[]).unwrap_err().0;
+        assert!(e.starts_with("MPIFLOW_LOG_FORMAT=\"xml\": ") && e.contains("text") && e.contains("json"), "{e}");
+        let e = config("max_stream = 3\n", &[], &[]).unwrap_err().0;
+        assert!(e.contains("max_stream") && e.contains("max_streams"), "{e}");
+        let e = config("", &[("MPIFLOW_MAX_STREAMS", "0")], &[]).unwrap_err().0;
+        assert!(e.contains("max_streams = 0"), "{e}");
+    }
 }

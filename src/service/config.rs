@@ -1,6 +1,6 @@
 //! The server's configuration: a TOML file (`deploy/mpiflow.toml` documents every key and its
 //! default), then `MPIFLOW_*` environment variables, then command-line flags, each overriding the
-//! one before.
+//! one before ([`super::layers`]: every key declared once, here).
 
 use std::path::{Path, PathBuf};
 
@@ -11,6 +11,7 @@ use crate::sample::config::SampleConfig;
 pub use crate::scene::models::ModelConfig;
 
 use super::error::ServiceError;
+use super::layers::Layer;
 
 /// Bytes per pixel of the largest sample a request can ask for: a clip of
 /// [`MAX_FRAMES`](crate::sample::config::MAX_FRAMES) frames with every field and f32 flow
@@ -270,13 +271,6 @@ impl Default for ServiceConfig {
 
 pub use crate::sample::pipeline::parse_size;
 
-fn env_parse<T: std::str::FromStr>(key: &str, value: &str) -> Result<T, String>
-where
-    T::Err: std::fmt::Display,
-{
-    value.trim().parse::<T>().map_err(|e| format!("{key}={value:?}: {e}"))
-}
-
 impl ServiceConfig {
     /// Reads a TOML file (every key optional).
     pub fn from_file(path: &Path) -> Result<Self, ServiceError> {
@@ -294,92 +288,21 @@ impl ServiceConfig {
         self.apply_env_vars(std::env::vars()).map_err(ServiceError::Config)
     }
 
-    /// Applies `MPIFLOW_*` overrides: `ADDR`, `METRICS_ADDR` (empty = off), `WORKERS`,
-    /// `MAX_IN_FLIGHT`, `MAX_STREAMS`, `PREFETCH`, `MAX_PREFETCH`, `MAX_BUFFERED_MB`, `MAX_BATCH_SIZE`,
-    /// `MAX_IMAGE_SIDE`, `MAX_IMAGE_PIXELS`, `MAX_IMAGE_BYTES`, `MAX_UPLOAD_BYTES`,
-    /// `MAX_CONCURRENT_UPLOADS`, `MAX_UPLOAD_BUFFER_MB`, `MAX_CONNECTIONS`,
-    /// `MAX_CONNECTIONS_PER_PEER`, `MAX_CALLS_PER_CONNECTION`, `IDLE_CONNECTION_TIMEOUT_S`,
-    /// `STALL_TIMEOUT_S`, `MAX_RANDOM_ACCESS_CALLS`, `SIZE`,
-    /// `CACHE_MB`, `DRAIN_TIMEOUT_S`, `WARMUP_DELAY_MS`, `LOG_FORMAT`, `LOG_LEVEL`, `PLANES`,
-    /// `DEPTH_MODEL`, `MPI_MODEL`, `SEGMENT_MODEL`, `PRESET`, `MAX_OBJECTS`, `MOTIONS_PER_IMAGE`,
-    /// `HEALTH_ADDR`, `TLS_CERT`, `TLS_KEY`, `TLS_CLIENT_CA`, `AUTH_TOKEN`, `AUTH_TOKEN_FILE`
-    /// (empty = unset)
-    /// and `SOURCES` (comma-separated `NAME=PATH` or `PATH`; replaces the datasets). Other
-    /// variables (e.g. `MPIFLOW_PHOTOS`, read by the bundled source) are left alone.
+    /// Applies the `MPIFLOW_*` variables among `vars`: `MPIFLOW_` and a key in capitals sets that
+    /// key (of the top level, `[models]` or `[sample]`; empty = its default, unset for an
+    /// optional key), `MPIFLOW_SOURCES` (comma-separated `NAME=PATH` or `PATH`) replaces the
+    /// datasets, `MPIFLOW_PREFETCH` is `default_prefetch` and `MPIFLOW_PRESET` the motion preset
+    /// ([`super::layers`]). Other variables (e.g. `MPIFLOW_PHOTOS`, read by the bundled source)
+    /// are left alone.
     pub fn apply_env_vars(&mut self, vars: impl IntoIterator<Item = (String, String)>) -> Result<(), String> {
-        // a token from the environment replaces the file's token and token file
-        let (mut env_token, mut env_token_file) = (None, None);
-        for (key, value) in vars {
-            let Some(name) = key.strip_prefix("MPIFLOW_") else { continue };
-            let opt_path = |v: &str| (!v.trim().is_empty()).then(|| PathBuf::from(v.trim()));
-            match name {
-                "ADDR" => self.addr = value.trim().to_string(),
-                "METRICS_ADDR" => {
-                    self.metrics_addr = (!value.trim().is_empty()).then(|| value.trim().to_string());
-                }
-                "WORKERS" => self.workers = env_parse(&key, &value)?,
-                "MAX_IN_FLIGHT" => self.max_in_flight = env_parse(&key, &value)?,
-                "MAX_STREAMS" => self.max_streams = env_parse(&key, &value)?,
-                "PREFETCH" => self.default_prefetch = env_parse(&key, &value)?,
-                "MAX_PREFETCH" => self.max_prefetch = env_parse(&key, &value)?,
-                "MAX_BUFFERED_MB" => self.max_buffered_mb = env_parse(&key, &value)?,
-                "MAX_BATCH_SIZE" => self.max_batch_size = env_parse(&key, &value)?,
-                "MAX_IMAGE_SIDE" => self.max_image_side = env_parse(&key, &value)?,
-                "MAX_IMAGE_PIXELS" => self.max_image_pixels = env_parse(&key, &value)?,
-                "MAX_IMAGE_BYTES" => self.max_image_bytes = env_parse(&key, &value)?,
-                "MAX_UPLOAD_BYTES" => self.max_upload_bytes = env_parse(&key, &value)?,
-                "MAX_CONCURRENT_UPLOADS" => self.max_concurrent_uploads = env_parse(&key, &value)?,
-                "MAX_CONNECTIONS" => self.max_connections = env_parse(&key, &value)?,
-                "IDLE_CONNECTION_TIMEOUT_S" => self.idle_connection_timeout_s = env_parse(&key, &value)?,
-                "MAX_CONNECTIONS_PER_PEER" => self.max_connections_per_peer = env_parse(&key, &value)?,
-                "MAX_CALLS_PER_CONNECTION" => self.max_calls_per_connection = env_parse(&key, &value)?,
-                "STALL_TIMEOUT_S" => self.stall_timeout_s = env_parse(&key, &value)?,
-                "MAX_RANDOM_ACCESS_CALLS" => self.max_random_access_calls = env_parse(&key, &value)?,
-                "MAX_UPLOAD_BUFFER_MB" => self.max_upload_buffer_mb = env_parse(&key, &value)?,
-                "SIZE" => self.size = (!value.trim().is_empty()).then(|| value.trim().to_string()),
-                "FOLLOW_SOURCE_LINKS" => self.follow_source_links = env_parse(&key, &value)?,
-                "CACHE_MB" => self.cache_mb = env_parse(&key, &value)?,
-                "PREFETCH_SCENES" => self.prefetch_scenes = env_parse(&key, &value)?,
-                "DRAIN_TIMEOUT_S" => self.drain_timeout_s = env_parse(&key, &value)?,
-                "WARMUP_DELAY_MS" => self.warmup_delay_ms = env_parse(&key, &value)?,
-                "LOG_FORMAT" => self.log_format = env_parse(&key, &value)?,
-                "LOG_LEVEL" => self.log_level = value.trim().to_string(),
-                "PLANES" => self.models.planes = env_parse(&key, &value)?,
-                "DEPTH_MODEL" => self.models.depth_model = opt_path(&value),
-                "MPI_MODEL" => self.models.mpi_model = opt_path(&value),
-                "SEGMENT_MODEL" => self.models.segment_model = opt_path(&value),
-                "PRESET" => {
-                    let p: crate::sample::motion::MotionPreset = env_parse(&key, &value)?;
-                    self.sample.motion = crate::sample::config::MotionSpec::Preset(p);
-                }
-                "MAX_OBJECTS" => self.sample.max_objects = env_parse(&key, &value)?,
-                "MOTIONS_PER_IMAGE" => self.sample.motions_per_image = env_parse(&key, &value)?,
-                "RESAMPLE" => self.sample.resample = env_parse(&key, &value)?,
-                "RESTORE_NOISE" => self.sample.restore_noise = env_parse(&key, &value)?,
-                "MINIFY" => self.sample.minify = env_parse(&key, &value)?,
-                "HEALTH_ADDR" => {
-                    self.health_addr = (!value.trim().is_empty()).then(|| value.trim().to_string());
-                }
-                "TLS_CERT" => self.tls_cert = opt_path(&value),
-                "TLS_KEY" => self.tls_key = opt_path(&value),
-                "TLS_CLIENT_CA" => self.tls_client_ca = opt_path(&value),
-                "AUTH_TOKEN" => env_token = Some(value.trim().to_string()),
-                "AUTH_TOKEN_FILE" => env_token_file = Some(value.trim().to_string()),
-                "SOURCES" => {
-                    self.datasets = value
-                        .split(',')
-                        .filter(|s| !s.trim().is_empty())
-                        .map(DatasetConfig::parse)
-                        .collect::<Result<_, _>>()
-                        .map_err(|e| format!("{key}: {e}"))?;
-                }
-                _ => {}
-            }
-        }
-        if env_token.is_some() || env_token_file.is_some() {
-            self.auth_token = env_token.filter(|t| !t.is_empty());
-            self.auth_token_file = env_token_file.filter(|t| !t.is_empty()).map(PathBuf::from);
-        }
+        *self = Layer::from_env(vars)?.apply(self)?;
+        Ok(())
+    }
+
+    /// Applies a struct of flags: each field given sets the key of its serde name (a nested
+    /// struct: the keys of the section of its name).
+    pub fn apply_flags<T: Serialize>(&mut self, flags: &T) -> Result<(), String> {
+        *self = Layer::from_flags(flags)?.apply(self)?;
         Ok(())
     }
 

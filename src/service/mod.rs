@@ -1,13 +1,14 @@
 //! The gRPC sample service (`mpiflow.v1.MpiFlow`): a thin tonic layer over the sample generator.
 //!
-//! A request is validated ([`validate`]), resolved to a dataset and a generator ([`dataset`]),
-//! and served through the worker pool ([`pool`]: rayon workers, a bounded queue per stream, a
-//! global in-flight bound, round-robin between streams); samples are cropped and encoded on the
-//! workers ([`encode`]). Errors map to gRPC codes in one place ([`error`]). The server
-//! ([`server`]) adds health, reflection, Prometheus [`metrics`] and graceful drain; [`config`]
-//! reads the TOML file and `MPIFLOW_*` overrides; [`security`] the optional TLS and bearer-token
-//! check; [`client`] is the Rust client side used by `mpiflow pull` and the tests. The API and
-//! its guarantees: `docs/api.md`.
+//! A request's sample options ([`spec`]: one message for all three calls) are validated once
+//! ([`validate`]), resolved to a dataset and a generator ([`dataset`]), and served through the
+//! worker pool ([`pool`]: rayon workers, a bounded queue per stream, a global in-flight bound,
+//! round-robin between streams); samples are cropped and encoded on the workers ([`encode`]).
+//! Errors map to gRPC codes in one place ([`error`]). The server ([`server`]) adds health,
+//! reflection, Prometheus [`metrics`] and graceful drain; [`config`] holds the keys, read from
+//! the TOML file, the `MPIFLOW_*` variables and the flags, layered ([`layers`]); [`security`]
+//! the optional TLS and bearer-token check; [`client`] is the Rust client side used by
+//! `mpiflow pull` and the tests. The API and its guarantees: `docs/api.md`.
 
 /// The generated protobuf messages and the tonic server and client of `mpiflow.v1`.
 #[allow(clippy::all, missing_docs)]
@@ -24,11 +25,13 @@ pub mod conn;
 pub mod dataset;
 pub mod encode;
 pub mod error;
+pub mod layers;
 pub mod metrics;
 pub mod pool;
 pub mod reply;
 pub mod security;
 pub mod server;
+pub mod spec;
 pub mod validate;
 
 pub use config::ServiceConfig;

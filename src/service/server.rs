@@ -27,6 +27,7 @@ use super::pb::mpi_flow_server::{MpiFlow, MpiFlowServer};
 use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
 use super::reply::{ReplyHold, ReplyLayer};
 use super::security::{server_tls, RequireToken};
+use super::spec::{self, Spec};
 use super::validate;
 use crate::sample::pipeline::Generator;
 
@@ -125,23 +126,25 @@ impl State {
         Produce { make, prepare }
     }
 
-    /// Resolves the dataset, the generator of the request's overrides, and checks the fingerprint.
-    fn resolve(
-        &self,
-        dataset: &str,
-        fingerprint: u64,
-        o: &super::dataset::Overrides,
-    ) -> Result<(Arc<Dataset>, Arc<Generator>), ServiceError> {
-        let ds = self.datasets.get(dataset)?;
-        let generator = ds.generator(o)?;
-        if fingerprint != 0 && fingerprint != generator.fingerprint() {
+    /// The one path of a request's spec (all three calls): validated into a [`Spec`], resolved
+    /// to the dataset and the generator of its overrides, the fingerprint checked, the outputs
+    /// checked against the motion law, and admitted by size; then the job that makes its samples.
+    fn prepare(&self, spec: Option<&pb::SampleSpec>) -> Result<Prepared, ServiceError> {
+        let spec = Spec::try_from((&*spec::of(spec), &self.config))?;
+        let ds = self.datasets.get(&spec.dataset)?;
+        let generator = ds.generator(&spec.overrides)?;
+        if spec.fingerprint != 0 && spec.fingerprint != generator.fingerprint() {
             return Err(ServiceError::FingerprintMismatch {
                 dataset: ds.name.clone(),
-                requested: fingerprint,
+                requested: spec.fingerprint,
                 actual: generator.fingerprint(),
             });
         }
-        Ok((ds, generator))
+        validate::outputs_fit_motion(&spec.out, generator.config())?;
+        validate::admit_size(&spec.out, spec.frames(), &self.config, self.scheduler.budget())?;
+        let (dataset, fingerprint, seed) = (ds.name.clone(), generator.fingerprint(), spec.seed);
+        let produce = self.produce(ds, generator, seed, spec.out);
+        Ok(Prepared { dataset, fingerprint, seed, produce })
     }
 
     fn open_stream(self: &Arc<Self>, r: &pb::StreamRequest, peer: u64) -> Result<CountedStream, ServiceError> {
@@ -149,14 +152,7 @@ impl State {
             return Err(ServiceError::Draining);
         }
         let (rank, world, batch, prefetch) = validate::stream_shape(r, &self.config)?;
-        let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
-        validate::augment(&r.augment, &mut out, &self.config)?;
-        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
-        validate::frames(r.frames, &out, &mut o)?;
-        o.resample = validate::resample(&r.resample)?;
-        let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
-        validate::outputs_fit_motion(&out, generator.config())?;
-        validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
+        let p = self.prepare(r.spec.as_ref())?;
         // the stream limit
         let admitted = self.admit(CallKind::Stream, peer)?;
         let spec = StreamSpec {
@@ -168,14 +164,13 @@ impl State {
             prefetch: prefetch as usize,
             max_message_bytes: self.config.max_message_bytes() as usize,
         };
-        let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
-        let inner = self.scheduler.open_for(peer, spec, produce)?;
+        let inner = self.scheduler.open_for(peer, spec, p.produce)?;
         self.metrics.active_streams.inc();
         tracing::info!(
             stream = inner.id(),
-            dataset = %ds.name,
-            fingerprint = format!("{:016x}", generator.fingerprint()),
-            seed = r.seed,
+            dataset = %p.dataset,
+            fingerprint = format!("{:016x}", p.fingerprint),
+            seed = p.seed,
             rank,
             world_size = world,
             start_index = r.start_index,
@@ -240,14 +235,7 @@ impl State {
             return Err(ServiceError::Draining);
         }
         let indices = validate::indices(&r.indices)?;
-        let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
-        validate::augment(&r.augment, &mut out, &self.config)?;
-        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
-        validate::frames(r.frames, &out, &mut o)?;
-        o.resample = validate::resample(&r.resample)?;
-        let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
-        validate::outputs_fit_motion(&out, generator.config())?;
-        validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
+        let p = self.prepare(r.spec.as_ref())?;
         let admitted = self.admit(CallKind::RandomAccess, peer)?;
         // as many made ahead as keep every worker busy (within max_prefetch)
         let prefetch = (self.config.default_prefetch as usize)
@@ -255,15 +243,14 @@ impl State {
             .min(self.config.max_prefetch as usize)
             .min(indices.len());
         let n = indices.len();
-        let produce = self.produce(ds.clone(), generator.clone(), r.seed, out);
         let max_bytes = self.config.max_message_bytes() as usize;
-        let inner = self.scheduler.open_indices(peer, indices, 1, prefetch, max_bytes, produce)?;
+        let inner = self.scheduler.open_indices(peer, indices, 1, prefetch, max_bytes, p.produce)?;
         self.metrics.active_streams.inc();
         tracing::debug!(
             stream = inner.id(),
-            dataset = %ds.name,
-            fingerprint = format!("{:016x}", generator.fingerprint()),
-            seed = r.seed,
+            dataset = %p.dataset,
+            fingerprint = format!("{:016x}", p.fingerprint),
+            seed = p.seed,
             indices = n,
             prefetch,
             "samples opened"
@@ -282,14 +269,7 @@ impl State {
         if r.index == super::pool::END_INDEX {
             return Err(ServiceError::invalid("index", "2^64 - 1 is the end of the index space, not a sample").into());
         }
-        let mut out = validate::output_spec(&r.fields, r.flow_dtype, r.compression, r.crop.as_ref(), &self.config)?;
-        validate::augment(&r.augment, &mut out, &self.config)?;
-        let mut o = validate::overrides(&r.motion_preset, &r.motion_ranges_json, r.max_objects, r.motions_per_image)?;
-        validate::frames(r.frames, &out, &mut o)?;
-        o.resample = validate::resample(&r.resample)?;
-        let (ds, generator) = self.resolve(&r.dataset, r.fingerprint, &o)?;
-        validate::outputs_fit_motion(&out, generator.config())?;
-        validate::admit_size(&out, o.frames.unwrap_or(2), &self.config, self.scheduler.budget())?;
+        let p = self.prepare(r.spec.as_ref())?;
         let spec = StreamSpec {
             start_index: r.index,
             rank: 0,
@@ -299,7 +279,7 @@ impl State {
             prefetch: 1,
             max_message_bytes: self.config.max_message_bytes() as usize,
         };
-        let mut stream = self.scheduler.open_for(peer, spec, self.produce(ds, generator, r.seed, out))?;
+        let mut stream = self.scheduler.open_for(peer, spec, p.produce)?;
         match stream.next().await {
             Some(Ok(mut b)) if !b.samples.is_empty() => Ok((b.samples.swap_remove(0), stream)),
             Some(Err(status)) => Err(Status::new(status.code(), status.message().to_string())),
@@ -405,6 +385,14 @@ impl State {
             serving: self.is_serving(),
         }
     }
+}
+
+/// A request's spec made ready: the job that makes its samples, and what the log says of it.
+struct Prepared {
+    dataset: String,
+    fingerprint: u64,
+    seed: u64,
+    produce: Produce,
 }
 
 /// Which limit a call counts against.

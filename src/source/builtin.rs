@@ -254,10 +254,36 @@ impl BuiltinSource {
         let (w, h) = (self.options.width, self.options.height);
         let k = Intrinsics::reference_default(w, h);
         let mut rng = SampleRng::new(BUILTIN_KEY, self.options.seed, i as u64, Purpose::Other(0));
-        let np = self.photos.len();
+        // the stages draw from the one stream in this order: background, geometry, objects
+        let bg_k = i % self.photos.len();
+        let mut image = self.background(&mut rng, bg_k)?;
+        let geo = BackgroundGeometry {
+            camera_height: rng.uniform(1.2, 1.8),
+            wall_depth: rng.uniform(6.0, 10.0),
+            wall_slope: rng.uniform(-0.35, 0.35),
+        };
+        let mut depth: Vec<f64> = (0..w * h).map(|j| geo.depth(&k, (j % w) as f64, (j / w) as f64)).collect();
+        let mut ids = vec![0u32; w * h];
+        let plans = self.plan_objects(&mut rng, &k, &geo, bg_k)?;
+        contact_shadows(&mut image, &plans);
+        let mut canvas = Canvas { image: &mut image, depth: &mut depth, ids: &mut ids };
+        let objects = self.paste_objects(&plans, &mut canvas)?;
+        Ok(Composition {
+            id: format!("builtin-{i:02}-{}", self.stem(bg_k)),
+            image,
+            depth: depth.into_iter().map(|d| d as f32).collect(),
+            ids,
+            intrinsics: k,
+            background_photo: self.photos[bg_k].0.clone(),
+            background: geo,
+            objects,
+        })
+    }
 
-        // background photo: cover-crop to the scene's aspect ratio, zoomed, maybe flipped
-        let bg_k = i % np;
+    /// The background photo `bg_k`: cover-cropped to the scene's aspect ratio, zoomed, maybe
+    /// flipped, at the scene's size.
+    fn background(&self, rng: &mut SampleRng, bg_k: usize) -> Result<RgbImage, SourceError> {
+        let (w, h) = (self.options.width, self.options.height);
         let bg = self.photo(bg_k)?;
         let zoom = rng.uniform(1.0, 1.25);
         let aspect = w as f64 / h as f64;
@@ -270,32 +296,24 @@ impl BuiltinSource {
         let cx0 = rng.below((bg.width - cw + 1) as u64) as usize;
         let cy0 = rng.below((bg.height - ch + 1) as u64) as usize;
         let flip = rng.sign() < 0.0;
-        let mut image = resize_rgb(&crop(&bg, cx0, cy0, cw, ch, flip), w, h);
+        Ok(resize_rgb(&crop(&bg, cx0, cy0, cw, ch, flip), w, h))
+    }
 
-        let geo = BackgroundGeometry {
-            camera_height: rng.uniform(1.2, 1.8),
-            wall_depth: rng.uniform(6.0, 10.0),
-            wall_slope: rng.uniform(-0.35, 0.35),
-        };
-        let mut depth: Vec<f64> = (0..w * h).map(|j| geo.depth(&k, (j % w) as f64, (j / w) as f64)).collect();
-        let mut ids = vec![0u32; w * h];
-
-        // objects: choose them all first, then draw far to near
+    /// The objects to paste, chosen all first (photo, shape, depth on the ground, size, crop of
+    /// their photo), in the order drawn.
+    fn plan_objects(
+        &self,
+        rng: &mut SampleRng,
+        k: &Intrinsics,
+        geo: &BackgroundGeometry,
+        bg_k: usize,
+    ) -> Result<Vec<Plan>, SourceError> {
+        let (w, h) = (self.options.width, self.options.height);
+        let np = self.photos.len();
         let n_obj = 2 + rng.below(2) as usize;
         let z_bottom = geo.camera_height * k.fy / ((h - 1) as f64 - k.cy);
         let z_lo = 1.02 * z_bottom;
         let z_hi = (0.6 * geo.wall_depth).min(5.0).max(z_lo * 1.1);
-        struct Plan {
-            photo: usize,
-            shape: Shape,
-            z: f64,
-            x0: f64,
-            y0: f64,
-            pw: f64,
-            ph: f64,
-            crop: (usize, usize, usize, usize),
-            flip: bool,
-        }
         let mut plans: Vec<Plan> = Vec::with_capacity(n_obj);
         for _ in 0..n_obj {
             let photo = if np > 1 { (bg_k + 1 + rng.below((np - 1) as u64) as usize) % np } else { bg_k };
@@ -322,29 +340,13 @@ impl BuiltinSource {
             let flip = rng.sign() < 0.0;
             plans.push(Plan { photo, shape, z, x0, y0: foot - ph, pw, ph, crop: (sx0, sy0, sw, sh), flip });
         }
+        Ok(plans)
+    }
 
-        // contact shadows on the background (colour only)
-        for p in &plans {
-            let (xc, yc) = (p.x0 + 0.5 * p.pw, p.y0 + p.ph);
-            let (rx, ry) = (0.6 * p.pw, 0.06 * p.ph + 3.0);
-            let ys = ((yc - ry).floor().max(0.0) as usize).min(h);
-            let ye = ((yc + ry).ceil().max(0.0) as usize + 1).min(h);
-            let xs = ((xc - rx).floor().max(0.0) as usize).min(w);
-            let xe = ((xc + rx).ceil().max(0.0) as usize + 1).min(w);
-            for y in ys..ye {
-                for x in xs..xe {
-                    let (dx, dy) = ((x as f64 - xc) / rx, (y as f64 - yc) / ry);
-                    let r2 = dx * dx + dy * dy;
-                    if r2 < 1.0 {
-                        let f = (1.0 - 0.35 * (1.0 - r2)) as f32;
-                        for c in &mut image.data[3 * (y * w + x)..3 * (y * w + x) + 3] {
-                            *c *= f;
-                        }
-                    }
-                }
-            }
-        }
-
+    /// The planned objects pasted far to near: their depth, id and texture written into the
+    /// canvas; each object's bounding box and visible pixels.
+    fn paste_objects(&self, plans: &[Plan], canvas: &mut Canvas<'_>) -> Result<Vec<PlacedObject>, SourceError> {
+        let (w, h) = (self.options.width, self.options.height);
         let mut order: Vec<usize> = (0..plans.len()).collect();
         order.sort_by(|&a, &b| plans[b].z.total_cmp(&plans[a].z).then(a.cmp(&b)));
         let mut objects = Vec::with_capacity(plans.len());
@@ -373,9 +375,9 @@ impl BuiltinSource {
                         continue;
                     }
                     let j = y as usize * w + x as usize;
-                    depth[j] = p.z;
-                    ids[j] = id;
-                    image.data[3 * j..3 * j + 3]
+                    canvas.depth[j] = p.z;
+                    canvas.ids[j] = id;
+                    canvas.image.data[3 * j..3 * j + 3]
                         .copy_from_slice(&tex.data[3 * (ty * pwi + tx)..3 * (ty * pwi + tx) + 3]);
                     bbox = [
                         bbox[0].min(x as usize),
@@ -398,18 +400,54 @@ impl BuiltinSource {
             });
         }
         for obj in &mut objects {
-            obj.visible_pixels = ids.iter().filter(|&&v| v == obj.id).count();
+            obj.visible_pixels = canvas.ids.iter().filter(|&&v| v == obj.id).count();
         }
-        Ok(Composition {
-            id: format!("builtin-{i:02}-{}", self.stem(bg_k)),
-            image,
-            depth: depth.into_iter().map(|d| d as f32).collect(),
-            ids,
-            intrinsics: k,
-            background_photo: self.photos[bg_k].0.clone(),
-            background: geo,
-            objects,
-        })
+        Ok(objects)
+    }
+}
+
+/// An object chosen for a scene, before it is pasted.
+struct Plan {
+    photo: usize,
+    shape: Shape,
+    z: f64,
+    x0: f64,
+    y0: f64,
+    pw: f64,
+    ph: f64,
+    crop: (usize, usize, usize, usize),
+    flip: bool,
+}
+
+/// What the pasted objects write: colour, depth and instance ids, row-major at the scene's size.
+struct Canvas<'a> {
+    image: &'a mut RgbImage,
+    depth: &'a mut [f64],
+    ids: &'a mut [u32],
+}
+
+/// Contact shadows of the planned objects on the background (colour only).
+fn contact_shadows(image: &mut RgbImage, plans: &[Plan]) {
+    let (w, h) = (image.width, image.height);
+    for p in plans {
+        let (xc, yc) = (p.x0 + 0.5 * p.pw, p.y0 + p.ph);
+        let (rx, ry) = (0.6 * p.pw, 0.06 * p.ph + 3.0);
+        let ys = ((yc - ry).floor().max(0.0) as usize).min(h);
+        let ye = ((yc + ry).ceil().max(0.0) as usize + 1).min(h);
+        let xs = ((xc - rx).floor().max(0.0) as usize).min(w);
+        let xe = ((xc + rx).ceil().max(0.0) as usize + 1).min(w);
+        for y in ys..ye {
+            for x in xs..xe {
+                let (dx, dy) = ((x as f64 - xc) / rx, (y as f64 - yc) / ry);
+                let r2 = dx * dx + dy * dy;
+                if r2 < 1.0 {
+                    let f = (1.0 - 0.35 * (1.0 - r2)) as f32;
+                    for c in &mut image.data[3 * (y * w + x)..3 * (y * w + x) + 3] {
+                        *c *= f;
+                    }
+                }
+            }
+        }
     }
 }
 

@@ -20,7 +20,7 @@ __all__ = [
     "Client",
     "MpiFlowError",
     "NotReadyError",
-    "build_request_fields",
+    "build_spec",
     "is_retryable",
     "parse_addresses",
 ]
@@ -141,7 +141,7 @@ def _flow_dtype(v: Union[str, int, None]) -> int:
     raise ValueError(f"flow_dtype must be 'f32' or 'f16', not {v!r}")
 
 
-def build_request_fields(
+def build_spec(
     *,
     dataset: Optional[str] = None,
     fingerprint: int = 0,
@@ -158,9 +158,10 @@ def build_request_fields(
     augment: Any = None,
     frames: Optional[int] = None,
     resample: Optional[str] = None,
-) -> Dict[str, Any]:
-    """The keyword arguments shared by StreamRequest and SampleRequest. `frames` = K (2 to
-    8): K > 2 asks for a clip (stacked tensors, see decode.CLIP_NAMES)."""
+) -> "pb.SampleSpec":
+    """The SampleSpec of a request: the sample options StreamRequest, SampleRequest and
+    SamplesRequest share. `frames` = K (2 to 8): K > 2 asks for a clip (stacked tensors, see
+    decode.CLIP_NAMES)."""
     kw: Dict[str, Any] = dict(
         dataset=dataset or "",
         fingerprint=int(fingerprint or 0),
@@ -182,7 +183,7 @@ def build_request_fields(
         kw["motions_per_image"] = int(motions_per_image)
     if frames is not None:
         kw["frames"] = int(frames)
-    return kw
+    return pb.SampleSpec(**kw)
 
 
 class _Replica:
@@ -516,7 +517,7 @@ class Client:
         """GetSample: one sample by its address, decoded (`raw=True`: the Sample message)."""
         req = pb.SampleRequest(
             index=int(index),
-            **build_request_fields(
+            spec=build_spec(
                 dataset=dataset,
                 fingerprint=fingerprint,
                 seed=seed,
@@ -579,7 +580,7 @@ class Client:
         idx = [int(i) for i in indices]
         if any(i < 0 for i in idx):
             raise ValueError("indices must be >= 0")
-        common = build_request_fields(
+        common = build_spec(
             dataset=dataset,
             fingerprint=fingerprint,
             seed=seed,
@@ -604,7 +605,7 @@ class Client:
 
     def _get_samples(
         self,
-        common: Dict[str, Any],
+        common: "pb.SampleSpec",
         idx: List[int],
         timeout: Optional[float],
         address: Optional[str],
@@ -621,7 +622,7 @@ class Client:
                     addr = self.pick_replica(prefer=addr, avoid=addr, deadline=deadline)
                 except MpiFlowError as e:
                     raise MpiFlowError(f"GetSamples: {e}") from last
-            req = pb.SamplesRequest(indices=idx[len(got):], **common)
+            req = pb.SamplesRequest(indices=idx[len(got):], spec=common)
             left = max(0.1, deadline - time.monotonic())
             try:
                 call = self._replica(addr).stub.GetSamples(req, timeout=left, metadata=self.metadata)
@@ -630,10 +631,10 @@ class Client:
                     if s.index != want:
                         call.cancel()
                         raise MpiFlowError(f"GetSamples on {addr}: expected index {want}, got {s.index}")
-                    if not common["dataset"] and s.dataset:
-                        common["dataset"] = s.dataset
-                    if not common["fingerprint"] and s.fingerprint:
-                        common["fingerprint"] = s.fingerprint
+                    if not common.dataset and s.dataset:
+                        common.dataset = s.dataset
+                    if not common.fingerprint and s.fingerprint:
+                        common.fingerprint = s.fingerprint
                     got.append(s)
                     if len(got) == len(idx):
                         break

@@ -11,7 +11,7 @@ from typing import Any, Callable, Iterable, Iterator, Optional, Union
 import grpc
 
 from ._proto import mpiflow_pb2 as pb
-from .client import Client, MpiFlowError, build_request_fields, is_retryable
+from .client import Client, MpiFlowError, build_spec, is_retryable
 from .decode import decode_sample
 
 __all__ = ["FlowStream", "Prefetcher", "ProtocolError", "StreamFailed"]
@@ -97,7 +97,7 @@ class FlowStream:
         self.transform = transform
         self.failovers = 0
         self.address = address or client.addresses[self.rank % len(client.addresses)]
-        self._common = build_request_fields(
+        self._spec = build_spec(
             dataset=dataset,
             fingerprint=fingerprint,
             seed=seed,
@@ -137,7 +137,7 @@ class FlowStream:
             count=self.count - self.delivered if self.count else 0,
             batch_size=self.batch_size,
             prefetch=self.server_prefetch,
-            **self._common,
+            spec=self._spec,
         )
 
     def close(self) -> None:
@@ -155,10 +155,10 @@ class FlowStream:
         return self._run()
 
     def _pin(self, s: "pb.Sample") -> None:
-        if not self._common["dataset"] and s.dataset:
-            self._common["dataset"] = s.dataset
-        if not self._common["fingerprint"] and s.fingerprint:
-            self._common["fingerprint"] = s.fingerprint
+        if not self._spec.dataset and s.dataset:
+            self._spec.dataset = s.dataset
+        if not self._spec.fingerprint and s.fingerprint:
+            self._spec.fingerprint = s.fingerprint
 
     def _run(self) -> Iterator[Any]:
         failing_since: Optional[float] = None

@@ -123,14 +123,16 @@ class Service(pb_grpc.MpiFlowServicer):
         self.draining = draining
 
     def _check(self, req, context):
-        if req.dataset not in ("", DATASET):
-            context.abort(grpc.StatusCode.NOT_FOUND, f"dataset {req.dataset!r} not found")
-        if req.fingerprint not in (0, FINGERPRINT):
+        spec = req.spec
+        if spec.dataset not in ("", DATASET):
+            context.abort(grpc.StatusCode.NOT_FOUND, f"dataset {spec.dataset!r} not found")
+        if spec.fingerprint not in (0, FINGERPRINT):
             context.abort(grpc.StatusCode.FAILED_PRECONDITION, "fingerprint differs")
 
-    def _make(self, context, *args):
+    def _make(self, context, spec, index):
         try:
-            return make_sample(*args)
+            return make_sample(spec.seed, index, spec.fields, spec.flow_dtype, spec.compression,
+                               spec.crop if spec.HasField("crop") else None)
         except CropTooLarge as e:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(e))
 
@@ -149,8 +151,7 @@ class Service(pb_grpc.MpiFlowServicer):
                 context.abort(grpc.StatusCode.UNAVAILABLE, "server draining")
             if self.delay:
                 time.sleep(self.delay)
-            batch.samples.append(self._make(context, req.seed, i, req.fields, req.flow_dtype,
-                                             req.compression, req.crop if req.HasField("crop") else None))
+            batch.samples.append(self._make(context, req.spec, i))
             i += w
             sent += 1
             if len(batch.samples) == bs or (req.count and sent == req.count):
@@ -161,8 +162,7 @@ class Service(pb_grpc.MpiFlowServicer):
 
     def GetSample(self, req, context):
         self._check(req, context)
-        return self._make(context, req.seed, req.index, req.fields, req.flow_dtype, req.compression,
-                           req.crop if req.HasField("crop") else None)
+        return self._make(context, req.spec, req.index)
 
     def GetSamples(self, req, context):
         self._check(req, context)
@@ -173,8 +173,7 @@ class Service(pb_grpc.MpiFlowServicer):
                 context.abort(grpc.StatusCode.UNAVAILABLE, "server draining")
             if self.delay:
                 time.sleep(self.delay)
-            yield self._make(context, req.seed, i, req.fields, req.flow_dtype, req.compression,
-                              req.crop if req.HasField("crop") else None)
+            yield self._make(context, req.spec, i)
 
     def GetInfo(self, req, context):
         return pb.InfoResponse(

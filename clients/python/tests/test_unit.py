@@ -15,7 +15,7 @@ import pytest
 
 import mpiflow
 from mpiflow import _health, pb
-from mpiflow.client import build_request_fields, parse_addresses
+from mpiflow.client import build_spec, parse_addresses
 from mpiflow.dataset import (
     _MPIFlowDatasetImpl,
     consumer_count,
@@ -166,9 +166,10 @@ def test_fields_and_addresses():
     assert parse_addresses("a:1, grpc://b:2/,a:1") == ["a:1", "b:2"]
     with pytest.raises(ValueError):
         parse_addresses("")
-    kw = build_request_fields(seed=3, crop=(160, 120), crop_mode="random", lz4=True, flow_dtype="f16",
-                              max_objects=0, fields=["image1"])
-    req = pb.StreamRequest(rank=1, world_size=2, **kw)
+    spec = build_spec(seed=3, crop=(160, 120), crop_mode="random", lz4=True, flow_dtype="f16",
+                      max_objects=0, fields=["image1"])
+    req = pb.StreamRequest(rank=1, world_size=2, spec=spec).spec
+    assert req.seed == 3 and list(req.fields) == [pb.FIELD_IMAGE1]
     assert req.crop.width == 160 and req.crop.height == 120 and req.crop.mode == pb.CROP_MODE_RANDOM
     assert req.compression == pb.COMPRESSION_LZ4 and req.flow_dtype == pb.FLOW_DTYPE_F16
     assert req.HasField("max_objects") and req.max_objects == 0
@@ -396,8 +397,8 @@ def test_motions_is_a_field_name_of_every_entry_point():
 
     assert parse_fields(["motions"]) == []
     assert parse_fields(["img1", "Motions", "flow"]) == [pb.FIELD_IMAGE1, pb.FIELD_FLOW]
-    kw = build_request_fields(fields=["flow", "motions"])
-    assert kw["fields"] == [pb.FIELD_FLOW]
+    spec = build_spec(fields=["flow", "motions"])
+    assert list(spec.fields) == [pb.FIELD_FLOW]
     with pytest.raises(ValueError):
         parse_fields(["motion"])
 

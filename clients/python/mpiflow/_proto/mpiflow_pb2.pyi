@@ -88,117 +88,71 @@ class OutputCrop(_message.Message):
     mode: CropMode
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., mode: _Optional[_Union[CropMode, str]] = ...) -> None: ...
 
-class StreamRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "rank", "world_size", "start_index", "count", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "batch_size", "prefetch", "augment", "frames", "resample")
+class SampleSpec(_message.Message):
+    __slots__ = ("dataset", "fingerprint", "seed", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames", "resample")
     DATASET_FIELD_NUMBER: _ClassVar[int]
     FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
+    FIELDS_FIELD_NUMBER: _ClassVar[int]
+    FLOW_DTYPE_FIELD_NUMBER: _ClassVar[int]
+    COMPRESSION_FIELD_NUMBER: _ClassVar[int]
+    CROP_FIELD_NUMBER: _ClassVar[int]
+    MOTION_PRESET_FIELD_NUMBER: _ClassVar[int]
+    MOTION_RANGES_JSON_FIELD_NUMBER: _ClassVar[int]
+    MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
+    MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
+    AUGMENT_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    RESAMPLE_FIELD_NUMBER: _ClassVar[int]
+    dataset: str
+    fingerprint: int
+    seed: int
+    fields: _containers.RepeatedScalarFieldContainer[Field]
+    flow_dtype: FlowDtype
+    compression: Compression
+    crop: OutputCrop
+    motion_preset: str
+    motion_ranges_json: str
+    max_objects: int
+    motions_per_image: int
+    augment: str
+    frames: int
+    resample: str
+    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ..., resample: _Optional[str] = ...) -> None: ...
+
+class StreamRequest(_message.Message):
+    __slots__ = ("spec", "rank", "world_size", "start_index", "count", "batch_size", "prefetch")
+    SPEC_FIELD_NUMBER: _ClassVar[int]
     RANK_FIELD_NUMBER: _ClassVar[int]
     WORLD_SIZE_FIELD_NUMBER: _ClassVar[int]
     START_INDEX_FIELD_NUMBER: _ClassVar[int]
     COUNT_FIELD_NUMBER: _ClassVar[int]
-    FIELDS_FIELD_NUMBER: _ClassVar[int]
-    FLOW_DTYPE_FIELD_NUMBER: _ClassVar[int]
-    COMPRESSION_FIELD_NUMBER: _ClassVar[int]
-    CROP_FIELD_NUMBER: _ClassVar[int]
-    MOTION_PRESET_FIELD_NUMBER: _ClassVar[int]
-    MOTION_RANGES_JSON_FIELD_NUMBER: _ClassVar[int]
-    MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
-    MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
     BATCH_SIZE_FIELD_NUMBER: _ClassVar[int]
     PREFETCH_FIELD_NUMBER: _ClassVar[int]
-    AUGMENT_FIELD_NUMBER: _ClassVar[int]
-    FRAMES_FIELD_NUMBER: _ClassVar[int]
-    RESAMPLE_FIELD_NUMBER: _ClassVar[int]
-    dataset: str
-    fingerprint: int
-    seed: int
+    spec: SampleSpec
     rank: int
     world_size: int
     start_index: int
     count: int
-    fields: _containers.RepeatedScalarFieldContainer[Field]
-    flow_dtype: FlowDtype
-    compression: Compression
-    crop: OutputCrop
-    motion_preset: str
-    motion_ranges_json: str
-    max_objects: int
-    motions_per_image: int
     batch_size: int
     prefetch: int
-    augment: str
-    frames: int
-    resample: str
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ..., resample: _Optional[str] = ...) -> None: ...
+    def __init__(self, spec: _Optional[_Union[SampleSpec, _Mapping]] = ..., rank: _Optional[int] = ..., world_size: _Optional[int] = ..., start_index: _Optional[int] = ..., count: _Optional[int] = ..., batch_size: _Optional[int] = ..., prefetch: _Optional[int] = ...) -> None: ...
 
 class SampleRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "index", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames", "resample")
-    DATASET_FIELD_NUMBER: _ClassVar[int]
-    FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
-    SEED_FIELD_NUMBER: _ClassVar[int]
+    __slots__ = ("spec", "index")
+    SPEC_FIELD_NUMBER: _ClassVar[int]
     INDEX_FIELD_NUMBER: _ClassVar[int]
-    FIELDS_FIELD_NUMBER: _ClassVar[int]
-    FLOW_DTYPE_FIELD_NUMBER: _ClassVar[int]
-    COMPRESSION_FIELD_NUMBER: _ClassVar[int]
-    CROP_FIELD_NUMBER: _ClassVar[int]
-    MOTION_PRESET_FIELD_NUMBER: _ClassVar[int]
-    MOTION_RANGES_JSON_FIELD_NUMBER: _ClassVar[int]
-    MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
-    MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
-    AUGMENT_FIELD_NUMBER: _ClassVar[int]
-    FRAMES_FIELD_NUMBER: _ClassVar[int]
-    RESAMPLE_FIELD_NUMBER: _ClassVar[int]
-    dataset: str
-    fingerprint: int
-    seed: int
+    spec: SampleSpec
     index: int
-    fields: _containers.RepeatedScalarFieldContainer[Field]
-    flow_dtype: FlowDtype
-    compression: Compression
-    crop: OutputCrop
-    motion_preset: str
-    motion_ranges_json: str
-    max_objects: int
-    motions_per_image: int
-    augment: str
-    frames: int
-    resample: str
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., index: _Optional[int] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ..., resample: _Optional[str] = ...) -> None: ...
+    def __init__(self, spec: _Optional[_Union[SampleSpec, _Mapping]] = ..., index: _Optional[int] = ...) -> None: ...
 
 class SamplesRequest(_message.Message):
-    __slots__ = ("dataset", "fingerprint", "seed", "indices", "fields", "flow_dtype", "compression", "crop", "motion_preset", "motion_ranges_json", "max_objects", "motions_per_image", "augment", "frames", "resample")
-    DATASET_FIELD_NUMBER: _ClassVar[int]
-    FINGERPRINT_FIELD_NUMBER: _ClassVar[int]
-    SEED_FIELD_NUMBER: _ClassVar[int]
+    __slots__ = ("spec", "indices")
+    SPEC_FIELD_NUMBER: _ClassVar[int]
     INDICES_FIELD_NUMBER: _ClassVar[int]
-    FIELDS_FIELD_NUMBER: _ClassVar[int]
-    FLOW_DTYPE_FIELD_NUMBER: _ClassVar[int]
-    COMPRESSION_FIELD_NUMBER: _ClassVar[int]
-    CROP_FIELD_NUMBER: _ClassVar[int]
-    MOTION_PRESET_FIELD_NUMBER: _ClassVar[int]
-    MOTION_RANGES_JSON_FIELD_NUMBER: _ClassVar[int]
-    MAX_OBJECTS_FIELD_NUMBER: _ClassVar[int]
-    MOTIONS_PER_IMAGE_FIELD_NUMBER: _ClassVar[int]
-    AUGMENT_FIELD_NUMBER: _ClassVar[int]
-    FRAMES_FIELD_NUMBER: _ClassVar[int]
-    RESAMPLE_FIELD_NUMBER: _ClassVar[int]
-    dataset: str
-    fingerprint: int
-    seed: int
+    spec: SampleSpec
     indices: _containers.RepeatedScalarFieldContainer[int]
-    fields: _containers.RepeatedScalarFieldContainer[Field]
-    flow_dtype: FlowDtype
-    compression: Compression
-    crop: OutputCrop
-    motion_preset: str
-    motion_ranges_json: str
-    max_objects: int
-    motions_per_image: int
-    augment: str
-    frames: int
-    resample: str
-    def __init__(self, dataset: _Optional[str] = ..., fingerprint: _Optional[int] = ..., seed: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ..., fields: _Optional[_Iterable[_Union[Field, str]]] = ..., flow_dtype: _Optional[_Union[FlowDtype, str]] = ..., compression: _Optional[_Union[Compression, str]] = ..., crop: _Optional[_Union[OutputCrop, _Mapping]] = ..., motion_preset: _Optional[str] = ..., motion_ranges_json: _Optional[str] = ..., max_objects: _Optional[int] = ..., motions_per_image: _Optional[int] = ..., augment: _Optional[str] = ..., frames: _Optional[int] = ..., resample: _Optional[str] = ...) -> None: ...
+    def __init__(self, spec: _Optional[_Union[SampleSpec, _Mapping]] = ..., indices: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class Tensor(_message.Message):
     __slots__ = ("name", "shape", "dtype", "compression", "raw_size", "data")
