@@ -195,6 +195,86 @@ pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
     }
 }
 
+/// A quality report of one configuration, for the tables below.
+type RunQuality<'a> =
+    dyn Fn(&mpiflow::sample::config::SampleConfig) -> Result<mpiflow::bench::quality::QualityReport, CliError> + 'a;
+
+/// `bench quality --sharpness`: one row per kernel (and noise / minify variant), no objects.
+fn sharpness_table(
+    run: &RunQuality<'_>,
+    q: &QualityBench,
+    base: &mpiflow::sample::config::SampleConfig,
+    kernels: &[mpiflow::render::Resample],
+) -> Result<(), CliError> {
+    use mpiflow::sample::config::SampleConfig;
+    println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | img2 / ideal | AUC img2 vs img1 | noise img1 / img2 (levels) | photometric | background | fb residual px | hole fraction | flow p50 / p95 px |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    let mut variants = vec![(false, false)];
+    if q.restore_noise {
+        variants.push((true, false));
+    }
+    if q.minify {
+        variants.push((false, true));
+    }
+    for (&resample, (restore_noise, minify)) in kernels.iter().flat_map(|k| variants.iter().map(move |&v| (k, v))) {
+        // the backward fields only add outputs (the ideal warp's geometry), no other byte
+        let c = SampleConfig { max_objects: 0, resample, restore_noise, minify, backward: true, ..base.clone() };
+        let r = run(&c)?;
+        let name = match (restore_noise, minify) {
+            (true, _) => format!("{resample} + noise"),
+            (_, true) => format!("{resample} + minify"),
+            _ => resample.to_string(),
+        };
+        println!(
+            "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.0}% | {} | {:.2} / {:.2} | {:.4} | {:.4} | {} | {:.4} | {:.2} / {:.2} |",
+            r.sharpness,
+            r.sharpness_min,
+            r.sharpness_max,
+            r.ideal_sharpness,
+            r.ideal_image2_sharpness,
+            if r.ideal_sharpness > 0.0 { 100.0 * r.ideal_image2_sharpness / r.ideal_sharpness } else { 0.0 },
+            opt3(r.realism.auc_pair),
+            r.noise1,
+            r.noise2,
+            r.photometric,
+            r.photometric_background,
+            opt3(r.realism.fb_residual),
+            r.hole_fraction,
+            r.flow_p50,
+            r.flow_p95
+        );
+    }
+    Ok(())
+}
+
+/// `bench quality --realism`: per fill and object count (docs/quality.md, "Realism").
+fn realism_table(run: &RunQuality<'_>, base: &mpiflow::sample::config::SampleConfig) -> Result<(), CliError> {
+    use mpiflow::sample::background::Background;
+    use mpiflow::sample::config::SampleConfig;
+    println!("| fill | objects | hole fraction | revealed | revealed detail / noise vs other background | AUC revealed vs img1 background | AUC img2 vs img1 | photometric | label laws | fb residual px |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for background in [Background::Planes, Background::Inpaint] {
+        for objects in [0, 1] {
+            let c = SampleConfig { background, max_objects: objects, backward: true, ..base.clone() };
+            let r = run(&c)?;
+            let laws = r.laws.holes + r.laws.label + r.laws.depth;
+            println!(
+                "| {background} | {objects} ({} moved) | {:.4} | {:.4} | {} / {} | {} | {} | {:.4} | {laws} | {} |",
+                r.with_objects,
+                r.hole_fraction,
+                r.realism.revealed,
+                opt3(r.realism.revealed_detail),
+                opt3(r.realism.revealed_noise),
+                opt3(r.realism.auc_revealed),
+                opt3(r.realism.auc_pair),
+                r.photometric,
+                opt3(r.realism.fb_residual),
+            );
+        }
+    }
+    Ok(())
+}
+
 /// A figure with three decimals, or `-` when there is none.
 fn opt3(v: Option<f64>) -> String {
     v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"))
@@ -250,71 +330,13 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     };
     if q.sharpness {
         // every kernel on the same motions (the addresses of the base configuration)
-        let run = |c: &SampleConfig| {
+        let same = |c: &SampleConfig| {
             quality_same_motions(p.generator(), c, q.seed, q.count).map_err(|e| CliError(e.to_string()))
         };
-        println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | img2 / ideal | AUC img2 vs img1 | noise img1 / img2 (levels) | photometric | background | fb residual px | hole fraction | flow p50 / p95 px |");
-        println!("|---|---|---|---|---|---|---|---|---|---|---|");
-        let mut variants = vec![(false, false)];
-        if q.restore_noise {
-            variants.push((true, false));
-        }
-        if q.minify {
-            variants.push((false, true));
-        }
-        for (&resample, (restore_noise, minify)) in kernels.iter().flat_map(|k| variants.iter().map(move |&v| (k, v))) {
-            // the backward fields only add outputs (the ideal warp's geometry), no other byte
-            let c = SampleConfig { max_objects: 0, resample, restore_noise, minify, backward: true, ..base.clone() };
-            let r = run(&c)?;
-            let name = match (restore_noise, minify) {
-                (true, _) => format!("{resample} + noise"),
-                (_, true) => format!("{resample} + minify"),
-                _ => resample.to_string(),
-            };
-            println!(
-                "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.0}% | {} | {:.2} / {:.2} | {:.4} | {:.4} | {} | {:.4} | {:.2} / {:.2} |",
-                r.sharpness,
-                r.sharpness_min,
-                r.sharpness_max,
-                r.ideal_sharpness,
-                r.ideal_image2_sharpness,
-                if r.ideal_sharpness > 0.0 { 100.0 * r.ideal_image2_sharpness / r.ideal_sharpness } else { 0.0 },
-                opt3(r.realism.auc_pair),
-                r.noise1,
-                r.noise2,
-                r.photometric,
-                r.photometric_background,
-                opt3(r.realism.fb_residual),
-                r.hole_fraction,
-                r.flow_p50,
-                r.flow_p95
-            );
-        }
-        return Ok(());
+        return sharpness_table(&same, &q, &base, &kernels);
     }
     if q.realism {
-        println!("| fill | objects | hole fraction | revealed | revealed detail / noise vs other background | AUC revealed vs img1 background | AUC img2 vs img1 | photometric | label laws | fb residual px |");
-        println!("|---|---|---|---|---|---|---|---|---|---|");
-        for background in [Background::Planes, Background::Inpaint] {
-            for objects in [0, 1] {
-                let c = SampleConfig { background, max_objects: objects, backward: true, ..base.clone() };
-                let r = run(&c)?;
-                let laws = r.laws.holes + r.laws.label + r.laws.depth;
-                println!(
-                    "| {background} | {objects} ({} moved) | {:.4} | {:.4} | {} / {} | {} | {} | {:.4} | {laws} | {} |",
-                    r.with_objects,
-                    r.hole_fraction,
-                    r.realism.revealed,
-                    opt3(r.realism.revealed_detail),
-                    opt3(r.realism.revealed_noise),
-                    opt3(r.realism.auc_revealed),
-                    opt3(r.realism.auc_pair),
-                    r.photometric,
-                    opt3(r.realism.fb_residual),
-                );
-            }
-        }
-        return Ok(());
+        return realism_table(&run, &base);
     }
     println!(
         "| resample | merge | fill | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | sharpness | valid | occluded | flow p5 / p50 / p95 / p99 / max px | < 1 px |"

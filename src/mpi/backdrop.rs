@@ -242,6 +242,27 @@ pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -
     if !behind.iter().any(|&b| b) {
         return Backdrop { width: w, height: h, behind, rgb: out_rgb, disparity: out_disp };
     }
+    synthesise(&Region { rgb, disp, grown: &grown, behind: &behind, back: &back, w, h }, &mut out_rgb);
+    Backdrop { width: w, height: h, behind, rgb: out_rgb, disparity: out_disp }
+}
+
+/// What the colour synthesis reads: the photo, its disparities, the grown masks, the pixels to
+/// complete and their background disparity.
+struct Region<'a> {
+    rgb: &'a [f32],
+    disp: &'a [f64],
+    grown: &'a [bool],
+    behind: &'a [bool],
+    back: &'a [f64],
+    w: usize,
+    h: usize,
+}
+
+/// The exemplar synthesis of the module documentation into `out_rgb` (the photo's colours on
+/// entry; the pixels of `r.behind` are replaced).
+fn synthesise(r: &Region<'_>, out_rgb: &mut [f32]) {
+    let Region { rgb, disp, grown, behind, back, w, h } = *r;
+    let n = w * h;
     // sources: visible background, sorted by disparity (the eligible set of a target is a prefix)
     let mut sources: Vec<usize> = (0..n).filter(|&p| !grown[p] && !behind[p]).collect();
     sources.sort_by(|&a, &b| disp[a].total_cmp(&disp[b]).then(a.cmp(&b)));
@@ -252,7 +273,7 @@ pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -
         s
     };
     // onion-peel order: chessboard distance from the pixels that need no completion
-    let order = peel_order(&behind, w, h);
+    let order = peel_order(behind, w, h);
     let mut filled: Vec<bool> = behind.iter().map(|&b| !b).collect();
     let mut src_of: Vec<u32> = vec![u32::MAX; n];
     let half = (WINDOW / 2) as isize;
@@ -316,7 +337,7 @@ pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -
                 }
                 let (sx, sy) = ((s as usize % w) as isize - dx, (s as usize / w) as isize - dy);
                 if sx >= 0 && sy >= 0 && (sx as usize) < w && (sy as usize) < h {
-                    consider(sy as usize * w + sx as usize, &mut best, &out_rgb, &filled);
+                    consider(sy as usize * w + sx as usize, &mut best, out_rgb, &filled);
                 }
             }
         }
@@ -329,7 +350,7 @@ pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -
         if eligible > 0 {
             for _ in 0..GLOBAL_DRAWS {
                 let s = sources[draw(&mut key, eligible)];
-                consider(s, &mut best, &out_rgb, &filled);
+                consider(s, &mut best, out_rgb, &filled);
             }
         }
         let mut r = SEARCH_RADIUS;
@@ -338,7 +359,7 @@ pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -
             let x = cx + draw(&mut key, 2 * r + 1) as isize - r as isize;
             let y = cy + draw(&mut key, 2 * r + 1) as isize - r as isize;
             if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
-                consider(y as usize * w + x as usize, &mut best, &out_rgb, &filled);
+                consider(y as usize * w + x as usize, &mut best, out_rgb, &filled);
             }
             r /= 2;
         }
@@ -353,7 +374,6 @@ pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -
         }
         filled[t] = true;
     }
-    Backdrop { width: w, height: h, behind, rgb: out_rgb, disparity: out_disp }
 }
 
 /// The pixels of `todo` by chessboard distance from the pixels not in it (breadth-first, ties in
