@@ -179,7 +179,7 @@ pub fn thin_line_runs(img: &[u8], w: usize, h: usize) -> usize {
 }
 
 /// Rec. 601 luminance (0..255) of pixel `i` of an interleaved u8 RGB image.
-fn luminance(img: &[u8], i: usize) -> f64 {
+pub(crate) fn luminance(img: &[u8], i: usize) -> f64 {
     0.299 * f64::from(img[3 * i]) + 0.587 * f64::from(img[3 * i + 1]) + 0.114 * f64::from(img[3 * i + 2])
 }
 

@@ -26,6 +26,7 @@
 //! patches apart, 1.0 that they always can. With fewer than 8 held-out patches of either class
 //! there is no figure (`None`).
 
+use super::quality::luminance;
 use crate::rng::mix64;
 use crate::sample::noise::noise_sigma;
 use crate::sample::Sample;
@@ -40,16 +41,12 @@ const SPLIT_SEED: u64 = 0x6d70_6966_6c6f_7721;
 /// The detail statistics of one patch (see the module documentation).
 pub type Features = [f64; FEATURES];
 
-fn luma(img: &[u8], i: usize) -> f64 {
-    0.299 * f64::from(img[3 * i]) + 0.587 * f64::from(img[3 * i + 1]) + 0.114 * f64::from(img[3 * i + 2])
-}
-
 /// The features of the patch of `img` (w x h x 3) whose top-left pixel is `(x0, y0)`.
 pub fn patch_features(img: &[u8], w: usize, x0: usize, y0: usize) -> Features {
     let mut l = [[0.0f64; PATCH]; PATCH];
     for (dy, row) in l.iter_mut().enumerate() {
         for (dx, v) in row.iter_mut().enumerate() {
-            *v = luma(img, (y0 + dy) * w + x0 + dx);
+            *v = luminance(img, (y0 + dy) * w + x0 + dx);
         }
     }
     let (mut n, mut ls, mut lq, mut g2, mut noise) = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64);

@@ -39,6 +39,7 @@
 //! of it in the region (`tests/backdrop.rs` prints nothing; `mpiflow bench quality --realism`
 //! states the scene build's time).
 
+use crate::raster::morph::dilate;
 use crate::rng::mix64;
 
 /// Mask pixels are grown by this many pixels (chessboard) before completion.
@@ -72,55 +73,6 @@ impl Backdrop {
     pub fn count(&self) -> usize {
         self.behind.iter().filter(|&&b| b).count()
     }
-}
-
-/// Chessboard dilation of a boolean grid by `r` (separable running maximum).
-pub(crate) fn dilate(m: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
-    let mut tmp = vec![false; w * h];
-    for y in 0..h {
-        let row = &m[y * w..(y + 1) * w];
-        // distance to the last true on the left and right
-        let mut last: Option<usize> = None;
-        for x in 0..w {
-            if row[x] {
-                last = Some(x);
-            }
-            if last.is_some_and(|l| x - l <= r) {
-                tmp[y * w + x] = true;
-            }
-        }
-        last = None;
-        for x in (0..w).rev() {
-            if row[x] {
-                last = Some(x);
-            }
-            if last.is_some_and(|l| l - x <= r) {
-                tmp[y * w + x] = true;
-            }
-        }
-    }
-    let mut out = vec![false; w * h];
-    for x in 0..w {
-        let mut last: Option<usize> = None;
-        for y in 0..h {
-            if tmp[y * w + x] {
-                last = Some(y);
-            }
-            if last.is_some_and(|l| y - l <= r) {
-                out[y * w + x] = true;
-            }
-        }
-        last = None;
-        for y in (0..h).rev() {
-            if tmp[y * w + x] {
-                last = Some(y);
-            }
-            if last.is_some_and(|l| l - y <= r) {
-                out[y * w + x] = true;
-            }
-        }
-    }
-    out
 }
 
 /// Chessboard minimum filter of radius `r` (separable; O(w h r)).
@@ -205,7 +157,7 @@ pub(crate) fn push_pull(v: &[f64], known: &[bool], w: usize, h: usize) -> Vec<f6
 /// (finite, > 0), `masks` H x W (true = an object that may move). See the module documentation.
 pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -> Backdrop {
     let n = w * h;
-    let grown = if masks.iter().any(|&m| m) { dilate(masks, w, h, MASK_GROW) } else { vec![false; n] };
+    let grown = if masks.iter().any(|&m| m) { dilate(w, h, masks, MASK_GROW) } else { vec![false; n] };
     // the farthest disparity within reach: the background beside each pixel
     // the near sides of depth steps (a 4-neighbour farther by more than EDGE_STEP), grown by
     // EDGE_REACH: a slope, however steep overall, has no such step between neighbours
@@ -219,7 +171,7 @@ pub fn complete(rgb: &[f32], disp: &[f64], masks: &[bool], w: usize, h: usize) -
                 || (y + 1 < h && lower(p + w))
         })
         .collect();
-    let band = dilate(&step, w, h, EDGE_REACH);
+    let band = dilate(w, h, &step, EDGE_REACH);
     let far_near = min_filter(disp, w, h, EDGE_REACH);
     let mut back: Vec<f64> = (0..n).map(|p| if band[p] { far_near[p] } else { disp[p] }).collect();
     if grown.iter().any(|&g| g) {

@@ -34,6 +34,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 
 pub mod instances;
+pub mod morph;
 pub mod polygon;
 pub mod resize;
 pub mod rle;

@@ -15,7 +15,8 @@
 //! touches what is around it) the mask is kept as it is. Pixels of other instances are left
 //! alone.
 
-use crate::mpi::backdrop::{dilate, push_pull, EDGE_STEP};
+use crate::mpi::backdrop::{push_pull, EDGE_STEP};
+use crate::raster::morph::dilate;
 use crate::raster::InstanceMasks;
 
 /// Half-width of the band around a mask's edge that is re-decided by depth, in pixels.
@@ -40,8 +41,8 @@ pub fn align_to_depth(masks: &mut InstanceMasks, disparity: &[f32]) -> usize {
         }
         let inside: Vec<bool> = inst.mask.iter().map(|&v| v >= 0.5).collect();
         let outside: Vec<bool> = inside.iter().map(|&i| !i).collect();
-        let near_out = dilate(&outside, w, h, BAND); // inside pixels within BAND of the edge, and outside
-        let near_in = dilate(&inside, w, h, BAND);
+        let near_out = dilate(w, h, &outside, BAND); // inside pixels within BAND of the edge, and outside
+        let near_in = dilate(w, h, &inside, BAND);
         let core: Vec<bool> = near_out.iter().map(|&b| !b).collect();
         let far_out: Vec<bool> = near_in.iter().map(|&b| !b).collect();
         if !core.iter().any(|&c| c) || !far_out.iter().any(|&c| c) {
