@@ -88,7 +88,13 @@ fn rigid(t: [f64; 3]) -> RigidLaw {
 }
 
 fn config(camera: [f64; 3], object: [f64; 3], merge: MergeRule, background: Background) -> SampleConfig {
-    let ranges = MotionRanges { name: "test".into(), camera: rigid(camera), object: rigid(object), stereo: false };
+    let ranges = MotionRanges {
+        name: "test".into(),
+        camera: rigid(camera),
+        object: rigid(object),
+        stereo: false,
+        reveal_budget: None,
+    };
     SampleConfig {
         motion: MotionSpec::Ranges(Box::new(ranges)),
         merge,

@@ -40,7 +40,7 @@ const ROOMS: &[(&str, &[&[&str]])] = &[
         "sample",
         &[
             &["inpaint", "motion", "object", "preblend"],
-            &["error", "types"],
+            &["error", "reveal", "types"],
             &["merge", "noise"],
             &["background"],
             &["config"],

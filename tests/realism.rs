@@ -2,7 +2,8 @@
 //! `tests/data/rgbd`): with the completed background (`backdrop`) and the planes behind the
 //! moved object as its fill, image2 leaves less to 2-D inpainting and the revealed regions keep
 //! the photo's detail and noise; the labels stay honest and the samples a pure function of their
-//! address. The figures come from `bench::quality` and `bench::realism`, as `mpiflow bench
+//! address; and the reveal budget keeps what a moved object uncovers near what a clip shows, also
+//! for a mask of most of the frame. The figures come from `bench::quality` and `bench::realism`, as `mpiflow bench
 //! quality --realism` prints them.
 
 use std::path::PathBuf;
@@ -11,7 +12,8 @@ use std::sync::Arc;
 use mpiflow::bench::quality::quality;
 use mpiflow::bench::quality::QualityReport;
 use mpiflow::sample::background::Background;
-use mpiflow::sample::config::SampleConfig;
+use mpiflow::sample::config::{MotionSpec, SampleConfig};
+use mpiflow::sample::motion::{MotionPreset, MotionRanges};
 use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;
@@ -21,9 +23,13 @@ fn cones() -> PathBuf {
 }
 
 fn pipeline(backdrop: bool) -> Pipeline {
+    pipeline_of(cones(), backdrop)
+}
+
+fn pipeline_of(dir: PathBuf, backdrop: bool) -> Pipeline {
     let models = ModelConfig { backdrop, ..ModelConfig::default() };
     let stage = Arc::new(models.build_stage().unwrap());
-    let source = open_source(&SourceSpec::Path(cones()), &OpenOptions::default()).unwrap();
+    let source = open_source(&SourceSpec::Path(dir), &OpenOptions::default()).unwrap();
     Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 28)), SampleConfig::default()).unwrap()
 }
 
@@ -75,4 +81,30 @@ fn samples_with_the_completed_background_are_a_pure_function_of_their_address() 
     assert_eq!(a.flow, b.flow);
     assert_eq!(a.mask1, b.mask1);
     assert_eq!(a.holes, b.holes);
+}
+
+/// A mask of most of the frame (the example photo's cat, `tests/data/rgbd/chelsea`, 83%): the
+/// default law's reveal budget moves it by less, so image2 leaves at most 3% to inpainting, where
+/// the same law without the budget leaves much more; the labels stay honest either way.
+#[test]
+fn the_reveal_budget_moves_a_large_mask_by_less() {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/rgbd/chelsea");
+    let p = pipeline_of(dir, false);
+    let budgeted = SampleConfig { backward: true, ..SampleConfig::default() };
+    let free = SampleConfig {
+        motion: MotionSpec::Ranges(Box::new(MotionRanges { reveal_budget: None, ..MotionPreset::Reference.ranges() })),
+        ..budgeted.clone()
+    };
+    let with = quality(p.generator(), &budgeted, 0, 8).unwrap();
+    let without = quality(p.generator(), &free, 0, 8).unwrap();
+    for (name, r) in [("budget", &with), ("no budget", &without)] {
+        println!(
+            "{name}: holes {:.4}, revealed {:.4}, photometric {:.4}, laws {:?}",
+            r.hole_fraction, r.realism.revealed, r.photometric, r.laws
+        );
+        assert_eq!(r.with_objects, 8, "{name}: every sample moves the cat");
+        assert_eq!(r.laws.holes + r.laws.label + r.laws.depth, 0, "{name}: {:?}", r.laws);
+    }
+    assert!(with.hole_fraction <= 0.03, "{}", with.hole_fraction);
+    assert!(without.hole_fraction > 2.0 * with.hole_fraction, "{} / {}", without.hole_fraction, with.hole_fraction);
 }

@@ -14,7 +14,7 @@ use mpiflow::sample::config::{InpaintMethod, MotionSpec, SampleConfig};
 use mpiflow::sample::error::SampleError;
 use mpiflow::sample::holes::inpaint_holes;
 use mpiflow::sample::merge::MergeRule;
-use mpiflow::sample::motion::{Component, Motion, MotionPreset, RigidLaw, RotationKind};
+use mpiflow::sample::motion::{Component, Motion, MotionPreset, MotionRanges, RigidLaw, RotationKind};
 use mpiflow::sample::object::ObjectChoice;
 use mpiflow::sample::pipeline::Generator;
 use mpiflow::sample::recipe::{assemble, assemble_merged};
@@ -187,11 +187,17 @@ fn within(law: &RigidLaw, m: &Motion) {
     assert_eq!(m.rotation_kind, law.rotation_kind);
 }
 
+/// A preset's laws without its reveal budget: the objects' records are the drawn motions (with
+/// the budget a large object's record is the motion it was scaled down to).
+fn unbudgeted(preset: MotionPreset) -> MotionSpec {
+    MotionSpec::Ranges(Box::new(MotionRanges { reveal_budget: None, ..preset.ranges() }))
+}
+
 #[test]
 fn motions_stay_within_each_presets_ranges() {
     for preset in MotionPreset::ALL {
         let ranges = preset.ranges();
-        let config = SampleConfig { max_objects: 3, ..SampleConfig::with_preset(preset) };
+        let config = SampleConfig { max_objects: 3, motion: unbudgeted(preset), ..SampleConfig::with_preset(preset) };
         let g = generator(Procedural::new(3), config);
         for index in 0..12 {
             let s = g.sample(1, index).unwrap();
@@ -333,10 +339,11 @@ fn every_inpainting_method_fills_the_holes_as_the_whole_frame_call_does() {
     }
     // the same address under objects_follow_camera (the option is part of the fingerprint, so
     // the address is given explicitly)
-    let g = generator(Procedural::new(2), SampleConfig::default());
+    let plain = SampleConfig { motion: unbudgeted(MotionPreset::Reference), ..SampleConfig::default() };
+    let g = generator(Procedural::new(2), plain.clone());
     let b = g.sample(0, 1).unwrap();
     let scene = g.scene(g.source_item(1).unwrap()).unwrap();
-    let follow = SampleConfig { objects_follow_camera: true, ..SampleConfig::default() };
+    let follow = SampleConfig { objects_follow_camera: true, ..plain };
     let a = assemble(&scene, b.address, &follow).unwrap();
     assert_eq!(a.camera, b.camera);
     assert_eq!(a.objects[0].motion, b.objects[0].motion, "the drawn motion is recorded, not the composed one");

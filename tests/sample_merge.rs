@@ -84,7 +84,13 @@ fn rigid(t: [f64; 3], r: [f64; 3]) -> RigidLaw {
 /// one-pixel reach (the other kernels' laws are in tests/resample.rs).
 fn config(camera: RigidLaw, object: RigidLaw, rule: MergeRule) -> SampleConfig {
     SampleConfig {
-        motion: MotionSpec::Ranges(Box::new(MotionRanges { name: "test".into(), camera, object, stereo: false })),
+        motion: MotionSpec::Ranges(Box::new(MotionRanges {
+            name: "test".into(),
+            camera,
+            object,
+            stereo: false,
+            reveal_budget: None,
+        })),
         merge: rule,
         inpaint_radius: 3.0,
         resample: mpiflow::render::Resample::Bilinear,

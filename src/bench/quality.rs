@@ -231,6 +231,20 @@ pub use crate::sample::noise::noise_sigma;
 /// (magnification). Needs the backward fields (`None` without them or when a region is empty).
 pub fn ideal_warp_sharpness(s: &Sample) -> Option<(f64, f64)> {
     let (w, h) = (s.width, s.height);
+    let ideal = ideal_warp(s)?;
+    let bw = &s.backward;
+    let v1 = laplacian_variance(&s.image1, w, h, |i| s.valid[i] != 0)?;
+    let region = |i: usize| bw.valid[i] != 0 && s.holes[i] == 0;
+    let vi = laplacian_variance(&ideal, w, h, region)?;
+    let v2 = laplacian_variance(&s.image2, w, h, region)?;
+    (v1 > 0.0).then(|| (vi / v1, v2 / v1))
+}
+
+/// Image1 warped ideally by the sample's geometry (RGB8, W x H x 3): image1's quintic B-spline
+/// ([`crate::render::resample::SplineImage`]) sampled at `q + backward_flow(q)` where the
+/// backward flow is valid, 0 elsewhere. `None` without the backward fields.
+pub fn ideal_warp(s: &Sample) -> Option<Vec<u8>> {
+    let (w, h) = (s.width, s.height);
     let bw = &s.backward;
     if bw.flow.len() != 2 * w * h || bw.valid.len() != w * h {
         return None;
@@ -248,11 +262,7 @@ pub fn ideal_warp_sharpness(s: &Sample) -> Option<(f64, f64)> {
             ideal[3 * i + k] = (c[k] * 255.0 + 0.5).clamp(0.0, 255.0) as u8;
         }
     }
-    let v1 = laplacian_variance(&s.image1, w, h, |i| s.valid[i] != 0)?;
-    let region = |i: usize| bw.valid[i] != 0 && s.holes[i] == 0;
-    let vi = laplacian_variance(&ideal, w, h, region)?;
-    let v2 = laplacian_variance(&s.image2, w, h, region)?;
-    (v1 > 0.0).then(|| (vi / v1, v2 / v1))
+    Some(ideal)
 }
 
 /// The noise estimates ([`noise_sigma`]) of a sample's image1 over its valid pixels and image2

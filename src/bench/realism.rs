@@ -287,6 +287,8 @@ pub struct RealismAccumulator {
     pub pair: PatchSet,
     /// Revealed image2 background patches against image1 background patches.
     pub reveal: PatchSet,
+    /// Patches of image1 warped ideally ([`super::quality::ideal_warp`]) against image1 patches.
+    pub ideal: PatchSet,
     shares: Vec<f64>,
     detail: Vec<f64>,
     noise: Vec<f64>,
@@ -300,6 +302,10 @@ pub struct RealismReport {
     pub auc_pair: Option<f64>,
     /// AUC of the classifier telling revealed image2 patches from image1 background patches.
     pub auc_revealed: Option<f64>,
+    /// AUC of the classifier telling patches of image1 warped ideally by the sample's geometry
+    /// ([`super::quality::ideal_warp`]) from image1 patches: what an exact warp leaves for the
+    /// classifier (magnification's loss of detail); `None` without the backward fields.
+    pub auc_ideal: Option<f64>,
     /// Mean revealed share of image2.
     pub revealed: f64,
     /// Means of [`RevealedDetail::detail`] and [`RevealedDetail::noise`] over the samples that
@@ -335,6 +341,10 @@ impl RealismAccumulator {
         self.pair.reference.extend(patches(&s.image1, w, h, |i| s.valid[i] != 0));
         self.reveal.test.extend(majority_patches(&s.image2, w, h, |i| rev[i] && s.mask2[i] == 0));
         self.reveal.reference.extend(patches(&s.image1, w, h, |i| s.mask1[i] == 0));
+        if let Some(ideal) = super::quality::ideal_warp(s) {
+            self.ideal.test.extend(patches(&ideal, w, h, |i| !rev[i] && s.holes[i] == 0 && s.backward.valid[i] != 0));
+            self.ideal.reference.extend(patches(&s.image1, w, h, |i| s.valid[i] != 0));
+        }
         let d = revealed_detail(s, &rev);
         self.shares.push(d.share);
         self.detail.extend(d.detail);
@@ -350,6 +360,7 @@ impl RealismAccumulator {
         RealismReport {
             auc_pair: classifier_auc(&self.pair),
             auc_revealed: classifier_auc(&self.reveal),
+            auc_ideal: classifier_auc(&self.ideal),
             revealed: mean(&self.shares).unwrap_or(0.0),
             revealed_detail: mean(&self.detail),
             revealed_noise: mean(&self.noise),

@@ -207,7 +207,7 @@ fn sharpness_table(
     kernels: &[mpiflow::render::Resample],
 ) -> Result<(), CliError> {
     use mpiflow::sample::config::SampleConfig;
-    println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | img2 / ideal | AUC img2 vs img1 | noise img1 / img2 (levels) | photometric | background | fb residual px | hole fraction | flow p50 / p95 px |");
+    println!("| resample | sharpness img2 / img1 (min-max) | ideal warp / img2, same pixels | img2 / ideal | AUC img2 vs img1 (ideal warp vs img1) | noise img1 / img2 (levels) | photometric | background | fb residual px | hole fraction | flow p50 / p95 px |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let mut variants = vec![(false, false)];
     if q.restore_noise {
@@ -226,7 +226,7 @@ fn sharpness_table(
             _ => resample.to_string(),
         };
         println!(
-            "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.0}% | {} | {:.2} / {:.2} | {:.4} | {:.4} | {} | {:.4} | {:.2} / {:.2} |",
+            "| {name} | {:.3} ({:.3}-{:.3}) | {:.3} / {:.3} | {:.0}% | {} ({}) | {:.2} / {:.2} | {:.4} | {:.4} | {} | {:.4} | {:.2} / {:.2} |",
             r.sharpness,
             r.sharpness_min,
             r.sharpness_max,
@@ -234,6 +234,7 @@ fn sharpness_table(
             r.ideal_image2_sharpness,
             if r.ideal_sharpness > 0.0 { 100.0 * r.ideal_image2_sharpness / r.ideal_sharpness } else { 0.0 },
             opt3(r.realism.auc_pair),
+            opt3(r.realism.auc_ideal),
             r.noise1,
             r.noise2,
             r.photometric,

@@ -44,8 +44,16 @@
 //! paper's exact comparison `D_t < D_t^obj` flips from row to row with the renders' rounding:
 //! image2 showed one-pixel rows of the object's render across the scene's ("thin lines";
 //! `tests/labels.rs` counts them). Within the tolerance the object is drawn, as
-//! where it is nearer, so the decision changes only at a real depth step. Holes = `s < tau`
-//! and nothing drawn (scene holes include rays that left the source frustum, coverage < tau).
+//! where it is nearer, so the decision changes only at a real depth step.
+//!
+//! **Seams.** A pixel with `s < tau` and no candidate, where some object's `m_j < tau` is not
+//! hidden (`D_t (1 + tol) < D_t^obj_j` is false) and `s + m_j >= tau`, is covered by the two
+//! renders together: the edge of an object that moved with (or close to) the scene, where the
+//! scene's cut-out and the object's matte both fall off over a pixel or two. The larger share
+//! shows: object `j` (largest such `m_j`) when `m_j > s`, else the scene. Holes = `s < tau`,
+//! nothing drawn and no seam (scene holes include rays that left the source frustum, coverage
+//! < tau); before seams, an object moving exactly with the scene left its whole outline, one
+//! to three pixels wide, to inpainting.
 //!
 //! The depth of what image2 shows (the drawn object's `D_t^obj`, else the scene's `D_t`; 0 in
 //! holes) is returned as [`Merged::depth2`].
@@ -398,10 +406,12 @@ pub fn merge_target(
                 let s = scene_s(x, y);
                 let mut filled: Option<(f32, f32)> = None;
                 let mut best: Option<Hit> = None;
+                // the largest partial share not hidden (depth-aware rule): the seam's other half
+                let mut partial: Option<Hit> = None;
                 for (slot, o) in objects.iter().enumerate() {
                     let Some(idx) = o.render.index(x, y) else { continue };
                     let m = o.render.out.extras[idx];
-                    if m.is_nan() || m < tau {
+                    if m.is_nan() || (m < tau && (rule == MergeRule::Reference || s >= tau || s + m < tau)) {
                         continue;
                     }
                     let depth = o.render.out.depth[idx];
@@ -410,6 +420,12 @@ pub fn merge_target(
                         MergeRule::Reference => {
                             if best.is_none_or(|b| m > b.m) {
                                 best = Some(hit);
+                            }
+                        }
+                        MergeRule::DepthAware if m < tau => {
+                            let hidden = dep[x] * (1.0 + OCCLUSION_TOLERANCE) < depth;
+                            if !hidden && partial.is_none_or(|p| m > p.m) {
+                                partial = Some(hit);
                             }
                         }
                         MergeRule::DepthAware => {
@@ -429,6 +445,9 @@ pub fn merge_target(
                         }
                     }
                 }
+                // a seam: the scene and an object cover the pixel together; the larger share shows
+                let best = best.or_else(|| partial.filter(|p| p.m > s));
+                let seam = partial.is_some();
                 match best {
                     Some(b) => {
                         let src = &objects[b.slot].render.out.image[3 * b.idx..3 * b.idx + 3];
@@ -438,7 +457,7 @@ pub fn merge_target(
                     }
                     None => {
                         // the row's scene colours are converted before the loop
-                        if s < tau {
+                        if s < tau && !seam {
                             hol[x] = 1;
                             dep[x] = f32::INFINITY;
                             row_holes += 1;

@@ -24,6 +24,7 @@ pub mod object;
 pub mod pipeline;
 pub mod preblend;
 pub mod recipe;
+pub mod reveal;
 mod types;
 
 pub use types::{disparity_of, ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};

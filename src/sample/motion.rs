@@ -56,6 +56,13 @@ use crate::rng::SampleRng;
 /// The public reference script's default `ext_cz` (extra forward distance of the camera).
 pub const REFERENCE_EXT_CZ: f64 = 0.15;
 
+/// The reveal budget of every preset that moves objects: uniform in this range of the frame's
+/// share ([`MotionRanges::reveal_budget`]; docs/quality.md, "The reveal budget"). Between two
+/// frames of a real clip a moving object uncovers a sliver along its trailing edge; 0.1% to 1%
+/// of the frame keeps a large object moving (by less) while the mean uncovered share stays near
+/// the camera's own.
+pub const REVEAL_BUDGET: (f64, f64) = (0.001, 0.01);
+
 /// Errors of motion configuration.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MotionError {
@@ -307,6 +314,13 @@ pub struct MotionRanges {
     /// the JSON when false, so the laws of other presets keep their fingerprints.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub stereo: bool,
+    /// The most share of image2 (0 to 1) one object's motion relative to the scene may uncover,
+    /// drawn per object after its motion (`{ "law": "uniform", "lo": 0.001, "hi": 0.01 }`); an
+    /// object whose drawn motion would uncover more moves by less (applied by the recipe;
+    /// docs/quality.md, "The reveal budget"). None: no budget (left out of the JSON, so laws
+    /// without one keep their fingerprints).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reveal_budget: Option<Component>,
 }
 
 impl Default for MotionRanges {
@@ -341,6 +355,16 @@ impl MotionRanges {
         self.object.validate("object")?;
         if self.stereo {
             self.validate_stereo()?;
+        }
+        if let Some(b) = &self.reveal_budget {
+            b.validate("reveal_budget", false)?;
+            let (lo, hi) = b.bounds();
+            if !(lo > 0.0 && hi <= 1.0) || matches!(b, Component::RandomSign { .. } | Component::LogUniform { .. }) {
+                return Err(MotionError::InvalidRange {
+                    field: "reveal_budget".into(),
+                    reason: format!("a share of the frame: a uniform law with 0 < lo <= hi <= 1 (bounds {lo}, {hi})"),
+                });
+            }
         }
         Ok(())
     }
@@ -381,6 +405,12 @@ impl MotionRanges {
     /// Draws an object motion (use a `Purpose::ObjectMotion(slot)` stream).
     pub fn sample_object_motion(&self, rng: &mut SampleRng) -> Motion {
         self.object.draw(rng, &self.name)
+    }
+
+    /// Draws an object's reveal budget (from the object's stream, after its motion); None
+    /// without one.
+    pub fn sample_reveal_budget(&self, rng: &mut SampleRng) -> Option<f64> {
+        self.reveal_budget.map(|b| b.draw(rng))
     }
 
     /// [`Self::sample_camera_motion`] as a pose.
@@ -528,10 +558,22 @@ impl MotionPreset {
                     ),
                     ..still
                 };
-                return MotionRanges { name: self.name().to_string(), camera, object: still, stereo: true };
+                return MotionRanges {
+                    name: self.name().to_string(),
+                    camera,
+                    object: still,
+                    stereo: true,
+                    reveal_budget: None,
+                };
             }
         };
-        MotionRanges { name: self.name().to_string(), camera, object, stereo: false }
+        MotionRanges {
+            name: self.name().to_string(),
+            camera,
+            object,
+            stereo: false,
+            reveal_budget: Some(Component::Uniform { lo: REVEAL_BUDGET.0, hi: REVEAL_BUDGET.1 }),
+        }
     }
 }
 

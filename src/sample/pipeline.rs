@@ -39,14 +39,16 @@ use crate::source::{FailureKind, Fnv64, Source, SourceError};
 /// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
 /// (sources + scene stage) and the configuration's JSON. Never change the formula without a
 /// reason: it is the dataset word of every address, so changing it changes every sample.
-/// The version word (`v3`) names the sample bytes' rules: v2 marks the depth-aware merge that
+/// The version word (`v4`) names the sample bytes' rules: v2 marks the depth-aware merge that
 /// fills one-pixel dips of the scene mask and depth before its occlusion test (`sample::merge`),
 /// v3 the higher-order colour kernels that sum each column of taps first, then the columns
-/// (`render::resample`, four values per vector operation). CHANGELOG.md lists the changes.
+/// (`render::resample`, four values per vector operation), v4 the merge's seams (a pixel the
+/// scene and an object cover together shows the larger share instead of a hole). CHANGELOG.md
+/// lists the changes.
 pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
     // serialising a plain struct of numbers and strings cannot fail
     let json = serde_json::to_string(config).unwrap_or_default();
-    Fnv64::new().str("mpiflow dataset v3").u64(loader_fingerprint).str(&json).finish()
+    Fnv64::new().str("mpiflow dataset v4").u64(loader_fingerprint).str(&json).finish()
 }
 
 /// `WxH`, both sides 16 to 16384 pixels (the `--size` of every command and the `size` key).

@@ -83,7 +83,7 @@ use super::holes::inpaint_holes;
 use super::merge::{
     merge, merge_link, merge_target, units_to_u8, MergeRule, Merged, ObjectView, OtherFrame, SceneView, TargetSide,
 };
-use super::motion::Motion;
+use super::motion::{Motion, RotationKind};
 use super::object::{
     choose_objects, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect,
 };
@@ -341,9 +341,13 @@ fn draw_motions(scene: &Scene, address: SampleAddress, config: &SampleConfig) ->
     let mut poses = Vec::with_capacity(chosen.len());
     for (slot, &idx) in chosen.iter().enumerate() {
         let inst = &scene.masks.masks[idx];
-        let motion = ranges.sample_object_motion(&mut rng(Purpose::ObjectMotion(slot as u32)));
-        let own = motion.to_pose();
-        poses.push(if config.objects_follow_camera { cam_pose.compose(&own) } else { own });
+        let mut stream = rng(Purpose::ObjectMotion(slot as u32));
+        let mut motion = ranges.sample_object_motion(&mut stream);
+        let mut pose = object_pose(&motion.to_pose(), &cam_pose, config.objects_follow_camera);
+        if let Some(budget) = ranges.sample_reveal_budget(&mut stream) {
+            (motion, pose) = within_budget(scene, &inst.mask, &cam_pose, (motion, pose), budget, config);
+        }
+        poses.push(pose);
         records.push(ObjectRecord {
             label: (slot + 1) as u8,
             instance: inst.id,
@@ -353,6 +357,46 @@ fn draw_motions(scene: &Scene, address: SampleAddress, config: &SampleConfig) ->
         });
     }
     Draws { camera, cam_pose, chosen, records, poses }
+}
+
+/// The pose image2 shows an object under: its own motion, after the camera's when objects
+/// follow it.
+fn object_pose(own: &Pose, cam_pose: &Pose, follow: bool) -> Pose {
+    if follow {
+        cam_pose.compose(own)
+    } else {
+        *own
+    }
+}
+
+/// An object's motion and pose moved by less when it would uncover more than `budget` of the
+/// frame ([`super::reveal`]); the record is the motion applied (as an axis-angle law when
+/// scaled).
+fn within_budget(
+    scene: &Scene,
+    mask: &[f32],
+    cam_pose: &Pose,
+    (motion, pose): (Motion, Pose),
+    budget: f64,
+    config: &SampleConfig,
+) -> (Motion, Pose) {
+    use super::reveal::{fit_scale, scaled_pose, MaskSamples};
+    let (w, h) = (scene.mpi.width, scene.mpi.height);
+    if scene.disparity.data.len() != w * h || mask.len() != w * h {
+        return (motion, pose);
+    }
+    let samples = MaskSamples::new(mask, &scene.disparity.data, w, h, scene.intrinsics);
+    let s = fit_scale(&samples, cam_pose, &pose, budget);
+    if s == 1.0 {
+        return (motion, pose);
+    }
+    let scaled = scaled_pose(cam_pose, &pose, s);
+    let own = if config.objects_follow_camera { cam_pose.inverse().compose(&scaled) } else { scaled };
+    let aa = super::motion::axis_angle_from_matrix(&own.rotation).to_array();
+    let record = Motion::new(&motion.law, own.translation.to_array(), RotationKind::AxisAngle, aa);
+    // the pose of the record, so that the sample's metadata reproduces the render exactly
+    let applied = object_pose(&record.to_pose(), cam_pose, config.objects_follow_camera);
+    (record, applied)
 }
 
 /// The union mask of the moved objects (the scene mask channel is 1 - U); none without objects.
