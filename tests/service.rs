@@ -901,7 +901,7 @@ async fn the_occlusion_mask_is_made_when_asked_for_and_is_the_librarys() {
     let without = c.get_sample(get(vec![pb::Field::Image2, pb::Field::Flow])).await.unwrap();
     let (with, without) = (with.into_inner(), without.into_inner());
     assert_eq!(with.fingerprint, without.fingerprint);
-    let data = |s: &pb::Sample, n: &str| s.tensors.iter().find(|t| t.name == n).map(|t| t.data.clone());
+    let data = |s: &pb::Sample, n: &str| s.tensors.iter().find(|t| t.name == n).map(|t| t.data.to_vec());
     assert_eq!(data(&with, "image2"), data(&without, "image2"));
     assert_eq!(data(&with, "flow"), data(&without, "flow"));
     assert_eq!(data(&without, "occlusion"), None);
