@@ -1,5 +1,7 @@
 //! Generates the gRPC server and client code of `proto/mpiflow/v1/mpiflow.proto` (tonic + prost)
-//! and its file descriptor set (for gRPC reflection), with the vendored `protoc`.
+//! and its file descriptor set (for gRPC reflection), with the vendored `protoc`. A tensor's
+//! `data` is a `bytes::Bytes` (a sample's buffers become it without a copy, and a client decodes
+//! it as a view of the received message), and the service's codec is `service::codec::WireCodec`.
 
 use std::path::PathBuf;
 
@@ -12,6 +14,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let out = PathBuf::from(std::env::var("OUT_DIR")?);
     tonic_prost_build::configure()
         .file_descriptor_set_path(out.join("mpiflow_descriptor.bin"))
+        .bytes(".mpiflow.v1.Tensor.data")
+        .codec_path("crate::service::codec::WireCodec")
         .compile_protos(&["proto/mpiflow/v1/mpiflow.proto"], &["proto"])?;
     Ok(())
 }

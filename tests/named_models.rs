@@ -213,7 +213,7 @@ fn serve_one_sample(cmd: &mut Command) -> Vec<u8> {
     child.kill().unwrap();
     child.wait().unwrap();
     let s = sample.expect("a sample through the named depth model").into_inner();
-    s.tensors.iter().find(|t| t.name == "image2").expect("image2").data.clone()
+    s.tensors.iter().find(|t| t.name == "image2").expect("image2").data.to_vec()
 }
 
 #[test]

@@ -901,9 +901,60 @@ async fn the_occlusion_mask_is_made_when_asked_for_and_is_the_librarys() {
     let without = c.get_sample(get(vec![pb::Field::Image2, pb::Field::Flow])).await.unwrap();
     let (with, without) = (with.into_inner(), without.into_inner());
     assert_eq!(with.fingerprint, without.fingerprint);
-    let data = |s: &pb::Sample, n: &str| s.tensors.iter().find(|t| t.name == n).map(|t| t.data.clone());
+    let data = |s: &pb::Sample, n: &str| s.tensors.iter().find(|t| t.name == n).map(|t| t.data.to_vec());
     assert_eq!(data(&with, "image2"), data(&without, "image2"));
     assert_eq!(data(&with, "flow"), data(&without, "flow"));
     assert_eq!(data(&without, "occlusion"), None);
     assert_eq!(data(&with, "occlusion"), Some(want));
+}
+
+/// Every pair field a stream sends is the library's sample at that address in the plain wire
+/// encoding, byte for byte: u8 buffers as they are, f32 values little-endian one after another,
+/// and with lz4 the block of those bytes with its size prepended.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn streamed_tensors_are_the_librarys_sample_in_the_plain_encoding() {
+    use mpiflow::service::dataset::{Datasets, Overrides};
+    let c0 = config();
+    let datasets = Datasets::open(&c0).expect("datasets open");
+    let g = datasets
+        .default_dataset()
+        .generator(&Overrides { occlusion: true, backward: true, ..Overrides::default() })
+        .expect("generator");
+    let srv = server(c0).await;
+    let mut c = client(&srv.addr).await;
+    let fields: Vec<i32> = (1..=13).collect();
+    for lz4 in [false, true] {
+        let compression = if lz4 { pb::Compression::Lz4 } else { pb::Compression::None } as i32;
+        let spec = pb::SampleSpec { seed: 5, fields: fields.clone(), compression, ..Default::default() };
+        let got = pull_all(&mut c, pb::StreamRequest { spec: Some(spec), ..req(0, 2, 2) }).await;
+        assert!(got.end.is_none());
+        assert_eq!(got.indices(), vec![2, 3]);
+        for s in &got.samples {
+            let want = g.sample(5, s.index).expect("sample");
+            let f32s = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+            let plain: Vec<(&str, Vec<u8>)> = vec![
+                ("image1", want.image1.clone()),
+                ("image2", want.image2.clone()),
+                ("flow", f32s(&want.flow)),
+                ("valid", want.valid.clone()),
+                ("occlusion", want.occlusion.clone()),
+                ("mask1", want.mask1.clone()),
+                ("mask2", want.mask2.clone()),
+                ("depth1", f32s(&want.depth1)),
+                ("depth2", f32s(&want.depth2)),
+                ("holes", want.holes.clone()),
+                ("flow_backward", f32s(&want.backward.flow)),
+                ("valid_backward", want.backward.valid.clone()),
+                ("occlusion_backward", want.backward.occlusion.clone()),
+            ];
+            assert_eq!(s.tensors.len(), plain.len());
+            for (t, (name, bytes)) in s.tensors.iter().zip(&plain) {
+                assert_eq!(t.name, *name);
+                assert_eq!(t.raw_size, bytes.len() as u64, "{name}");
+                let expected = if lz4 { lz4_flex::block::compress_prepend_size(bytes) } else { bytes.clone() };
+                assert!(t.data[..] == expected[..], "{name} of sample {} (lz4 {lz4})", s.index);
+            }
+        }
+    }
+    srv.shutdown(Duration::from_secs(5)).await;
 }

@@ -1,10 +1,13 @@
 //! Samples on the wire: cropping (centre, or a position from the sample's own random stream),
-//! tensor encoding (raw little-endian, C order; f16 flow; lz4 block with the size prepended) and
-//! the way back (decoding a received sample, for `mpiflow pull` and tests).
+//! a sample's tensors (their bytes: [`super::tensor`]) and the way back (decoding a received
+//! sample, for `mpiflow pull` and tests, reading the received bytes in place).
+
+use std::borrow::Cow;
 
 use half::f16;
 
 use super::pb;
+use super::tensor::{float_tensor, u8_tensor};
 use crate::geometry::Intrinsics;
 use crate::rng::{Purpose, SampleRng};
 use crate::sample::augment::{clear_valid_outside, Augment};
@@ -154,40 +157,6 @@ pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sa
     }
 }
 
-/// A tensor from raw little-endian bytes, lz4-compressed on request.
-pub fn tensor(name: &str, shape: &[usize], dtype: pb::DType, raw: Vec<u8>, lz4: bool) -> pb::Tensor {
-    let raw_size = raw.len() as u64;
-    let (data, compression) = if lz4 {
-        (lz4_flex::block::compress_prepend_size(&raw), pb::Compression::Lz4)
-    } else {
-        (raw, pb::Compression::None)
-    };
-    pb::Tensor {
-        name: name.into(),
-        shape: shape.iter().map(|&d| d as u32).collect(),
-        dtype: dtype as i32,
-        compression: compression as i32,
-        raw_size,
-        data,
-    }
-}
-
-fn f32_bytes(v: &[f32]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(v.len() * 4);
-    for x in v {
-        out.extend_from_slice(&x.to_le_bytes());
-    }
-    out
-}
-
-fn f16_bytes(v: &[f32]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(v.len() * 2);
-    for &x in v {
-        out.extend_from_slice(&f16::from_f32(x).to_le_bytes());
-    }
-    out
-}
-
 /// The wire name of a field.
 pub fn field_name(f: pb::Field) -> &'static str {
     match f {
@@ -281,14 +250,6 @@ pub fn wants_backward(fields: &[pb::Field]) -> bool {
         .any(|f| matches!(f, pb::Field::FlowBackward | pb::Field::ValidBackward | pb::Field::OcclusionBackward))
 }
 
-fn flow_tensor(name: &str, shape: &[usize], v: &[f32], out: &OutputSpec) -> pb::Tensor {
-    if out.flow_f16 {
-        tensor(name, shape, pb::DType::DtypeF16, f16_bytes(v), out.lz4)
-    } else {
-        tensor(name, shape, pb::DType::DtypeF32, f32_bytes(v), out.lz4)
-    }
-}
-
 /// The stacked tensors of a clip (see [`clip_field_name`]).
 fn clip_tensors(s: &mut Sample, out: &OutputSpec, tensors: &mut Vec<pb::Tensor>) -> Vec<pb::Field> {
     let (w, h) = (s.width, s.height);
@@ -324,31 +285,31 @@ fn clip_tensors(s: &mut Sample, out: &OutputSpec, tensors: &mut Vec<pb::Tensor>)
                 for c in &s.clip {
                     v.extend_from_slice(&c.image);
                 }
-                tensor(name, &[k, h, w, 3], pb::DType::DtypeU8, v, out.lz4)
+                u8_tensor(name, &[k, h, w, 3], v, out.lz4)
             }
             pb::Field::Flow => {
                 let v = cat_f32(&s.flow, &mut s.clip.iter().map(|c| c.forward.flow.as_slice()));
-                flow_tensor(name, &[k - 1, h, w, 2], &v, out)
+                float_tensor(name, &[k - 1, h, w, 2], v, out.flow_f16, out.lz4)
             }
             pb::Field::FlowBackward => {
                 let v = cat_f32(&s.backward.flow, &mut s.clip.iter().map(|c| c.backward.flow.as_slice()));
-                flow_tensor(name, &[k - 1, h, w, 2], &v, out)
+                float_tensor(name, &[k - 1, h, w, 2], v, out.flow_f16, out.lz4)
             }
             pb::Field::Valid => {
                 let v = cat_u8(&s.valid, &mut s.clip.iter().map(|c| c.forward.valid.as_slice()));
-                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+                u8_tensor(name, &[k - 1, h, w], v, out.lz4)
             }
             pb::Field::Occlusion => {
                 let v = cat_u8(&s.occlusion, &mut s.clip.iter().map(|c| c.forward.occlusion.as_slice()));
-                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+                u8_tensor(name, &[k - 1, h, w], v, out.lz4)
             }
             pb::Field::ValidBackward => {
                 let v = cat_u8(&s.backward.valid, &mut s.clip.iter().map(|c| c.backward.valid.as_slice()));
-                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+                u8_tensor(name, &[k - 1, h, w], v, out.lz4)
             }
             pb::Field::OcclusionBackward => {
                 let v = cat_u8(&s.backward.occlusion, &mut s.clip.iter().map(|c| c.backward.occlusion.as_slice()));
-                tensor(name, &[k - 1, h, w], pb::DType::DtypeU8, v, out.lz4)
+                u8_tensor(name, &[k - 1, h, w], v, out.lz4)
             }
             _ => continue,
         };
@@ -385,32 +346,27 @@ pub fn to_proto(
     let frames = s.clip.len() + 2;
     let mut tensors = Vec::with_capacity(out.fields.len());
     let pair_fields = if s.clip.is_empty() { out.fields.clone() } else { clip_tensors(&mut s, out, &mut tensors) };
+    // the disparity is the flow's; computed before the flow's buffer moves into its tensor
+    let mut disparity = pair_fields.contains(&pb::Field::Disparity).then(|| s.disparity());
     for &f in &pair_fields {
         let name = field_name(f);
+        let (f16, lz4) = (out.flow_f16, out.lz4);
+        let mask = |v: &mut Vec<u8>| u8_tensor(name, &[h, w], std::mem::take(v), lz4);
         let t = match f {
-            pb::Field::Image1 => tensor(name, &[h, w, 3], pb::DType::DtypeU8, std::mem::take(&mut s.image1), out.lz4),
-            pb::Field::Image2 => tensor(name, &[h, w, 3], pb::DType::DtypeU8, std::mem::take(&mut s.image2), out.lz4),
-            pb::Field::Flow if out.flow_f16 => {
-                tensor(name, &[h, w, 2], pb::DType::DtypeF16, f16_bytes(&s.flow), out.lz4)
-            }
-            pb::Field::Flow => tensor(name, &[h, w, 2], pb::DType::DtypeF32, f32_bytes(&s.flow), out.lz4),
-            pb::Field::Valid => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.valid), out.lz4),
-            pb::Field::Occlusion => {
-                tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.occlusion), out.lz4)
-            }
-            pb::Field::Mask1 => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.mask1), out.lz4),
-            pb::Field::Mask2 => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.mask2), out.lz4),
-            pb::Field::Depth1 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth1), out.lz4),
-            pb::Field::Depth2 => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.depth2), out.lz4),
-            pb::Field::Holes => tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.holes), out.lz4),
-            pb::Field::FlowBackward => flow_tensor(name, &[h, w, 2], &s.backward.flow, out),
-            pb::Field::ValidBackward => {
-                tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.backward.valid), out.lz4)
-            }
-            pb::Field::OcclusionBackward => {
-                tensor(name, &[h, w], pb::DType::DtypeU8, std::mem::take(&mut s.backward.occlusion), out.lz4)
-            }
-            pb::Field::Disparity => tensor(name, &[h, w], pb::DType::DtypeF32, f32_bytes(&s.disparity()), out.lz4),
+            pb::Field::Image1 => u8_tensor(name, &[h, w, 3], std::mem::take(&mut s.image1), lz4),
+            pb::Field::Image2 => u8_tensor(name, &[h, w, 3], std::mem::take(&mut s.image2), lz4),
+            pb::Field::Flow => float_tensor(name, &[h, w, 2], std::mem::take(&mut s.flow), f16, lz4),
+            pb::Field::Valid => mask(&mut s.valid),
+            pb::Field::Occlusion => mask(&mut s.occlusion),
+            pb::Field::Mask1 => mask(&mut s.mask1),
+            pb::Field::Mask2 => mask(&mut s.mask2),
+            pb::Field::Depth1 => float_tensor(name, &[h, w], std::mem::take(&mut s.depth1), false, lz4),
+            pb::Field::Depth2 => float_tensor(name, &[h, w], std::mem::take(&mut s.depth2), false, lz4),
+            pb::Field::Holes => mask(&mut s.holes),
+            pb::Field::FlowBackward => float_tensor(name, &[h, w, 2], std::mem::take(&mut s.backward.flow), f16, lz4),
+            pb::Field::ValidBackward => mask(&mut s.backward.valid),
+            pb::Field::OcclusionBackward => mask(&mut s.backward.occlusion),
+            pb::Field::Disparity => float_tensor(name, &[h, w], disparity.take().unwrap_or_default(), false, lz4),
             pb::Field::Unspecified => continue,
         };
         tensors.push(t);
@@ -477,6 +433,12 @@ fn dtype_size(d: pb::DType) -> Option<usize> {
 
 /// The raw bytes of a tensor (decompressed), checked against its shape, dtype and `raw_size`.
 pub fn decode_tensor(t: &pb::Tensor) -> Result<Vec<u8>, DecodeError> {
+    raw_view(t).map(Cow::into_owned)
+}
+
+/// The raw bytes of a tensor, checked as [`decode_tensor`] does: the received bytes themselves
+/// when uncompressed, else the decompressed block.
+pub fn raw_view(t: &pb::Tensor) -> Result<Cow<'_, [u8]>, DecodeError> {
     let bad = |message: String| DecodeError { name: t.name.clone(), message };
     let dtype = pb::DType::try_from(t.dtype).map_err(|_| bad(format!("unknown dtype {}", t.dtype)))?;
     let size = dtype_size(dtype).ok_or_else(|| bad("unspecified dtype".into()))?;
@@ -490,9 +452,9 @@ pub fn decode_tensor(t: &pb::Tensor) -> Result<Vec<u8>, DecodeError> {
     }
     let raw = match pb::Compression::try_from(t.compression) {
         Ok(pb::Compression::Lz4) => {
-            lz4_flex::block::decompress_size_prepended(&t.data).map_err(|e| bad(format!("lz4: {e}")))?
+            Cow::Owned(lz4_flex::block::decompress_size_prepended(&t.data).map_err(|e| bad(format!("lz4: {e}")))?)
         }
-        Ok(pb::Compression::None | pb::Compression::Unspecified) => t.data.clone(),
+        Ok(pb::Compression::None | pb::Compression::Unspecified) => Cow::Borrowed(&t.data[..]),
         Err(_) => return Err(bad(format!("unknown compression {}", t.compression))),
     };
     if raw.len() as u64 != want {
@@ -503,7 +465,7 @@ pub fn decode_tensor(t: &pb::Tensor) -> Result<Vec<u8>, DecodeError> {
 
 /// A decoded f32 or f16 tensor as f32 values.
 pub fn decode_f32(t: &pb::Tensor) -> Result<Vec<f32>, DecodeError> {
-    let raw = decode_tensor(t)?;
+    let raw = raw_view(t)?;
     match pb::DType::try_from(t.dtype) {
         Ok(pb::DType::DtypeF32) => {
             Ok(raw.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect())
@@ -690,7 +652,7 @@ fn from_stack(t: &pb::Tensor, stack: Stack, out: &mut Sample, frames: usize) -> 
     let bad = |message: String| DecodeError { name: t.name.clone(), message };
     match stack {
         Stack::Images => {
-            let v = decode_tensor(t)?;
+            let v = raw_view(t)?;
             if v.len() != frames * n * 3 {
                 return Err(bad(format!("{} values for {frames} frames of {n} pixels", v.len())));
             }
@@ -717,7 +679,7 @@ fn from_stack(t: &pb::Tensor, stack: Stack, out: &mut Sample, frames: usize) -> 
             }
         }
         Stack::Mask { backward, occlusion } => {
-            let v = decode_tensor(t)?;
+            let v = raw_view(t)?;
             if v.len() != (frames - 1) * n {
                 return Err(bad(format!("{} values for {} pairs of {n} pixels", v.len(), frames - 1)));
             }
@@ -748,19 +710,121 @@ mod tests {
     #[test]
     fn lz4_and_f16_round_trip() {
         let raw: Vec<u8> = (0..1000u32).map(|i| (i % 7) as u8).collect();
-        let t = tensor("valid", &[10, 100], pb::DType::DtypeU8, raw.clone(), true);
+        let t = u8_tensor("valid", &[10, 100], raw.clone(), true);
         assert!(t.data.len() < raw.len());
         assert_eq!(u32::from_le_bytes(t.data[..4].try_into().unwrap()), 1000);
         assert_eq!(decode_tensor(&t).unwrap(), raw);
         let flow = [0.5f32, -3.25, 100.0, 0.1];
-        let t = tensor("flow", &[1, 2, 2], pb::DType::DtypeF16, f16_bytes(&flow), false);
+        let t = float_tensor("flow", &[1, 2, 2], flow.to_vec(), true, false);
         let back = decode_f32(&t).unwrap();
         for (a, b) in flow.iter().zip(&back) {
             assert!((a - b).abs() <= a.abs() * 1e-3, "{a} {b}");
         }
-        let mut broken = tensor("flow", &[1, 2, 2], pb::DType::DtypeF32, f32_bytes(&flow), true);
+        let mut broken = float_tensor("flow", &[1, 2, 2], flow.to_vec(), false, true);
         broken.data.truncate(6);
         assert!(decode_tensor(&broken).is_err());
+    }
+
+    /// A `w` x `h` sample of `frames` frames with every buffer filled from `seed` (floats of any
+    /// bit pattern), backward links included.
+    fn random_sample(w: usize, h: usize, frames: usize, seed: u64) -> Sample {
+        let n = w * h;
+        let mut state = seed | 1;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let mut u8s = |len: usize| (0..len).map(|_| next() as u8).collect::<Vec<u8>>();
+        let link = |u8s: &mut dyn FnMut(usize) -> Vec<u8>| LinkFields {
+            flow: u8s(n * 8).chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
+            valid: u8s(n),
+            occlusion: u8s(n),
+        };
+        let floats = |u8s: &mut dyn FnMut(usize) -> Vec<u8>, k: usize| -> Vec<f32> {
+            u8s(k * 4).chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+        };
+        let first = link(&mut u8s);
+        let backward = link(&mut u8s);
+        let clip = (2..frames)
+            .map(|_| ClipFrame {
+                image: u8s(n * 3),
+                forward: link(&mut u8s),
+                backward: link(&mut u8s),
+                ..ClipFrame::default()
+            })
+            .collect();
+        Sample {
+            address: SampleAddress { dataset: 1, seed: 2, index: 3 },
+            source_id: "t".into(),
+            width: w,
+            height: h,
+            image1: u8s(n * 3),
+            image2: u8s(n * 3),
+            flow: first.flow,
+            valid: first.valid,
+            occlusion: first.occlusion,
+            mask1: u8s(n),
+            mask2: u8s(n),
+            camera: Motion::new("x", [0.0; 3], RotationKind::AxisAngle, [0.0; 3]),
+            objects: vec![],
+            depth1: floats(&mut u8s, n),
+            depth2: floats(&mut u8s, n),
+            holes: u8s(n),
+            inpainted_pixels: 0,
+            backward,
+            clip,
+            skipped_sources: 0,
+            provenance: vec![],
+            intrinsics: Intrinsics::reference_default(w, h),
+            timings: StageTimings::default(),
+        }
+    }
+
+    fn bits(v: &[f32], f16: bool) -> Vec<u32> {
+        v.iter().map(|&x| if f16 { half::f16::from_f32(x).to_f32() } else { x }.to_bits()).collect()
+    }
+
+    proptest::proptest! {
+        /// Every field through the encoder, prost's bytes and back through the decoding path: the
+        /// same values (f16 flow: the value rounded to f16), and a flow tensor's bytes are the
+        /// plain per-value little-endian encoding.
+        #[test]
+        fn samples_round_trip_through_the_wire(
+            w in 1usize..7, h in 1usize..6, frames in 2usize..4, seed: u64, flow_f16: bool, lz4: bool,
+        ) {
+            use prost::Message;
+            let s = random_sample(w, h, frames, seed);
+            let fields: Vec<pb::Field> = ALL_FIELDS.iter().copied().filter(|&f| f != pb::Field::Disparity).collect();
+            let spec = OutputSpec { fields, flow_f16, lz4, crop: None, augment: None };
+            let p = to_proto(s.clone(), "d", s.intrinsics, (0, 0), &spec);
+            if !flow_f16 && frames == 2 {
+                let flow = p.tensors.iter().find(|t| t.name == "flow").unwrap();
+                let plain: Vec<u8> = s.flow.iter().flat_map(|x| x.to_le_bytes()).collect();
+                proptest::prop_assert_eq!(raw_view(flow).unwrap().into_owned(), plain);
+            }
+            let back = pb::Sample::decode(p.encode_to_vec().as_slice()).unwrap();
+            proptest::prop_assert_eq!(&back, &p);
+            let d = from_proto(&back).unwrap();
+            proptest::prop_assert_eq!(&d.image1, &s.image1);
+            proptest::prop_assert_eq!(&d.image2, &s.image2);
+            proptest::prop_assert_eq!(bits(&d.flow, false), bits(&s.flow, flow_f16));
+            proptest::prop_assert_eq!(bits(&d.backward.flow, false), bits(&s.backward.flow, flow_f16));
+            proptest::prop_assert_eq!((&d.valid, &d.occlusion), (&s.valid, &s.occlusion));
+            proptest::prop_assert_eq!((&d.backward.valid, &d.backward.occlusion), (&s.backward.valid, &s.backward.occlusion));
+            proptest::prop_assert_eq!((&d.mask1, &d.mask2, &d.holes), (&s.mask1, &s.mask2, &s.holes));
+            proptest::prop_assert_eq!(bits(&d.depth1, false), bits(&s.depth1, false));
+            proptest::prop_assert_eq!(bits(&d.depth2, false), bits(&s.depth2, false));
+            proptest::prop_assert_eq!(d.clip.len(), s.clip.len());
+            for (a, b) in d.clip.iter().zip(&s.clip) {
+                proptest::prop_assert_eq!(&a.image, &b.image);
+                proptest::prop_assert_eq!(bits(&a.forward.flow, false), bits(&b.forward.flow, flow_f16));
+                proptest::prop_assert_eq!(bits(&a.backward.flow, false), bits(&b.backward.flow, flow_f16));
+                proptest::prop_assert_eq!((&a.forward.valid, &a.forward.occlusion), (&b.forward.valid, &b.forward.occlusion));
+                proptest::prop_assert_eq!((&a.backward.valid, &a.backward.occlusion), (&b.backward.valid, &b.backward.occlusion));
+            }
+        }
     }
 
     #[test]

@@ -3,7 +3,9 @@
 //! A request's sample options ([`spec`]: one message for all three calls) are validated once
 //! ([`validate`]), resolved to a dataset and a generator ([`dataset`]), and served through the
 //! worker pool ([`pool`]: rayon workers, a bounded queue per stream, a global in-flight bound,
-//! round-robin between streams); samples are cropped and encoded on the workers ([`encode`]).
+//! round-robin between streams); samples are cropped and encoded on the workers ([`encode`], a
+//! tensor's bytes made from the sample's buffers without copies: [`tensor`]); [`codec`] puts the
+//! messages on the wire.
 //! Errors map to gRPC codes in one place ([`error`]). The server ([`server`]) adds health,
 //! reflection, Prometheus [`metrics`] and graceful drain; [`config`] holds the keys, read from
 //! the TOML file, the `MPIFLOW_*` variables and the flags, layered ([`layers`]); [`security`]
@@ -20,6 +22,7 @@ pub mod pb {
 }
 
 pub mod client;
+pub mod codec;
 pub mod config;
 pub mod conn;
 pub mod dataset;
@@ -32,6 +35,7 @@ pub mod reply;
 pub mod security;
 pub mod server;
 pub mod spec;
+pub mod tensor;
 pub mod validate;
 
 pub use config::ServiceConfig;

@@ -19,10 +19,19 @@ use tonic::transport::server::TcpConnectInfo;
 
 use super::conn::{CallGuard, ConnInfo};
 
-/// The largest piece of a reply handed to HTTP/2 at once (HTTP/2's default frame size): the
-/// transport asks for the next piece only when the client's window has room, so an unread reply
-/// keeps at most about this much in the transport, uncounted.
-pub const PIECE_BYTES: usize = 16 << 10;
+/// The largest piece of a reply handed to HTTP/2 at once: the transport asks for the next piece
+/// only when the client's window has room, so a reply keeps at most about one piece in the
+/// transport, uncounted. Pieces start at [`FIRST_PIECE_BYTES`] and double with each piece the
+/// transport takes, up to this: a reply nobody reads leaves 16 KiB there, one whose client stops
+/// reading midway at most 256 KiB. Each piece is at least one HTTP/2 frame and one socket write,
+/// and each frame wakes the client's reader: 16 KiB pieces cost a 640x480 sample ~290 frames and
+/// the Rust client 3.7-3.9 ms of CPU, 256 KiB pieces ~20 frames and 1.7-1.9 ms
+/// (docs/performance.md, "The wire"). A client that accepts only 16 KiB frames (HTTP/2's
+/// default) still gets them: h2 cuts the piece.
+pub const PIECE_BYTES: usize = 256 << 10;
+
+/// The first piece of a reply (HTTP/2's default frame size).
+pub const FIRST_PIECE_BYTES: usize = 16 << 10;
 
 /// Something a handler attaches to its reply (in the response's extensions) that must live until
 /// the reply is sent or abandoned: a unary sample's place in the byte budget.
@@ -86,7 +95,13 @@ where
             let mut response = fut.await?;
             rewrite_status(&mut response);
             let hold = response.extensions_mut().remove::<ReplyHold>();
-            Ok(response.map(|inner| ReplyBody { inner, piece: Bytes::new(), _call: call, _hold: hold }))
+            Ok(response.map(|inner| ReplyBody {
+                inner,
+                piece: Bytes::new(),
+                piece_size: FIRST_PIECE_BYTES,
+                _call: call,
+                _hold: hold,
+            }))
         })
     }
 }
@@ -125,19 +140,23 @@ fn percent_decoded(header: &str) -> String {
     String::from_utf8_lossy(&plain).into_owned()
 }
 
-/// A reply body handed on in pieces of at most [`PIECE_BYTES`]; it keeps its call counted on the
-/// connection and its [`ReplyHold`] until it is dropped (sent, or abandoned with the call).
+/// A reply body handed on in pieces growing from [`FIRST_PIECE_BYTES`] to [`PIECE_BYTES`]; it
+/// keeps its call counted on the connection and its [`ReplyHold`] until it is dropped (sent, or
+/// abandoned with the call).
 pub struct ReplyBody<B> {
     inner: B,
     /// The rest of the current data frame.
     piece: Bytes,
+    /// The size of the next piece.
+    piece_size: usize,
     _call: Option<CallGuard>,
     _hold: Option<ReplyHold>,
 }
 
 impl<B> ReplyBody<B> {
     fn next_piece(&mut self) -> Frame<Bytes> {
-        let n = self.piece.len().min(PIECE_BYTES);
+        let n = self.piece.len().min(self.piece_size);
+        self.piece_size = (self.piece_size * 2).min(PIECE_BYTES);
         Frame::data(self.piece.split_to(n))
     }
 }
