@@ -447,7 +447,8 @@ fn target_view_n<T: Real, const NL: usize>(
     }
 }
 
-/// [`target_view_n`] with the plane sampler of the render's kernel.
+/// [`target_view_n`] with the plane sampler of the render's kernel: the set-up, then the band
+/// loop ([`TargetBand::band`]) on the dispatched instruction set ([`crate::isa`]).
 #[allow(clippy::too_many_arguments)]
 fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
     mpi: &Mpi,
@@ -467,27 +468,83 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         Channels::PerPlane => (mpi.extra_channels, (0..n).map(|i| mpi.plane_extras(i)).collect()),
         Channels::Broadcast(mask) => (1, vec![mask; n]),
     };
-    let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } =
-        TargetGeometry::new(mpi, p, win);
-    let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
-        let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
-        (v, (ux * ux + uy * uy + T::one()).sqrt())
-    };
-    let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
+    let geo = TargetGeometry::new(mpi, p, win);
+    let g = &geo;
     // four pixels at a time where T is f32, without links and with at most one extra channel
     let lanes = (T::LANES && NL == 0 && c <= 1)
-        .then(|| TargetLanes::new(&planes, [fxs, fys, lo, hix, hiy, wm, hm, t_eps], w, h));
-    let ex_lanes = (c == 1).then_some(ex_planes.as_slice());
-    let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
-
+        .then(|| TargetLanes::new(&g.planes, [g.fxs, g.fys, g.lo, g.hix, g.hiy, g.wm, g.hm, g.t_eps], w, h));
+    let band = TargetBand::<T, S, NL> {
+        geo: &geo,
+        sampler,
+        occ,
+        win,
+        consts,
+        lanes: lanes.as_ref(),
+        ex_planes: &ex_planes,
+        c,
+        w,
+        h,
+    };
     let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
     let [(f0, d0, r0), (f1, d1, r1)] = lb;
     let ls = |l: usize, k: usize| if l < NL { k } else { 0 };
-    let z_min = T::of(1e-9);
     // y0 is the band's first row in the window, fy0 in the frame
     let bufs = [image, depth, coverage, extras, f0, d0, r0, f1, d1, r1];
     let strides = [3, 1, 1, c, ls(0, 2), ls(0, 1), ls(0, 1), ls(1, 2), ls(1, 1), ls(1, 1)];
     for_each_band(ww, win.height(), bufs, strides, |y0, rows, b| {
+        crate::isa::dispatch(TargetBandJob { band: &band, y0, rows, b })
+    })
+}
+
+/// What the target view's band loop reads ([`TargetBand::band`]).
+struct TargetBand<'a, T, S, const NL: usize> {
+    geo: &'a TargetGeometry<T>,
+    sampler: &'a S,
+    occ: Option<&'a Occupancy>,
+    win: &'a Rect,
+    consts: &'a [LinkConst<T>],
+    lanes: Option<&'a TargetLanes>,
+    ex_planes: &'a [&'a [f32]],
+    /// extra channels per pixel
+    c: usize,
+    w: usize,
+    h: usize,
+}
+
+/// One band of the target view, as a job for [`crate::isa::dispatch`].
+struct TargetBandJob<'a, 'b, 'c, T, S, const NL: usize> {
+    band: &'a TargetBand<'a, T, S, NL>,
+    y0: usize,
+    rows: usize,
+    b: &'b mut [&'c mut [f32]; 10],
+}
+
+impl<T: Real, S: PlaneSampler<T>, const NL: usize> crate::isa::Wide for TargetBandJob<'_, '_, '_, T, S, NL> {
+    type Output = RenderStats;
+    #[inline(always)]
+    fn run(self) -> RenderStats {
+        self.band.band(self.y0, self.rows, self.b)
+    }
+}
+
+impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
+    /// The band of `rows` rows from window row `y0`: tile by tile, the planes that may
+    /// contribute, then per pixel (four at a time in lanes where they can) the plane loop.
+    #[inline(always)]
+    fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 10]) -> RenderStats {
+        let TargetBand { geo, sampler, occ, win, consts, lanes, ex_planes, c, w, h } = *self;
+        let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } = geo;
+        let (fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last) =
+            (*fxs, *fys, *lo, *hix, *hiy, *wm, *hm, *t_eps, *delta_last);
+        let (n, ww) = (planes.len(), win.width());
+        let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
+            let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
+            (v, (ux * ux + uy * uy + T::one()).sqrt())
+        };
+        let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
+        let ex_lanes = (c == 1).then_some(ex_planes);
+        let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
+        let z_min = T::of(1e-9);
         let fy0 = win.y0 + y0;
         let mut stats = RenderStats::default();
         let mut active = vec![true; n];
@@ -501,7 +558,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
             let tx1 = (tx0 + TILE).min(win.x1) - 1;
             let ty1 = fy0 + rows - 1;
             match occ {
-                Some(o) => tile_activity(o, &planes, &ray, &source_px, [tx0, fy0, tx1, ty1], &mut active),
+                Some(o) => tile_activity(o, planes, &ray, &source_px, [tx0, fy0, tx1, ty1], &mut active),
                 None => active.iter_mut().for_each(|a| *a = true),
             }
             fwd.clear();
@@ -513,7 +570,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                 let uy_y = uy[y0 + ry];
                 let mut x = tx0;
                 while x <= tx1 {
-                    if let Some(l) = lanes.as_ref().filter(|_| x + 3 <= tx1) {
+                    if let Some(l) = lanes.filter(|_| x + 3 <= tx1) {
                         let rays: [([T; 3], T); 4] = std::array::from_fn(|k| ray_u(ux[x + k - win.x0], uy_y));
                         let o = ry * ww + (x - win.x0);
                         if l.four(sampler, ex_lanes, &rays, &fwd, &rev, o, b, &mut stats) {
@@ -642,7 +699,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
             }
         }
         stats
-    })
+    }
 }
 
 /// The per-render constants of the target view: the target intrinsics, the planes' constants,
@@ -955,7 +1012,7 @@ pub(super) fn source_view<T: Real>(
     flow_where: Option<&[f32]>,
     out: &mut RenderOutput,
 ) {
-    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let (w, h) = (mpi.width, mpi.height);
     let ww = win.width();
     let (ks, kt) = (p.k_src, p.k_tgt);
     let m = crate::geometry::pixel_rotation(&ks, &kt, &p.pose.rotation);
@@ -968,7 +1025,6 @@ pub(super) fn source_view<T: Real>(
     // gap to the next plane along a source ray of unit-z direction, before the |u| factor
     let gap: Vec<T> = plane_gaps(&mpi.disparity).into_iter().map(T::of).collect();
     let t_eps = T::of32(p.skip.transmittance_eps);
-    let z_min = T::of(1e-9);
     let rgba = Rgba::of(mpi);
     let mut flow = std::mem::take(&mut out.flow);
     let mut zexp = std::mem::take(&mut out.source_depth_in_target);
@@ -989,8 +1045,77 @@ pub(super) fn source_view<T: Real>(
         ks,
         want_sd,
     });
+    let band = SourceBand {
+        win,
+        occ,
+        flow_where,
+        lanes: lanes.as_ref(),
+        m_t,
+        b_t,
+        disp: &disp,
+        depth_t: &depth_t,
+        gap: &gap,
+        t_eps,
+        rgba: &rgba,
+        ks,
+        w,
+        want_sd,
+    };
     let bufs: [&mut [f32]; 4] = [&mut flow, &mut zexp, &mut front, &mut src_depth];
     for_each_band(ww, win.height(), bufs, [2, 1, 1, usize::from(want_sd)], |y0, rows, b| {
+        crate::isa::dispatch(SourceBandJob { band: &band, y0, rows, b });
+        RenderStats::default()
+    });
+    out.valid = mark_valid(win, w, h, &flow, &front);
+    out.flow = flow;
+    out.source_depth_in_target = zexp;
+    out.source_depth = src_depth;
+}
+
+/// What the source view's band loop reads ([`SourceBand::band`]).
+struct SourceBand<'a, T> {
+    win: &'a Rect,
+    occ: Option<&'a Occupancy>,
+    flow_where: Option<&'a [f32]>,
+    lanes: Option<&'a SourceLanes<'a>>,
+    m_t: [[T; 3]; 3],
+    b_t: [T; 3],
+    disp: &'a [T],
+    depth_t: &'a [T],
+    gap: &'a [T],
+    t_eps: T,
+    rgba: &'a Rgba<'a>,
+    ks: crate::geometry::Intrinsics,
+    w: usize,
+    want_sd: bool,
+}
+
+/// One band of the source view, as a job for [`crate::isa::dispatch`].
+struct SourceBandJob<'a, 'b, 'c, T> {
+    band: &'a SourceBand<'a, T>,
+    y0: usize,
+    rows: usize,
+    b: &'b mut [&'c mut [f32]; 4],
+}
+
+impl<T: Real> crate::isa::Wide for SourceBandJob<'_, '_, '_, T> {
+    type Output = ();
+    #[inline(always)]
+    fn run(self) {
+        self.band.band(self.y0, self.rows, self.b);
+    }
+}
+
+impl<T: Real> SourceBand<'_, T> {
+    /// The band of `rows` rows from window row `y0` (flow, expected target depth, front
+    /// fraction, source depth), tile by tile, four pixels at a time in lanes where they can.
+    #[inline(always)]
+    fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 4]) {
+        let SourceBand { win, occ, flow_where, lanes, m_t, b_t, disp, depth_t, gap, t_eps, rgba, ks, w, want_sd } =
+            *self;
+        let n = disp.len();
+        let ww = win.width();
+        let z_min = T::of(1e-9);
         let fy0 = win.y0 + y0;
         let mut active: Vec<usize> = Vec::with_capacity(n);
         for tx0 in (win.x0..win.x1).step_by(TILE) {
@@ -1065,12 +1190,7 @@ pub(super) fn source_view<T: Real>(
                 }
             }
         }
-        RenderStats::default()
-    });
-    out.valid = mark_valid(win, w, h, &flow, &front);
-    out.flow = flow;
-    out.source_depth_in_target = zexp;
-    out.source_depth = src_depth;
+    }
 }
 
 /// The source view's per-pixel loop for four adjacent pixels of a row at once (f32 only, the
