@@ -471,8 +471,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
     let geo = TargetGeometry::new(mpi, p, win);
     let g = &geo;
     // four pixels at a time where T is f32, without links and with at most one extra channel
-    let lanes = (T::LANES && NL == 0 && c <= 1)
-        .then(|| TargetLanes::new(&g.planes, [g.fxs, g.fys, g.lo, g.hix, g.hiy, g.wm, g.hm, g.t_eps], w, h));
+    let lanes = (T::LANES && NL == 0 && c <= 1).then(|| TargetLanes::new(g, w, h));
     let band = TargetBand::<T, S, NL> {
         geo: &geo,
         sampler,
@@ -571,9 +570,8 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                 let mut x = tx0;
                 while x <= tx1 {
                     if let Some(l) = lanes.filter(|_| x + 3 <= tx1) {
-                        let rays: [([T; 3], T); 4] = std::array::from_fn(|k| ray_u(ux[x + k - win.x0], uy_y));
                         let o = ry * ww + (x - win.x0);
-                        if l.four(sampler, ex_lanes, &rays, &fwd, &rev, o, b, &mut stats) {
+                        if l.four(sampler, ex_lanes, [x - win.x0, y0 + ry], &fwd, &rev, o, b, &mut stats) {
                             x += 4;
                             continue;
                         }
@@ -771,6 +769,10 @@ impl<T: Real> TargetGeometry<T> {
 /// the scalar loop counts its early exit), and the loop ends when all four are done, so every
 /// pixel gets the scalar loop's bits (`tests/render_window.rs` compares the two).
 struct TargetLanes {
+    /// R^T and the window's columns and rows as u = K_t^-1 p (the rays are set up in lanes)
+    rt: [[f32; 3]; 3],
+    ux: Vec<f32>,
+    uy: Vec<f32>,
     a: Vec<f32>,
     depth: Vec<f32>,
     ox: Vec<f32>,
@@ -794,39 +796,43 @@ fn lane_mask(on: [bool; 4]) -> wide::f32x4 {
 }
 
 impl TargetLanes {
-    /// The lanes' copy of the scalar loop's constants: the planes', and `[fxs, fys, lo, hix, hiy,
-    /// wm, hm, t_eps]` in `f32`.
-    fn new<T: Real>(planes: &[PlaneConst<T>], k: [T; 8], w: usize, h: usize) -> Self {
-        let [fxs, fys, lo, hix, hiy, wm, hm, t_eps] = k;
+    /// The lanes' copy of the scalar loop's constants ([`TargetGeometry`]) in `f32`.
+    fn new<T: Real>(g: &TargetGeometry<T>, w: usize, h: usize) -> Self {
+        let f = |v: &[T]| v.iter().map(|x| x.f32()).collect::<Vec<f32>>();
+        let planes = &g.planes;
         TargetLanes {
+            rt: g.rt_t.map(|r| r.map(T::f32)),
+            ux: f(&g.ux),
+            uy: f(&g.uy),
             a: planes.iter().map(|p| p.a.f32()).collect(),
             depth: planes.iter().map(|p| p.depth.f32()).collect(),
             ox: planes.iter().map(|p| p.ox.f32()).collect(),
             oy: planes.iter().map(|p| p.oy.f32()).collect(),
-            fxs: fxs.f32(),
-            fys: fys.f32(),
-            lo: lo.f32(),
-            hix: hix.f32(),
-            hiy: hiy.f32(),
-            wm: wm.f32(),
-            hm: hm.f32(),
-            t_eps: t_eps.f32(),
+            fxs: g.fxs.f32(),
+            fys: g.fys.f32(),
+            lo: g.lo.f32(),
+            hix: g.hix.f32(),
+            hiy: g.hiy.f32(),
+            wm: g.wm.f32(),
+            hm: g.hm.f32(),
+            t_eps: g.t_eps.f32(),
             w,
             h,
         }
     }
 
     /// Pixels `o .. o + 4` of the band's buffers `b` (image, depth, coverage, the extra channel
-    /// when `ex` is given) for the rays `rays` (direction, |u|): false, with nothing written,
-    /// when the four rays do not all meet the planes in the same order (the scalar loop then
-    /// takes them).
+    /// when `ex` is given), the window's columns `at[0] .. at[0] + 4` of its row `at[1]`: false,
+    /// with nothing written, when the four rays do not all meet the planes in the same order
+    /// (the scalar loop then takes them). The rays (direction v = R^T u, |u|) are set up in lanes
+    /// with the scalar loop's `ray_u` operations.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn four<T: Real, S: PlaneSampler<T>>(
         &self,
         sampler: &S,
         ex: Option<&[&[f32]]>,
-        rays: &[([T; 3], T); 4],
+        at: [usize; 2],
         fwd: &[usize],
         rev: &[usize],
         o: usize,
@@ -837,16 +843,17 @@ impl TargetLanes {
         use wide::f32x4;
         let sp = f32x4::splat;
         let (zero, one) = (sp(0.0), sp(1.0));
-        let s: [f32; 4] = std::array::from_fn(|k| rays[k].0[2].f32());
+        let ux: &[f32; 4] = self.ux[at[0]..at[0] + 4].try_into().expect("four columns");
+        let (ux, uy) = (f32x4::from(*ux), sp(self.uy[at[1]]));
+        let rt = &self.rt;
+        let [v0, v1, v2] = [0, 1, 2].map(|i| sp(rt[i][0]) * ux + sp(rt[i][1]) * uy + sp(rt[i][2]));
+        let norm_u = (ux * ux + uy * uy + one).sqrt();
+        let s = v2.to_array();
         let forward = s[0] > 0.0;
         if !s.iter().all(|&s| s.abs() > 1e-12_f64 as f32 && (s > 0.0) == forward) {
             return false;
         }
-        let lane = |f: &dyn Fn(usize) -> f32| f32x4::from(std::array::from_fn::<f32, 4, _>(f));
-        let inv_s = one / f32x4::from(s);
-        let v0 = lane(&|k| rays[k].0[0].f32());
-        let v1 = lane(&|k| rays[k].0[1].f32());
-        let norm_u = lane(&|k| rays[k].1.f32());
+        let inv_s = one / v2;
         let (lo, hix, hiy, wm, hm) = (sp(self.lo), sp(self.hix), sp(self.hiy), sp(self.wm), sp(self.hm));
         let (t_eps, depth_max, delta_last) = (sp(self.t_eps), sp(DEPTH_MAX as f32), sp(DELTA_LAST as f32));
         let cap = |v: f32x4, max: f32x4| v.simd_gt(max).select(max, v);
@@ -1042,7 +1049,9 @@ pub(super) fn source_view<T: Real>(
         t_eps: p.skip.transmittance_eps,
         z_min: 1e-9_f64 as f32,
         rgba: rgba.clone(),
-        ks,
+        xs: (0..w).map(|x| x as f64 as f32).collect(),
+        ux: (0..w).map(|x| ((x as f64 - ks.cx) / ks.fx) as f32).collect(),
+        uy: (0..h).map(|y| ((y as f64 - ks.cy) / ks.fy) as f32).collect(),
         want_sd,
     });
     let band = SourceBand {
@@ -1208,7 +1217,11 @@ struct SourceLanes<'a> {
     t_eps: f32,
     z_min: f32,
     rgba: Rgba<'a>,
-    ks: crate::geometry::Intrinsics,
+    /// the frame's columns as f32, and its columns and rows as u = K_s^-1 p (the scalar loop's
+    /// values, computed once)
+    xs: Vec<f32>,
+    ux: Vec<f32>,
+    uy: Vec<f32>,
     want_sd: bool,
 }
 
@@ -1221,10 +1234,10 @@ impl SourceLanes<'_> {
         use wide::f32x4;
         let sp = f32x4::splat;
         let (zero, one) = (sp(0.0), sp(1.0));
-        let xf = f32x4::from(std::array::from_fn::<f32, 4, _>(|k| (x + k) as f64 as f32));
+        let four = |v: &[f32]| f32x4::from(*<&[f32; 4]>::try_from(&v[x..x + 4]).expect("four columns"));
+        let (xf, ux) = (four(&self.xs), four(&self.ux));
         let y = yy as f64 as f32;
-        let ux = f32x4::from(std::array::from_fn::<f32, 4, _>(|k| (((x + k) as f64 - self.ks.cx) / self.ks.fx) as f32));
-        let uy = sp(((yy as f64 - self.ks.cy) / self.ks.fy) as f32);
+        let uy = sp(self.uy[yy]);
         let norm_u = (ux * ux + uy * uy + one).sqrt();
         let a: [f32x4; 3] = std::array::from_fn(|r| sp(self.m[r][0]) * xf + sp(self.m[r][1] * y) + sp(self.m[r][2]));
         let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall, mut sd) = (one, zero, zero, zero, zero, zero, zero);
