@@ -157,34 +157,36 @@ pub fn force(isa: Isa) -> Result<(), IsaError> {
 
 /// A hot loop to run on the chosen path. `run` must be `#[inline(always)]`, and so must
 /// everything hot that it calls: only inlined code is compiled for the path's features.
+/// `LANES` is the path's f32 lanes per register ([`Isa::lanes`]: 4, 8 or 16), for loops that
+/// take that many values at once.
 pub trait Wide {
     type Output;
-    fn run(self) -> Self::Output;
+    fn run<const LANES: usize>(self) -> Self::Output;
 }
 
 /// Runs `job` compiled for the chosen path ([`current`]).
 #[inline(always)]
 pub fn dispatch<W: Wide>(job: W) -> W::Output {
-    struct Op<W>(W);
-    impl<W: Wide> pulp::WithSimd for Op<W> {
+    struct Op<W, const LANES: usize>(W);
+    impl<W: Wide, const LANES: usize> pulp::WithSimd for Op<W, LANES> {
         type Output = W::Output;
         #[inline(always)]
         fn with_simd<S: pulp::Simd>(self, _: S) -> W::Output {
-            self.0.run()
+            self.0.run::<LANES>()
         }
     }
     match current() {
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => match pulp::x86::V4::try_new() {
-            Some(v4) => pulp::Simd::vectorize(v4, Op(job)),
-            None => job.run(),
+            Some(v4) => pulp::Simd::vectorize(v4, Op::<W, 16>(job)),
+            None => job.run::<4>(),
         },
         #[cfg(target_arch = "x86_64")]
         Isa::Avx2 => match pulp::x86::V3::try_new() {
-            Some(v3) => pulp::Simd::vectorize(v3, Op(job)),
-            None => job.run(),
+            Some(v3) => pulp::Simd::vectorize(v3, Op::<W, 8>(job)),
+            None => job.run::<4>(),
         },
-        _ => pulp::Simd::vectorize(pulp::Scalar::new(), Op(job)),
+        _ => pulp::Simd::vectorize(pulp::Scalar::new(), Op::<W, 4>(job)),
     }
 }
 
@@ -210,7 +212,8 @@ mod tests {
         impl Wide for Sum<'_> {
             type Output = f32;
             #[inline(always)]
-            fn run(self) -> f32 {
+            fn run<const LANES: usize>(self) -> f32 {
+                assert_eq!(LANES, current().lanes());
                 self.0.iter().sum()
             }
         }

@@ -30,10 +30,15 @@
 //! channels are sampled per plane from the MPI or from one H x W mask shared by every plane
 //! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
 //!
+//! The band loops run on the vector path chosen at start-up ([`crate::isa`]): each band is a
+//! job ([`TargetBandJob`], [`SourceBandJob`]) whose loop is inlined into a function compiled for
+//! AVX-512, AVX2 or the SSE2 baseline; the source view then takes 16, 8 or 4 pixels per plane
+//! step ([`SourceLanes::wide`], [`SourceLanes::four`]), the same bits on every path.
+//!
 //! Two things here stay large on purpose. The file (over 1,100 lines) keeps the scalar loops and
-//! their four-lane twins ([`TargetLanes`], [`SourceLanes`]) together with the per-plane constants
+//! their lane twins ([`TargetLanes`], [`SourceLanes`]) together with the per-plane constants
 //! they share, since each twin must follow its loop operation for operation. And
-//! `target_view_with` (about 190 lines) is the target view's band loop, which the compiler must
+//! `TargetBand::band` (about 190 lines) is the target view's band loop, which the compiler must
 //! see whole: its set-up is outside it ([`TargetGeometry`], [`TargetLanes::new`]), but the
 //! tile's planes, the edge clamp, the link sums or the pixel's writes as inlined functions of
 //! their own cost 1.9% more instructions in the band loop of the bilinear target pass
@@ -521,7 +526,7 @@ struct TargetBandJob<'a, 'b, 'c, T, S, const NL: usize> {
 impl<T: Real, S: PlaneSampler<T>, const NL: usize> crate::isa::Wide for TargetBandJob<'_, '_, '_, T, S, NL> {
     type Output = RenderStats;
     #[inline(always)]
-    fn run(self) -> RenderStats {
+    fn run<const LANES: usize>(self) -> RenderStats {
         self.band.band(self.y0, self.rows, self.b)
     }
 }
@@ -1110,16 +1115,17 @@ struct SourceBandJob<'a, 'b, 'c, T> {
 impl<T: Real> crate::isa::Wide for SourceBandJob<'_, '_, '_, T> {
     type Output = ();
     #[inline(always)]
-    fn run(self) {
-        self.band.band(self.y0, self.rows, self.b);
+    fn run<const LANES: usize>(self) {
+        self.band.band::<LANES>(self.y0, self.rows, self.b);
     }
 }
 
 impl<T: Real> SourceBand<'_, T> {
     /// The band of `rows` rows from window row `y0` (flow, expected target depth, front
-    /// fraction, source depth), tile by tile, four pixels at a time in lanes where they can.
+    /// fraction, source depth), tile by tile, `L` pixels at a time in lanes where they can (the
+    /// path's vector width, [`crate::isa`]), then four.
     #[inline(always)]
-    fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 4]) {
+    fn band<const L: usize>(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 4]) {
         let SourceBand { win, occ, flow_where, lanes, m_t, b_t, disp, depth_t, gap, t_eps, rgba, ks, w, want_sd } =
             *self;
         let n = disp.len();
@@ -1142,6 +1148,10 @@ impl<T: Real> SourceBand<'_, T> {
                 let uy = T::of((yy as f64 - ks.cy) / ks.fy);
                 let mut x0 = tx0;
                 if let Some(l) = &lanes {
+                    while L > 4 && x0 + L - 1 <= tx1 {
+                        l.wide::<L>(x0, yy, &active, ry * ww + (x0 - win.x0), b);
+                        x0 += L;
+                    }
                     while x0 + 3 <= tx1 {
                         l.four(x0, yy, &active, ry * ww + (x0 - win.x0), b);
                         x0 += 4;
@@ -1279,6 +1289,77 @@ impl SourceLanes<'_> {
         const EPS: f32 = 1e-6_f64 as f32;
         let [fu, fv, sw, sz, sall, sd] = [fu, fv, sw, sz, sall, sd].map(f32x4::to_array);
         for k in 0..4 {
+            let o = o + k;
+            if sw[k] > EPS {
+                b[0][2 * o] = fu[k] / sw[k];
+                b[0][2 * o + 1] = fv[k] / sw[k];
+                b[1][o] = sz[k] / sw[k];
+            }
+            b[2][o] = if sall[k] > 0.0 { sw[k] / sall[k] } else { 0.0 };
+            if self.want_sd && sall[k] > EPS {
+                b[3][o] = sd[k] / sall[k];
+            }
+        }
+    }
+}
+
+impl SourceLanes<'_> {
+    /// [`Self::four`] for the `L` pixels `x .. x + L` (the paths whose registers hold 8 or 16
+    /// values, [`crate::isa`]) in plain arrays: lane by lane the same operations in the same
+    /// order, which LLVM turns into the path's vector instructions, so the same bits (the
+    /// negated compares are the scalar loop's: NaN densities are taken, as there).
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    #[inline(always)]
+    fn wide<const L: usize>(&self, x: usize, yy: usize, active: &[usize], o: usize, b: &mut [&mut [f32]; 4]) {
+        use std::array::from_fn;
+        let ld = |v: &[f32]| -> [f32; L] { v[x..x + L].try_into().expect("L columns") };
+        let (xf, ux) = (ld(&self.xs), ld(&self.ux));
+        let y = yy as f64 as f32;
+        let uy = self.uy[yy];
+        let norm_u: [f32; L] = from_fn(|k| (ux[k] * ux[k] + uy * uy + 1.0).sqrt());
+        let m = &self.m;
+        let a: [[f32; L]; 3] = from_fn(|r| from_fn(|k| m[r][0] * xf[k] + m[r][1] * y + m[r][2]));
+        let z_lim: [f32; L] = from_fn(|k| self.z_min * (a[2][k].abs() + 1.0));
+        let mut tr = [1.0f32; L];
+        let (mut fu, mut fv, mut sw, mut sz, mut sall, mut sd) =
+            ([0.0f32; L], [0.0; L], [0.0; L], [0.0; L], [0.0; L], [0.0; L]);
+        let depth_max = DEPTH_MAX as f32;
+        let sel = |m: bool, a: f32, b: f32| if m { a } else { b };
+        for &i in active {
+            // a lane is done once its transmittance is below t_eps (it only falls)
+            if tr.iter().all(|&t| t < self.t_eps) {
+                break;
+            }
+            let sigma = self.rgba.sigma_n::<L>(i, x, yy);
+            let take: [bool; L] = from_fn(|k| !(tr[k] < self.t_eps) & !(sigma[k] <= 0.0));
+            if !take.iter().any(|&t| t) {
+                continue;
+            }
+            let (gap, depth, d) = (self.gap[i], self.depth[i], self.disp[i]);
+            let e: [f32; L] = from_fn(|k| f32::exp_neg(sigma[k] * gap * norm_u[k]));
+            let wgt: [f32; L] = from_fn(|k| tr[k] * (1.0 - e[k]));
+            tr = from_fn(|k| sel(take[k], tr[k] * e[k], tr[k]));
+            sall = from_fn(|k| sel(take[k], sall[k] + wgt[k], sall[k]));
+            if self.want_sd {
+                sd = from_fn(|k| sel(take[k], sd[k] + wgt[k] * depth, sd[k]));
+            }
+            let hz: [f32; L] = from_fn(|k| a[2][k] + self.b[2] * d);
+            let front: [bool; L] = from_fn(|k| take[k] & (hz[k] > z_lim[k]));
+            if front.iter().any(|&f| f) {
+                let (bx, by) = (self.b[0] * d, self.b[1] * d);
+                fu = from_fn(|k| sel(front[k], fu[k] + wgt[k] * ((a[0][k] + bx) / hz[k] - xf[k]), fu[k]));
+                fv = from_fn(|k| sel(front[k], fv[k] + wgt[k] * ((a[1][k] + by) / hz[k] - y), fv[k]));
+                sw = from_fn(|k| sel(front[k], sw[k] + wgt[k], sw[k]));
+                sz = from_fn(|k| {
+                    let z = hz[k] * depth;
+                    let z = if z > depth_max { depth_max } else { z };
+                    sel(front[k], sz[k] + wgt[k] * z, sz[k])
+                });
+            }
+        }
+        // the scalar loop's T::of(1e-6)
+        const EPS: f32 = 1e-6_f64 as f32;
+        for k in 0..L {
             let o = o + k;
             if sw[k] > EPS {
                 b[0][2 * o] = fu[k] / sw[k];
