@@ -9,6 +9,7 @@ pub mod failure;
 pub mod geometry;
 pub mod hash;
 pub mod io;
+pub mod isa;
 pub mod mpi;
 pub mod raster;
 pub mod render;

@@ -10,7 +10,7 @@ use std::path::Path;
 
 /// The levels, from the leaves up (see docs/design.md §7 and CONTRIBUTING.md, "Layout").
 const LEVELS: &[&[&str]] = &[
-    &["buf", "failure", "geometry", "hash", "rng"],
+    &["buf", "failure", "geometry", "hash", "isa", "rng"],
     &["io"],
     &["raster"],
     &["mpi"],

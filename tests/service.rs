@@ -384,6 +384,8 @@ async fn refusals_have_the_right_code_and_name_the_field() {
     assert_eq!(e.code(), Code::FailedPrecondition);
     // a valid motion_ranges_json is accepted (and changes the fingerprint)
     let info = c.get_info(pb::InfoRequest {}).await.unwrap().into_inner();
+    // the instruction set the hot loops were dispatched to (the server runs in this process)
+    assert_eq!(info.simd, mpiflow::isa::current().name());
     let ranges = serde_json::to_string(&mpiflow::sample::motion::MotionPreset::PaperKitti.ranges()).unwrap();
     let one = c
         .get_sample(pb::SampleSpec { motion_ranges_json: ranges.clone(), ..Default::default() }.sample(0))

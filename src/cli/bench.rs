@@ -484,7 +484,14 @@ fn render(b: RenderBench) -> Result<(), CliError> {
         }
     }
     if let Some(m) = peak_rss_mib() {
-        println!("peak memory {m:.0} MiB ({}x{}, {} planes, mode {:?})", b.width, b.height, b.planes, b.mode);
+        println!(
+            "peak memory {m:.0} MiB ({}x{}, {} planes, mode {:?}, simd {})",
+            b.width,
+            b.height,
+            b.planes,
+            b.mode,
+            mpiflow::isa::current()
+        );
     }
     Ok(())
 }
@@ -563,7 +570,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         println!();
     }
     if let Some(m) = peak_rss_mib() {
-        println!("peak memory {m:.0} MiB");
+        println!("peak memory {m:.0} MiB (simd {})", mpiflow::isa::current());
     }
     Ok(())
 }

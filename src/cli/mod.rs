@@ -71,6 +71,11 @@ pub fn run() -> i32 {
             return 0;
         }
     };
+    // the hot loops' instruction set, chosen once: a wrong MPIFLOW_SIMD is an error up front
+    if let Err(e) = mpiflow::isa::init() {
+        eprintln!("error: {e}");
+        return 2;
+    }
     let result = match cli.command {
         Command::Bake(a) => bake::run(a),
         Command::Render(a) => render::run(a),

@@ -30,10 +30,15 @@
 //! channels are sampled per plane from the MPI or from one H x W mask shared by every plane
 //! ([`Channels`]); the source view can be restricted to the pixels where a mask is positive.
 //!
+//! The band loops run on the vector path chosen at start-up ([`crate::isa`]): each band is a
+//! job ([`TargetBandJob`], [`SourceBandJob`]) whose loop is inlined into a function compiled for
+//! AVX-512, AVX2 or the SSE2 baseline; the source view then takes 16, 8 or 4 pixels per plane
+//! step ([`SourceLanes::wide`], [`SourceLanes::four`]), the same bits on every path.
+//!
 //! Two things here stay large on purpose. The file (over 1,100 lines) keeps the scalar loops and
-//! their four-lane twins ([`TargetLanes`], [`SourceLanes`]) together with the per-plane constants
+//! their lane twins ([`TargetLanes`], [`SourceLanes`]) together with the per-plane constants
 //! they share, since each twin must follow its loop operation for operation. And
-//! `target_view_with` (about 190 lines) is the target view's band loop, which the compiler must
+//! `TargetBand::band` (about 190 lines) is the target view's band loop, which the compiler must
 //! see whole: its set-up is outside it ([`TargetGeometry`], [`TargetLanes::new`]), but the
 //! tile's planes, the edge clamp, the link sums or the pixel's writes as inlined functions of
 //! their own cost 1.9% more instructions in the band loop of the bilinear target pass
@@ -447,7 +452,8 @@ fn target_view_n<T: Real, const NL: usize>(
     }
 }
 
-/// [`target_view_n`] with the plane sampler of the render's kernel.
+/// [`target_view_n`] with the plane sampler of the render's kernel: the set-up, then the band
+/// loop ([`TargetBand::band`]) on the dispatched instruction set ([`crate::isa`]).
 #[allow(clippy::too_many_arguments)]
 fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
     mpi: &Mpi,
@@ -467,27 +473,82 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         Channels::PerPlane => (mpi.extra_channels, (0..n).map(|i| mpi.plane_extras(i)).collect()),
         Channels::Broadcast(mask) => (1, vec![mask; n]),
     };
-    let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } =
-        TargetGeometry::new(mpi, p, win);
-    let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
-        let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
-        (v, (ux * ux + uy * uy + T::one()).sqrt())
-    };
-    let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
+    let geo = TargetGeometry::new(mpi, p, win);
+    let g = &geo;
     // four pixels at a time where T is f32, without links and with at most one extra channel
-    let lanes = (T::LANES && NL == 0 && c <= 1)
-        .then(|| TargetLanes::new(&planes, [fxs, fys, lo, hix, hiy, wm, hm, t_eps], w, h));
-    let ex_lanes = (c == 1).then_some(ex_planes.as_slice());
-    let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
-
+    let lanes = (T::LANES && NL == 0 && c <= 1).then(|| TargetLanes::new(g, w, h));
+    let band = TargetBand::<T, S, NL> {
+        geo: &geo,
+        sampler,
+        occ,
+        win,
+        consts,
+        lanes: lanes.as_ref(),
+        ex_planes: &ex_planes,
+        c,
+        w,
+        h,
+    };
     let (image, depth, coverage, extras) = (&mut out.image, &mut out.depth, &mut out.coverage, &mut out.extras);
     let [(f0, d0, r0), (f1, d1, r1)] = lb;
     let ls = |l: usize, k: usize| if l < NL { k } else { 0 };
-    let z_min = T::of(1e-9);
     // y0 is the band's first row in the window, fy0 in the frame
     let bufs = [image, depth, coverage, extras, f0, d0, r0, f1, d1, r1];
     let strides = [3, 1, 1, c, ls(0, 2), ls(0, 1), ls(0, 1), ls(1, 2), ls(1, 1), ls(1, 1)];
     for_each_band(ww, win.height(), bufs, strides, |y0, rows, b| {
+        crate::isa::dispatch(TargetBandJob { band: &band, y0, rows, b })
+    })
+}
+
+/// What the target view's band loop reads ([`TargetBand::band`]).
+struct TargetBand<'a, T, S, const NL: usize> {
+    geo: &'a TargetGeometry<T>,
+    sampler: &'a S,
+    occ: Option<&'a Occupancy>,
+    win: &'a Rect,
+    consts: &'a [LinkConst<T>],
+    lanes: Option<&'a TargetLanes>,
+    ex_planes: &'a [&'a [f32]],
+    /// extra channels per pixel
+    c: usize,
+    w: usize,
+    h: usize,
+}
+
+/// One band of the target view, as a job for [`crate::isa::dispatch`].
+struct TargetBandJob<'a, 'b, 'c, T, S, const NL: usize> {
+    band: &'a TargetBand<'a, T, S, NL>,
+    y0: usize,
+    rows: usize,
+    b: &'b mut [&'c mut [f32]; 10],
+}
+
+impl<T: Real, S: PlaneSampler<T>, const NL: usize> crate::isa::Wide for TargetBandJob<'_, '_, '_, T, S, NL> {
+    type Output = RenderStats;
+    #[inline(always)]
+    fn run<const LANES: usize>(self) -> RenderStats {
+        self.band.band(self.y0, self.rows, self.b)
+    }
+}
+
+impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
+    /// The band of `rows` rows from window row `y0`: tile by tile, the planes that may
+    /// contribute, then per pixel (four at a time in lanes where they can) the plane loop.
+    #[inline(always)]
+    fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 10]) -> RenderStats {
+        let TargetBand { geo, sampler, occ, win, consts, lanes, ex_planes, c, w, h } = *self;
+        let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } = geo;
+        let (fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last) =
+            (*fxs, *fys, *lo, *hix, *hiy, *wm, *hm, *t_eps, *delta_last);
+        let (n, ww) = (planes.len(), win.width());
+        let ray_u = |ux: T, uy: T| -> ([T; 3], T) {
+            let v = [0, 1, 2].map(|i| rt_t[i][0] * ux + rt_t[i][1] * uy + rt_t[i][2]);
+            (v, (ux * ux + uy * uy + T::one()).sqrt())
+        };
+        let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
+        let ex_lanes = (c == 1).then_some(ex_planes);
+        let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
+        let z_min = T::of(1e-9);
         let fy0 = win.y0 + y0;
         let mut stats = RenderStats::default();
         let mut active = vec![true; n];
@@ -501,7 +562,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
             let tx1 = (tx0 + TILE).min(win.x1) - 1;
             let ty1 = fy0 + rows - 1;
             match occ {
-                Some(o) => tile_activity(o, &planes, &ray, &source_px, [tx0, fy0, tx1, ty1], &mut active),
+                Some(o) => tile_activity(o, planes, &ray, &source_px, [tx0, fy0, tx1, ty1], &mut active),
                 None => active.iter_mut().for_each(|a| *a = true),
             }
             fwd.clear();
@@ -513,10 +574,9 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
                 let uy_y = uy[y0 + ry];
                 let mut x = tx0;
                 while x <= tx1 {
-                    if let Some(l) = lanes.as_ref().filter(|_| x + 3 <= tx1) {
-                        let rays: [([T; 3], T); 4] = std::array::from_fn(|k| ray_u(ux[x + k - win.x0], uy_y));
+                    if let Some(l) = lanes.filter(|_| x + 3 <= tx1) {
                         let o = ry * ww + (x - win.x0);
-                        if l.four(sampler, ex_lanes, &rays, &fwd, &rev, o, b, &mut stats) {
+                        if l.four(sampler, ex_lanes, [x - win.x0, y0 + ry], &fwd, &rev, o, b, &mut stats) {
                             x += 4;
                             continue;
                         }
@@ -642,7 +702,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
             }
         }
         stats
-    })
+    }
 }
 
 /// The per-render constants of the target view: the target intrinsics, the planes' constants,
@@ -714,6 +774,10 @@ impl<T: Real> TargetGeometry<T> {
 /// the scalar loop counts its early exit), and the loop ends when all four are done, so every
 /// pixel gets the scalar loop's bits (`tests/render_window.rs` compares the two).
 struct TargetLanes {
+    /// R^T and the window's columns and rows as u = K_t^-1 p (the rays are set up in lanes)
+    rt: [[f32; 3]; 3],
+    ux: Vec<f32>,
+    uy: Vec<f32>,
     a: Vec<f32>,
     depth: Vec<f32>,
     ox: Vec<f32>,
@@ -737,39 +801,43 @@ fn lane_mask(on: [bool; 4]) -> wide::f32x4 {
 }
 
 impl TargetLanes {
-    /// The lanes' copy of the scalar loop's constants: the planes', and `[fxs, fys, lo, hix, hiy,
-    /// wm, hm, t_eps]` in `f32`.
-    fn new<T: Real>(planes: &[PlaneConst<T>], k: [T; 8], w: usize, h: usize) -> Self {
-        let [fxs, fys, lo, hix, hiy, wm, hm, t_eps] = k;
+    /// The lanes' copy of the scalar loop's constants ([`TargetGeometry`]) in `f32`.
+    fn new<T: Real>(g: &TargetGeometry<T>, w: usize, h: usize) -> Self {
+        let f = |v: &[T]| v.iter().map(|x| x.f32()).collect::<Vec<f32>>();
+        let planes = &g.planes;
         TargetLanes {
+            rt: g.rt_t.map(|r| r.map(T::f32)),
+            ux: f(&g.ux),
+            uy: f(&g.uy),
             a: planes.iter().map(|p| p.a.f32()).collect(),
             depth: planes.iter().map(|p| p.depth.f32()).collect(),
             ox: planes.iter().map(|p| p.ox.f32()).collect(),
             oy: planes.iter().map(|p| p.oy.f32()).collect(),
-            fxs: fxs.f32(),
-            fys: fys.f32(),
-            lo: lo.f32(),
-            hix: hix.f32(),
-            hiy: hiy.f32(),
-            wm: wm.f32(),
-            hm: hm.f32(),
-            t_eps: t_eps.f32(),
+            fxs: g.fxs.f32(),
+            fys: g.fys.f32(),
+            lo: g.lo.f32(),
+            hix: g.hix.f32(),
+            hiy: g.hiy.f32(),
+            wm: g.wm.f32(),
+            hm: g.hm.f32(),
+            t_eps: g.t_eps.f32(),
             w,
             h,
         }
     }
 
     /// Pixels `o .. o + 4` of the band's buffers `b` (image, depth, coverage, the extra channel
-    /// when `ex` is given) for the rays `rays` (direction, |u|): false, with nothing written,
-    /// when the four rays do not all meet the planes in the same order (the scalar loop then
-    /// takes them).
+    /// when `ex` is given), the window's columns `at[0] .. at[0] + 4` of its row `at[1]`: false,
+    /// with nothing written, when the four rays do not all meet the planes in the same order
+    /// (the scalar loop then takes them). The rays (direction v = R^T u, |u|) are set up in lanes
+    /// with the scalar loop's `ray_u` operations.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
     fn four<T: Real, S: PlaneSampler<T>>(
         &self,
         sampler: &S,
         ex: Option<&[&[f32]]>,
-        rays: &[([T; 3], T); 4],
+        at: [usize; 2],
         fwd: &[usize],
         rev: &[usize],
         o: usize,
@@ -780,16 +848,17 @@ impl TargetLanes {
         use wide::f32x4;
         let sp = f32x4::splat;
         let (zero, one) = (sp(0.0), sp(1.0));
-        let s: [f32; 4] = std::array::from_fn(|k| rays[k].0[2].f32());
+        let ux: &[f32; 4] = self.ux[at[0]..at[0] + 4].try_into().expect("four columns");
+        let (ux, uy) = (f32x4::from(*ux), sp(self.uy[at[1]]));
+        let rt = &self.rt;
+        let [v0, v1, v2] = [0, 1, 2].map(|i| sp(rt[i][0]) * ux + sp(rt[i][1]) * uy + sp(rt[i][2]));
+        let norm_u = (ux * ux + uy * uy + one).sqrt();
+        let s = v2.to_array();
         let forward = s[0] > 0.0;
         if !s.iter().all(|&s| s.abs() > 1e-12_f64 as f32 && (s > 0.0) == forward) {
             return false;
         }
-        let lane = |f: &dyn Fn(usize) -> f32| f32x4::from(std::array::from_fn::<f32, 4, _>(f));
-        let inv_s = one / f32x4::from(s);
-        let v0 = lane(&|k| rays[k].0[0].f32());
-        let v1 = lane(&|k| rays[k].0[1].f32());
-        let norm_u = lane(&|k| rays[k].1.f32());
+        let inv_s = one / v2;
         let (lo, hix, hiy, wm, hm) = (sp(self.lo), sp(self.hix), sp(self.hiy), sp(self.wm), sp(self.hm));
         let (t_eps, depth_max, delta_last) = (sp(self.t_eps), sp(DEPTH_MAX as f32), sp(DELTA_LAST as f32));
         let cap = |v: f32x4, max: f32x4| v.simd_gt(max).select(max, v);
@@ -955,7 +1024,7 @@ pub(super) fn source_view<T: Real>(
     flow_where: Option<&[f32]>,
     out: &mut RenderOutput,
 ) {
-    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let (w, h) = (mpi.width, mpi.height);
     let ww = win.width();
     let (ks, kt) = (p.k_src, p.k_tgt);
     let m = crate::geometry::pixel_rotation(&ks, &kt, &p.pose.rotation);
@@ -968,7 +1037,6 @@ pub(super) fn source_view<T: Real>(
     // gap to the next plane along a source ray of unit-z direction, before the |u| factor
     let gap: Vec<T> = plane_gaps(&mpi.disparity).into_iter().map(T::of).collect();
     let t_eps = T::of32(p.skip.transmittance_eps);
-    let z_min = T::of(1e-9);
     let rgba = Rgba::of(mpi);
     let mut flow = std::mem::take(&mut out.flow);
     let mut zexp = std::mem::take(&mut out.source_depth_in_target);
@@ -986,11 +1054,83 @@ pub(super) fn source_view<T: Real>(
         t_eps: p.skip.transmittance_eps,
         z_min: 1e-9_f64 as f32,
         rgba: rgba.clone(),
-        ks,
+        xs: (0..w).map(|x| x as f64 as f32).collect(),
+        ux: (0..w).map(|x| ((x as f64 - ks.cx) / ks.fx) as f32).collect(),
+        uy: (0..h).map(|y| ((y as f64 - ks.cy) / ks.fy) as f32).collect(),
         want_sd,
     });
+    let band = SourceBand {
+        win,
+        occ,
+        flow_where,
+        lanes: lanes.as_ref(),
+        m_t,
+        b_t,
+        disp: &disp,
+        depth_t: &depth_t,
+        gap: &gap,
+        t_eps,
+        rgba: &rgba,
+        ks,
+        w,
+        want_sd,
+    };
     let bufs: [&mut [f32]; 4] = [&mut flow, &mut zexp, &mut front, &mut src_depth];
     for_each_band(ww, win.height(), bufs, [2, 1, 1, usize::from(want_sd)], |y0, rows, b| {
+        crate::isa::dispatch(SourceBandJob { band: &band, y0, rows, b });
+        RenderStats::default()
+    });
+    out.valid = mark_valid(win, w, h, &flow, &front);
+    out.flow = flow;
+    out.source_depth_in_target = zexp;
+    out.source_depth = src_depth;
+}
+
+/// What the source view's band loop reads ([`SourceBand::band`]).
+struct SourceBand<'a, T> {
+    win: &'a Rect,
+    occ: Option<&'a Occupancy>,
+    flow_where: Option<&'a [f32]>,
+    lanes: Option<&'a SourceLanes<'a>>,
+    m_t: [[T; 3]; 3],
+    b_t: [T; 3],
+    disp: &'a [T],
+    depth_t: &'a [T],
+    gap: &'a [T],
+    t_eps: T,
+    rgba: &'a Rgba<'a>,
+    ks: crate::geometry::Intrinsics,
+    w: usize,
+    want_sd: bool,
+}
+
+/// One band of the source view, as a job for [`crate::isa::dispatch`].
+struct SourceBandJob<'a, 'b, 'c, T> {
+    band: &'a SourceBand<'a, T>,
+    y0: usize,
+    rows: usize,
+    b: &'b mut [&'c mut [f32]; 4],
+}
+
+impl<T: Real> crate::isa::Wide for SourceBandJob<'_, '_, '_, T> {
+    type Output = ();
+    #[inline(always)]
+    fn run<const LANES: usize>(self) {
+        self.band.band::<LANES>(self.y0, self.rows, self.b);
+    }
+}
+
+impl<T: Real> SourceBand<'_, T> {
+    /// The band of `rows` rows from window row `y0` (flow, expected target depth, front
+    /// fraction, source depth), tile by tile, `L` pixels at a time in lanes where they can (the
+    /// path's vector width, [`crate::isa`]), then four.
+    #[inline(always)]
+    fn band<const L: usize>(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 4]) {
+        let SourceBand { win, occ, flow_where, lanes, m_t, b_t, disp, depth_t, gap, t_eps, rgba, ks, w, want_sd } =
+            *self;
+        let n = disp.len();
+        let ww = win.width();
+        let z_min = T::of(1e-9);
         let fy0 = win.y0 + y0;
         let mut active: Vec<usize> = Vec::with_capacity(n);
         for tx0 in (win.x0..win.x1).step_by(TILE) {
@@ -1008,6 +1148,10 @@ pub(super) fn source_view<T: Real>(
                 let uy = T::of((yy as f64 - ks.cy) / ks.fy);
                 let mut x0 = tx0;
                 if let Some(l) = &lanes {
+                    while L > 4 && x0 + L - 1 <= tx1 {
+                        l.wide::<L>(x0, yy, &active, ry * ww + (x0 - win.x0), b);
+                        x0 += L;
+                    }
                     while x0 + 3 <= tx1 {
                         l.four(x0, yy, &active, ry * ww + (x0 - win.x0), b);
                         x0 += 4;
@@ -1065,12 +1209,7 @@ pub(super) fn source_view<T: Real>(
                 }
             }
         }
-        RenderStats::default()
-    });
-    out.valid = mark_valid(win, w, h, &flow, &front);
-    out.flow = flow;
-    out.source_depth_in_target = zexp;
-    out.source_depth = src_depth;
+    }
 }
 
 /// The source view's per-pixel loop for four adjacent pixels of a row at once (f32 only, the
@@ -1088,7 +1227,11 @@ struct SourceLanes<'a> {
     t_eps: f32,
     z_min: f32,
     rgba: Rgba<'a>,
-    ks: crate::geometry::Intrinsics,
+    /// the frame's columns as f32, and its columns and rows as u = K_s^-1 p (the scalar loop's
+    /// values, computed once)
+    xs: Vec<f32>,
+    ux: Vec<f32>,
+    uy: Vec<f32>,
     want_sd: bool,
 }
 
@@ -1101,10 +1244,10 @@ impl SourceLanes<'_> {
         use wide::f32x4;
         let sp = f32x4::splat;
         let (zero, one) = (sp(0.0), sp(1.0));
-        let xf = f32x4::from(std::array::from_fn::<f32, 4, _>(|k| (x + k) as f64 as f32));
+        let four = |v: &[f32]| f32x4::from(*<&[f32; 4]>::try_from(&v[x..x + 4]).expect("four columns"));
+        let (xf, ux) = (four(&self.xs), four(&self.ux));
         let y = yy as f64 as f32;
-        let ux = f32x4::from(std::array::from_fn::<f32, 4, _>(|k| (((x + k) as f64 - self.ks.cx) / self.ks.fx) as f32));
-        let uy = sp(((yy as f64 - self.ks.cy) / self.ks.fy) as f32);
+        let uy = sp(self.uy[yy]);
         let norm_u = (ux * ux + uy * uy + one).sqrt();
         let a: [f32x4; 3] = std::array::from_fn(|r| sp(self.m[r][0]) * xf + sp(self.m[r][1] * y) + sp(self.m[r][2]));
         let (mut tr, mut fu, mut fv, mut sw, mut sz, mut sall, mut sd) = (one, zero, zero, zero, zero, zero, zero);
@@ -1146,6 +1289,77 @@ impl SourceLanes<'_> {
         const EPS: f32 = 1e-6_f64 as f32;
         let [fu, fv, sw, sz, sall, sd] = [fu, fv, sw, sz, sall, sd].map(f32x4::to_array);
         for k in 0..4 {
+            let o = o + k;
+            if sw[k] > EPS {
+                b[0][2 * o] = fu[k] / sw[k];
+                b[0][2 * o + 1] = fv[k] / sw[k];
+                b[1][o] = sz[k] / sw[k];
+            }
+            b[2][o] = if sall[k] > 0.0 { sw[k] / sall[k] } else { 0.0 };
+            if self.want_sd && sall[k] > EPS {
+                b[3][o] = sd[k] / sall[k];
+            }
+        }
+    }
+}
+
+impl SourceLanes<'_> {
+    /// [`Self::four`] for the `L` pixels `x .. x + L` (the paths whose registers hold 8 or 16
+    /// values, [`crate::isa`]) in plain arrays: lane by lane the same operations in the same
+    /// order, which LLVM turns into the path's vector instructions, so the same bits (the
+    /// negated compares are the scalar loop's: NaN densities are taken, as there).
+    #[allow(clippy::neg_cmp_op_on_partial_ord)]
+    #[inline(always)]
+    fn wide<const L: usize>(&self, x: usize, yy: usize, active: &[usize], o: usize, b: &mut [&mut [f32]; 4]) {
+        use std::array::from_fn;
+        let ld = |v: &[f32]| -> [f32; L] { v[x..x + L].try_into().expect("L columns") };
+        let (xf, ux) = (ld(&self.xs), ld(&self.ux));
+        let y = yy as f64 as f32;
+        let uy = self.uy[yy];
+        let norm_u: [f32; L] = from_fn(|k| (ux[k] * ux[k] + uy * uy + 1.0).sqrt());
+        let m = &self.m;
+        let a: [[f32; L]; 3] = from_fn(|r| from_fn(|k| m[r][0] * xf[k] + m[r][1] * y + m[r][2]));
+        let z_lim: [f32; L] = from_fn(|k| self.z_min * (a[2][k].abs() + 1.0));
+        let mut tr = [1.0f32; L];
+        let (mut fu, mut fv, mut sw, mut sz, mut sall, mut sd) =
+            ([0.0f32; L], [0.0; L], [0.0; L], [0.0; L], [0.0; L], [0.0; L]);
+        let depth_max = DEPTH_MAX as f32;
+        let sel = |m: bool, a: f32, b: f32| if m { a } else { b };
+        for &i in active {
+            // a lane is done once its transmittance is below t_eps (it only falls)
+            if tr.iter().all(|&t| t < self.t_eps) {
+                break;
+            }
+            let sigma = self.rgba.sigma_n::<L>(i, x, yy);
+            let take: [bool; L] = from_fn(|k| !(tr[k] < self.t_eps) & !(sigma[k] <= 0.0));
+            if !take.iter().any(|&t| t) {
+                continue;
+            }
+            let (gap, depth, d) = (self.gap[i], self.depth[i], self.disp[i]);
+            let e: [f32; L] = from_fn(|k| f32::exp_neg(sigma[k] * gap * norm_u[k]));
+            let wgt: [f32; L] = from_fn(|k| tr[k] * (1.0 - e[k]));
+            tr = from_fn(|k| sel(take[k], tr[k] * e[k], tr[k]));
+            sall = from_fn(|k| sel(take[k], sall[k] + wgt[k], sall[k]));
+            if self.want_sd {
+                sd = from_fn(|k| sel(take[k], sd[k] + wgt[k] * depth, sd[k]));
+            }
+            let hz: [f32; L] = from_fn(|k| a[2][k] + self.b[2] * d);
+            let front: [bool; L] = from_fn(|k| take[k] & (hz[k] > z_lim[k]));
+            if front.iter().any(|&f| f) {
+                let (bx, by) = (self.b[0] * d, self.b[1] * d);
+                fu = from_fn(|k| sel(front[k], fu[k] + wgt[k] * ((a[0][k] + bx) / hz[k] - xf[k]), fu[k]));
+                fv = from_fn(|k| sel(front[k], fv[k] + wgt[k] * ((a[1][k] + by) / hz[k] - y), fv[k]));
+                sw = from_fn(|k| sel(front[k], sw[k] + wgt[k], sw[k]));
+                sz = from_fn(|k| {
+                    let z = hz[k] * depth;
+                    let z = if z > depth_max { depth_max } else { z };
+                    sel(front[k], sz[k] + wgt[k] * z, sz[k])
+                });
+            }
+        }
+        // the scalar loop's T::of(1e-6)
+        const EPS: f32 = 1e-6_f64 as f32;
+        for k in 0..L {
             let o = o + k;
             if sw[k] > EPS {
                 b[0][2 * o] = fu[k] / sw[k];

@@ -48,6 +48,25 @@ impl<'a> Rgba<'a> {
         }
     }
 
+    /// The densities of plane `i` at pixels x .. x + L of row y (within the frame).
+    #[inline(always)]
+    pub(crate) fn sigma_n<const L: usize>(&self, i: usize, x: usize, y: usize) -> [f32; L] {
+        match self {
+            Rgba::Dense { planes, w } => {
+                let s = &planes[i][4 * (y * w + x) + 3..];
+                std::array::from_fn(|k| s[4 * k])
+            }
+            Rgba::Blocks(b) if x % Bricks::SIZE + L <= Bricks::SIZE => match b.offset(i, x, y) {
+                Some(s) => {
+                    let d = &b.data()[s + 3..s + 4 * L];
+                    std::array::from_fn(|k| d[4 * k])
+                }
+                None => [0.0; L],
+            },
+            Rgba::Blocks(_) => std::array::from_fn(|k| self.sigma(i, x + k, y)),
+        }
+    }
+
     /// The densities of plane `i` at pixels x .. x + 4 of row y, in lanes.
     #[inline(always)]
     pub(crate) fn sigma4(&self, i: usize, x: usize, y: usize) -> wide::f32x4 {

@@ -383,6 +383,7 @@ impl State {
             }),
             workers: self.scheduler.workers() as u32,
             serving: self.is_serving(),
+            simd: crate::isa::current().name().into(),
         }
     }
 }
@@ -551,6 +552,8 @@ async fn bind(addr: &str, what: &str) -> Result<tokio::net::TcpListener, Service
 /// NOT_SERVING until a warm-up sample of the default dataset is made, then SERVING.
 pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError> {
     config.validate()?;
+    // the hot loops' instruction set, chosen once (a wrong MPIFLOW_SIMD is a start-up error)
+    let simd = crate::isa::init().map_err(|e| ServiceError::Config(e.to_string()))?;
     let metrics = Arc::new(Metrics::new());
     // the token guards the API and reflection; health stays open for the probes
     let auth = RequireToken::new(config.resolved_auth_token()?, metrics.clone());
@@ -656,6 +659,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         metrics = ?metrics_addr,
         health = ?health_addr,
         workers = state.scheduler.workers(),
+        simd = simd.name(),
         in_flight = state.scheduler.capacity(),
         max_message_bytes = limit,
         tls = tls.is_some(),

@@ -31,6 +31,8 @@ def test_health_and_info(server, client):
     assert info.datasets, info
     assert any(d.is_default for d in info.datasets)
     assert info.limits.max_message_bytes > 0
+    if server.kind == "real":
+        assert info.simd in ("sse2", "avx2", "avx512"), info.simd
 
 
 def test_shapes_and_dtypes(server, client):

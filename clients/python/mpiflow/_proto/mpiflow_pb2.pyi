@@ -384,17 +384,19 @@ class Limits(_message.Message):
     def __init__(self, max_message_bytes: _Optional[int] = ..., max_streams: _Optional[int] = ..., max_batch_size: _Optional[int] = ..., max_prefetch: _Optional[int] = ..., max_image_side: _Optional[int] = ..., max_image_pixels: _Optional[int] = ..., max_upload_bytes: _Optional[int] = ..., max_indices: _Optional[int] = ..., max_buffered_bytes: _Optional[int] = ..., max_request_bytes: _Optional[int] = ..., max_random_access_calls: _Optional[int] = ..., max_connections: _Optional[int] = ..., max_connections_per_peer: _Optional[int] = ..., max_calls_per_connection: _Optional[int] = ..., idle_connection_timeout_s: _Optional[float] = ..., stall_timeout_s: _Optional[float] = ...) -> None: ...
 
 class InfoResponse(_message.Message):
-    __slots__ = ("version", "datasets", "models", "limits", "workers", "serving")
+    __slots__ = ("version", "datasets", "models", "limits", "workers", "serving", "simd")
     VERSION_FIELD_NUMBER: _ClassVar[int]
     DATASETS_FIELD_NUMBER: _ClassVar[int]
     MODELS_FIELD_NUMBER: _ClassVar[int]
     LIMITS_FIELD_NUMBER: _ClassVar[int]
     WORKERS_FIELD_NUMBER: _ClassVar[int]
     SERVING_FIELD_NUMBER: _ClassVar[int]
+    SIMD_FIELD_NUMBER: _ClassVar[int]
     version: str
     datasets: _containers.RepeatedCompositeFieldContainer[DatasetInfo]
     models: _containers.RepeatedCompositeFieldContainer[ModelInfo]
     limits: Limits
     workers: int
     serving: bool
-    def __init__(self, version: _Optional[str] = ..., datasets: _Optional[_Iterable[_Union[DatasetInfo, _Mapping]]] = ..., models: _Optional[_Iterable[_Union[ModelInfo, _Mapping]]] = ..., limits: _Optional[_Union[Limits, _Mapping]] = ..., workers: _Optional[int] = ..., serving: _Optional[bool] = ...) -> None: ...
+    simd: str
+    def __init__(self, version: _Optional[str] = ..., datasets: _Optional[_Iterable[_Union[DatasetInfo, _Mapping]]] = ..., models: _Optional[_Iterable[_Union[ModelInfo, _Mapping]]] = ..., limits: _Optional[_Union[Limits, _Mapping]] = ..., workers: _Optional[int] = ..., serving: _Optional[bool] = ..., simd: _Optional[str] = ...) -> None: ...
