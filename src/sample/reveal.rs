@@ -13,10 +13,11 @@
 //!    is `D = P C^-1`. `D_s` is `D` scaled by `s` in `[0, 1]` (axis-angle rotation and
 //!    translation times `s`) and `P(s) = D_s C`: `P(1) = P`, and `P(0) = C` moves the object
 //!    with the scene, which uncovers nothing.
-//! 2. **Uncovered share** ([`uncovered_share`]). Every [`STEP`]-th pixel of the mask (value at
-//!    least 0.5) in both directions is carried, at its disparity, into image2 under `C` (where the
-//!    background it hid goes) and under `P(s)` (where the object goes); each marks the
-//!    [`CELL`] x [`CELL`] cell of the frame it lands in. The share is the area of the cells
+//! 2. **Uncovered share** ([`uncovered_share`]). Every second pixel of the mask (value at
+//!    least 0.5) in both directions (sparser for masks over 4 x [`MAX_SAMPLES`] pixels) is
+//!    carried, at its disparity, into image2 under `C` (where the background it hid goes) and
+//!    under `P(s)` (where the object goes); each marks the cell of the frame it lands in (cells
+//!    of twice the sampling step, 4 x 4 pixels for every second pixel). The share is the area of the cells
 //!    the background reaches and the object does not, over the frame's area: an estimate of the
 //!    `revealed` share that `mpiflow bench quality --realism` measures on the rendered sample.
 //! 3. **Fit** ([`fit_scale`]). `s = 1` when its share is within the budget; otherwise the
@@ -31,10 +32,8 @@ use glam::{DMat3, DVec3};
 use super::motion::axis_angle_from_matrix;
 use crate::geometry::{rotation_from_axis_angle, Intrinsics, Pose};
 
-/// Side of the cells the uncovered share is counted in, pixels.
-pub const CELL: usize = 4;
-/// Every `STEP`-th mask pixel in x and y is carried.
-pub const STEP: usize = 2;
+/// Most mask samples carried: larger masks are sampled more sparsely.
+pub const MAX_SAMPLES: usize = 16_384;
 /// Halvings of the scale interval when the drawn motion is over budget.
 pub const BISECTIONS: usize = 8;
 
@@ -52,15 +51,21 @@ pub struct MaskSamples {
     width: usize,
     height: usize,
     k: Intrinsics,
+    /// side of the counting cells: twice the sampling step, so that no cell a moved mask
+    /// covers (unless magnified twofold) is left without a sample
+    cell: usize,
 }
 
 impl MaskSamples {
-    /// Every [`STEP`]-th pixel of `mask` (W x H, value >= 0.5) with its disparity (non-finite or
-    /// negative disparities count as 0: very far).
+    /// Every `step`-th pixel of `mask` (W x H, value at least 0.5) in x and y with its disparity
+    /// (non-finite or negative disparities count as 0: very far); `step` is 2, or more when
+    /// needed to keep at most [`MAX_SAMPLES`].
     pub fn new(mask: &[f32], disparity: &[f32], width: usize, height: usize, k: Intrinsics) -> Self {
+        let area = mask.iter().filter(|&&m| m >= 0.5).count();
+        let step = ((area as f64 / MAX_SAMPLES as f64).sqrt().ceil() as usize).max(2);
         let mut rays = Vec::new();
-        for y in (0..height).step_by(STEP) {
-            for x in (0..width).step_by(STEP) {
+        for y in (0..height).step_by(step) {
+            for x in (0..width).step_by(step) {
                 let i = y * width + x;
                 if mask[i] >= 0.5 {
                     let d = f64::from(disparity[i]);
@@ -69,47 +74,58 @@ impl MaskSamples {
                 }
             }
         }
-        Self { rays, width, height, k }
+        Self { rays, width, height, k, cell: 2 * step }
     }
 
-    /// Marks the cells the samples land in under `pose` (`K (R ray + t disp)`, homogeneous;
-    /// points behind the camera mark nothing).
-    fn cells(&self, pose: &Pose, out: &mut [bool]) {
-        let (cw, ch) = (self.width.div_ceil(CELL), self.height.div_ceil(CELL));
+    fn grid(&self) -> (usize, usize) {
+        (self.width.div_ceil(self.cell), self.height.div_ceil(self.cell))
+    }
+
+    /// The cells the samples land in under `pose` (`K R ray + K t disp`, homogeneous; points
+    /// behind the camera mark nothing).
+    fn cells(&self, pose: &Pose) -> Vec<bool> {
+        let (cw, ch) = self.grid();
+        let mut out = vec![false; cw * ch];
         let k: DMat3 = self.k.matrix();
+        let (kr, kt) = (k * pose.rotation, k * pose.translation);
+        let (w, h) = (self.width as f64, self.height as f64);
         for &(ray, disp) in &self.rays {
-            let p = k * (pose.rotation * ray + pose.translation * disp);
+            let p = kr * ray + kt * disp;
             // behind the camera or NaN: marks nothing
             if p.z.is_nan() || p.z <= 1e-9 {
                 continue;
             }
             let (x, y) = (p.x / p.z + 0.5, p.y / p.z + 0.5);
-            if x >= 0.0 && y >= 0.0 && x < self.width as f64 && y < self.height as f64 {
-                let (cx, cy) = (x as usize / CELL, y as usize / CELL);
+            if x >= 0.0 && y >= 0.0 && x < w && y < h {
+                let (cx, cy) = (x as usize / self.cell, y as usize / self.cell);
                 if cx < cw && cy < ch {
                     out[cy * cw + cx] = true;
                 }
             }
         }
+        out
+    }
+
+    /// The share of the frame in the cells of `behind` that the samples under `object` miss.
+    fn share_missed(&self, behind: &[bool], object: &Pose) -> f64 {
+        let covered = self.cells(object);
+        let cells = behind.iter().zip(&covered).filter(|(&b, &c)| b && !c).count();
+        let area = (self.width * self.height) as f64;
+        ((cells * self.cell * self.cell) as f64 / area).min(1.0)
     }
 }
 
 /// Module step 2: the share of the frame the background behind the mask reaches under `camera`
 /// and the object under `object` does not cover.
 pub fn uncovered_share(samples: &MaskSamples, camera: &Pose, object: &Pose) -> f64 {
-    let n = samples.width.div_ceil(CELL) * samples.height.div_ceil(CELL);
-    let (mut behind, mut covered) = (vec![false; n], vec![false; n]);
-    samples.cells(camera, &mut behind);
-    samples.cells(object, &mut covered);
-    let cells = behind.iter().zip(&covered).filter(|(&b, &c)| b && !c).count();
-    let area = (samples.width * samples.height) as f64;
-    ((cells * CELL * CELL) as f64 / area).min(1.0)
+    samples.share_missed(&samples.cells(camera), object)
 }
 
 /// Module step 3: the scale of the object's relative motion that keeps its uncovered share
 /// within `budget`.
 pub fn fit_scale(samples: &MaskSamples, camera: &Pose, object: &Pose, budget: f64) -> f64 {
-    let within = |s: f64| uncovered_share(samples, camera, &scaled_pose(camera, object, s)) <= budget;
+    let behind = samples.cells(camera);
+    let within = |s: f64| samples.share_missed(&behind, &scaled_pose(camera, object, s)) <= budget;
     if within(1.0) {
         return 1.0;
     }
