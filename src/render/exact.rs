@@ -1285,10 +1285,20 @@ impl SourceLanes<'_> {
                 sz = front.select(sz + wgt * z, sz);
             }
         }
+        let [fu, fv, sw, sz, sall, sd] = [fu, fv, sw, sz, sall, sd].map(f32x4::to_array);
+        self.write(o, [fu, fv, sw, sz, sall, sd], b);
+    }
+}
+
+impl SourceLanes<'_> {
+    /// Writes the `L` pixels `o .. o + L` of the band from their sums `[fu, fv, sw, sz, sall,
+    /// sd]`: flow and depth normalised by the weight in front, `valid` the share in front, the
+    /// expected depth (the scalar loop's divisions, pixel by pixel).
+    #[inline(always)]
+    fn write<const L: usize>(&self, o: usize, [fu, fv, sw, sz, sall, sd]: [[f32; L]; 6], b: &mut [&mut [f32]; 4]) {
         // the scalar loop's T::of(1e-6)
         const EPS: f32 = 1e-6_f64 as f32;
-        let [fu, fv, sw, sz, sall, sd] = [fu, fv, sw, sz, sall, sd].map(f32x4::to_array);
-        for k in 0..4 {
+        for k in 0..L {
             let o = o + k;
             if sw[k] > EPS {
                 b[0][2 * o] = fu[k] / sw[k];
@@ -1301,9 +1311,7 @@ impl SourceLanes<'_> {
             }
         }
     }
-}
 
-impl SourceLanes<'_> {
     /// [`Self::four`] for the `L` pixels `x .. x + L` (the paths whose registers hold 8 or 16
     /// values, [`crate::isa`]) in plain arrays: lane by lane the same operations in the same
     /// order, which LLVM turns into the path's vector instructions, so the same bits (the
@@ -1357,20 +1365,7 @@ impl SourceLanes<'_> {
                 });
             }
         }
-        // the scalar loop's T::of(1e-6)
-        const EPS: f32 = 1e-6_f64 as f32;
-        for k in 0..L {
-            let o = o + k;
-            if sw[k] > EPS {
-                b[0][2 * o] = fu[k] / sw[k];
-                b[0][2 * o + 1] = fv[k] / sw[k];
-                b[1][o] = sz[k] / sw[k];
-            }
-            b[2][o] = if sall[k] > 0.0 { sw[k] / sall[k] } else { 0.0 };
-            if self.want_sd && sall[k] > EPS {
-                b[3][o] = sd[k] / sall[k];
-            }
-        }
+        self.write(o, [fu, fv, sw, sz, sall, sd], b);
     }
 }
 
