@@ -90,6 +90,11 @@ pub struct QualityBench {
     /// (the built-in layering's `backdrop`).
     #[arg(long)]
     backdrop: bool,
+    /// What fills the holes: exemplar (texture from image1's background) or a Telea variant
+    /// (telea, telea-known-only, telea-zero-order, telea-opencv). With --same-motions the rows
+    /// keep the default method's motions.
+    #[arg(long, value_name = "METHOD", default_value_t = mpiflow::sample::config::InpaintMethod::default())]
+    inpaint: mpiflow::sample::config::InpaintMethod,
 }
 
 #[derive(Args, Debug)]
@@ -137,6 +142,9 @@ pub struct SampleBench {
     /// Leave out the occlusion mask, as the service does for requests that do not ask for it.
     #[arg(long)]
     no_occlusion: bool,
+    /// What fills the holes: exemplar (texture from image1's background) or a Telea variant.
+    #[arg(long, value_name = "METHOD", default_value_t = mpiflow::sample::config::InpaintMethod::default())]
+    inpaint: mpiflow::sample::config::InpaintMethod,
 }
 
 #[derive(Args, Debug)]
@@ -312,13 +320,16 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         base.minify = q.minify;
     }
     let kernels = if q.resample.is_empty() { vec![base.resample] } else { q.resample.clone() };
+    // the generator keeps the default method's addresses (--same-motions)
     let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
         .map_err(|e| CliError(e.to_string()))?;
+    base.inpaint_method = q.inpaint;
     println!(
-        "{}; {} samples per row, seed {}, motion {motion}{}",
+        "{}; {} samples per row, seed {}, motion {motion}, holes filled by {}{}",
         p.describe(),
         q.count,
         q.seed,
+        q.inpaint,
         if q.same_motions { ", every row on the same motions" } else { "" }
     );
     let run = |c: &SampleConfig| {
@@ -521,6 +532,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
             restore_noise: b.restore_noise,
             minify: b.minify,
             occlusion: !b.no_occlusion,
+            inpaint_method: b.inpaint,
             ..SampleConfig::with_preset(b.preset)
         };
         let cfg = SampleBenchConfig {

@@ -101,6 +101,10 @@ pub struct GenerateArgs {
     /// object masks with their depth edges (built-in layering; docs/quality.md).
     #[arg(long)]
     backdrop: bool,
+    /// What fills image2's holes: exemplar (texture from image1's background at the hole's
+    /// depth) or a Telea variant (telea, telea-known-only, telea-zero-order, telea-opencv).
+    #[arg(long, value_name = "METHOD", default_value_t = mpiflow::sample::config::InpaintMethod::default())]
+    inpaint: mpiflow::sample::config::InpaintMethod,
     /// Camera intrinsics fx,fy,cx,cy in pixels for every source image (default 0.58 W, 0.58 H,
     /// centre). Only with --source.
     #[arg(long, value_name = "FX,FY,CX,CY", value_parser = parse_floats::<4>, allow_hyphen_values = true)]
@@ -241,6 +245,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         frames: a.frames as usize,
         backward: a.backward,
         resample: a.resample,
+        inpaint_method: a.inpaint,
         ..SampleConfig::with_preset(a.preset)
     };
     let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));

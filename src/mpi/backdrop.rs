@@ -39,8 +39,8 @@
 //! of it in the region (`tests/backdrop.rs` prints nothing; `mpiflow bench quality --realism`
 //! states the scene build's time).
 
+use crate::raster::exemplar::{min_filter, peel_order, synthesise as synthesise_exemplar, Draw, Layout, Sources};
 use crate::raster::morph::dilate;
-use crate::rng::mix64;
 
 /// Mask pixels are grown by this many pixels (chessboard) before completion.
 pub const MASK_GROW: usize = 3;
@@ -73,25 +73,6 @@ impl Backdrop {
     pub fn count(&self) -> usize {
         self.behind.iter().filter(|&&b| b).count()
     }
-}
-
-/// Chessboard minimum filter of radius `r` (separable; O(w h r)).
-fn min_filter(v: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
-    let mut tmp = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
-            tmp[y * w + x] = v[y * w + a..=y * w + b].iter().copied().fold(f64::INFINITY, f64::min);
-        }
-    }
-    let mut out = vec![0.0; w * h];
-    for y in 0..h {
-        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
-        for x in 0..w {
-            out[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).fold(f64::INFINITY, f64::min);
-        }
-    }
-    out
 }
 
 /// Push-pull of `v` from the pixels where `known` into the others (means of known children down
@@ -211,7 +192,7 @@ struct Region<'a> {
 }
 
 /// The exemplar synthesis of the module documentation into `out_rgb` (the photo's colours on
-/// entry; the pixels of `r.behind` are replaced).
+/// entry; the pixels of `r.behind` are replaced), by [`crate::raster::exemplar::synthesise`].
 fn synthesise(r: &Region<'_>, out_rgb: &mut [f32]) {
     let Region { rgb, disp, grown, behind, back, w, h } = *r;
     let n = w * h;
@@ -224,152 +205,38 @@ fn synthesise(r: &Region<'_>, out_rgb: &mut [f32]) {
         sources.iter().for_each(|&p| s[p] = true);
         s
     };
+    let eligible = |t: usize| sorted_disp.partition_point(|&d| d <= back[t] * (1.0 + EDGE_STEP));
     // onion-peel order: chessboard distance from the pixels that need no completion
     let order = peel_order(behind, w, h);
     let mut filled: Vec<bool> = behind.iter().map(|&b| !b).collect();
-    let mut src_of: Vec<u32> = vec![u32::MAX; n];
-    let half = (WINDOW / 2) as isize;
-    let cost = |t: usize, s: usize, out: &[f32], filled: &[bool]| -> f64 {
-        let (tx, ty) = ((t % w) as isize, (t / w) as isize);
-        let (sx, sy) = ((s % w) as isize, (s / w) as isize);
-        let (mut sum, mut m) = (0.0f64, 0u32);
-        for dy in -half..=half {
-            for dx in -half..=half {
-                let (ax, ay, bx, by) = (tx + dx, ty + dy, sx + dx, sy + dy);
-                if ax < 0 || ay < 0 || bx < 0 || by < 0 {
-                    continue;
-                }
-                let (ax, ay, bx, by) = (ax as usize, ay as usize, bx as usize, by as usize);
-                if ax >= w || ay >= h || bx >= w || by >= h {
-                    continue;
-                }
-                let (a, b) = (ay * w + ax, by * w + bx);
-                if !filled[a] || grown[b] {
-                    continue;
-                }
-                for c in 0..3 {
-                    let d = f64::from(out[3 * a + c] - rgb[3 * b + c]);
-                    sum += d * d;
-                }
-                m += 1;
-            }
-        }
-        if m == 0 {
-            f64::INFINITY
-        } else {
-            sum / f64::from(m)
-        }
+    let lay = Layout {
+        sw: w,
+        sh: h,
+        tw: w,
+        th: h,
+        ox: 0,
+        oy: 0,
+        half: WINDOW / 2,
+        search_radius: SEARCH_RADIUS,
+        salt: 0x6261_636b_6472_6f70,
+        known_weight: 1,
+        keep_unmatched: true,
     };
-    for &t in &order {
-        let limit = back[t] * (1.0 + EDGE_STEP);
-        let eligible = sorted_disp.partition_point(|&d| d <= limit);
-        let ok = |s: usize| is_source[s] && disp[s] <= limit;
-        let (tx, ty) = ((t % w) as isize, (t / w) as isize);
-        let mut best: Option<(f64, usize)> = None;
-        let consider = |s: usize, best: &mut Option<(f64, usize)>, out: &[f32], filled: &[bool]| {
-            if !ok(s) || best.is_some_and(|b| b.1 == s) {
-                return;
+    let mut src = Sources {
+        rgb,
+        masked: grown,
+        eligible: |t: usize, s: usize| is_source[s] && disp[s] <= back[t] * (1.0 + EDGE_STEP),
+        // random sources from the whole eligible set
+        seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
+            let m = eligible(t);
+            if m > 0 {
+                out.extend((0..GLOBAL_DRAWS).map(|_| sources[draw.below(m)]));
             }
-            let c = cost(t, s, out, filled);
-            if best.is_none_or(|b| c < b.0) {
-                *best = Some((c, s));
-            }
-        };
-        // coherence: the neighbours' sources shifted by the step
-        for dy in -1..=1isize {
-            for dx in -1..=1isize {
-                let (nx, ny) = (tx + dx, ty + dy);
-                if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx as usize >= w || ny as usize >= h {
-                    continue;
-                }
-                let q = ny as usize * w + nx as usize;
-                let s = src_of[q];
-                if s == u32::MAX {
-                    continue;
-                }
-                let (sx, sy) = ((s as usize % w) as isize - dx, (s as usize / w) as isize - dy);
-                if sx >= 0 && sy >= 0 && (sx as usize) < w && (sy as usize) < h {
-                    consider(sy as usize * w + sx as usize, &mut best, out_rgb, &filled);
-                }
-            }
-        }
-        let mut key = mix64(t as u64 ^ 0x6261_636b_6472_6f70);
-        let draw = |k: &mut u64, n: usize| -> usize {
-            *k = mix64(*k);
-            ((u128::from(*k) * n as u128) >> 64) as usize
-        };
-        // random sources from the whole eligible set, then a search around the best
-        if eligible > 0 {
-            for _ in 0..GLOBAL_DRAWS {
-                let s = sources[draw(&mut key, eligible)];
-                consider(s, &mut best, out_rgb, &filled);
-            }
-        }
-        let mut r = SEARCH_RADIUS;
-        while r >= 1 {
-            let (cx, cy) = best.map_or((tx, ty), |b| ((b.1 % w) as isize, (b.1 / w) as isize));
-            let x = cx + draw(&mut key, 2 * r + 1) as isize - r as isize;
-            let y = cy + draw(&mut key, 2 * r + 1) as isize - r as isize;
-            if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
-                consider(y as usize * w + x as usize, &mut best, out_rgb, &filled);
-            }
-            r /= 2;
-        }
-        if let Some((_, s)) = best {
-            out_rgb[3 * t..3 * t + 3].copy_from_slice(&rgb[3 * s..3 * s + 3]);
-            src_of[t] = s as u32;
-        } else if eligible > 0 {
-            // no candidate could be compared (nothing known nearby): the nearest in depth
-            let s = sources[eligible - 1];
-            out_rgb[3 * t..3 * t + 3].copy_from_slice(&rgb[3 * s..3 * s + 3]);
-            src_of[t] = s as u32;
-        }
-        filled[t] = true;
-    }
-}
-
-/// The pixels of `todo` by chessboard distance from the pixels not in it (breadth-first, ties in
-/// row-major order of discovery).
-fn peel_order(todo: &[bool], w: usize, h: usize) -> Vec<usize> {
-    let n = w * h;
-    let mut seen: Vec<bool> = todo.iter().map(|&t| !t).collect();
-    let mut frontier: Vec<usize> = (0..n)
-        .filter(|&p| {
-            todo[p] && {
-                let (x, y) = (p % w, p / w);
-                (y.saturating_sub(1)..=(y + 1).min(h - 1))
-                    .any(|yy| (x.saturating_sub(1)..=(x + 1).min(w - 1)).any(|xx| !todo[yy * w + xx]))
-            }
-        })
-        .collect();
-    let mut order = Vec::with_capacity(todo.iter().filter(|&&t| t).count());
-    frontier.iter().for_each(|&p| seen[p] = true);
-    if frontier.is_empty() {
-        // everything is to do: start at the first pixel
-        if let Some(p) = (0..n).find(|&p| todo[p]) {
-            seen[p] = true;
-            frontier.push(p);
-        }
-    }
-    while !frontier.is_empty() {
-        order.extend_from_slice(&frontier);
-        let mut next = Vec::new();
-        for &p in &frontier {
-            let (x, y) = (p % w, p / w);
-            for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
-                for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
-                    let q = yy * w + xx;
-                    if !seen[q] {
-                        seen[q] = true;
-                        next.push(q);
-                    }
-                }
-            }
-        }
-        next.sort_unstable();
-        frontier = next;
-    }
-    order
+        },
+        // no candidate could be compared (nothing known nearby): the nearest in depth
+        fallback: |t: usize| eligible(t).checked_sub(1).map(|k| sources[k]),
+    };
+    synthesise_exemplar(&lay, &mut src, out_rgb, &mut filled, &order);
 }
 
 #[cfg(test)]

@@ -33,6 +33,7 @@ use std::collections::BTreeMap;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
+pub mod exemplar;
 pub mod instances;
 pub mod morph;
 pub mod polygon;

@@ -35,7 +35,7 @@ impl MotionSpec {
     }
 }
 
-/// Which Telea variant fills the holes (all in [`super::inpaint`]).
+/// What fills the holes: a Telea variant ([`super::inpaint`]) or the texture fill.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum InpaintMethod {
@@ -49,6 +49,37 @@ pub enum InpaintMethod {
     TeleaZeroOrder,
     /// OpenCV's `cv2.inpaint(..., INPAINT_TELEA)`, bit-compatible.
     TeleaOpencv,
+    /// Texture: patches of image1's background at the hole's depth, copied by exemplar
+    /// synthesis (`sample::holes`, "Texture"); Telea for what it cannot reach.
+    Exemplar,
+}
+
+impl InpaintMethod {
+    /// Every method with its name (the serde and command-line spelling).
+    pub const ALL: [(InpaintMethod, &'static str); 5] = [
+        (InpaintMethod::Telea, "telea"),
+        (InpaintMethod::TeleaKnownOnly, "telea-known-only"),
+        (InpaintMethod::TeleaZeroOrder, "telea-zero-order"),
+        (InpaintMethod::TeleaOpencv, "telea-opencv"),
+        (InpaintMethod::Exemplar, "exemplar"),
+    ];
+}
+
+impl std::fmt::Display for InpaintMethod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = Self::ALL.iter().find(|(m, _)| m == self).map_or("?", |(_, n)| n);
+        f.write_str(name)
+    }
+}
+
+impl std::str::FromStr for InpaintMethod {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::ALL.iter().find(|(_, n)| *n == s).map(|(m, _)| *m).ok_or_else(|| {
+            let names: Vec<&str> = Self::ALL.iter().map(|(_, n)| *n).collect();
+            format!("unknown inpainting method `{s}` (expected one of {})", names.join(", "))
+        })
+    }
 }
 
 #[derive(Serialize, Deserialize)]

@@ -1,11 +1,276 @@
-//! Filling the holes of image2 (pixels no render covers) with Telea's method, on crops around
-//! the holes whose result is the whole-frame result bit for bit.
+//! Filling the holes of image2 (pixels no render covers): with Telea's method, or with texture
+//! copied from image1's background (exemplar synthesis), on crops around the holes whose result
+//! is the whole-frame result bit for bit.
+//!
+//! # Texture
+//!
+//! [`InpaintMethod::Exemplar`] fills a hole with patches of the photo instead of a smooth blend,
+//! so what motion reveals (what enters the frame, what a moved object or a camera motion
+//! uncovers) has the photo's detail and noise. Per 64 x 64 tile of the frame (independently,
+//! in parallel: across a tile's border only the frame's known pixels count), the hole pixels are
+//! completed in onion-peel order by
+//! [`crate::raster::exemplar`]: each copies one pixel of image1, the best by the mean squared
+//! difference over the 5 x 5 window (the frame's known and already filled pixels against image1)
+//! among the neighbours' sources shifted (whole patches are copied), the pixel's own place in
+//! image1, three random places anywhere, and a random search around the best at halving radii
+//! from [`TEXTURE_SEARCH`]. A source
+//! must be image1 background (no object, moved or not, within 3 pixels) and, unless the hole is what
+//! enters the frame (connected to the frame's border, where a render's edge shows its far planes
+//! and no depth beside it can be trusted), at the depth of the background
+//! beside the hole or farther: its disparity at most `1.1` times that of the 90th percentile of
+//! the depths of the frame's known background pixels within [`TEXTURE_REACH`] of the centre of
+//! the pixel's 4 x 4 block (every second row and column, not beside a hole, not an object: the
+//! far side of the hole; no limit where none is known), so foreground is not copied into what
+//! lies behind it. Hole pixels no source could be compared
+//! for (none eligible nearby) are left to Telea (known-only). Deterministic: the random draws come
+//! from a hash of the pixel's index.
 
 use super::config::InpaintMethod;
 use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};
+use crate::raster::exemplar::{peel_order, synthesise, Draw, Layout, Sources};
 use crate::render::Rect;
 
-/// Fills the pixels where `hole` is non-zero in the u8 RGB image (`w` x `h` x 3) with `method`.
+/// How far around a hole the texture fill looks for the background's depth (pixels, chessboard).
+pub const TEXTURE_REACH: usize = 16;
+/// Largest radius of the texture fill's random search, in pixels.
+pub const TEXTURE_SEARCH: usize = 32;
+/// Half the side of the texture fill's matching window.
+const TEXTURE_HALF: usize = 2;
+/// Weight of the frame's own pixels in the patch distance (filled ones weigh 1): the photo's
+/// pixels beside the hole anchor the copies, so a chain of copies does not drift away from them.
+const TEXTURE_KNOWN_WEIGHT: u32 = 4;
+/// Random places anywhere in image1 among each pixel's candidates.
+const TEXTURE_GLOBAL_DRAWS: usize = 3;
+/// Side of the frame's tiles, filled independently (in parallel): a tile's pixels compare with
+/// the frame's known pixels only across its border.
+const TEXTURE_TILE: usize = 64;
+/// Side of the frame's blocks over which the depth limit of the sources is one value.
+const TEXTURE_BLOCK: usize = 4;
+/// Sources keep this distance (pixels, chessboard) from image1's objects.
+const TEXTURE_MASK_GROW: usize = 3;
+/// A source's disparity may exceed the background's beside the hole by this factor.
+const TEXTURE_DEPTH_TOLERANCE: f64 = 1.1;
+
+/// What the texture fill copies from: the photo with its depth and object labels, and the depth
+/// of the frame being filled.
+#[derive(Clone, Copy, Debug)]
+pub struct TextureSource<'a> {
+    /// H x W x 3, the photo (image1).
+    pub image1: &'a [u8],
+    /// H x W, image1's depth (> 0).
+    pub depth1: &'a [f32],
+    /// H x W, image1's objects, moved or not (true = an object: never a source of background).
+    pub objects: &'a [bool],
+    /// H x W, the depth of what the frame being filled shows (0 in its holes).
+    pub depth: &'a [f32],
+    /// H x W, the frame's object labels (0 = background): objects are never the far side.
+    pub mask: &'a [u8],
+    /// How much deeper a point of the scene lies in the frame's camera than in image1's: the
+    /// camera's translation along z (rotations, a few degrees, are neglected), so the far side's
+    /// depth is compared with image1's in image1's camera.
+    pub z_shift: f32,
+}
+
+/// Fills the holes of `image` with `method`: the texture fill from `texture` for
+/// [`InpaintMethod::Exemplar`] (Telea, known-only, for what it leaves), else [`inpaint_holes`]
+/// (windowed).
+pub fn fill_holes(
+    image: &mut [u8],
+    w: usize,
+    h: usize,
+    hole: &[u8],
+    method: InpaintMethod,
+    radius: f32,
+    texture: &TextureSource<'_>,
+) {
+    if method != InpaintMethod::Exemplar {
+        inpaint_holes(image, w, h, hole, method, radius, true);
+        return;
+    }
+    let left = texture_fill(image, w, h, hole, texture);
+    if left.contains(&1) {
+        inpaint_holes(image, w, h, &left, InpaintMethod::TeleaKnownOnly, radius, true);
+    }
+}
+
+/// The nearest depth a source of the hole pixels around `(x, y)` may have: the 90th percentile
+/// of the depths of the frame's known background pixels (no hole nor 4-adjacent to one, no
+/// object label, depth finite and > 0) on every second row and column
+/// within [`TEXTURE_REACH`] (the far side of the hole, robust to a few stray far values at a
+/// render's edge), less the frame's `z_shift` (in image1's camera), brought nearer by [`TEXTURE_DEPTH_TOLERANCE`] in disparity; 0 (no limit) where
+/// none is known.
+fn nearest_source_depth(
+    tex: &TextureSource<'_>,
+    hole: &[u8],
+    w: usize,
+    h: usize,
+    x: usize,
+    y: usize,
+    buf: &mut Vec<f32>,
+) -> f32 {
+    let depth = tex.depth;
+    let r = TEXTURE_REACH;
+    buf.clear();
+    for yy in (y.saturating_sub(r)..=(y + r).min(h - 1)).step_by(2) {
+        for xx in (x.saturating_sub(r)..=(x + r).min(w - 1)).step_by(2) {
+            let (p, d) = (yy * w + xx, depth[yy * w + xx]);
+            // a pixel beside a hole is often a render's frayed edge (a stray far depth): left out
+            let beside = (xx > 0 && hole[p - 1] != 0)
+                || (xx + 1 < w && hole[p + 1] != 0)
+                || (yy > 0 && hole[p - w] != 0)
+                || (yy + 1 < h && hole[p + w] != 0);
+            if hole[p] == 0 && tex.mask[p] == 0 && !beside && d > 0.0 && d.is_finite() {
+                buf.push(d);
+            }
+        }
+    }
+    if buf.is_empty() {
+        return 0.0;
+    }
+    let k = ((9 * buf.len()) / 10).min(buf.len() - 1);
+    let (_, far, _) = buf.select_nth_unstable_by(k, f32::total_cmp);
+    (f64::from(*far - tex.z_shift) / TEXTURE_DEPTH_TOLERANCE) as f32
+}
+
+/// The hole pixels 4-connected to a hole pixel on the frame's border: what enters the frame.
+fn entering(hole: &[u8], w: usize, h: usize) -> Vec<bool> {
+    let mut seen = vec![false; w * h];
+    let border = (0..w).flat_map(|x| [x, (h - 1) * w + x]).chain((0..h).flat_map(|y| [y * w, y * w + w - 1]));
+    let mut stack: Vec<usize> = border.filter(|&p| hole[p] != 0).collect();
+    stack.iter().for_each(|&p| seen[p] = true);
+    while let Some(p) = stack.pop() {
+        let (x, y) = (p % w, p / w);
+        let next =
+            [(x > 0).then(|| p - 1), (x + 1 < w).then(|| p + 1), (y > 0).then(|| p - w), (y + 1 < h).then(|| p + w)];
+        for q in next.into_iter().flatten() {
+            if hole[q] != 0 && !seen[q] {
+                seen[q] = true;
+                stack.push(q);
+            }
+        }
+    }
+    seen
+}
+
+/// Whether a mask pixel lies within [`TEXTURE_MASK_GROW`] of `s` (the pixel, the corners and the
+/// edge midpoints of the square around it).
+fn near_object(masked: &[bool], w: usize, h: usize, s: usize) -> bool {
+    let (x, y, r) = (s % w, s / w, TEXTURE_MASK_GROW);
+    let xs = [x.saturating_sub(r), x, (x + r).min(w - 1)];
+    let ys = [y.saturating_sub(r), y, (y + r).min(h - 1)];
+    ys.iter().any(|&yy| xs.iter().any(|&xx| masked[yy * w + xx]))
+}
+
+/// The texture fill of the module documentation; returns the hole pixels it left (1 = left).
+pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &TextureSource<'_>) -> Vec<u8> {
+    use rayon::prelude::*;
+    let n = w * h;
+    assert!(image.len() == 3 * n && hole.len() == n && tex.image1.len() == 3 * n, "texture fill: sizes");
+    assert!(tex.depth1.len() == n && tex.objects.len() == n && tex.depth.len() == n, "texture fill: sizes");
+    let masked = tex.objects;
+    let any_object = masked.contains(&true);
+    let entering = entering(hole, w, h);
+    // the tiles with holes, each grown by the matching window's reach
+    let (tx, ty) = (w.div_ceil(TEXTURE_TILE), h.div_ceil(TEXTURE_TILE));
+    let tiles: Vec<(Rect, Rect)> = (0..tx * ty)
+        .map(|k| {
+            let (x0, y0) = ((k % tx) * TEXTURE_TILE, (k / tx) * TEXTURE_TILE);
+            Rect { x0, y0, x1: (x0 + TEXTURE_TILE).min(w), y1: (y0 + TEXTURE_TILE).min(h) }
+        })
+        .filter(|t| (t.y0..t.y1).any(|y| hole[y * w + t.x0..y * w + t.x1].contains(&1)))
+        .map(|t| (t, t.grow(TEXTURE_HALF, w, h)))
+        .collect();
+    let results: Vec<(Rect, Rect, Vec<u8>, Vec<u32>)> = tiles
+        .par_iter()
+        .map(|&(tile, win)| {
+            let (cw, ch) = (win.width(), win.height());
+            let mut img = Vec::with_capacity(cw * ch * 3);
+            let mut todo = Vec::with_capacity(cw * ch);
+            for y in win.y0..win.y1 {
+                img.extend_from_slice(&image[3 * (y * w + win.x0)..3 * (y * w + win.x1)]);
+                let inside = (tile.y0..tile.y1).contains(&y);
+                todo.extend(
+                    (win.x0..win.x1).map(|x| inside && (tile.x0..tile.x1).contains(&x) && hole[y * w + x] != 0),
+                );
+            }
+            // the far side of the hole: the smallest disparity of the known pixels within reach
+            // (every second row and column), at the hole pixels only
+            // per 4 x 4 block of the frame (the far side varies slowly), at the block's centre
+            let (bx0, by0) = (win.x0 / TEXTURE_BLOCK, win.y0 / TEXTURE_BLOCK);
+            let bw = (win.x1 - 1) / TEXTURE_BLOCK - bx0 + 1;
+            let bh = (win.y1 - 1) / TEXTURE_BLOCK - by0 + 1;
+            let mut blocks = vec![f32::NAN; bw * bh];
+            let mut buf = Vec::new();
+            let mut nearest = vec![0.0f32; cw * ch];
+            for l in (0..cw * ch).filter(|&l| todo[l] && !entering[(win.y0 + l / cw) * w + win.x0 + l % cw]) {
+                let (bx, by) = ((win.x0 + l % cw) / TEXTURE_BLOCK, (win.y0 + l / cw) / TEXTURE_BLOCK);
+                let b = &mut blocks[(by - by0) * bw + bx - bx0];
+                if b.is_nan() {
+                    let cx = (bx * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(w - 1);
+                    let cy = (by * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(h - 1);
+                    *b = nearest_source_depth(tex, hole, w, h, cx, cy, &mut buf);
+                }
+                nearest[l] = *b;
+            }
+            let order = peel_order(&todo, cw, ch);
+            // the holes of the neighbouring tiles are unknown here
+            let mut filled: Vec<bool> =
+                (win.y0..win.y1).flat_map(|y| hole[y * w + win.x0..y * w + win.x1].iter().map(|&o| o == 0)).collect();
+            let lay = Layout {
+                sw: w,
+                sh: h,
+                tw: cw,
+                th: ch,
+                ox: win.x0,
+                oy: win.y0,
+                half: TEXTURE_HALF,
+                search_radius: TEXTURE_SEARCH,
+                salt: 0x7465_7874_7572_6521,
+                known_weight: TEXTURE_KNOWN_WEIGHT,
+                keep_unmatched: false,
+            };
+            let mut src = Sources {
+                rgb: tex.image1,
+                masked,
+                // background at the far side's depth or farther, not next to an object (a mask's
+                // edge rarely sits exactly on the object's)
+                eligible: |t: usize, s: usize| {
+                    let d = tex.depth1[s];
+                    d > 0.0 && d >= nearest[t] && !(any_object && near_object(masked, w, h, s))
+                },
+                // the pixel's own place in image1, and a few places anywhere
+                seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
+                    out.push((win.y0 + t / cw) * w + win.x0 + t % cw);
+                    out.extend((0..TEXTURE_GLOBAL_DRAWS).map(|_| draw.below(n)));
+                },
+                fallback: |_: usize| None,
+            };
+            let src_of = synthesise(&lay, &mut src, &mut img, &mut filled, &order);
+            (tile, win, img, src_of)
+        })
+        .collect();
+    let mut left = vec![0u8; n];
+    for (tile, win, img, src_of) in results {
+        let cw = win.width();
+        for y in tile.y0..tile.y1 {
+            for x in tile.x0..tile.x1 {
+                let (p, l) = (y * w + x, (y - win.y0) * cw + (x - win.x0));
+                if hole[p] != 0 {
+                    if src_of[l] == u32::MAX {
+                        left[p] = 1;
+                    } else {
+                        image[3 * p..3 * p + 3].copy_from_slice(&img[3 * l..3 * l + 3]);
+                    }
+                }
+            }
+        }
+    }
+    left
+}
+
+/// Fills the pixels where `hole` is non-zero in the u8 RGB image (`w` x `h` x 3) with `method`
+/// (a Telea variant; [`InpaintMethod::Exemplar`] needs the photo, which [`fill_holes`] takes:
+/// here it is Telea, known-only).
 ///
 /// With `windowed` (what the recipe uses) the Telea variants of the paper (`telea`,
 /// `telea-known-only`, `telea-zero-order`) run on crops instead of the whole frame: the holes'
@@ -31,6 +296,8 @@ pub fn inpaint_holes(
         InpaintMethod::Telea => GradientTerm::Propagated,
         InpaintMethod::TeleaKnownOnly => GradientTerm::KnownOnly,
         InpaintMethod::TeleaZeroOrder => GradientTerm::Off,
+        // without a texture source ([`fill_holes`] has one): the Telea variant it falls back to
+        InpaintMethod::Exemplar => GradientTerm::KnownOnly,
         InpaintMethod::TeleaOpencv => {
             inpaint_telea_opencv_u8(image, w, h, 3, hole, radius);
             return;

@@ -25,7 +25,7 @@
 //!    mask channel and no second render: the object stage costs nothing.
 //! 4. **Merge** ([`super::merge`]) by the configured rule, then **inpainting** of the holes with
 //!    Telea's method in u8 ([`InpaintMethod`](super::config::InpaintMethod), radius 3 by default, as the reference's radius),
-//!    on crops around the holes ([`inpaint_holes`]: the whole-frame result, bit for bit).
+//!    on crops around the holes ([`fill_holes`]: the whole-frame result, bit for bit).
 //!
 //! Per-pixel work runs on the current rayon pool; every output is independent of the pool's size
 //! (the renderer is bit-identical to a serial run, merging is per pixel, each inpainting crop is
@@ -77,9 +77,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::background::{cut_planes, fill_from_planes, Background, Frame};
-use super::config::SampleConfig;
+use super::config::{InpaintMethod, SampleConfig};
 use super::error::SampleError;
-use super::holes::inpaint_holes;
+use super::holes::{fill_holes, TextureSource};
 use super::merge::{
     merge, merge_link, merge_target, units_to_u8, MergeRule, Merged, ObjectView, OtherFrame, SceneView, TargetSide,
 };
@@ -178,12 +178,35 @@ pub fn assemble_with_target_depth(
     let (mut sample, target_depth) = assemble_merged_sample(scene, address, config, occupancy)?;
     let t = Instant::now();
     let (w, h) = (sample.width, sample.height);
+    let (method, radius) = (config.inpaint_method, config.inpaint_radius);
+    let texture_fill = method == InpaintMethod::Exemplar
+        && (sample.inpainted_pixels > 0 || sample.clip.iter().any(|f| f.holes.contains(&1)));
+    // every object of image1, moved or not (the texture fill's sources are background)
+    let objects: Vec<bool> = if texture_fill { objects_of(scene, &sample.mask1) } else { Vec::new() };
     if sample.inpainted_pixels > 0 {
-        inpaint_holes(&mut sample.image2, w, h, &sample.holes, config.inpaint_method, config.inpaint_radius, true);
+        let texture = TextureSource {
+            image1: &sample.image1,
+            depth1: &sample.depth1,
+            objects: &objects,
+            depth: &sample.depth2,
+            mask: &sample.mask2,
+            z_shift: sample.camera.translation[2] as f32,
+        };
+        fill_holes(&mut sample.image2, w, h, &sample.holes, method, radius, &texture);
     }
-    for f in &mut sample.clip {
+    for (k, f) in sample.clip.iter_mut().enumerate() {
         if f.holes.contains(&1) {
-            inpaint_holes(&mut f.image, w, h, &f.holes, config.inpaint_method, config.inpaint_radius, true);
+            // frame k + 3 is pose^(k + 2) from image1 (constant velocity)
+            let z_shift = (sample.camera.translation[2] * (k + 2) as f64) as f32;
+            let texture = TextureSource {
+                image1: &sample.image1,
+                depth1: &sample.depth1,
+                objects: &objects,
+                depth: &f.depth,
+                mask: &f.mask,
+                z_shift,
+            };
+            fill_holes(&mut f.image, w, h, &f.holes, method, radius, &texture);
         }
     }
     if config.restore_noise {
@@ -204,7 +227,7 @@ pub fn assemble_with_target_depth(
 
 /// [`assemble_with_occupancy`] up to the merge: the sample with `image2` as merged, its holes not
 /// yet inpainted, and the hole mask (H x W, 1 = hole; [`Sample::inpainted_pixels`] counts them).
-/// [`assemble`] is this followed by [`inpaint_holes`] over the mask (windowed). The mask is
+/// [`assemble`] is this followed by [`fill_holes`] over the mask (windowed). The mask is
 /// also the sample's [`Sample::holes`].
 pub fn assemble_merged(
     scene: &Scene,
@@ -397,6 +420,17 @@ fn within_budget(
     // the pose of the record, so that the sample's metadata reproduces the render exactly
     let applied = object_pose(&record.to_pose(), cam_pose, config.objects_follow_camera);
     (record, applied)
+}
+
+/// Where image1 shows an object: a moved one (`mask1`) or any instance of the scene (>= 0.5).
+fn objects_of(scene: &Scene, mask1: &[u8]) -> Vec<bool> {
+    let mut out: Vec<bool> = mask1.iter().map(|&m| m != 0).collect();
+    for inst in &scene.masks.masks {
+        for (o, &m) in out.iter_mut().zip(&inst.mask) {
+            *o |= m >= 0.5;
+        }
+    }
+    out
 }
 
 /// The union mask of the moved objects (the scene mask channel is 1 - U); none without objects.

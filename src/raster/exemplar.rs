@@ -1,0 +1,377 @@
+//! Exemplar synthesis: the one patch-copying completion both the scene's completed background
+//! (`mpi::backdrop`, once per scene) and the texture fill of image2's holes (`sample::holes`,
+//! per sample) use, with its onion-peel order and the chessboard minimum filter they share.
+//!
+//! # The method
+//!
+//! Target pixels are completed one by one in a given order (onion peel: [`peel_order`]), each
+//! taking the colour of one **source** pixel of a source image (the same image or another one):
+//! the best of a fixed candidate list by the mean squared colour difference over the
+//! `(2 half + 1)^2` neighbourhood (the target's known or already completed pixels against the
+//! source's colours, source pixels in `masked` left out). The candidates, in order:
+//! 1. **coherence**: the sources of the target's eight neighbours shifted by the step to the
+//!    target, so whole patches of texture are copied (Ashikhmin 2001; PatchMatch's propagation,
+//!    Barnes et al. 2009);
+//! 2. the caller's **seeds** (random sources from an eligible set, or the target's own place);
+//! 3. a **random search** around the best so far (or the target's place) at halving radii from
+//!    `search_radius` down to 1.
+//!
+//! Only sources the caller's `eligible(target, source)` accepts are compared; a candidate seen
+//! before for the same target is not compared again (its cost cannot beat the best twice). Random
+//! numbers come from a counter-based hash of the target's index in the source frame and a salt
+//! (no shared state), so the result is the same on every run, thread count and machine; and a
+//! target that no candidate could be compared for takes the caller's `fallback`, or keeps its
+//! value (counted as completed for the pixels after it, or not: `keep_unmatched`).
+
+use crate::rng::mix64;
+
+/// Where the target grid lies in the source frame, and the synthesis' parameters.
+#[derive(Clone, Copy, Debug)]
+pub struct Layout {
+    /// Source frame size.
+    pub sw: usize,
+    pub sh: usize,
+    /// Target grid size and its top-left pixel in the source frame.
+    pub tw: usize,
+    pub th: usize,
+    pub ox: usize,
+    pub oy: usize,
+    /// Half the side of the matching window.
+    pub half: usize,
+    /// Largest radius of the random search.
+    pub search_radius: usize,
+    /// Salt of the random draws.
+    pub salt: u64,
+    /// Weight of a target pixel known on entry in the patch distance (a completed one weighs 1):
+    /// above 1, what the photo shows outweighs what the synthesis guessed.
+    pub known_weight: u32,
+    /// Whether a target no source was found for keeps its value as completed (it then takes part
+    /// in the patch distance of the pixels after it) or stays unknown.
+    pub keep_unmatched: bool,
+}
+
+/// A colour value the synthesis copies and compares: the squared differences of a pixel's three
+/// channels are added to an accumulator in channel order (f32 in f64, exactly as written; u8 in
+/// integers, exact).
+pub trait Texel: Copy {
+    type Acc: Copy + Default;
+    /// Adds `weight` times the squared differences of the three channels of `a` and `b`.
+    fn add_sq3(acc: &mut Self::Acc, a: &[Self], b: &[Self], weight: u32);
+    fn total(acc: Self::Acc) -> f64;
+}
+
+impl Texel for f32 {
+    type Acc = f64;
+    #[inline]
+    fn add_sq3(acc: &mut f64, a: &[f32], b: &[f32], weight: u32) {
+        for c in 0..3 {
+            let d = f64::from(a[c] - b[c]);
+            // times 1.0 is exact: weight 1 is the plain sum
+            *acc += d * d * f64::from(weight);
+        }
+    }
+    fn total(acc: f64) -> f64 {
+        acc
+    }
+}
+
+impl Texel for u8 {
+    type Acc = u32;
+    #[inline]
+    fn add_sq3(acc: &mut u32, a: &[u8], b: &[u8], weight: u32) {
+        for c in 0..3 {
+            let d = u32::from(a[c].abs_diff(b[c]));
+            *acc += d * d * weight;
+        }
+    }
+    fn total(acc: u32) -> f64 {
+        f64::from(acc)
+    }
+}
+
+/// The random draws of one target pixel.
+pub struct Draw(u64);
+
+impl Draw {
+    /// A uniform integer in `0..n` (`n > 0`).
+    pub fn below(&mut self, n: usize) -> usize {
+        self.0 = mix64(self.0);
+        ((u128::from(self.0) * n as u128) >> 64) as usize
+    }
+}
+
+/// The source image and the rules of one synthesis.
+pub struct Sources<'a, T, E, S, F> {
+    /// Source colours, `sw x sh x 3`.
+    pub rgb: &'a [T],
+    /// Source pixels left out of the patch distance (`sw x sh`).
+    pub masked: &'a [bool],
+    /// Whether source pixel `s` may be copied into target pixel `t` (target-grid index).
+    pub eligible: E,
+    /// Pushes the seed candidates of target `t` (source-frame indices).
+    pub seeds: S,
+    /// The source of a target no candidate could be compared for.
+    pub fallback: F,
+}
+
+/// Completes the target pixels of `order` (target-grid indices) in `target` (`tw x th x 3`,
+/// known pixels where `filled`), see the module documentation. Returns, per target pixel, the
+/// source it copied (`u32::MAX` where none).
+pub fn synthesise<T, E, S, F>(
+    lay: &Layout,
+    src: &mut Sources<'_, T, E, S, F>,
+    target: &mut [T],
+    filled: &mut [bool],
+    order: &[usize],
+) -> Vec<u32>
+where
+    T: Texel,
+    E: Fn(usize, usize) -> bool,
+    S: FnMut(usize, &mut Draw, &mut Vec<usize>),
+    F: Fn(usize) -> Option<usize>,
+{
+    let Layout { sw, sh, tw, th, ox, oy, half, search_radius, salt, known_weight, keep_unmatched } = *lay;
+    let known: Vec<bool> = if known_weight == 1 { Vec::new() } else { filled.to_vec() };
+    let weight = |a: usize| if known_weight != 1 && known[a] { known_weight } else { 1 };
+    let half = half as isize;
+    let mut src_of: Vec<u32> = vec![u32::MAX; tw * th];
+    let mut seen: Vec<usize> = Vec::new();
+    let mut seeds: Vec<usize> = Vec::new();
+    let rgb = src.rgb;
+    let masked = src.masked;
+    let cost = |t: usize, s: usize, out: &[T], filled: &[bool]| -> f64 {
+        let (tx, ty) = ((t % tw) as isize, (t / tw) as isize);
+        let (sx, sy) = ((s % sw) as isize, (s / sw) as isize);
+        let (mut sum, mut m) = (T::Acc::default(), 0u32);
+        let inside = tx >= half
+            && ty >= half
+            && sx >= half
+            && sy >= half
+            && tx + half < tw as isize
+            && ty + half < th as isize
+            && sx + half < sw as isize
+            && sy + half < sh as isize;
+        if inside {
+            // the whole window in both frames: no bounds to check
+            let side = 2 * half as usize + 1;
+            let a0 = (ty - half) as usize * tw + (tx - half) as usize;
+            let b0 = (sy - half) as usize * sw + (sx - half) as usize;
+            for r in 0..side {
+                let (ar, br) = (a0 + r * tw, b0 + r * sw);
+                for k in 0..side {
+                    let (a, b) = (ar + k, br + k);
+                    if filled[a] && !masked[b] {
+                        let k = weight(a);
+                        T::add_sq3(&mut sum, &out[3 * a..3 * a + 3], &rgb[3 * b..3 * b + 3], k);
+                        m += k;
+                    }
+                }
+            }
+        } else {
+            for dy in -half..=half {
+                for dx in -half..=half {
+                    let (ax, ay, bx, by) = (tx + dx, ty + dy, sx + dx, sy + dy);
+                    if ax < 0 || ay < 0 || bx < 0 || by < 0 {
+                        continue;
+                    }
+                    let (ax, ay, bx, by) = (ax as usize, ay as usize, bx as usize, by as usize);
+                    if ax >= tw || ay >= th || bx >= sw || by >= sh {
+                        continue;
+                    }
+                    let (a, b) = (ay * tw + ax, by * sw + bx);
+                    if filled[a] && !masked[b] {
+                        let k = weight(a);
+                        T::add_sq3(&mut sum, &out[3 * a..3 * a + 3], &rgb[3 * b..3 * b + 3], k);
+                        m += k;
+                    }
+                }
+            }
+        }
+        if m == 0 {
+            f64::INFINITY
+        } else {
+            T::total(sum) / f64::from(m)
+        }
+    };
+    for &t in order {
+        let (tx, ty) = ((t % tw) as isize, (t / tw) as isize);
+        let place = (oy + t / tw) * sw + ox + t % tw;
+        let mut best: Option<(f64, usize)> = None;
+        seen.clear();
+        let mut consider = |s: usize, best: &mut Option<(f64, usize)>, out: &[T], filled: &[bool]| {
+            if seen.contains(&s) || !(src.eligible)(t, s) {
+                return;
+            }
+            seen.push(s);
+            let c = cost(t, s, out, filled);
+            if best.is_none_or(|b| c < b.0) {
+                *best = Some((c, s));
+            }
+        };
+        for dy in -1..=1isize {
+            for dx in -1..=1isize {
+                let (nx, ny) = (tx + dx, ty + dy);
+                if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx as usize >= tw || ny as usize >= th {
+                    continue;
+                }
+                let s = src_of[ny as usize * tw + nx as usize];
+                if s == u32::MAX {
+                    continue;
+                }
+                let (sx, sy) = ((s as usize % sw) as isize - dx, (s as usize / sw) as isize - dy);
+                if sx >= 0 && sy >= 0 && (sx as usize) < sw && (sy as usize) < sh {
+                    consider(sy as usize * sw + sx as usize, &mut best, target, filled);
+                }
+            }
+        }
+        let mut draw = Draw(mix64(place as u64 ^ salt));
+        seeds.clear();
+        (src.seeds)(t, &mut draw, &mut seeds);
+        for &s in &seeds {
+            consider(s, &mut best, target, filled);
+        }
+        let mut r = search_radius;
+        while r >= 1 {
+            let (cx, cy) = best
+                .map_or(((place % sw) as isize, (place / sw) as isize), |b| ((b.1 % sw) as isize, (b.1 / sw) as isize));
+            let x = cx + draw.below(2 * r + 1) as isize - r as isize;
+            let y = cy + draw.below(2 * r + 1) as isize - r as isize;
+            if x >= 0 && y >= 0 && (x as usize) < sw && (y as usize) < sh {
+                consider(y as usize * sw + x as usize, &mut best, target, filled);
+            }
+            r /= 2;
+        }
+        let chosen = best.map(|b| b.1).or_else(|| (src.fallback)(t));
+        if let Some(s) = chosen {
+            target[3 * t..3 * t + 3].copy_from_slice(&rgb[3 * s..3 * s + 3]);
+            src_of[t] = s as u32;
+            filled[t] = true;
+        } else if keep_unmatched {
+            filled[t] = true;
+        }
+    }
+    src_of
+}
+
+/// Chessboard minimum filter of radius `r` (separable; O(w h r)).
+pub fn min_filter(v: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
+    let mut tmp = vec![0.0; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
+            tmp[y * w + x] = v[y * w + a..=y * w + b].iter().copied().fold(f64::INFINITY, f64::min);
+        }
+    }
+    let mut out = vec![0.0; w * h];
+    for y in 0..h {
+        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
+        for x in 0..w {
+            out[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).fold(f64::INFINITY, f64::min);
+        }
+    }
+    out
+}
+
+/// The pixels of `todo` by chessboard distance from the pixels not in it (breadth-first, ties in
+/// row-major order of discovery).
+pub fn peel_order(todo: &[bool], w: usize, h: usize) -> Vec<usize> {
+    let n = w * h;
+    let mut seen: Vec<bool> = todo.iter().map(|&t| !t).collect();
+    let mut frontier: Vec<usize> = (0..n)
+        .filter(|&p| {
+            todo[p] && {
+                let (x, y) = (p % w, p / w);
+                (y.saturating_sub(1)..=(y + 1).min(h - 1))
+                    .any(|yy| (x.saturating_sub(1)..=(x + 1).min(w - 1)).any(|xx| !todo[yy * w + xx]))
+            }
+        })
+        .collect();
+    let mut order = Vec::with_capacity(todo.iter().filter(|&&t| t).count());
+    frontier.iter().for_each(|&p| seen[p] = true);
+    if frontier.is_empty() {
+        // everything is to do: start at the first pixel
+        if let Some(p) = (0..n).find(|&p| todo[p]) {
+            seen[p] = true;
+            frontier.push(p);
+        }
+    }
+    while !frontier.is_empty() {
+        order.extend_from_slice(&frontier);
+        let mut next = Vec::new();
+        for &p in &frontier {
+            let (x, y) = (p % w, p / w);
+            for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
+                for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
+                    let q = yy * w + xx;
+                    if !seen[q] {
+                        seen[q] = true;
+                        next.push(q);
+                    }
+                }
+            }
+        }
+        next.sort_unstable();
+        frontier = next;
+    }
+    order
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn peel_order_visits_every_todo_pixel_once_by_distance() {
+        let (w, h) = (9, 7);
+        let todo: Vec<bool> = (0..w * h).map(|p| (2..7).contains(&(p % w)) && (1..6).contains(&(p / w))).collect();
+        let order = peel_order(&todo, w, h);
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        let want: Vec<usize> = (0..w * h).filter(|&p| todo[p]).collect();
+        assert_eq!(sorted, want);
+        // the centre of the 5 x 5 block comes last (distance 3 from the outside)
+        assert_eq!(*order.last().unwrap(), 3 * w + 4);
+    }
+
+    #[test]
+    fn a_periodic_texture_is_continued_exactly() {
+        // a 6-periodic texture with a hole in the middle: coherent copies continue it
+        let (w, h) = (40, 30);
+        let value = |x: usize, y: usize| ((x % 6) * 40 + (y % 6) * 7) as u8;
+        let full: Vec<u8> = (0..w * h).flat_map(|p| [value(p % w, p / w); 3]).collect();
+        let todo: Vec<bool> = (0..w * h).map(|p| (15..25).contains(&(p % w)) && (10..20).contains(&(p / w))).collect();
+        let mut target = full.clone();
+        for p in 0..w * h {
+            if todo[p] {
+                target[3 * p..3 * p + 3].copy_from_slice(&[0, 0, 0]);
+            }
+        }
+        let mut filled: Vec<bool> = todo.iter().map(|&t| !t).collect();
+        let masked = todo.clone();
+        let order = peel_order(&todo, w, h);
+        let lay = Layout {
+            sw: w,
+            sh: h,
+            tw: w,
+            th: h,
+            ox: 0,
+            oy: 0,
+            half: 2,
+            search_radius: 16,
+            salt: 7,
+            known_weight: 1,
+            keep_unmatched: false,
+        };
+        let mut src = Sources {
+            rgb: &full,
+            masked: &masked,
+            eligible: |_t: usize, s: usize| !todo[s],
+            // the target's place two periods to the left
+            seeds: |t: usize, _d: &mut Draw, out: &mut Vec<usize>| out.push(t - 12),
+            fallback: |_t: usize| None,
+        };
+        synthesise(&lay, &mut src, &mut target, &mut filled, &order);
+        assert!(filled.iter().all(|&f| f));
+        assert_eq!(target, full);
+    }
+}
