@@ -34,7 +34,8 @@
 //! copied, in the spirit of Ashikhmin 2001 and PatchMatch's propagation, Barnes et al. 2009),
 //! then a random search around the best so far at halving radii from [`SEARCH_RADIUS`], then
 //! random sources from the whole eligible set. The candidates are drawn from a counter-based
-//! hash of the pixel (no shared state), so the result is the same on every run and machine.
+//! hash of the pixel (no shared state), so the result is the same on every run and machine. The
+//! synthesis is [`crate::raster::exemplar`], which the texture fill of image2's holes shares.
 //! Cost: `O(region x candidates x WINDOW^2)`, about 0.1-0.4 s for a 640 x 480 scene with a third
 //! of it in the region (`tests/backdrop.rs` prints nothing; `mpiflow bench quality --realism`
 //! states the scene build's time).
