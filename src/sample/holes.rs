@@ -10,7 +10,8 @@
 //! in parallel: across a tile's border only the frame's known pixels count), the hole pixels are
 //! completed in onion-peel order by
 //! [`crate::raster::exemplar`]: each copies one pixel of image1, the best by the mean squared
-//! difference over the 5 x 5 window (the frame's known and already filled pixels against image1)
+//! difference over the 5 x 5 window (the frame's known background and already filled pixels
+//! against image1; the frame's objects, in front of the hole, are left out)
 //! among the neighbours' sources shifted (whole patches are copied), the pixel's own place in
 //! image1, three random places anywhere, and a random search around the best at halving radii
 //! from [`TEXTURE_SEARCH`]. A source
@@ -213,9 +214,11 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
                 nearest[l] = *b;
             }
             let order = peel_order(&todo, cw, ch);
-            // the holes of the neighbouring tiles are unknown here
-            let mut filled: Vec<bool> =
-                (win.y0..win.y1).flat_map(|y| hole[y * w + win.x0..y * w + win.x1].iter().map(|&o| o == 0)).collect();
+            // what is matched: the frame's background (not the holes of the neighbouring tiles,
+            // not the objects in front of the hole, which are not what lies behind it)
+            let mut filled: Vec<bool> = (win.y0..win.y1)
+                .flat_map(|y| (y * w + win.x0..y * w + win.x1).map(|p| hole[p] == 0 && tex.mask[p] == 0))
+                .collect();
             let lay = Layout {
                 sw: w,
                 sh: h,
