@@ -1,30 +1,30 @@
-//! Filling the holes of image2 (pixels no render covers): with Telea's method, or with texture
-//! copied from image1's background (exemplar synthesis), on crops around the holes whose result
-//! is the whole-frame result bit for bit.
+//! Filling the holes of image2 (pixels no render covers): with Telea's method on crops around
+//! the holes (the whole-frame result, bit for bit), or with texture copied from image1's
+//! background (exemplar synthesis) per tile of the frame.
 //!
 //! # Texture
 //!
 //! [`InpaintMethod::Exemplar`] fills a hole with patches of the photo instead of a smooth blend,
 //! so what motion reveals (what enters the frame, what a moved object or a camera motion
-//! uncovers) has the photo's detail and noise. Per 64 x 64 tile of the frame (independently,
-//! in parallel: across a tile's border only the frame's known pixels count), the hole pixels are
-//! completed in onion-peel order by
-//! [`crate::raster::exemplar`]: each copies one pixel of image1, the best by the mean squared
-//! difference over the 5 x 5 window (the frame's known background and already filled pixels
-//! against image1; the frame's objects, in front of the hole, are left out)
-//! among the neighbours' sources shifted (whole patches are copied), the pixel's own place in
-//! image1, three random places anywhere, and a random search around the best at halving radii
-//! from [`TEXTURE_SEARCH`]. A source
-//! must be image1 background (no object, moved or not, within 3 pixels) and, unless the hole is what
-//! enters the frame (connected to the frame's border, where a render's edge shows its far planes
-//! and no depth beside it can be trusted), at the depth of the background
-//! beside the hole or farther: its disparity at most `1.1` times that of the 90th percentile of
-//! the depths of the frame's known background pixels within [`TEXTURE_REACH`] of the centre of
-//! the pixel's 4 x 4 block (every second row and column, not beside a hole, not an object: the
-//! far side of the hole; no limit where none is known), so foreground is not copied into what
-//! lies behind it. Hole pixels no source could be compared
-//! for (none eligible nearby) are left to Telea (known-only). Deterministic: the random draws come
-//! from a hash of the pixel's index.
+//! uncovers) has the photo's detail and noise. Per 64 x 64 tile of the frame (independently, in
+//! parallel: across a tile's border only the frame's known pixels count), the hole pixels are
+//! completed in onion-peel order by [`crate::raster::exemplar`]: each copies one pixel of image1,
+//! the best by the mean squared difference over the 5 x 5 window (the frame's known background,
+//! weighing four times, and the already filled pixels against image1; the frame's objects, in
+//! front of the hole, are left out) among the neighbours' sources shifted (whole patches are
+//! copied), the pixel's own place in image1, three random places anywhere, and a random search
+//! around the best at halving radii from [`TEXTURE_SEARCH`].
+//!
+//! A source must be image1 background (no object, moved or not, within 3 pixels) and, unless the
+//! hole is what enters the frame (connected to the frame's border, where a render's edge shows
+//! its far planes and no depth beside it can be trusted), at the depth of the background beside
+//! the hole or farther: its disparity at most `1.1` times that of the 90th percentile of the
+//! depths of the frame's known background pixels within [`TEXTURE_REACH`] of the centre of the
+//! pixel's 4 x 4 block (every second row and column, not beside a hole, not an object, moved to
+//! image1's camera by the camera's translation along z: the far side of the hole; no limit where
+//! none is known), so foreground is not copied into what lies behind it. Hole pixels no source
+//! could be found for are left to Telea (known-only). Deterministic: the random draws come from
+//! a hash of the pixel's index, and a tile's result does not depend on the others.
 
 use super::config::InpaintMethod;
 use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};
