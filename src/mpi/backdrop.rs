@@ -40,7 +40,7 @@
 //! of it in the region (`tests/backdrop.rs` prints nothing; `mpiflow bench quality --realism`
 //! states the scene build's time).
 
-use crate::raster::exemplar::{min_filter, peel_order, synthesise as synthesise_exemplar, Draw, Layout, Sources};
+use crate::raster::exemplar::{peel_order, synthesise as synthesise_exemplar, Draw, Layout, Sources};
 use crate::raster::morph::dilate;
 
 /// Mask pixels are grown by this many pixels (chessboard) before completion.
@@ -74,6 +74,25 @@ impl Backdrop {
     pub fn count(&self) -> usize {
         self.behind.iter().filter(|&&b| b).count()
     }
+}
+
+/// Chessboard minimum filter of radius `r` (separable; O(w h r)).
+fn min_filter(v: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
+    let mut tmp = vec![0.0; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
+            tmp[y * w + x] = v[y * w + a..=y * w + b].iter().copied().fold(f64::INFINITY, f64::min);
+        }
+    }
+    let mut out = vec![0.0; w * h];
+    for y in 0..h {
+        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
+        for x in 0..w {
+            out[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).fold(f64::INFINITY, f64::min);
+        }
+    }
+    out
 }
 
 /// Push-pull of `v` from the pixels where `known` into the others (means of known children down

@@ -1,6 +1,6 @@
 //! Exemplar synthesis: the one patch-copying completion both the scene's completed background
 //! (`mpi::backdrop`, once per scene) and the texture fill of image2's holes (`sample::holes`,
-//! per sample) use, with its onion-peel order and the chessboard minimum filter they share.
+//! per sample) use, with its onion-peel order.
 //!
 //! # The method
 //!
@@ -251,25 +251,6 @@ where
         }
     }
     src_of
-}
-
-/// Chessboard minimum filter of radius `r` (separable; O(w h r)).
-pub fn min_filter(v: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
-    let mut tmp = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
-            tmp[y * w + x] = v[y * w + a..=y * w + b].iter().copied().fold(f64::INFINITY, f64::min);
-        }
-    }
-    let mut out = vec![0.0; w * h];
-    for y in 0..h {
-        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
-        for x in 0..w {
-            out[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).fold(f64::INFINITY, f64::min);
-        }
-    }
-    out
 }
 
 /// The pixels of `todo` by chessboard distance from the pixels not in it (breadth-first, ties in

@@ -89,17 +89,17 @@ pub fn fill_holes(
         return;
     }
     let left = texture_fill(image, w, h, hole, texture);
-    if left.contains(&1) {
+    if left.iter().any(|&o| o != 0) {
         inpaint_holes(image, w, h, &left, InpaintMethod::TeleaKnownOnly, radius, true);
     }
 }
 
 /// The nearest depth a source of the hole pixels around `(x, y)` may have: the 90th percentile
 /// of the depths of the frame's known background pixels (no hole nor 4-adjacent to one, no
-/// object label, depth finite and > 0) on every second row and column
-/// within [`TEXTURE_REACH`] (the far side of the hole, robust to a few stray far values at a
-/// render's edge), less the frame's `z_shift` (in image1's camera), brought nearer by [`TEXTURE_DEPTH_TOLERANCE`] in disparity; 0 (no limit) where
-/// none is known.
+/// object label, depth finite and > 0) on every second row and column within [`TEXTURE_REACH`]
+/// (the far side of the hole, robust to a few stray far values at a render's edge), less the
+/// frame's `z_shift` (in image1's camera), brought nearer by [`TEXTURE_DEPTH_TOLERANCE`] in
+/// disparity; 0 (no limit) where none is known.
 fn nearest_source_depth(
     tex: &TextureSource<'_>,
     hole: &[u8],
@@ -178,7 +178,7 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
             let (x0, y0) = ((k % tx) * TEXTURE_TILE, (k / tx) * TEXTURE_TILE);
             Rect { x0, y0, x1: (x0 + TEXTURE_TILE).min(w), y1: (y0 + TEXTURE_TILE).min(h) }
         })
-        .filter(|t| (t.y0..t.y1).any(|y| hole[y * w + t.x0..y * w + t.x1].contains(&1)))
+        .filter(|t| (t.y0..t.y1).any(|y| hole[y * w + t.x0..y * w + t.x1].iter().any(|&o| o != 0)))
         .map(|t| (t, t.grow(TEXTURE_HALF, w, h)))
         .collect();
     let results: Vec<(Rect, Rect, Vec<u8>, Vec<u32>)> = tiles
@@ -194,9 +194,8 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
                     (win.x0..win.x1).map(|x| inside && (tile.x0..tile.x1).contains(&x) && hole[y * w + x] != 0),
                 );
             }
-            // the far side of the hole: the smallest disparity of the known pixels within reach
-            // (every second row and column), at the hole pixels only
-            // per 4 x 4 block of the frame (the far side varies slowly), at the block's centre
+            // the far side's depth limit per 4 x 4 block of the frame (it varies slowly), at the
+            // block's centre; none for what enters the frame
             let (bx0, by0) = (win.x0 / TEXTURE_BLOCK, win.y0 / TEXTURE_BLOCK);
             let bw = (win.x1 - 1) / TEXTURE_BLOCK - bx0 + 1;
             let bh = (win.y1 - 1) / TEXTURE_BLOCK - by0 + 1;
