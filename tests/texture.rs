@@ -70,6 +70,7 @@ fn a_hole_in_a_textured_frame_gets_texture_back_and_telea_does_not() {
         objects: &objects,
         depth: &frame_depth,
         mask: &labels,
+        labels1: &labels,
         z_shift: 0.0,
     };
     let mut blank = photo.clone();
@@ -77,7 +78,7 @@ fn a_hole_in_a_textured_frame_gets_texture_back_and_telea_does_not() {
         blank[3 * p..3 * p + 3].copy_from_slice(&[0, 0, 0]);
     }
     let mut textured = blank.clone();
-    let left = texture_fill(&mut textured, W, H, &hole, &tex);
+    let left = texture_fill(&mut textured, W, H, &hole, &tex).left;
     assert!(!left.contains(&1), "every hole pixel found a source");
     let mut telea = blank.clone();
     inpaint_holes(&mut telea, W, H, &hole, InpaintMethod::TeleaKnownOnly, 3.0, true);
@@ -124,10 +125,11 @@ fn the_fill_never_copies_an_object_nor_what_is_nearer_than_the_background() {
         objects: &objects,
         depth: &frame_depth,
         mask: &labels,
+        labels1: &labels,
         z_shift: 0.0,
     };
     let mut img = photo.clone();
-    let left = texture_fill(&mut img, W, H, &hole, &tex);
+    let left = texture_fill(&mut img, W, H, &hole, &tex).left;
     let mut filled = 0;
     for p in (0..W * H).filter(|&p| hole[p] != 0 && left[p] == 0) {
         filled += 1;
@@ -136,6 +138,82 @@ fn the_fill_never_copies_an_object_nor_what_is_nearer_than_the_background() {
         assert!(!(c[1] > 200 && c[0] < 40), "near surface {c:?} at {p}");
     }
     assert!(filled * 10 >= hole.iter().filter(|&&o| o != 0).count() * 9, "{filled} filled");
+}
+
+#[test]
+fn what_enters_beside_a_moved_object_that_reaches_the_border_is_more_of_that_object() {
+    // image1: a red-textured object over the left 40 columns (reaching the frame's left border),
+    // grey-textured background elsewhere; the object moves 8 pixels to the right, so a strip of 8
+    // columns enters at the left edge beside it, and the background's strip enters at the right
+    let grain = texture(W, H, 5);
+    let mut photo = texture(W, H, 4);
+    let mut labels1 = vec![0u8; W * H];
+    for p in (0..W * H).filter(|&p| p % W < 40) {
+        let g = &grain[3 * p..3 * p + 3];
+        photo[3 * p..3 * p + 3].copy_from_slice(&[g[0].saturating_add(80), g[1] / 3, g[2] / 3]);
+        labels1[p] = 1;
+    }
+    let objects: Vec<bool> = labels1.iter().map(|&l| l != 0).collect();
+    let depth: Vec<f32> = labels1.iter().map(|&l| if l != 0 { 1.0 } else { 3.0 }).collect();
+    let shift = 8;
+    let mut frame = photo.clone();
+    let mut mask2 = vec![0u8; W * H];
+    let mut hole = vec![0u8; W * H];
+    for p in 0..W * H {
+        let x = p % W;
+        if x < shift || x >= W - 4 {
+            hole[p] = 1;
+        } else if x < 40 + shift {
+            let q = p - shift;
+            frame[3 * p..3 * p + 3].copy_from_slice(&photo[3 * q..3 * q + 3]);
+            mask2[p] = 1;
+        }
+    }
+    let frame_depth: Vec<f32> = (0..W * H)
+        .map(|p| {
+            if hole[p] != 0 {
+                0.0
+            } else if mask2[p] != 0 {
+                1.0
+            } else {
+                3.0
+            }
+        })
+        .collect();
+    let tex = TextureSource {
+        image1: &photo,
+        depth1: &depth,
+        objects: &objects,
+        depth: &frame_depth,
+        mask: &mask2,
+        labels1: &labels1,
+        z_shift: 0.0,
+    };
+    let mut img = frame.clone();
+    let fill = texture_fill(&mut img, W, H, &hole, &tex);
+    assert!(!fill.left.contains(&1), "every hole pixel found a source");
+    // the strip drawn as the object carries its label (for the frame's mask), the other none
+    for (p, (&got, &o)) in fill.continued.iter().zip(&hole).enumerate() {
+        let want = u8::from(o != 0 && p % W < shift);
+        assert_eq!(got, want, "label at ({}, {})", p % W, p / W);
+    }
+    let reddish = |p: usize| img[3 * p] > img[3 * p + 1].saturating_add(60);
+    let (entering_left, entering_right): (Vec<usize>, Vec<usize>) =
+        (0..W * H).filter(|&p| hole[p] != 0).partition(|&p| p % W < shift);
+    let red_left = entering_left.iter().filter(|&&p| reddish(p)).count();
+    let red_right = entering_right.iter().filter(|&&p| reddish(p)).count();
+    println!(
+        "object colour: {red_left} of {} beside the object, {red_right} of {} beside the background",
+        entering_left.len(),
+        entering_right.len()
+    );
+    assert_eq!(red_left, entering_left.len(), "the object continues where it enters");
+    assert_eq!(red_right, 0, "the background continues where it enters");
+    let in_strip = |p: usize| hole[p] != 0 && (1..shift).contains(&(p % W));
+    let object_rows = |p: usize| labels1[p] != 0 && p % W > 3 && p % W < 36;
+    let (strip, object) = (laplacian_variance(&img, W, H, in_strip), laplacian_variance(&photo, W, H, object_rows));
+    println!("Laplacian variance: strip {strip:.1}, the object in image1 {object:.1}");
+    assert!(strip >= 0.7 * object && strip <= 1.4 * object, "strip {strip} against {object}");
 }
 
 #[test]
@@ -151,12 +229,14 @@ fn the_fill_is_the_same_on_any_number_of_threads_and_fill_holes_uses_it() {
         objects: &objects,
         depth: &frame_depth,
         mask: &labels,
+        labels1: &labels,
         z_shift: 0.4,
     };
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         let mut img = photo.clone();
-        pool.install(|| fill_holes(&mut img, W, H, &hole, InpaintMethod::Exemplar, 3.0, &tex));
+        let continued = pool.install(|| fill_holes(&mut img, W, H, &hole, InpaintMethod::Exemplar, 3.0, &tex));
+        assert!(continued.is_empty(), "no object continues");
         img
     };
     let one = run(1);

@@ -22,8 +22,14 @@
 //! depths of the frame's known background pixels within [`TEXTURE_REACH`] of the centre of the
 //! pixel's 4 x 4 block (every second row and column, not beside a hole, not an object, moved to
 //! image1's camera by the camera's translation along z: the far side of the hole; no limit where
-//! none is known), so foreground is not copied into what lies behind it. Hole pixels no source
-//! could be found for are left to Telea (known-only). Deterministic: the random draws come from
+//! none is known), so foreground is not copied into what lies behind it.
+//!
+//! What enters the frame beside a moved object that reaches image1's border is more of that
+//! object: each hole pixel connected to the border takes the frame's label of the nearest known
+//! pixel, and where that is a moved object whose image1 mask touches the border, the pixel copies
+//! that object's pixels in image1 (at least 3 pixels inside its mask), matched
+//! against what the frame shows of the object; [`fill_holes`] returns those labels for the
+//! frame's mask. Hole pixels no source could be found for are left to Telea (known-only). Deterministic: the random draws come from
 //! a hash of the pixel's index, and a tile's result does not depend on the others.
 
 use super::config::InpaintMethod;
@@ -66,6 +72,9 @@ pub struct TextureSource<'a> {
     pub depth: &'a [f32],
     /// H x W, the frame's object labels (0 = background): objects are never the far side.
     pub mask: &'a [u8],
+    /// H x W, image1's labels of the moved objects (0 = background; the sample's `mask1`): a
+    /// moved object that reaches image1's border continues beyond it.
+    pub labels1: &'a [u8],
     /// How much deeper a point of the scene lies in the frame's camera than in image1's: the
     /// camera's translation along z (rotations, a few degrees, are neglected), so the far side's
     /// depth is compared with image1's in image1's camera.
@@ -74,7 +83,8 @@ pub struct TextureSource<'a> {
 
 /// Fills the holes of `image` with `method`: the texture fill from `texture` for
 /// [`InpaintMethod::Exemplar`] (Telea, known-only, for what it leaves), else [`inpaint_holes`]
-/// (windowed).
+/// (windowed). Returns the object labels the fill drew ([`TextureFill::continued`]; empty for the
+/// Telea variants), for the frame's mask.
 pub fn fill_holes(
     image: &mut [u8],
     w: usize,
@@ -83,14 +93,34 @@ pub fn fill_holes(
     method: InpaintMethod,
     radius: f32,
     texture: &TextureSource<'_>,
-) {
+) -> Vec<u8> {
     if method != InpaintMethod::Exemplar {
         inpaint_holes(image, w, h, hole, method, radius, true);
-        return;
+        return Vec::new();
     }
-    let left = texture_fill(image, w, h, hole, texture);
-    if left.iter().any(|&o| o != 0) {
-        inpaint_holes(image, w, h, &left, InpaintMethod::TeleaKnownOnly, radius, true);
+    let fill = texture_fill(image, w, h, hole, texture);
+    if fill.left.iter().any(|&o| o != 0) {
+        inpaint_holes(image, w, h, &fill.left, InpaintMethod::TeleaKnownOnly, radius, true);
+    }
+    fill.continued
+}
+
+/// What [`texture_fill`] did besides filling.
+pub struct TextureFill {
+    /// H x W, 1 = a hole pixel no source was found for (left to Telea).
+    pub left: Vec<u8>,
+    /// H x W, the label of the moved object a hole pixel continues (0 = background); empty when
+    /// no moved object reaches image1's border.
+    pub continued: Vec<u8>,
+}
+
+/// Writes the labels of the objects a fill continued ([`fill_holes`]' result) into the frame's
+/// mask.
+pub fn label_continued(mask: &mut [u8], continued: &[u8]) {
+    for (m, &k) in mask.iter_mut().zip(continued) {
+        if k != 0 {
+            *m = k;
+        }
     }
 }
 
@@ -162,15 +192,100 @@ fn near_object(masked: &[bool], w: usize, h: usize, s: usize) -> bool {
     ys.iter().any(|&yy| xs.iter().any(|&xx| masked[yy * w + xx]))
 }
 
-/// The texture fill of the module documentation; returns the hole pixels it left (1 = left).
-pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &TextureSource<'_>) -> Vec<u8> {
+/// The moved objects that continue beyond image1's frame: `reaches[k]` when label `k` of
+/// `labels1` has a pixel on the frame's border.
+fn reaching_border(labels1: &[u8], w: usize, h: usize) -> [bool; 256] {
+    let mut reaches = [false; 256];
+    let border = (0..w).flat_map(|x| [x, (h - 1) * w + x]).chain((0..h).flat_map(|y| [y * w, y * w + w - 1]));
+    for p in border {
+        reaches[usize::from(labels1[p])] = true;
+    }
+    reaches[0] = false;
+    reaches
+}
+
+/// The object each entering hole pixel continues (0 = background): the frame's label of the
+/// nearest known pixel (4-connected breadth-first search over the entering hole pixels from the
+/// known pixels beside them, in index order), kept where that object reaches image1's border.
+fn continued_objects(
+    hole: &[u8],
+    entering: &[bool],
+    mask: &[u8],
+    reaches: &[bool; 256],
+    w: usize,
+    h: usize,
+) -> Vec<u8> {
+    let n = w * h;
+    let mut owner = vec![0u8; n];
+    let mut seen = vec![false; n];
+    let neighbours = |p: usize| {
+        let (x, y) = (p % w, p / w);
+        [(x > 0).then(|| p - 1), (x + 1 < w).then(|| p + 1), (y > 0).then(|| p - w), (y + 1 < h).then(|| p + w)]
+    };
+    // the known pixels beside what enters, in index order
+    let mut seeds: Vec<usize> = (0..n)
+        .filter(|&p| entering[p])
+        .flat_map(|p| neighbours(p).into_iter().flatten().filter(|&q| hole[q] == 0))
+        .collect();
+    seeds.sort_unstable();
+    seeds.dedup();
+    let mut queue = std::collections::VecDeque::with_capacity(seeds.len());
+    for p in seeds {
+        seen[p] = true;
+        owner[p] = mask[p];
+        queue.push_back(p);
+    }
+    while let Some(p) = queue.pop_front() {
+        for q in neighbours(p).into_iter().flatten() {
+            if entering[q] && !seen[q] {
+                seen[q] = true;
+                owner[q] = owner[p];
+                queue.push_back(q);
+            }
+        }
+    }
+    for p in 0..n {
+        if hole[p] == 0 || !reaches[usize::from(owner[p])] {
+            owner[p] = 0;
+        }
+    }
+    owner
+}
+
+/// One continued object: its sources are image1's pixels of its label at least
+/// [`TEXTURE_MASK_GROW`] inside its edge.
+struct Continued {
+    label: u8,
+    /// H x W, true outside the object (left out of the patch distance).
+    outside: Vec<bool>,
+}
+
+/// Draws of a place anywhere in image1 for one random candidate of a continued object: the first
+/// of this many uniform draws that falls on the object.
+const CONTINUED_DRAW_TRIES: usize = 8;
+
+/// The texture fill of the module documentation.
+pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &TextureSource<'_>) -> TextureFill {
     use rayon::prelude::*;
     let n = w * h;
     assert!(image.len() == 3 * n && hole.len() == n && tex.image1.len() == 3 * n, "texture fill: sizes");
     assert!(tex.depth1.len() == n && tex.objects.len() == n && tex.depth.len() == n, "texture fill: sizes");
+    assert!(tex.mask.len() == n && tex.labels1.len() == n, "texture fill: sizes");
     let masked = tex.objects;
     let any_object = masked.contains(&true);
     let entering = entering(hole, w, h);
+    // what a moved object reaching image1's border brings into the frame is more of that object
+    let reaches = reaching_border(tex.labels1, w, h);
+    let owner =
+        if reaches.contains(&true) { continued_objects(hole, &entering, tex.mask, &reaches, w, h) } else { Vec::new() };
+    let continued: Vec<Continued> = (1..=255u8)
+        .filter(|&k| reaches[usize::from(k)] && owner.contains(&k))
+        .map(|label| {
+            let outside: Vec<bool> = tex.labels1.iter().map(|&l| l != label).collect();
+            Continued { label, outside }
+        })
+        .collect();
+    let owned = |p: usize| !owner.is_empty() && owner[p] != 0;
     // the tiles with holes, each grown by the matching window's reach
     let (tx, ty) = (w.div_ceil(TEXTURE_TILE), h.div_ceil(TEXTURE_TILE));
     let tiles: Vec<(Rect, Rect)> = (0..tx * ty)
@@ -190,9 +305,10 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
             for y in win.y0..win.y1 {
                 img.extend_from_slice(&image[3 * (y * w + win.x0)..3 * (y * w + win.x1)]);
                 let inside = (tile.y0..tile.y1).contains(&y);
-                todo.extend(
-                    (win.x0..win.x1).map(|x| inside && (tile.x0..tile.x1).contains(&x) && hole[y * w + x] != 0),
-                );
+                todo.extend((win.x0..win.x1).map(|x| {
+                    let p = y * w + x;
+                    inside && (tile.x0..tile.x1).contains(&x) && hole[p] != 0 && !owned(p)
+                }));
             }
             // the far side's depth limit per 4 x 4 block of the frame (it varies slowly), at the
             // block's centre; none for what enters the frame
@@ -247,7 +363,44 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
                 },
                 fallback: |_: usize| None,
             };
-            let src_of = synthesise(&lay, &mut src, &mut img, &mut filled, &order);
+            let mut src_of = synthesise(&lay, &mut src, &mut img, &mut filled, &order);
+            // the continued objects: their own pixels in image1 matched against what the frame
+            // shows of them
+            for c in &continued {
+                let todo: Vec<bool> = (0..cw * ch)
+                    .map(|l| {
+                        let (x, y) = (win.x0 + l % cw, win.y0 + l / cw);
+                        tile.contains(x, y) && owner[y * w + x] == c.label
+                    })
+                    .collect();
+                if !todo.contains(&true) {
+                    continue;
+                }
+                let order = peel_order(&todo, cw, ch);
+                let mut filled: Vec<bool> = (win.y0..win.y1)
+                    .flat_map(|y| (y * w + win.x0..y * w + win.x1).map(|p| hole[p] == 0 && tex.mask[p] == c.label))
+                    .collect();
+                let mut src = Sources {
+                    rgb: tex.image1,
+                    masked: &c.outside,
+                    eligible: |_t: usize, s: usize| !c.outside[s] && !near_object(&c.outside, w, h, s),
+                    seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
+                        out.push((win.y0 + t / cw) * w + win.x0 + t % cw);
+                        for _ in 0..TEXTURE_GLOBAL_DRAWS {
+                            let hit = (0..CONTINUED_DRAW_TRIES).map(|_| draw.below(n)).find(|&s| !c.outside[s]);
+                            out.extend(hit);
+                        }
+                    },
+                    fallback: |_: usize| None,
+                };
+                let lay = Layout { salt: lay.salt ^ u64::from(c.label), ..lay };
+                let own = synthesise(&lay, &mut src, &mut img, &mut filled, &order);
+                for (l, s) in own.into_iter().enumerate() {
+                    if todo[l] {
+                        src_of[l] = s;
+                    }
+                }
+            }
             (tile, win, img, src_of)
         })
         .collect();
@@ -267,7 +420,7 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
             }
         }
     }
-    left
+    TextureFill { left, continued: owner }
 }
 
 /// Fills the pixels where `hole` is non-zero in the u8 RGB image (`w` x `h` x 3) with `method`

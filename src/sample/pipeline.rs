@@ -43,12 +43,29 @@ use crate::source::{FailureKind, Fnv64, Source, SourceError};
 /// fills one-pixel dips of the scene mask and depth before its occlusion test (`sample::merge`),
 /// v3 the higher-order colour kernels that sum each column of taps first, then the columns
 /// (`render::resample`, four values per vector operation), v4 the merge's seams (a pixel the
-/// scene and an object cover together shows the larger share instead of a hole). CHANGELOG.md
-/// lists the changes.
+/// scene and an object cover together shows the larger share instead of a hole). An opt-in rule
+/// whose bytes changed after it shipped adds its own revision word (`rule_revisions`), so only
+/// the configurations that use it get new fingerprints. CHANGELOG.md lists the changes.
 pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
     // serialising a plain struct of numbers and strings cannot fail
     let json = serde_json::to_string(config).unwrap_or_default();
-    Fnv64::new().str("mpiflow dataset v4").u64(loader_fingerprint).str(&json).finish()
+    let mut f = Fnv64::new();
+    f.str("mpiflow dataset v4");
+    for word in rule_revisions(config) {
+        f.str(word);
+    }
+    f.u64(loader_fingerprint).str(&json).finish()
+}
+
+/// The revision words of the opt-in rules a configuration uses: the `exemplar` fill's second
+/// revision continues a moved object that reaches image1's border into what enters the frame
+/// beside it (and labels it in the frame's mask).
+fn rule_revisions(config: &SampleConfig) -> Vec<&'static str> {
+    let mut words = Vec::new();
+    if config.inpaint_method == super::config::InpaintMethod::Exemplar {
+        words.push("exemplar r2");
+    }
+    words
 }
 
 /// `WxH`, both sides 16 to 16384 pixels (the `--size` of every command and the `size` key).

@@ -79,7 +79,7 @@ use std::time::Instant;
 use super::background::{cut_planes, fill_from_planes, Background, Frame};
 use super::config::{InpaintMethod, SampleConfig};
 use super::error::SampleError;
-use super::holes::{fill_holes, TextureSource};
+use super::holes::{fill_holes, label_continued, TextureSource};
 use super::merge::{
     merge, merge_link, merge_target, units_to_u8, MergeRule, Merged, ObjectView, OtherFrame, SceneView, TargetSide,
 };
@@ -190,9 +190,11 @@ pub fn assemble_with_target_depth(
             objects: &objects,
             depth: &sample.depth2,
             mask: &sample.mask2,
+            labels1: &sample.mask1,
             z_shift: sample.camera.translation[2] as f32,
         };
-        fill_holes(&mut sample.image2, w, h, &sample.holes, method, radius, &texture);
+        let continued = fill_holes(&mut sample.image2, w, h, &sample.holes, method, radius, &texture);
+        label_continued(&mut sample.mask2, &continued);
     }
     for (k, f) in sample.clip.iter_mut().enumerate() {
         if f.holes.contains(&1) {
@@ -204,9 +206,11 @@ pub fn assemble_with_target_depth(
                 objects: &objects,
                 depth: &f.depth,
                 mask: &f.mask,
+                labels1: &sample.mask1,
                 z_shift,
             };
-            fill_holes(&mut f.image, w, h, &f.holes, method, radius, &texture);
+            let continued = fill_holes(&mut f.image, w, h, &f.holes, method, radius, &texture);
+            label_continued(&mut f.mask, &continued);
         }
     }
     if config.restore_noise {
