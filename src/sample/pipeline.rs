@@ -454,3 +454,23 @@ impl Generator {
         out
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sample::config::InpaintMethod;
+
+    /// The fingerprint without any revision word.
+    fn unrevised(loader: u64, config: &SampleConfig) -> u64 {
+        let json = serde_json::to_string(config).unwrap();
+        Fnv64::new().str("mpiflow dataset v4").u64(loader).str(&json).finish()
+    }
+
+    #[test]
+    fn only_the_configurations_using_a_revised_rule_take_its_word() {
+        let plain = SampleConfig::default();
+        assert_eq!(dataset_fingerprint(7, &plain), unrevised(7, &plain));
+        let texture = SampleConfig { inpaint_method: InpaintMethod::Exemplar, ..plain };
+        assert_ne!(dataset_fingerprint(7, &texture), unrevised(7, &texture));
+    }
+}
