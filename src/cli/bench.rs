@@ -260,15 +260,15 @@ fn sharpness_table(
 fn realism_table(run: &RunQuality<'_>, base: &mpiflow::sample::config::SampleConfig) -> Result<(), CliError> {
     use mpiflow::sample::background::Background;
     use mpiflow::sample::config::SampleConfig;
-    println!("| fill | objects | hole fraction | revealed | revealed detail / noise vs other background | AUC revealed vs img1 background | AUC img2 vs img1 | photometric | label laws | fb residual px |");
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("| fill | objects | hole fraction | revealed | revealed detail / noise vs other background | AUC revealed vs img1 background | AUC img2 vs img1 | AUC ideal warp vs img1 | photometric | label laws | fb residual px |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for background in [Background::Planes, Background::Inpaint] {
         for objects in [0, 1] {
             let c = SampleConfig { background, max_objects: objects, backward: true, ..base.clone() };
             let r = run(&c)?;
             let laws = r.laws.holes + r.laws.label + r.laws.depth;
             println!(
-                "| {background} | {objects} ({} moved) | {:.4} | {:.4} | {} / {} | {} | {} | {:.4} | {laws} | {} |",
+                "| {background} | {objects} ({} moved) | {:.4} | {:.4} | {} / {} | {} | {} | {} | {:.4} | {laws} | {} |",
                 r.with_objects,
                 r.hole_fraction,
                 r.realism.revealed,
@@ -276,6 +276,7 @@ fn realism_table(run: &RunQuality<'_>, base: &mpiflow::sample::config::SampleCon
                 opt3(r.realism.revealed_noise),
                 opt3(r.realism.auc_revealed),
                 opt3(r.realism.auc_pair),
+                opt3(r.realism.auc_ideal),
                 r.photometric,
                 opt3(r.realism.fb_residual),
             );
