@@ -211,34 +211,41 @@ pub struct Merged {
 /// `floor(255 v + 1/2)` with `v` clamped to [0, 1], NaN to 0 (round half up; the same as
 /// `io::image::rgb_to_u8` except for values within f32 rounding of a half level, and without a
 /// libm call on baseline x86-64).
-#[inline]
+#[inline(always)]
 pub fn unit_to_u8(v: f32) -> u8 {
     // `as` truncates (the value is >= 0.5 here) and maps NaN to 0
     (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 
-/// [`unit_to_u8`] of every value of `src` into `dst` (of the same length), four values per
-/// `f32x4` operation with the scalar function's operations (NaN to 0, the clamp, `* 255`,
-/// `+ 1/2`, truncation), so the same bytes (tested against it).
+/// [`unit_to_u8`] of every value of `src` into `dst` (of the same length), on the chosen vector
+/// path ([`crate::isa`]): blocks of the path's lanes, each value by [`unit_to_u8`]'s own
+/// operations, which the compiler vectorises for the path, so the same bytes on every path
+/// (tested against the scalar function).
 pub fn units_to_u8(src: &[f32], dst: &mut [u8]) {
-    use wide::f32x4;
     assert_eq!(src.len(), dst.len());
-    let (zero, one, scale, half) = (f32x4::splat(0.0), f32x4::splat(1.0), f32x4::splat(255.0), f32x4::splat(0.5));
-    let mut s = src.chunks_exact(4);
-    let mut d = dst.chunks_exact_mut(4);
-    for (s, d) in (&mut s).zip(&mut d) {
-        let v = f32x4::from([s[0], s[1], s[2], s[3]]);
-        // NaN (the only value not equal to itself) to 0, then the clamp: the lanes are ordered
-        let v = v.simd_eq(v).select(v, zero);
-        let v = v.simd_lt(zero).select(zero, v.simd_gt(one).select(one, v));
-        // in [0.5, 255.5]: truncation is the scalar `as`
-        let q = (v * scale + half).trunc_int().to_array();
-        for (d, q) in d.iter_mut().zip(q) {
-            *d = q as u8;
+    crate::isa::dispatch(ToU8 { src, dst });
+}
+
+/// [`units_to_u8`] as a job for [`crate::isa::dispatch`].
+struct ToU8<'a> {
+    src: &'a [f32],
+    dst: &'a mut [u8],
+}
+
+impl crate::isa::Wide for ToU8<'_> {
+    type Output = ();
+    #[inline(always)]
+    fn run<const LANES: usize>(self) {
+        let mut s = self.src.chunks_exact(LANES);
+        let mut d = self.dst.chunks_exact_mut(LANES);
+        for (s, d) in (&mut s).zip(&mut d) {
+            for (d, &v) in d.iter_mut().zip(s) {
+                *d = unit_to_u8(v);
+            }
         }
-    }
-    for (d, &v) in d.into_remainder().iter_mut().zip(s.remainder()) {
-        *d = unit_to_u8(v);
+        for (d, &v) in d.into_remainder().iter_mut().zip(s.remainder()) {
+            *d = unit_to_u8(v);
+        }
     }
 }
 
@@ -451,7 +458,9 @@ pub fn merge_target(
                 match best {
                     Some(b) => {
                         let src = &objects[b.slot].render.out.image[3 * b.idx..3 * b.idx + 3];
-                        units_to_u8(src, &mut img[3 * x..3 * x + 3]);
+                        for (d, &v) in img[3 * x..3 * x + 3].iter_mut().zip(src) {
+                            *d = unit_to_u8(v);
+                        }
                         lab[x] = objects[b.slot].label;
                         dep[x] = b.depth;
                     }
