@@ -27,10 +27,12 @@
 //! What enters the frame beside a moved object that reaches image1's border is more of that
 //! object: each hole pixel connected to the border takes the frame's label of the nearest known
 //! pixel, and where that is a moved object whose image1 mask touches the border, the pixel copies
-//! that object's pixels in image1 (at least 3 pixels inside its mask), matched
-//! against what the frame shows of the object; [`fill_holes`] returns those labels for the
-//! frame's mask. Hole pixels no source could be found for are left to Telea (known-only). Deterministic: the random draws come from
-//! a hash of the pixel's index, and a tile's result does not depend on the others.
+//! that object's pixels in image1 (at least 3 pixels inside its mask), matched against what the
+//! frame shows of the object; [`fill_holes`] returns those labels for the frame's mask.
+//!
+//! Hole pixels no source could be found for are left to Telea (known-only). Deterministic: the
+//! random draws come from a hash of the pixel's index, and a tile's result does not depend on
+//! the others.
 
 use super::config::InpaintMethod;
 use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};

@@ -236,6 +236,8 @@ impl crate::isa::Wide for ToU8<'_> {
     type Output = ();
     #[inline(always)]
     fn run<const LANES: usize>(self) {
+        // fixed-size blocks are what the compiler vectorises: a plain loop over the whole slices
+        // made the merge stage 6.4 ms instead of 3.9 (`bench sample`, no object)
         let mut s = self.src.chunks_exact(LANES);
         let mut d = self.dst.chunks_exact_mut(LANES);
         for (s, d) in (&mut s).zip(&mut d) {
