@@ -93,8 +93,9 @@ trait PlaneSampler<T: Real>: Sync {
     fn colour(&self, tap: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, wgt: T) -> [T; 3];
     /// The four-lane loop's [`Self::colour`] of the lanes with density (`lanes.on`; the others
     /// 0): the lanes' taps and texels in `lanes`, `q` (x and y) and the tap fractions `f` (x and
-    /// y) in lanes, the weights `wgt` per lane; `[channel][lane]`. The same bits as `colour` lane
-    /// by lane.
+    /// y) in lanes, the weights `wgt` per lane; `[lane][channel]`, each lane's colour written
+    /// and read as scalars (no vector load of values stored one by one, which stalls the store
+    /// forwarding). The same bits as `colour` lane by lane.
     #[inline(always)]
     fn colour4(
         &self,
@@ -103,7 +104,7 @@ trait PlaneSampler<T: Real>: Sync {
         _f: [wide::f32x4; 2],
         i: usize,
         wgt: [f32; 4],
-    ) -> [[f32; 4]; 3] {
+    ) -> [[f32; 3]; 4] {
         colour_per_lane(self, lanes, q, i, wgt)
     }
 }
@@ -117,13 +118,21 @@ struct LaneTaps<T> {
     fx: [f32; 4],
     fy: [f32; 4],
     texel: [[T; 4]; 4],
-    on: [bool; 4],
+    /// bit k: lane k has density
+    on: u32,
     /// the planes' width and height
     w: usize,
     h: usize,
 }
 
 impl<T: Real> LaneTaps<T> {
+    /// The lanes with density, in order.
+    #[inline(always)]
+    fn lanes_on(&self) -> impl Iterator<Item = usize> {
+        let on = self.on;
+        (0..4).filter(move |k| on >> k & 1 == 1)
+    }
+
     /// The tap of lane `k`.
     #[inline(always)]
     fn tap(&self, k: usize) -> Tap<T> {
@@ -146,13 +155,11 @@ fn colour_per_lane<T: Real, S: PlaneSampler<T> + ?Sized>(
     q: [[f32; 4]; 2],
     i: usize,
     wgt: [f32; 4],
-) -> [[f32; 4]; 3] {
-    let mut out = [[0.0f32; 4]; 3];
-    for k in (0..4).filter(|&k| lanes.on[k]) {
+) -> [[f32; 3]; 4] {
+    let mut out = [[0.0f32; 3]; 4];
+    for k in lanes.lanes_on() {
         let c = s.colour(&lanes.tap(k), &lanes.texel[k], T::of32(q[0][k]), T::of32(q[1][k]), i, T::of32(wgt[k]));
-        for (o, v) in out.iter_mut().zip(c) {
-            o[k] = v.f32();
-        }
+        out[k] = c.map(T::f32);
     }
     out
 }
@@ -269,13 +276,13 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
         f: [wide::f32x4; 2],
         i: usize,
         wgt: [f32; 4],
-    ) -> [[f32; 4]; 3] {
+    ) -> [[f32; 3]; 4] {
         if matches!(self.mip.get(i), Some(Some(_))) {
             return colour_per_lane(self, lanes, q, i, wgt);
         }
         let (wx, wy) = (K::weights4(f[0]), K::weights4(f[1]));
-        let mut out = [[0.0f32; 4]; 3];
-        for k in (0..4).filter(|&k| lanes.on[k]) {
+        let mut out = [[0.0f32; 3]; 4];
+        for k in lanes.lanes_on() {
             let texel = &lanes.texel[k];
             let bilinear = [texel[0], texel[1], texel[2]];
             let c = if T::of32(wgt[k]) < T::of32(KERNEL_MIN_WEIGHT) {
@@ -285,9 +292,7 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
                     (std::array::from_fn(|j| T::of32(wx[j][k])), std::array::from_fn(|j| T::of32(wy[j][k])));
                 self.src.rgb_weighted::<T, N>(i, &lanes.tap(k), &wxk, &wyk).unwrap_or(bilinear)
             };
-            for (o, v) in out.iter_mut().zip(c) {
-                o[k] = v.f32();
-            }
+            out[k] = c.map(T::f32);
         }
         out
     }
@@ -794,10 +799,14 @@ struct TargetLanes {
     h: usize,
 }
 
-/// Lanes where `on` holds, as an `f32x4` mask.
+/// The lanes of the bits of `on` (bit k: lane k) as an `f32x4` mask, computed in registers (an
+/// array of flags stored one by one and loaded as a vector stalls the store forwarding: the
+/// profile of the `bspline3` target pass put 8% of its samples on that load).
 #[inline(always)]
-fn lane_mask(on: [bool; 4]) -> wide::f32x4 {
-    wide::f32x4::from(on.map(|b| if b { f32::from_bits(u32::MAX) } else { 0.0 }))
+fn lane_mask(on: u32) -> wide::f32x4 {
+    use wide::i32x4;
+    let bits = i32x4::from([1, 2, 4, 8]);
+    wide::bytemuck::cast::<i32x4, wide::f32x4>((i32x4::splat(on as i32) & bits).simd_eq(bits))
 }
 
 impl TargetLanes {
@@ -863,8 +872,10 @@ impl TargetLanes {
         let (t_eps, depth_max, delta_last) = (sp(self.t_eps), sp(DEPTH_MAX as f32), sp(DELTA_LAST as f32));
         let cap = |v: f32x4, max: f32x4| v.simd_gt(max).select(max, v);
         let order = if forward { fwd } else { rev };
-        let (mut tr, mut sum_w, mut sum_z, mut acc1) = (one, zero, zero, zero);
-        let mut rgb = [zero; 3];
+        let (mut tr, mut sum_w, mut sum_z) = (one, zero, zero);
+        // per lane: colour and the extra channel
+        let mut rgb = [[0.0f32; 3]; 4];
+        let mut acc1 = [0.0f32; 4];
         // lanes done (bit k: lane k)
         let mut done = 0u32;
         for (j, &i) in order.iter().enumerate() {
@@ -899,11 +910,12 @@ impl TargetLanes {
                 fx: f[0].to_array(),
                 fy: f[1].to_array(),
                 texel: [[T::zero(); 4]; 4],
-                on: [false; 4],
+                on: 0,
                 w: self.w,
                 h: self.h,
             };
-            let mut sig = [0.0f32; 4];
+            // the densities in lanes, each blended into its lane in registers
+            let mut sig = zero;
             for k in (0..4).filter(|k| take >> k & 1 == 1) {
                 let texel = sampler.texel(&lt.tap(k), i);
                 stats.samples += 1;
@@ -912,12 +924,12 @@ impl TargetLanes {
                     texel[3].partial_cmp(&T::zero()),
                     Some(std::cmp::Ordering::Less | std::cmp::Ordering::Equal)
                 ) {
-                    lt.on[k] = true;
-                    sig[k] = texel[3].f32();
+                    lt.on |= 1 << k;
+                    sig = lane_mask(1 << k).select(sp(texel[3].f32()), sig);
                 }
                 lt.texel[k] = texel;
             }
-            if !lt.on.iter().any(|&t| t) {
+            if lt.on == 0 {
                 continue;
             }
             let m = lane_mask(lt.on);
@@ -931,34 +943,29 @@ impl TargetLanes {
                 }
                 None => delta_last,
             };
-            let e = exp_neg4(f32x4::from(sig) * delta);
+            let e = exp_neg4(sig * delta);
             let wgt = tr * (one - e);
             tr = m.select(tr * e, tr);
             let wa = wgt.to_array();
+            // the colours and the extra channel come lane by lane: they are summed lane by lane
             let smp = sampler.colour4(&lt, [qx, qy], f, i, wa);
-            let mut a1 = [0.0f32; 4];
-            if let Some(ex) = ex {
-                for k in (0..4).filter(|&k| lt.on[k]) {
-                    a1[k] = lt.tap(k).sample1(ex[i]).f32();
+            for k in lt.lanes_on() {
+                for ch in 0..3 {
+                    rgb[k][ch] += wa[k] * smp[k][ch];
                 }
-            }
-            for ch in 0..3 {
-                rgb[ch] = m.select(rgb[ch] + wgt * f32x4::from(smp[ch]), rgb[ch]);
+                if let Some(ex) = ex {
+                    acc1[k] += wa[k] * lt.tap(k).sample1(ex[i]).f32();
+                }
             }
             sum_w = m.select(sum_w + wgt, sum_w);
             sum_z = m.select(sum_z + wgt * lambda, sum_z);
-            if ex.is_some() {
-                acc1 = m.select(acc1 + wgt * f32x4::from(a1), acc1);
-            }
         }
         // the scalar loop's T::of(1e-6)
         const EPS: f32 = 1e-6_f64 as f32;
-        let [r, g, bl, sum_w, sum_z, acc1] = [rgb[0], rgb[1], rgb[2], sum_w, sum_z, acc1].map(f32x4::to_array);
+        let [sum_w, sum_z] = [sum_w, sum_z].map(f32x4::to_array);
         for k in 0..4 {
             let o = o + k;
-            b[0][3 * o] = r[k];
-            b[0][3 * o + 1] = g[k];
-            b[0][3 * o + 2] = bl[k];
+            b[0][3 * o..3 * o + 3].copy_from_slice(&rgb[k]);
             b[1][o] = if sum_w[k] > EPS { sum_z[k] / sum_w[k] } else { 0.0 };
             b[2][o] = sum_w[k];
             if ex.is_some() {
