@@ -2,7 +2,8 @@
 //! window of the full-frame render, bit for bit (per-plane and broadcast channels, any window
 //! alignment, with and without `flow_where`); render(1 - U) = coverage - render(U) for a
 //! broadcast mask U; a broadcast channel is the same as per-plane extras holding the mask on
-//! every plane; no NaN or Inf leaves a window, whatever the pose; bad requests are errors.
+//! every plane, and the same inside a rectangle when it is needed only there, whatever the
+//! colour kernel; no NaN or Inf leaves a window, whatever the pose; bad requests are errors.
 
 use mpiflow::geometry::{Intrinsics, Pose};
 use mpiflow::mpi::Mpi;
@@ -164,6 +165,21 @@ proptest! {
         // the source view only where the mask is > 0
         let wr_m = render_window::<f32>(&mpi, &p, None, &win, Channels::Broadcast(&mask), Some(&mask)).unwrap();
         assert_is_window_of(&full_b.out, &wr_m, W, Some(&mask));
+        // the broadcast needed only inside `win`, on a full frame with the other colour kernel:
+        // the same coverage, and inside `win` the same channel (its weights are the density's);
+        // outside, the same or 0
+        let mut pk = p;
+        pk.resample = if p.resample == Resample::Bilinear { Resample::Bspline3 } else { Resample::Bilinear };
+        let within = Channels::BroadcastWithin(&mask, [win.x0, win.y0, win.x1, win.y1]);
+        let fw = render_window::<f32>(&mpi, &pk, None, &Rect::full(W, H), within, None).unwrap().out;
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        prop_assert_eq!(bits(&fw.coverage), bits(&full_b.out.coverage));
+        prop_assert_eq!(bits(&fw.depth), bits(&full_b.out.depth));
+        for (i, (&got, &want)) in fw.extras.iter().zip(&full_b.out.extras).enumerate() {
+            let (x, y) = (i % W, i / W);
+            let inside = x >= win.x0 && x < win.x1 && y >= win.y0 && y < win.y1;
+            prop_assert!(got.to_bits() == want.to_bits() || (!inside && got == 0.0), "({}, {}): {} vs {}", x, y, got, want);
+        }
     }
 
     /// The source view takes four pixels at a time in f32 lanes; with a `flow_where` mask it

@@ -473,10 +473,12 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
 ) -> RenderStats {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let ww = win.width();
-    // the extra channels' source on every plane: the MPI's own, or one mask for all
-    let (c, ex_planes): (usize, Vec<&[f32]>) = match channels {
-        Channels::PerPlane => (mpi.extra_channels, (0..n).map(|i| mpi.plane_extras(i)).collect()),
-        Channels::Broadcast(mask) => (1, vec![mask; n]),
+    // the extra channels' source on every plane: the MPI's own, or one mask for all (computed
+    // in every tile, or only in the tiles that meet `ex_rect`)
+    let (c, ex_planes, ex_rect): (usize, Vec<&[f32]>, _) = match channels {
+        Channels::PerPlane => (mpi.extra_channels, (0..n).map(|i| mpi.plane_extras(i)).collect(), None),
+        Channels::Broadcast(mask) => (1, vec![mask; n], None),
+        Channels::BroadcastWithin(mask, r) => (1, vec![mask; n], Some(r)),
     };
     let geo = TargetGeometry::new(mpi, p, win);
     let g = &geo;
@@ -490,6 +492,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         consts,
         lanes: lanes.as_ref(),
         ex_planes: &ex_planes,
+        ex_rect,
         c,
         w,
         h,
@@ -514,6 +517,8 @@ struct TargetBand<'a, T, S, const NL: usize> {
     consts: &'a [LinkConst<T>],
     lanes: Option<&'a TargetLanes>,
     ex_planes: &'a [&'a [f32]],
+    /// where the extra channel is needed (`None`: everywhere); tiles that do not meet it leave 0
+    ex_rect: Option<[usize; 4]>,
     /// extra channels per pixel
     c: usize,
     w: usize,
@@ -541,7 +546,7 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
     /// contribute, then per pixel (four at a time in lanes where they can) the plane loop.
     #[inline(always)]
     fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 10]) -> RenderStats {
-        let TargetBand { geo, sampler, occ, win, consts, lanes, ex_planes, c, w, h } = *self;
+        let TargetBand { geo, sampler, occ, win, consts, lanes, ex_planes, ex_rect, c, w, h } = *self;
         let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } = geo;
         let (fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last) =
             (*fxs, *fys, *lo, *hix, *hiy, *wm, *hm, *t_eps, *delta_last);
@@ -551,7 +556,6 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
             (v, (ux * ux + uy * uy + T::one()).sqrt())
         };
         let ray = |x: f64, y: f64| ray_u(T::of((x - kt.cx) / kt.fx), T::of((y - kt.cy) / kt.fy));
-        let ex_lanes = (c == 1).then_some(ex_planes);
         let source_px = |pl: &PlaneConst<T>, v: &[T; 3], g: T| (pl.ox + fxs * v[0] * g, pl.oy + fys * v[1] * g);
         let z_min = T::of(1e-9);
         let fy0 = win.y0 + y0;
@@ -575,6 +579,9 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
             rev.clear();
             rev.extend(fwd.iter().rev());
             stats.skipped_tile += ((n - fwd.len()) * rows * (tx1 + 1 - tx0)) as u64;
+            // the extra channel in this tile: everywhere, or where the tile meets `ex_rect`
+            let ex_here = ex_rect.is_none_or(|[x0, y0, x1, y1]| tx0 < x1 && tx1 >= x0 && fy0 < y1 && fy0 + rows > y0);
+            let ex_lanes = (c == 1 && ex_here).then_some(ex_planes);
             for ry in 0..rows {
                 let uy_y = uy[y0 + ry];
                 let mut x = tx0;
@@ -671,7 +678,9 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                                 }
                             }
                             if c == 1 {
-                                acc1 += wgt * tap.sample1(ex_planes[i]);
+                                if ex_here {
+                                    acc1 += wgt * tap.sample1(ex_planes[i]);
+                                }
                             } else if c > 0 {
                                 tap.sample_c(ex_planes[i], c, &mut ex);
                                 for (a, e) in acc_ex.iter_mut().zip(&ex) {

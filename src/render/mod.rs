@@ -189,7 +189,7 @@ pub fn render_window<T: Real>(
 fn broadcast(channels: Channels<'_>) -> Option<&[f32]> {
     match channels {
         Channels::PerPlane => None,
-        Channels::Broadcast(m) => Some(m),
+        Channels::Broadcast(m) | Channels::BroadcastWithin(m, _) => Some(m),
     }
 }
 

@@ -146,6 +146,13 @@ pub enum Channels<'a> {
     PerPlane,
     /// One channel: this H x W mask, the same on every plane (the MPI's own extras are ignored).
     Broadcast(&'a [f32]),
+    /// [`Channels::Broadcast`] where it is needed only inside the frame's rectangle
+    /// `[x0, x1) x [y0, y1)` given as `[x0, y0, x1, y1]` (where the mask's footprint lies; a
+    /// `Rect`'s bounds): inside it every value is `Broadcast`'s; outside it the target view
+    /// computes the channel only in the tiles that meet the rectangle, and leaves 0 in the
+    /// others (a scene render that also gives the moved objects' mask costs little more than the
+    /// render alone).
+    BroadcastWithin(&'a [f32], [usize; 4]),
 }
 
 /// Counters describing the work done.

@@ -30,7 +30,11 @@
 //! `tests/sample_merge.rs`):
 //!
 //! - **Scene mask** (the union `U` of the moved objects' masks, under the camera motion): the
-//!   window is [`scene_mask_window`], the target footprint of `U`'s support.
+//!   window is [`scene_mask_window`], the target footprint of `U`'s support. The recipe does not
+//!   render it apart: the scene's own full-frame render carries `U` as its channel, computed in
+//!   the tiles that meet this window ([`crate::render::Channels::BroadcastWithin`]; the same
+//!   values, since a channel's weights are the density's whatever the colour kernel), which
+//!   saves a second render of the window's image, depth and coverage.
 //! - **Object render** (object `j`'s mask under its own motion): [`object_window`], the mask's
 //!   support (whose source view gives the object's flow, `valid` and depth) united with its
 //!   target footprint.

@@ -31,9 +31,11 @@
 //! (the renderer is bit-identical to a serial run, merging is per pixel, each inpainting crop is
 //! sequential and independent of the others). [`StageTimings`] are measurements and not part of
 //! the sample's bytes: `scene_ms` (cache lookup or load, and the scene's tile occupancy the first
-//! time the generator sees the scene), `render_ms` (the scene render, and the occupancy when
-//! [`assemble`] had to build it), `objects_ms` (choosing and rendering objects and the
-//! scene mask), `merge_ms` (merge and image1), `inpaint_ms`, `total_ms`.
+//! time the generator sees the scene), `render_ms` (the scene render with, in windowed renders,
+//! the union of the moved objects' masks as its channel over that mask's footprint, and the
+//! occupancy when [`assemble`] had to build it), `objects_ms` (choosing and rendering objects,
+//! and the scene mask from the union's channel), `merge_ms` (merge and image1), `inpaint_ms`,
+//! `total_ms`.
 //!
 //! **Bad sources** (`Generator::sample`): when the address's source item fails to load because
 //! of its data (corrupt, truncated or too large image, bad depth, masks or MPI), the next items
@@ -91,7 +93,8 @@ use super::preblend::preblend;
 use super::types::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
 use crate::geometry::Pose;
 use crate::render::{
-    render, Fields, Link, Mode, Occupancy, Rect, RenderError, RenderOutput, RenderParams, Resample, View, WindowRender,
+    render, render_window, Channels, Fields, Link, Mode, Occupancy, Rect, RenderError, RenderOutput, RenderParams,
+    View, WindowRender,
 };
 use crate::rng::{Purpose, SampleRng};
 use crate::scene::Scene;
@@ -785,8 +788,13 @@ fn render_frame(
     params.minify = config.minify;
     params.fields = Fields { target: true, flow: source_view, occlusion: false };
     params.links = cam_links;
+    // the window of the union's footprint under the camera (windowed renders with moved objects)
+    let mask_win = match (c.union, c.windowed) {
+        (Some(u), true) => support_rect(u, w, h).map(|s| scene_mask_window(mpi, &k, &cam_pose, &s)),
+        _ => None,
+    };
     let t = Instant::now();
-    let (scene_out, full_mask): (_, Option<Vec<f32>>) = match (c.union, c.windowed) {
+    let (mut scene_out, full_mask): (_, Option<Vec<f32>>) = match (c.union, c.windowed) {
         (Some(u), false) => {
             // the reference's scene render: a full copy with the channel 1 - U
             let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
@@ -807,6 +815,16 @@ fn render_frame(
             let mask = std::mem::take(&mut out.extras);
             (out, Some(mask))
         }
+        // with moved objects, the scene render carries the union U as its channel over U's
+        // footprint (the same values as a render of U alone: the channel's weights are the
+        // density's, whatever the colour kernel)
+        (Some(u), true) if mask_win.is_some() => {
+            let r = mask_win.expect("a window");
+            let within = Channels::BroadcastWithin(u, [r.x0, r.y0, r.x1, r.y1]);
+            let full = Rect::full(w, h);
+            let r = render_window::<f32>(mpi, &params, c.occupancy, &full, within, None);
+            (r.map_err(render_err("scene"))?.out, None)
+        }
         _ => (render::<f32>(mpi, &params, c.occupancy).map_err(render_err("scene"))?, None),
     };
     let render_ms = ms(t);
@@ -815,26 +833,13 @@ fn render_frame(
     // mask is the coverage except over that window
     let t = Instant::now();
     let mut mask_patch: Option<(Rect, Vec<f32>)> = None;
-    if let (None, Some(u)) = (&full_mask, c.union) {
-        if let Some(support) = support_rect(u, w, h) {
-            let win = scene_mask_window(mpi, &k, &cam_pose, &support);
-            let r = render_mask_window(
-                mpi,
-                c.occupancy,
-                &k,
-                &cam_pose,
-                &win,
-                u,
-                config.skip,
-                Resample::Bilinear,
-                false,
-                false,
-                [None, None],
-            )
-            .map_err(render_err("scene mask"))?;
-            let patch = r.out.coverage.iter().zip(&r.out.extras).map(|(c, m)| c - m).collect();
-            mask_patch = Some((win, patch));
-        }
+    if let Some(win) = mask_win {
+        let u_render = std::mem::take(&mut scene_out.extras);
+        let patch = (win.y0..win.y1)
+            .flat_map(|y| (win.x0..win.x1).map(move |x| y * w + x))
+            .map(|i| scene_out.coverage[i] - u_render[i])
+            .collect();
+        mask_patch = Some((win, patch));
     }
 
     // ---- object renders
