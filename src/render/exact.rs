@@ -125,14 +125,13 @@ struct LaneTaps<T> {
     h: usize,
 }
 
-impl<T: Real> LaneTaps<T> {
-    /// The lanes with density, in order.
-    #[inline(always)]
-    fn lanes_on(&self) -> impl Iterator<Item = usize> {
-        let on = self.on;
-        (0..4).filter(move |k| on >> k & 1 == 1)
-    }
+/// The lanes whose bits are set in `bits` (bit k: lane k), in order.
+#[inline(always)]
+fn lanes_of(bits: u32) -> impl Iterator<Item = usize> {
+    (0..4).filter(move |k| bits >> k & 1 == 1)
+}
 
+impl<T: Real> LaneTaps<T> {
     /// The tap of lane `k`.
     #[inline(always)]
     fn tap(&self, k: usize) -> Tap<T> {
@@ -157,7 +156,7 @@ fn colour_per_lane<T: Real, S: PlaneSampler<T> + ?Sized>(
     wgt: [f32; 4],
 ) -> [[f32; 3]; 4] {
     let mut out = [[0.0f32; 3]; 4];
-    for k in lanes.lanes_on() {
+    for k in lanes_of(lanes.on) {
         let c = s.colour(&lanes.tap(k), &lanes.texel[k], T::of32(q[0][k]), T::of32(q[1][k]), i, T::of32(wgt[k]));
         out[k] = c.map(T::f32);
     }
@@ -282,7 +281,7 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
         }
         let (wx, wy) = (K::weights4(f[0]), K::weights4(f[1]));
         let mut out = [[0.0f32; 3]; 4];
-        for k in lanes.lanes_on() {
+        for k in lanes_of(lanes.on) {
             let texel = &lanes.texel[k];
             let bilinear = [texel[0], texel[1], texel[2]];
             let c = if T::of32(wgt[k]) < T::of32(KERNEL_MIN_WEIGHT) {
@@ -677,11 +676,9 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                                     acc[3] += wgt;
                                 }
                             }
-                            if c == 1 {
-                                if ex_here {
-                                    acc1 += wgt * tap.sample1(ex_planes[i]);
-                                }
-                            } else if c > 0 {
+                            if c == 1 && ex_here {
+                                acc1 += wgt * tap.sample1(ex_planes[i]);
+                            } else if c > 1 {
                                 tap.sample_c(ex_planes[i], c, &mut ex);
                                 for (a, e) in acc_ex.iter_mut().zip(&ex) {
                                     *a += wgt * *e;
@@ -925,7 +922,7 @@ impl TargetLanes {
             };
             // the densities in lanes, each blended into its lane in registers
             let mut sig = zero;
-            for k in (0..4).filter(|k| take >> k & 1 == 1) {
+            for k in lanes_of(take) {
                 let texel = sampler.texel(&lt.tap(k), i);
                 stats.samples += 1;
                 // the scalar loop goes on with this plane unless sigma <= 0
@@ -958,7 +955,7 @@ impl TargetLanes {
             let wa = wgt.to_array();
             // the colours and the extra channel come lane by lane: they are summed lane by lane
             let smp = sampler.colour4(&lt, [qx, qy], f, i, wa);
-            for k in lt.lanes_on() {
+            for k in lanes_of(lt.on) {
                 for ch in 0..3 {
                     rgb[k][ch] += wa[k] * smp[k][ch];
                 }

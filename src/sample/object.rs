@@ -156,7 +156,8 @@ pub fn target_footprint(
     Rect::from_box(bx, w, h)
 }
 
-/// The window of the scene-mask render: the target footprint of the union mask's
+/// The window of the scene mask (where the scene render carries the union mask as its channel):
+/// the target footprint of the union mask's
 /// [`support_rect`] under the camera motion, grown by [`WINDOW_PAD`].
 pub fn scene_mask_window(mpi: &Mpi, k: &Intrinsics, pose: &Pose, support: &Rect) -> Rect {
     let (w, h) = (mpi.width, mpi.height);

@@ -92,6 +92,7 @@ use super::object::{
 use super::preblend::preblend;
 use super::types::{ClipFrame, LinkFields, ObjectRecord, Sample, SampleAddress, StageTimings};
 use crate::geometry::Pose;
+use crate::raster::resize::crop;
 use crate::render::{
     render, render_window, Channels, Fields, Link, Mode, Occupancy, Rect, RenderError, RenderOutput, RenderParams,
     View, WindowRender,
@@ -794,8 +795,8 @@ fn render_frame(
         _ => None,
     };
     let t = Instant::now();
-    let (mut scene_out, full_mask): (_, Option<Vec<f32>>) = match (c.union, c.windowed) {
-        (Some(u), false) => {
+    let (mut scene_out, full_mask): (_, Option<Vec<f32>>) = match (c.union, c.windowed, mask_win) {
+        (Some(u), false, _) => {
             // the reference's scene render: a full copy with the channel 1 - U
             let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
             let r = render_full_with_mask(
@@ -818,11 +819,9 @@ fn render_frame(
         // with moved objects, the scene render carries the union U as its channel over U's
         // footprint (the same values as a render of U alone: the channel's weights are the
         // density's, whatever the colour kernel)
-        (Some(u), true) if mask_win.is_some() => {
-            let r = mask_win.expect("a window");
-            let within = Channels::BroadcastWithin(u, [r.x0, r.y0, r.x1, r.y1]);
-            let full = Rect::full(w, h);
-            let r = render_window::<f32>(mpi, &params, c.occupancy, &full, within, None);
+        (Some(u), true, Some(win)) => {
+            let within = Channels::BroadcastWithin(u, [win.x0, win.y0, win.x1, win.y1]);
+            let r = render_window::<f32>(mpi, &params, c.occupancy, &Rect::full(w, h), within, None);
             (r.map_err(render_err("scene"))?.out, None)
         }
         _ => (render::<f32>(mpi, &params, c.occupancy).map_err(render_err("scene"))?, None),
@@ -835,10 +834,8 @@ fn render_frame(
     let mut mask_patch: Option<(Rect, Vec<f32>)> = None;
     if let Some(win) = mask_win {
         let u_render = std::mem::take(&mut scene_out.extras);
-        let patch = (win.y0..win.y1)
-            .flat_map(|y| (win.x0..win.x1).map(move |x| y * w + x))
-            .map(|i| scene_out.coverage[i] - u_render[i])
-            .collect();
+        let window = |v: &[f32]| crop(v, w, 1, win.x0, win.y0, win.width(), win.height());
+        let patch = window(&scene_out.coverage).iter().zip(window(&u_render)).map(|(c, m)| c - m).collect();
         mask_patch = Some((win, patch));
     }
 
