@@ -522,6 +522,87 @@ impl MpiFlow for Service {
     }
 }
 
+/// The path of StreamSamples, answered by [`StreamRoute`].
+const STREAM_SAMPLES_PATH: &str = "/mpiflow.v1.MpiFlow/StreamSamples";
+
+/// The `mpiflow.v1.MpiFlow` service as served: StreamSamples answered here with the reply body of
+/// [`super::frames`] (the tensors handed to HTTP/2 without a copy), every other call by tonic's
+/// generated service. The request is decoded by tonic's own decoder, with the same size limit and
+/// errors; the token check, the reply layer and the connection limits wrap both alike.
+#[derive(Clone)]
+struct StreamRoute<S> {
+    inner: S,
+    state: Arc<State>,
+    /// `max_request_bytes` and `max_message_bytes`
+    max_request: usize,
+    max_message: usize,
+}
+
+impl<S> tonic::server::NamedService for StreamRoute<S> {
+    const NAME: &'static str = SERVICE_NAME;
+}
+
+impl<S> tower::Service<http::Request<tonic::body::Body>> for StreamRoute<S>
+where
+    S: tower::Service<
+        http::Request<tonic::body::Body>,
+        Response = http::Response<tonic::body::Body>,
+        Error = std::convert::Infallible,
+    >,
+    S::Future: Send + 'static,
+{
+    type Response = http::Response<tonic::body::Body>;
+    type Error = std::convert::Infallible;
+    type Future = Pin<Box<dyn std::future::Future<Output = Result<Self::Response, Self::Error>> + Send>>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, req: http::Request<tonic::body::Body>) -> Self::Future {
+        if req.uri().path() != STREAM_SAMPLES_PATH {
+            return Box::pin(self.inner.call(req));
+        }
+        let (state, max_request, max_message) = (self.state.clone(), self.max_request, self.max_message);
+        Box::pin(async move {
+            Ok(match open_stream_call(&state, req, max_request).await {
+                Ok(stream) => {
+                    let body = tonic::body::Body::new(super::frames::FrameBody::new(stream, max_message));
+                    let mut response = http::Response::new(body);
+                    response
+                        .headers_mut()
+                        .insert(http::header::CONTENT_TYPE, http::HeaderValue::from_static("application/grpc"));
+                    response
+                }
+                Err(status) => status.into_http(),
+            })
+        })
+    }
+}
+
+/// A StreamSamples request decoded (tonic's decoder, at most `max_request` bytes; no request
+/// compression, as the generated service) and its stream opened.
+async fn open_stream_call(
+    state: &Arc<State>,
+    req: http::Request<tonic::body::Body>,
+    max_request: usize,
+) -> Result<CountedStream, Status> {
+    if let Some(enc) = req.headers().get("grpc-encoding").filter(|v| v.as_bytes() != b"identity") {
+        let mut status = Status::unimplemented(format!(
+            "Content is compressed with `{}` which isn't supported",
+            String::from_utf8_lossy(enc.as_bytes())
+        ));
+        status.metadata_mut().insert("grpc-accept-encoding", tonic::metadata::MetadataValue::from_static("identity"));
+        return Err(status);
+    }
+    let (parts, body) = req.into_parts();
+    let decoder = tonic_prost::ProstDecoder::<pb::StreamRequest>::new(tonic::codec::BufferSettings::default());
+    let mut messages = Streaming::new_request(decoder, body, None, Some(max_request));
+    let message = messages.message().await?.ok_or_else(|| Status::internal("Missing request message."))?;
+    let request = Request::from_http(http::Request::from_parts(parts, message));
+    refused(state, state.open_stream(request.get_ref(), peer_key(&request)))
+}
+
 /// A started server.
 pub struct RunningServer {
     /// The bound gRPC address (the real port when the config said 0).
@@ -631,9 +712,15 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let reflection_v1 = reflection().build_v1().map_err(refl_err)?;
     let reflection_v1alpha = reflection().build_v1alpha().map_err(refl_err)?;
     let limit = config.max_message_bytes() as usize;
-    let service = MpiFlowServer::new(Service { state: state.clone() })
-        .max_decoding_message_size(config.max_request_bytes() as usize)
-        .max_encoding_message_size(limit);
+    let max_request = config.max_request_bytes() as usize;
+    let service = StreamRoute {
+        inner: MpiFlowServer::new(Service { state: state.clone() })
+            .max_decoding_message_size(max_request)
+            .max_encoding_message_size(limit),
+        state: state.clone(),
+        max_request,
+        max_message: limit,
+    };
     let mut builder = tonic::transport::Server::builder()
         .http2_keepalive_interval(Some(idle))
         .http2_keepalive_timeout(Some(idle))
