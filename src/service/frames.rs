@@ -1,6 +1,7 @@
-//! StreamSamples' reply body, written here instead of by tonic's codec: each batch is one gRPC
-//! message (the 5-byte prefix and the protobuf encoding, the bytes prost writes) handed to HTTP/2
-//! as a list of pieces in which every tensor's `data` is the sample's own `Bytes`. tonic's codec
+//! The reply body of the sample streams (StreamSamples' batches, GetSamples' samples), written
+//! here instead of by tonic's codec: each message is one gRPC frame (the 5-byte prefix and the
+//! protobuf encoding, the bytes prost writes) handed to HTTP/2 as a list of pieces in which every
+//! tensor's `data` is the sample's own `Bytes`. tonic's codec
 //! copies each message into one buffer (a fresh one per sample, since HTTP/2 still holds the last
 //! one's frames when the next is encoded: 4.6 MB copied and faulted in per 640x480 sample); here
 //! only the small fields around the tensors are written. The call's trailers are tonic's
@@ -173,15 +174,20 @@ impl SampleParts {
     }
 }
 
-/// The gRPC frame of a batch (uncompressed) as pieces, the tensors' data among them as they are:
-/// concatenated, the 5-byte prefix and prost's encoding of the batch. A message longer than
-/// `limit` bytes is refused with tonic's error for it (OUT_OF_RANGE).
-pub fn batch_frame(batch: pb::SampleBatch, limit: usize) -> Result<Vec<Bytes>, Status> {
-    const SAMPLES_TAG: u32 = 1;
-    let pb::SampleBatch { samples, next_index, resume_start_index } = batch;
-    let rest = pb::SampleBatch { samples: Vec::new(), next_index, resume_start_index };
-    let samples: Vec<SampleParts> = samples.into_iter().map(SampleParts::new).collect();
-    let len = samples.iter().map(|s| field_len(SAMPLES_TAG, s.len())).sum::<usize>() + rest.encoded_len();
+/// A message whose gRPC frame is written as pieces ([`FrameBody`]'s items).
+pub trait Framed {
+    /// The frame (uncompressed) as pieces, the tensors' data among them as they are:
+    /// concatenated, the 5-byte prefix and prost's encoding of the message. A message longer
+    /// than `limit` bytes is refused with tonic's error for it (OUT_OF_RANGE).
+    fn frame(self, limit: usize) -> Result<Vec<Bytes>, Status>;
+}
+
+/// The frame of a message of `len` bytes that `write` writes.
+fn frame(
+    len: usize,
+    limit: usize,
+    write: impl FnOnce(&mut Pieces) -> Result<(), Status>,
+) -> Result<Vec<Bytes>, Status> {
     if len > limit {
         return Err(Status::out_of_range(format!(
             "Error, encoded message length too large: found {len} bytes, the limit is: {limit} bytes"
@@ -193,20 +199,42 @@ pub fn batch_frame(batch: pb::SampleBatch, limit: usize) -> Result<Vec<Bytes>, S
     let mut p = Pieces::new();
     p.small.put_u8(0);
     p.small.put_u32(len32);
-    for s in samples {
-        p.field(SAMPLES_TAG, s.len());
-        s.write(&mut p)?;
-    }
-    p.message(&rest)?;
+    write(&mut p)?;
     let out = p.finish();
     debug_assert_eq!(out.iter().map(Bytes::len).sum::<usize>(), PREFIX_BYTES + len);
     Ok(out)
 }
 
-/// The reply body of a StreamSamples call: each batch of `stream` as [`batch_frame`]'s pieces, one
-/// HTTP/2 data frame each (at most; the server's reply layer cuts them further), then the call's
-/// trailers: OK when the stream ends, the status of the stream's error or of a batch over the
-/// size limit otherwise (after which nothing more is sent, as with tonic's codec).
+/// StreamSamples' message.
+impl Framed for pb::SampleBatch {
+    fn frame(self, limit: usize) -> Result<Vec<Bytes>, Status> {
+        const SAMPLES_TAG: u32 = 1;
+        let pb::SampleBatch { samples, next_index, resume_start_index } = self;
+        let rest = pb::SampleBatch { samples: Vec::new(), next_index, resume_start_index };
+        let samples: Vec<SampleParts> = samples.into_iter().map(SampleParts::new).collect();
+        let len = samples.iter().map(|s| field_len(SAMPLES_TAG, s.len())).sum::<usize>() + rest.encoded_len();
+        frame(len, limit, |p| {
+            for s in samples {
+                p.field(SAMPLES_TAG, s.len());
+                s.write(p)?;
+            }
+            p.message(&rest)
+        })
+    }
+}
+
+/// GetSamples' message.
+impl Framed for pb::Sample {
+    fn frame(self, limit: usize) -> Result<Vec<Bytes>, Status> {
+        let s = SampleParts::new(self);
+        frame(s.len(), limit, |p| s.write(p))
+    }
+}
+
+/// The reply body of a server-streaming call: each message of `stream` as its [`Framed`] pieces,
+/// one HTTP/2 data frame each (at most; the server's reply layer cuts them further), then the
+/// call's trailers: OK when the stream ends, the status of the stream's error or of a message
+/// over the size limit otherwise (after which nothing more is sent, as with tonic's codec).
 pub struct FrameBody<S> {
     stream: S,
     pieces: VecDeque<Bytes>,
@@ -228,7 +256,7 @@ impl<S> FrameBody<S> {
     }
 }
 
-impl<S: Stream<Item = Result<pb::SampleBatch, Status>> + Unpin> Body for FrameBody<S> {
+impl<M: Framed, S: Stream<Item = Result<M, Status>> + Unpin> Body for FrameBody<S> {
     type Data = Bytes;
     type Error = Status;
 
@@ -240,7 +268,7 @@ impl<S: Stream<Item = Result<pb::SampleBatch, Status>> + Unpin> Body for FrameBo
             return Poll::Ready(Some(Ok(Frame::data(piece))));
         }
         match ready!(Pin::new(&mut self.stream).poll_next(cx)) {
-            Some(Ok(batch)) => match batch_frame(batch, self.limit) {
+            Some(Ok(message)) => match message.frame(self.limit) {
                 Ok(pieces) => {
                     self.pieces.extend(pieces);
                     let first = self.pieces.pop_front().unwrap_or_default();
@@ -311,20 +339,27 @@ mod tests {
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(64))]
 
-        /// The pieces, concatenated, are the gRPC frame of prost's encoding of the batch, for any
-        /// batch (no sample, several, tensors empty, small, at the piece threshold and large), and
-        /// the large data are the tensors' own buffers.
+        /// The pieces, concatenated, are the gRPC frame of prost's encoding of the batch (and of
+        /// each sample alone), for any batch (no sample, several, tensors empty, small, at the
+        /// piece threshold and large), and the large data are the tensors' own buffers.
         #[test]
         fn the_pieces_are_the_frame_of_prosts_encoding(
             samples in proptest::collection::vec(arb_sample(), 0..3),
             next_index in any::<u64>(),
             resume in any::<u64>(),
         ) {
+            // each sample alone (GetSamples' message)
+            for s in &samples {
+                let joined: Vec<u8> = s.clone().frame(usize::MAX).unwrap().iter().flat_map(|p| p.iter().copied()).collect();
+                let encoded = s.encode_to_vec();
+                prop_assert_eq!(&joined[..5], &[&[0u8][..], &(encoded.len() as u32).to_be_bytes()[..]].concat()[..]);
+                prop_assert_eq!(&joined[5..], &encoded[..]);
+            }
             let batch = pb::SampleBatch { samples, next_index, resume_start_index: resume };
             let encoded = batch.encode_to_vec();
             let big: Vec<(usize, usize)> = batch.samples.iter().flat_map(|s| &s.tensors)
                 .filter(|t| t.data.len() >= OWN_PIECE_BYTES).map(|t| (t.data.as_ptr() as usize, t.data.len())).collect();
-            let pieces = batch_frame(batch, usize::MAX).unwrap();
+            let pieces = batch.frame(usize::MAX).unwrap();
             let joined: Vec<u8> = pieces.iter().flat_map(|p| p.iter().copied()).collect();
             prop_assert_eq!(joined[0], 0);
             prop_assert_eq!(u32::from_be_bytes(joined[1..5].try_into().unwrap()) as usize, encoded.len());
@@ -346,10 +381,10 @@ mod tests {
             pb::Sample { tensors: vec![tensor("image1".into(), vec![2], 1, vec![7; 10_000])], ..Default::default() };
         let batch = pb::SampleBatch { samples: vec![sample], next_index: 1, resume_start_index: 0 };
         let len = batch.encoded_len();
-        let err = batch_frame(batch.clone(), len - 1).unwrap_err();
+        let err = batch.clone().frame(len - 1).unwrap_err();
         assert_eq!(err.code(), tonic::Code::OutOfRange);
         assert!(err.message().contains(&format!("found {len} bytes")), "{}", err.message());
-        let ok = batch_frame(batch, len).unwrap();
+        let ok = batch.frame(len).unwrap();
         assert_eq!(ok.iter().map(Bytes::len).sum::<usize>(), len + 5);
     }
 

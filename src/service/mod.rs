@@ -5,7 +5,7 @@
 //! worker pool ([`pool`]: rayon workers, a bounded queue per stream, a global in-flight bound,
 //! round-robin between streams); samples are cropped and encoded on the workers ([`encode`], a
 //! tensor's bytes made from the sample's buffers without copies: [`tensor`]); [`codec`] puts the
-//! messages on the wire, and [`frames`] StreamSamples' batches, their tensors uncopied.
+//! messages on the wire, and [`frames`] the sample streams', their tensors uncopied.
 //! Errors map to gRPC codes in one place ([`error`]). The server ([`server`]) adds health,
 //! reflection, Prometheus [`metrics`] and graceful drain; [`config`] holds the keys, read from
 //! the TOML file, the `MPIFLOW_*` variables and the flags, layered ([`layers`]); [`security`]

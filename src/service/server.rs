@@ -2,6 +2,7 @@
 //! listener, health, reflection, metrics), warm-up, and graceful drain. Handlers stay thin:
 //! validate, call the domain (dataset, pool), convert back.
 
+use std::convert::Infallible;
 use std::net::SocketAddr;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -500,13 +501,7 @@ impl MpiFlow for Service {
         request: Request<pb::SamplesRequest>,
     ) -> Result<Response<Self::GetSamplesStream>, Status> {
         let stream = refused(&self.state, self.state.open_samples(request.get_ref(), peer_key(&request)))?;
-        // one sample per batch (batch_size 1): each message is that sample
-        let samples = stream.map(|b| {
-            b.and_then(|b| {
-                b.samples.into_iter().next().ok_or_else(|| ServiceError::Internal("an empty batch".into()).into())
-            })
-        });
-        Ok(Response::new(Box::pin(samples)))
+        Ok(Response::new(Box::pin(samples_of(stream))))
     }
 
     async fn upload_sources(
@@ -522,15 +517,18 @@ impl MpiFlow for Service {
     }
 }
 
-/// The path of StreamSamples, answered by [`StreamRoute`].
+/// The calls answered by [`SampleRoutes`]: the sample streams.
 const STREAM_SAMPLES_PATH: &str = "/mpiflow.v1.MpiFlow/StreamSamples";
+const GET_SAMPLES_PATH: &str = "/mpiflow.v1.MpiFlow/GetSamples";
 
-/// The `mpiflow.v1.MpiFlow` service as served: StreamSamples answered here with the reply body of
-/// [`super::frames`] (the tensors handed to HTTP/2 without a copy), every other call by tonic's
-/// generated service. The request is decoded by tonic's own decoder, with the same size limit and
-/// errors; the token check, the reply layer and the connection limits wrap both alike.
+/// The `mpiflow.v1.MpiFlow` service as served: the sample streams (StreamSamples, GetSamples)
+/// answered here with the reply body of [`super::frames`] (the tensors handed to HTTP/2 without a
+/// copy), every other call by tonic's generated service. The request is decoded by tonic's own
+/// decoder, with the same size limit and errors, and opened by the same [`State`] methods as the
+/// generated service's handlers; the token check, the reply layer and the connection limits wrap
+/// both alike.
 #[derive(Clone)]
-struct StreamRoute<S> {
+struct SampleRoutes<S> {
     inner: S,
     state: Arc<State>,
     /// `max_request_bytes` and `max_message_bytes`
@@ -538,69 +536,99 @@ struct StreamRoute<S> {
     max_message: usize,
 }
 
-impl<S> tonic::server::NamedService for StreamRoute<S> {
+impl<S> tonic::server::NamedService for SampleRoutes<S> {
     const NAME: &'static str = SERVICE_NAME;
 }
 
-impl<S> tower::Service<http::Request<tonic::body::Body>> for StreamRoute<S>
+type RouteFuture =
+    Pin<Box<dyn std::future::Future<Output = Result<http::Response<tonic::body::Body>, Infallible>> + Send>>;
+
+impl<S> tower::Service<http::Request<tonic::body::Body>> for SampleRoutes<S>
 where
     S: tower::Service<
         http::Request<tonic::body::Body>,
         Response = http::Response<tonic::body::Body>,
-        Error = std::convert::Infallible,
+        Error = Infallible,
     >,
     S::Future: Send + 'static,
 {
     type Response = http::Response<tonic::body::Body>;
-    type Error = std::convert::Infallible;
-    type Future = Pin<Box<dyn std::future::Future<Output = Result<Self::Response, Self::Error>> + Send>>;
+    type Error = Infallible;
+    type Future = RouteFuture;
 
     fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Self::Error>> {
         self.inner.poll_ready(cx)
     }
 
     fn call(&mut self, req: http::Request<tonic::body::Body>) -> Self::Future {
-        if req.uri().path() != STREAM_SAMPLES_PATH {
-            return Box::pin(self.inner.call(req));
-        }
         let (state, max_request, max_message) = (self.state.clone(), self.max_request, self.max_message);
-        Box::pin(async move {
-            Ok(match open_stream_call(&state, req, max_request).await {
-                Ok(stream) => {
-                    let body = tonic::body::Body::new(super::frames::FrameBody::new(stream, max_message));
-                    let mut response = http::Response::new(body);
-                    response
-                        .headers_mut()
-                        .insert(http::header::CONTENT_TYPE, http::HeaderValue::from_static("application/grpc"));
-                    response
-                }
-                Err(status) => status.into_http(),
-            })
-        })
+        match req.uri().path() {
+            STREAM_SAMPLES_PATH => {
+                Box::pin(reply(req, max_request, max_message, move |r: Request<pb::StreamRequest>| {
+                    refused(&state, state.open_stream(r.get_ref(), peer_key(&r)))
+                }))
+            }
+            GET_SAMPLES_PATH => {
+                Box::pin(reply(req, max_request, max_message, move |r: Request<pb::SamplesRequest>| {
+                    refused(&state, state.open_samples(r.get_ref(), peer_key(&r))).map(samples_of)
+                }))
+            }
+            _ => Box::pin(self.inner.call(req)),
+        }
     }
 }
 
-/// A StreamSamples request decoded (tonic's decoder, at most `max_request` bytes; no request
-/// compression, as the generated service) and its stream opened.
-async fn open_stream_call(
-    state: &Arc<State>,
+/// A sample stream's reply: the request decoded (tonic's decoder, at most `max_request` bytes; no
+/// request compression, as the generated service), the stream opened by `open`, its messages
+/// sent by [`super::frames::FrameBody`]; a refusal as tonic's trailers-only reply.
+async fn reply<Q, S, M>(
     req: http::Request<tonic::body::Body>,
     max_request: usize,
-) -> Result<CountedStream, Status> {
-    if let Some(enc) = req.headers().get("grpc-encoding").filter(|v| v.as_bytes() != b"identity") {
-        let mut status = Status::unimplemented(format!(
-            "Content is compressed with `{}` which isn't supported",
-            String::from_utf8_lossy(enc.as_bytes())
-        ));
-        status.metadata_mut().insert("grpc-accept-encoding", tonic::metadata::MetadataValue::from_static("identity"));
-        return Err(status);
-    }
-    let (parts, body) = req.into_parts();
-    let decoder = tonic_prost::ProstDecoder::<pb::StreamRequest>::new(tonic::codec::BufferSettings::default());
-    let mut messages = Streaming::new_request(decoder, body, None, Some(max_request));
-    let message = messages.message().await?.ok_or_else(|| Status::internal("Missing request message."))?;
-    let request = Request::from_http(http::Request::from_parts(parts, message));
-    refused(state, state.open_stream(request.get_ref(), peer_key(&request)))
+    max_message: usize,
+    open: impl FnOnce(Request<Q>) -> Result<S, Status>,
+) -> Result<http::Response<tonic::body::Body>, Infallible>
+where
+    Q: prost::Message + Default + Send + 'static,
+    S: Stream<Item = Result<M, Status>> + Send + Unpin + 'static,
+    M: super::frames::Framed + Send + 'static,
+{
+    let opened = async {
+        if let Some(enc) = req.headers().get("grpc-encoding").filter(|v| v.as_bytes() != b"identity") {
+            let mut status = Status::unimplemented(format!(
+                "Content is compressed with `{}` which isn't supported",
+                String::from_utf8_lossy(enc.as_bytes())
+            ));
+            status
+                .metadata_mut()
+                .insert("grpc-accept-encoding", tonic::metadata::MetadataValue::from_static("identity"));
+            return Err(status);
+        }
+        let (parts, body) = req.into_parts();
+        let decoder = tonic_prost::ProstDecoder::<Q>::new(tonic::codec::BufferSettings::default());
+        let mut messages = Streaming::new_request(decoder, body, None, Some(max_request));
+        let message = messages.message().await?.ok_or_else(|| Status::internal("Missing request message."))?;
+        open(Request::from_http(http::Request::from_parts(parts, message)))
+    };
+    Ok(match opened.await {
+        Ok(stream) => {
+            let mut response =
+                http::Response::new(tonic::body::Body::new(super::frames::FrameBody::new(stream, max_message)));
+            response
+                .headers_mut()
+                .insert(http::header::CONTENT_TYPE, http::HeaderValue::from_static("application/grpc"));
+            response
+        }
+        Err(status) => status.into_http(),
+    })
+}
+
+/// GetSamples' messages: the stream's batches hold one sample each (batch_size 1), sent alone.
+fn samples_of(stream: CountedStream) -> impl Stream<Item = Result<pb::Sample, Status>> + Send + Unpin {
+    stream.map(|b| {
+        b.and_then(|b| {
+            b.samples.into_iter().next().ok_or_else(|| ServiceError::Internal("an empty batch".into()).into())
+        })
+    })
 }
 
 /// A started server.
@@ -713,7 +741,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
     let reflection_v1alpha = reflection().build_v1alpha().map_err(refl_err)?;
     let limit = config.max_message_bytes() as usize;
     let max_request = config.max_request_bytes() as usize;
-    let service = StreamRoute {
+    let service = SampleRoutes {
         inner: MpiFlowServer::new(Service { state: state.clone() })
             .max_decoding_message_size(max_request)
             .max_encoding_message_size(limit),
