@@ -8,7 +8,7 @@ use std::sync::mpsc::sync_channel;
 use clap::Args;
 use mpiflow::export::{ExportFormat, ExportOptions, Exporter, PreviewOptions};
 use mpiflow::service::client::{connect_with, pull};
-use mpiflow::service::encode::{decode_tensor, from_proto};
+use mpiflow::service::encode::{from_proto, raw_view};
 use mpiflow::service::error::cursor_of;
 use mpiflow::service::pb;
 
@@ -26,7 +26,7 @@ pub struct PullArgs {
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
     count: u64,
     /// Save the samples here (in the --format layout, with previews); without it samples are
-    /// received, decoded and dropped (for benchmarks).
+    /// received, their tensors checked (shape, size, lz4) and dropped (for benchmarks).
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
     /// Layout of --out: flo, kitti, webdataset, sintel (clips) or stereo (rectified pairs; needs
@@ -169,7 +169,8 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
             let mut n = 0;
             for s in rx {
                 for t in &s.tensors {
-                    decode_tensor(t).map_err(|e| format!("sample {}: {e}", s.index))?;
+                    // checked and decompressed as a trainer's client would, not copied
+                    raw_view(t).map_err(|e| format!("sample {}: {e}", s.index))?;
                 }
                 n += 1;
             }
