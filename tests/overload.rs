@@ -73,11 +73,23 @@ async fn raw_call(
     method: &str,
     body: &[u8],
 ) -> http::Response<h2::RecvStream> {
-    let req = http::Request::post(format!("http://localhost/mpiflow.v1.MpiFlow/{method}"))
+    raw_call_with(send, method, body, &[]).await
+}
+
+/// [`raw_call`] with more request headers.
+async fn raw_call_with(
+    send: &mut h2::client::SendRequest<Bytes>,
+    method: &str,
+    body: &[u8],
+    headers: &[(&str, &str)],
+) -> http::Response<h2::RecvStream> {
+    let mut req = http::Request::post(format!("http://localhost/mpiflow.v1.MpiFlow/{method}"))
         .header("content-type", "application/grpc")
-        .header("te", "trailers")
-        .body(())
-        .unwrap();
+        .header("te", "trailers");
+    for (k, v) in headers {
+        req = req.header(*k, *v);
+    }
+    let req = req.body(()).unwrap();
     let mut ready = send.clone().ready().await.expect("the connection takes a call");
     let (response, mut stream) = ready.send_request(req, false).unwrap();
     stream.send_data(grpc_frame(body), true).unwrap();
@@ -171,6 +183,28 @@ async fn malformed_request_messages_are_invalid_argument() {
             }
         };
         assert_eq!(code, Code::InvalidArgument as i32, "{method}");
+    }
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// A request compressed with an encoding the server does not take gets the same trailers-only
+/// reply on every RPC (UNIMPLEMENTED, naming the encoding, `grpc-accept-encoding: identity`): the
+/// sample streams, answered by the service's own route, as the calls of tonic's generated service.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn compressed_requests_are_refused_alike_on_every_rpc() {
+    let s = server(config()).await;
+    let (mut send, _conn) = h2_connection(s.addr, 1 << 20).await;
+    let mut replies = Vec::new();
+    for method in ["GetSample", "StreamSamples", "GetSamples", "GetInfo", "UploadSources"] {
+        let r = raw_call_with(&mut send, method, &[], &[("grpc-encoding", "gzip")]).await;
+        assert_eq!(header_status(&r), Some(Code::Unimplemented as i32), "{method}");
+        let h = |k: &str| r.headers().get(k).map(|v| v.to_str().unwrap().to_owned());
+        let message = h("grpc-message").unwrap_or_default();
+        assert!(message.contains("gzip"), "{method}: {message}");
+        replies.push((method, message, h("grpc-accept-encoding")));
+    }
+    for (method, message, accept) in &replies[1..] {
+        assert_eq!((message, accept), (&replies[0].1, &replies[0].2), "{method} against GetSample");
     }
     s.shutdown(Duration::from_millis(500)).await;
 }

@@ -1,6 +1,7 @@
 //! The tonic service (`mpiflow.v1.MpiFlow`) and the server around it: start-up (datasets, models,
 //! listener, health, reflection, metrics), warm-up, and graceful drain. Handlers stay thin:
-//! validate, call the domain (dataset, pool), convert back.
+//! validate, call the domain (dataset, pool), convert back. The sample streams' replies are
+//! written by [`super::frames`] through `SampleRoutes`, in front of the generated service.
 
 use std::convert::Infallible;
 use std::net::SocketAddr;
