@@ -63,7 +63,13 @@ fn layering(c: &mut Criterion) {
     let mut g = c.benchmark_group("build_mpi 640x480x32");
     g.sample_size(10);
     for layering in [Layering::Hard, Layering::Soft] {
-        let o = LayeringOptions { planes: 32, layering, disparity_range: None, backdrop: false };
+        let o = LayeringOptions {
+            planes: 32,
+            layering,
+            disparity_range: None,
+            backdrop: false,
+            ..LayeringOptions::default()
+        };
         g.bench_function(format!("{layering:?}"), |b| b.iter(|| build_mpi(&rgb, &depth, w, h, &o).unwrap()));
     }
     g.finish();

@@ -8,7 +8,7 @@ use mpiflow::mpi::Mpi;
 use mpiflow::render::{render, Mode, RenderOutput, RenderParams, Skip};
 
 fn opts(planes: usize, layering: Layering) -> LayeringOptions {
-    LayeringOptions { planes, layering, disparity_range: None, backdrop: false }
+    LayeringOptions { planes, layering, disparity_range: None, backdrop: false, ..LayeringOptions::default() }
 }
 
 /// A smooth but varied texture in [0, 1].

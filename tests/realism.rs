@@ -9,11 +9,11 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
-use mpiflow::bench::quality::quality;
 use mpiflow::bench::quality::QualityReport;
+use mpiflow::bench::quality::{quality, quality_same_motions};
 use mpiflow::sample::background::Background;
 use mpiflow::sample::config::{MotionSpec, SampleConfig};
-use mpiflow::sample::motion::{MotionPreset, MotionRanges};
+use mpiflow::sample::motion::MotionPreset;
 use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;
@@ -83,20 +83,22 @@ fn samples_with_the_completed_background_are_a_pure_function_of_their_address() 
     assert_eq!(a.holes, b.holes);
 }
 
-/// A mask of most of the frame (the example photo's cat, `tests/data/rgbd/chelsea`, 83%): the
-/// default law's reveal budget moves it by less, so image2 leaves at most 3% to inpainting, where
-/// the same law without the budget leaves much more; the labels stay honest either way.
+/// A mask of most of the frame (the example photo's cat, `tests/data/rgbd/chelsea`, 83%): on the
+/// same camera and object draws, the default law with the opt-in reveal budget moves the cat by
+/// less than the default law (no budget), so image2 reveals less and leaves fewer holes to
+/// inpainting; the labels stay honest either way.
 #[test]
 fn the_reveal_budget_moves_a_large_mask_by_less() {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/rgbd/chelsea");
     let p = pipeline_of(dir, false);
-    let budgeted = SampleConfig { backward: true, ..SampleConfig::default() };
-    let free = SampleConfig {
-        motion: MotionSpec::Ranges(Box::new(MotionRanges { reveal_budget: None, ..MotionPreset::Reference.ranges() })),
-        ..budgeted.clone()
+    let free = SampleConfig { backward: true, ..SampleConfig::default() };
+    let budgeted = SampleConfig {
+        motion: MotionSpec::Ranges(Box::new(MotionPreset::Reference.ranges().with_reveal_budget())),
+        ..free.clone()
     };
-    let with = quality(p.generator(), &budgeted, 0, 8).unwrap();
-    let without = quality(p.generator(), &free, 0, 8).unwrap();
+    // the addresses of the default configuration: the same draws, the budget the only difference
+    let with = quality_same_motions(p.generator(), &budgeted, 0, 8).unwrap();
+    let without = quality_same_motions(p.generator(), &free, 0, 8).unwrap();
     for (name, r) in [("budget", &with), ("no budget", &without)] {
         println!(
             "{name}: holes {:.4}, revealed {:.4}, photometric {:.4}, laws {:?}",
@@ -105,6 +107,45 @@ fn the_reveal_budget_moves_a_large_mask_by_less() {
         assert_eq!(r.with_objects, 8, "{name}: every sample moves the cat");
         assert_eq!(r.laws.holes + r.laws.label + r.laws.depth, 0, "{name}: {:?}", r.laws);
     }
-    assert!(with.hole_fraction <= 0.03, "{}", with.hole_fraction);
-    assert!(without.hole_fraction > 2.0 * with.hole_fraction, "{} / {}", without.hole_fraction, with.hole_fraction);
+    assert!(with.hole_fraction < without.hole_fraction, "{} / {}", with.hole_fraction, without.hole_fraction);
+    assert!(
+        with.realism.revealed < 0.8 * without.realism.revealed,
+        "revealed {} / {}",
+        with.realism.revealed,
+        without.realism.revealed
+    );
+}
+
+/// The default law moves objects by its draw, unscaled: on Cones (the front cones, a sixth of
+/// the frame) every recorded object motion lies within the reference object law, and the
+/// object's translation relative to the camera's is about a fifth of the camera's (the law's
+/// median is 0.2; a reveal budget scales it to about 0.01 on this mask).
+#[test]
+fn objects_move_by_the_laws_draw_unscaled() {
+    let p = pipeline(true);
+    let law = MotionPreset::Reference.ranges().object;
+    let bound = |c: &mpiflow::sample::motion::Component| c.bounds().0.abs().max(c.bounds().1.abs()) + 1e-12;
+    let mut ratios = Vec::new();
+    for index in 0..16 {
+        let s = p.generator().sample(0, index).unwrap();
+        for o in &s.objects {
+            let m = &o.motion;
+            let t = law.translation;
+            for (v, c) in m.translation.iter().zip([&t.x, &t.y, &t.z]) {
+                assert!(v.abs() <= bound(c), "sample {index}: translation {:?} outside the law", m.translation);
+            }
+            let r = law.rotation;
+            for (v, c) in m.axis_angle.iter().zip([&r.x, &r.y, &r.z]) {
+                assert!(v.abs() <= bound(c), "sample {index}: rotation {:?} outside the law", m.axis_angle);
+            }
+            let rel: f64 = (0..3).map(|k| (m.translation[k] - s.camera.translation[k]).powi(2)).sum::<f64>().sqrt();
+            let cam: f64 = s.camera.translation.iter().map(|v| v * v).sum::<f64>().sqrt();
+            ratios.push(rel / cam);
+        }
+    }
+    assert!(ratios.len() >= 12, "{} of 16 samples moved an object", ratios.len());
+    ratios.sort_by(f64::total_cmp);
+    let median = ratios[ratios.len() / 2];
+    println!("|t_obj - t_cam| / |t_cam|: median {median:.3} over {} objects", ratios.len());
+    assert!(median >= 0.1, "median {median}: object motion scaled down");
 }

@@ -14,7 +14,7 @@ use mpiflow::sample::config::{InpaintMethod, MotionSpec, SampleConfig};
 use mpiflow::sample::error::SampleError;
 use mpiflow::sample::holes::inpaint_holes;
 use mpiflow::sample::merge::MergeRule;
-use mpiflow::sample::motion::{Component, Motion, MotionPreset, MotionRanges, RigidLaw, RotationKind};
+use mpiflow::sample::motion::{Component, Motion, MotionPreset, RigidLaw, RotationKind};
 use mpiflow::sample::object::ObjectChoice;
 use mpiflow::sample::pipeline::Generator;
 use mpiflow::sample::recipe::{assemble, assemble_merged};
@@ -91,8 +91,13 @@ impl SceneLoader for Procedural {
                 rgb[3 * o..3 * o + 3].copy_from_slice(&c);
             }
         }
-        let opts =
-            LayeringOptions { planes: self.planes, layering: Layering::Soft, disparity_range: None, backdrop: false };
+        let opts = LayeringOptions {
+            planes: self.planes,
+            layering: Layering::Soft,
+            disparity_range: None,
+            backdrop: false,
+            ..LayeringOptions::default()
+        };
         let mpi = build_mpi_for_camera(&rgb, &depth, W, H, &opts, &k)?;
         let mut masks = InstanceMasks::from_index_map(&ids, W, H)?;
         // distinct scores so that the ranking is by score: id 2 first, then 1, then 3
@@ -187,17 +192,12 @@ fn within(law: &RigidLaw, m: &Motion) {
     assert_eq!(m.rotation_kind, law.rotation_kind);
 }
 
-/// A preset's laws without its reveal budget: the objects' records are the drawn motions (with
-/// the budget a large object's record is the motion it was scaled down to).
-fn unbudgeted(preset: MotionPreset) -> MotionSpec {
-    MotionSpec::Ranges(Box::new(MotionRanges { reveal_budget: None, ..preset.ranges() }))
-}
-
 #[test]
 fn motions_stay_within_each_presets_ranges() {
     for preset in MotionPreset::ALL {
         let ranges = preset.ranges();
-        let config = SampleConfig { max_objects: 3, motion: unbudgeted(preset), ..SampleConfig::with_preset(preset) };
+        // the presets carry no reveal budget: the objects' records are the drawn motions
+        let config = SampleConfig { max_objects: 3, ..SampleConfig::with_preset(preset) };
         let g = generator(Procedural::new(3), config);
         for index in 0..12 {
             let s = g.sample(1, index).unwrap();
@@ -339,7 +339,7 @@ fn every_inpainting_method_fills_the_holes_as_the_whole_frame_call_does() {
     }
     // the same address under objects_follow_camera (the option is part of the fingerprint, so
     // the address is given explicitly)
-    let plain = SampleConfig { motion: unbudgeted(MotionPreset::Reference), ..SampleConfig::default() };
+    let plain = SampleConfig::default();
     let g = generator(Procedural::new(2), plain.clone());
     let b = g.sample(0, 1).unwrap();
     let scene = g.scene(g.source_item(1).unwrap()).unwrap();

@@ -55,8 +55,13 @@ fn wall_scene(square: (usize, usize, usize, usize), pole: Option<(usize, usize)>
             rgb[3 * i..3 * i + 3].copy_from_slice(&c);
         }
     }
-    let opts =
-        LayeringOptions { planes: 4, layering: Layering::Hard, disparity_range: Some((1.0, 0.25)), backdrop: false };
+    let opts = LayeringOptions {
+        planes: 4,
+        layering: Layering::Hard,
+        disparity_range: Some((1.0, 0.25)),
+        backdrop: false,
+        ..LayeringOptions::default()
+    };
     let mpi = build_mpi_for_camera(&rgb, &depth, W, H, &opts, &k).unwrap();
     assert_eq!(mpi.disparity, vec![1.0, 0.75, 0.5, 0.25]);
     let masks = InstanceMasks { width: W, height: H, masks: vec![Instance::new(1, 0.9, mask)] };
@@ -327,7 +332,13 @@ fn textured_scene(w: usize, h: usize, planes: usize) -> Scene {
             rgb[3 * i..3 * i + 3].copy_from_slice(&c);
         }
     }
-    let opts = LayeringOptions { planes, layering: Layering::Soft, disparity_range: None, backdrop: false };
+    let opts = LayeringOptions {
+        planes,
+        layering: Layering::Soft,
+        disparity_range: None,
+        backdrop: false,
+        ..LayeringOptions::default()
+    };
     let mpi = build_mpi_for_camera(&rgb, &depth, w, h, &opts, &k).unwrap();
     let mut disp: Vec<f32> = depth.iter().map(|d| 1.0 / d).collect();
     let max = disp.iter().copied().fold(0.0, f32::max);
@@ -624,7 +635,13 @@ fn tiny_scenes_and_the_reference_mode_give_finite_samples() {
         let k = Intrinsics::reference_default(w, h);
         let rgb: Vec<f32> = (0..w * h * 3).map(|i| (i % 5) as f32 / 5.0).collect();
         let depth: Vec<f32> = (0..w * h).map(|i| 1.0 + (i % 3) as f32).collect();
-        let opts = LayeringOptions { planes: 4, layering: Layering::Soft, disparity_range: None, backdrop: false };
+        let opts = LayeringOptions {
+            planes: 4,
+            layering: Layering::Soft,
+            disparity_range: None,
+            backdrop: false,
+            ..LayeringOptions::default()
+        };
         let mpi = build_mpi_for_camera(&rgb, &depth, w, h, &opts, &k).unwrap();
         let mut mask = vec![0.0f32; w * h];
         mask[0] = 1.0;

@@ -4,6 +4,7 @@
 pub mod accuracy;
 pub mod quality;
 pub mod realism;
+pub mod realview;
 pub mod sample;
 pub mod soak;
 

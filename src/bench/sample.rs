@@ -21,8 +21,8 @@ use crate::source::Fnv64;
 
 /// A synthetic RGB-D scene: a textured ground receding to a far wall, and (with `object`) an
 /// upright rounded box (about 7% of the image, soft 1.5-pixel mask edge) standing on the ground
-/// at depth 1.8, laid out by the built-in soft layering with `planes` planes.
-pub fn synthetic_scene(width: usize, height: usize, planes: usize, object: bool) -> Result<Scene, SceneError> {
+/// at depth 1.8, laid out by the built-in layering with `opts`.
+pub fn synthetic_scene(width: usize, height: usize, opts: &LayeringOptions, object: bool) -> Result<Scene, SceneError> {
     let k = Intrinsics::reference_default(width, height);
     let (w, h) = (width, height);
     let mut rgb = vec![0.0f32; w * h * 3];
@@ -53,9 +53,8 @@ pub fn synthetic_scene(width: usize, height: usize, planes: usize, object: bool)
             rgb[3 * i..3 * i + 3].copy_from_slice(&c);
         }
     }
-    let opts = LayeringOptions { planes, ..LayeringOptions::default() };
     let union: Vec<bool> = mask.iter().map(|&m| m >= 0.5).collect();
-    let mpi = build_mpi_for_scene(&rgb, &depth, w, h, &opts, &k, &union)?;
+    let mpi = build_mpi_for_scene(&rgb, &depth, w, h, opts, &k, &union)?;
     let near = depth.iter().copied().fold(f32::MAX, f32::min);
     let masks = if object {
         InstanceMasks { width: w, height: h, masks: vec![Instance::new(1, 1.0, mask)] }
@@ -69,7 +68,7 @@ pub fn synthetic_scene(width: usize, height: usize, planes: usize, object: bool)
         mpi: Arc::new(mpi),
         masks,
         intrinsics: k,
-        provenance: vec!["depth: synthetic".into(), format!("mpi: builtin soft {planes}")],
+        provenance: vec!["depth: synthetic".into(), format!("mpi: builtin {} {}", opts.layering, opts.planes)],
     })
 }
 
@@ -77,7 +76,7 @@ pub fn synthetic_scene(width: usize, height: usize, planes: usize, object: bool)
 struct Synthetic {
     width: usize,
     height: usize,
-    planes: usize,
+    layering: LayeringOptions,
     object: bool,
 }
 
@@ -93,11 +92,13 @@ impl SceneLoader for Synthetic {
     fn fingerprint(&self) -> u64 {
         let mut f = Fnv64::new();
         // the same with and without the object, so that both cases draw the same motions
-        f.str("bench-sample").u64(self.width as u64).u64(self.height as u64).u64(self.planes as u64).finish()
+        let o = &self.layering;
+        f.str("bench-sample").u64(self.width as u64).u64(self.height as u64).u64(o.planes as u64);
+        f.str(&format!("{} {} {}", o.layering, o.placement, o.backdrop)).finish()
     }
 
     fn load_scene(&self, _i: usize) -> Result<Scene, SceneError> {
-        synthetic_scene(self.width, self.height, self.planes, self.object)
+        synthetic_scene(self.width, self.height, &self.layering, self.object)
     }
 }
 
@@ -105,7 +106,8 @@ impl SceneLoader for Synthetic {
 pub struct SampleBenchConfig {
     pub width: usize,
     pub height: usize,
-    pub planes: usize,
+    /// The built-in layering of the scene.
+    pub layering: LayeringOptions,
     /// Timed samples (after one warm-up sample that loads the scene into the cache).
     pub samples: usize,
     /// Whether the scene has the moving object.
@@ -157,7 +159,7 @@ impl SampleBenchReport {
 /// Makes `samples` samples (indices 1..=samples after a warm-up at index 0) of the synthetic
 /// scene in the current rayon pool, each timed from the request to the finished sample.
 pub fn bench_sample(cfg: &SampleBenchConfig) -> Result<SampleBenchReport, SampleError> {
-    let loader = Synthetic { width: cfg.width, height: cfg.height, planes: cfg.planes, object: cfg.object };
+    let loader = Synthetic { width: cfg.width, height: cfg.height, layering: cfg.layering, object: cfg.object };
     let cache = Arc::new(SceneCache::new(4 << 30));
     let g = Generator::new(Arc::new(loader), cache, cfg.sample.clone())?;
     g.sample(cfg.seed, 0)?;

@@ -12,7 +12,6 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressState, ProgressStyle};
 use mpiflow::export::bake::{BakeLayout, Baker, Progress, Shard};
 use mpiflow::mpi::npz::MpiDtype;
 use mpiflow::sample::pipeline::{open_source, parse_size, OpenOptions, SourceSpec};
-use mpiflow::scene::models::ModelConfig;
 
 use super::CliError;
 
@@ -26,27 +25,11 @@ pub struct BakeArgs {
     /// shards of one bake.
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
-    /// Depth model for items without depth: a NAME (`mpiflow models list`; fetched and cached on
-    /// first use) or an ONNX FILE (optional manifest FILE.toml beside it; docs/models.md).
-    #[arg(long, value_name = "NAME|FILE")]
-    depth_model: Option<PathBuf>,
-    /// Instance segmentation model for items without masks: a NAME or an ONNX FILE.
-    #[arg(long, value_name = "NAME|FILE")]
-    segment_model: Option<PathBuf>,
-    /// MPI network (ONNX); its MPIs are baked into mpis/ (without it the server's built-in
-    /// layering lifts the baked disparity, which needs no model).
-    #[arg(long, value_name = "FILE.onnx")]
-    mpi_model: Option<PathBuf>,
-    /// MPI planes of the built-in layering (recorded; used to check items).
-    #[arg(long, value_name = "N", default_value_t = 32)]
-    planes: usize,
-    /// Layering of the built-in MPI: soft (the default) or hard (recorded; used to check items).
-    #[arg(long, default_value = "soft")]
-    layering: mpiflow::mpi::layering::Layering,
-    /// Complete the background behind objects and depth edges once per scene, and align the
-    /// object masks with their depth edges (built-in layering; docs/quality.md).
-    #[arg(long)]
-    backdrop: bool,
+    /// The scene models (with --mpi-model its MPIs are baked into mpis/; without it the server's
+    /// built-in layering lifts the baked disparity, which needs no model; the layering flags are
+    /// recorded and used to check items).
+    #[command(flatten)]
+    scene: super::scene_flags::SceneFlags,
     /// This job's part of the items: I of N (items whose id hashes to I mod N).
     #[arg(long, value_name = "I/N", default_value = "0/1")]
     shard: Shard,
@@ -97,14 +80,7 @@ pub fn run(a: BakeArgs) -> Result<(), CliError> {
     for s in source.skipped() {
         eprintln!("bake: left out {} ({}): {}", s.item, s.kind.as_str(), s.reason);
     }
-    let models = ModelConfig {
-        planes: a.planes,
-        layering: a.layering,
-        backdrop: a.backdrop,
-        depth_model: a.depth_model.clone(),
-        mpi_model: a.mpi_model.clone(),
-        segment_model: a.segment_model.clone(),
-    };
+    let models = a.scene.models();
     let stage = Arc::new(models.build_stage().map_err(CliError)?);
     mpiflow::scene::stage::SourceScenes::new(source.clone(), stage.clone())
         .check_can_make_scenes()

@@ -79,22 +79,23 @@ pub struct QualityBench {
     /// Alias-free minification (`minify`). With --sharpness: each kernel also gets a row with it.
     #[arg(long)]
     minify: bool,
-    /// MPI planes of the built-in layering (docs/quality.md: the sharpness ratio hardly moves
-    /// with it).
-    #[arg(long, value_name = "N", default_value_t = 32)]
-    planes: usize,
-    /// Layering of the built-in MPI: soft (the default) or hard.
-    #[arg(long, default_value = "soft")]
-    layering: mpiflow::mpi::layering::Layering,
-    /// Complete the background behind objects and depth edges and align the masks with them
-    /// (the built-in layering's `backdrop`).
-    #[arg(long)]
-    backdrop: bool,
+    #[command(flatten)]
+    scene: super::scene_flags::SceneFlags,
     /// What fills the holes: exemplar (texture from image1's background) or a Telea variant
     /// (telea, telea-known-only, telea-zero-order, telea-opencv). With --same-motions the rows
     /// keep the default method's motions.
     #[arg(long, value_name = "METHOD", default_value_t = mpiflow::sample::config::InpaintMethod::default())]
     inpaint: mpiflow::sample::config::InpaintMethod,
+    /// A real second photo of the scene, the right view of a rectified stereo pair (needs
+    /// `--source` in the reference layout with `depths/NAME.npy` for the left photo `NAME`): one
+    /// sample is rendered to the right camera and compared with it (image error, sharpness, flow
+    /// error against the measured disparity `FB / depth`; docs/quality.md, "The real view").
+    #[arg(long, value_name = "FILE", requires = "source")]
+    right_view: Option<PathBuf>,
+    /// Focal length times baseline of the stereo pair, in pixels times the depth file's units
+    /// (disparity = FB / depth).
+    #[arg(long, value_name = "FB", default_value_t = 100.0, requires = "right_view")]
+    focal_baseline: f64,
 }
 
 #[derive(Args, Debug)]
@@ -103,8 +104,16 @@ pub struct SampleBench {
     width: usize,
     #[arg(long, default_value_t = 480)]
     height: usize,
-    #[arg(long, default_value_t = 32)]
-    planes: usize,
+    /// Planes of the built-in layering (default: the scene models' default).
+    #[arg(long, value_name = "N")]
+    planes: Option<usize>,
+    /// Where the planes go: content or uniform (default: the scene models' default).
+    #[arg(long, value_name = "KIND")]
+    placement: Option<mpiflow::mpi::layering::Placement>,
+    /// Complete the background behind the object and depth edges (default: the scene models'
+    /// default, off).
+    #[arg(long, value_name = "BOOL", num_args = 0..=1, default_missing_value = "true")]
+    backdrop: Option<bool>,
     /// Timed samples per case (after one warm-up sample that fills the cache).
     #[arg(long, default_value_t = 10)]
     samples: usize,
@@ -170,7 +179,8 @@ pub struct RenderBench {
     width: usize,
     #[arg(long, default_value_t = 480)]
     height: usize,
-    #[arg(long, default_value_t = 32)]
+    /// Planes of the synthetic MPI (default: the scene models' default).
+    #[arg(long, default_value_t = mpiflow::scene::models::ModelConfig::default().planes)]
     planes: usize,
     #[arg(long, default_value_t = 10)]
     runs: usize,
@@ -285,6 +295,56 @@ fn realism_table(run: &RunQuality<'_>, base: &mpiflow::sample::config::SampleCon
     Ok(())
 }
 
+/// `bench quality --right-view`: the left photo rendered to the right camera against the right
+/// photo (`bench::realview`).
+fn real_view_table(
+    p: &mpiflow::sample::pipeline::Pipeline,
+    base: &mpiflow::sample::config::SampleConfig,
+    q: &QualityBench,
+    right: &std::path::Path,
+) -> Result<(), CliError> {
+    use mpiflow::bench::realview::RealView;
+    use mpiflow::io::image::{load_rgb, rgb_to_u8, ImageLimits};
+    use mpiflow::sample::config::{MotionSpec, SampleConfig};
+    if q.size.is_some() {
+        return Err(CliError("--right-view compares at the photos' own size: leave out --size".into()));
+    }
+    let source = q.source.as_deref().unwrap_or(std::path::Path::new("."));
+    let stem = right.file_stem().and_then(|s| s.to_str()).unwrap_or_default();
+    let depth_path = source.join("depths").join(format!("{stem}.npy"));
+    let img = load_rgb(right, &ImageLimits::default()).map_err(|e| CliError(format!("{}: {e}", right.display())))?;
+    let depth = mpiflow::io::npy::read_npy_file(&depth_path).map_err(|e| {
+        CliError(format!("{}: {e} (the left photo's depth, needed by --right-view)", depth_path.display()))
+    })?;
+    let view =
+        RealView::new(img.width, img.height, rgb_to_u8(&img), &depth.data, q.focal_baseline).ok_or_else(|| {
+            CliError(format!(
+                "{} ({}x{}) and {} ({} values): expected the same size and at least one known depth",
+                right.display(),
+                img.width,
+                img.height,
+                depth_path.display(),
+                depth.data.len()
+            ))
+        })?;
+    let law = view.law(view.default_fx(), q.focal_baseline);
+    let c = SampleConfig { motion: MotionSpec::Ranges(Box::new(law)), max_objects: 0, ..base.clone() };
+    let g = p.generator().with_config(c).map_err(|e| CliError(e.to_string()))?;
+    let src = p.source();
+    let item = (0..src.len()).find(|&i| std::path::Path::new(&src.id(i)).file_stem().is_some_and(|n| n == stem));
+    let item = item.ok_or_else(|| CliError(format!("--right-view: the source has no photo named {stem}")))?;
+    let s = g.sample(q.seed, item as u64).map_err(|e| CliError(e.to_string()))?;
+    let r = view
+        .compare(&s)
+        .ok_or_else(|| CliError("--right-view: the sample's size differs from the right view".into()))?;
+    println!(
+        "| real view | MAE /255 (pair floor) | sharpness vs the right photo | flow EPE px vs measured disparity |"
+    );
+    println!("|---|---|---|---|");
+    println!("| {} | {:.2} ({:.2}) | {:.3} | {:.4} |", right.display(), r.mae, r.floor, r.sharpness, r.epe);
+    Ok(())
+}
+
 /// A figure with three decimals, or `-` when there is none.
 fn opt3(v: Option<f64>) -> String {
     v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"))
@@ -297,7 +357,6 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     use mpiflow::sample::merge::{LabelRule, MergeRule};
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
     use mpiflow::scene::cache::SceneCache;
-    use mpiflow::scene::models::ModelConfig;
     use std::sync::Arc;
     if q.count == 0 || q.count > 100_000 {
         return Err(CliError("--count must be 1 to 100000".into()));
@@ -305,7 +364,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     let spec = q.source.clone().map_or(SourceSpec::Builtin, SourceSpec::Path);
     let source = open_source(&spec, &OpenOptions { resize: q.size, ..OpenOptions::default() })
         .map_err(|e| CliError(e.to_string()))?;
-    let models = ModelConfig { planes: q.planes, layering: q.layering, backdrop: q.backdrop, ..ModelConfig::default() };
+    let models = q.scene.models();
     let stage = Arc::new(models.build_stage().map_err(|e| CliError(e.to_string()))?);
     let mut base = SampleConfig::with_preset(q.preset);
     let mut motion = q.preset.to_string();
@@ -341,6 +400,9 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         }
         .map_err(|e| CliError(e.to_string()))
     };
+    if let Some(right) = &q.right_view {
+        real_view_table(&p, &base, &q, right)?;
+    }
     if q.sharpness {
         // every kernel on the same motions (the addresses of the base configuration)
         let same = |c: &SampleConfig| {
@@ -511,7 +573,14 @@ fn render(b: RenderBench) -> Result<(), CliError> {
 fn sample(b: SampleBench) -> Result<(), CliError> {
     use mpiflow::bench::sample::{bench_sample, SampleBenchConfig};
     use mpiflow::sample::config::SampleConfig;
-    if b.width < 16 || b.height < 16 || b.width * b.height > 16 << 20 || b.planes == 0 || b.planes > 256 {
+    let d = mpiflow::scene::models::ModelConfig::default();
+    let models = mpiflow::scene::models::ModelConfig {
+        planes: b.planes.unwrap_or(d.planes),
+        placement: b.placement.unwrap_or(d.placement),
+        backdrop: b.backdrop.unwrap_or(d.backdrop),
+        ..d
+    };
+    if b.width < 16 || b.height < 16 || b.width * b.height > 16 << 20 || models.planes == 0 || models.planes > 256 {
         return Err(CliError("bench sizes must be 16x16 to 16 Mpx and 1 to 256 planes".into()));
     }
     if b.samples == 0 || b.samples > 10_000 {
@@ -539,7 +608,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         let cfg = SampleBenchConfig {
             width: b.width,
             height: b.height,
-            planes: b.planes,
+            layering: models.layering_options(),
             samples: b.samples,
             object,
             seed: b.seed,
@@ -548,10 +617,12 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
         };
         let r = pool.install(|| bench_sample(&cfg))?;
         println!(
-            "{}x{}, {} planes, {} moving object{}, {:?} merge, {} motions, {}, {} frames{}{}{}{}:",
+            "{}x{}, {} planes ({} placement{}), {} moving object{}, {:?} merge, {} motions, {}, {} frames{}{}{}{}:",
             b.width,
             b.height,
-            b.planes,
+            models.planes,
+            models.placement,
+            if models.backdrop { ", completed background" } else { "" },
             r.objects,
             if r.objects == 1 { "" } else { "s" },
             b.merge,

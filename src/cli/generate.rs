@@ -76,9 +76,10 @@ pub struct GenerateArgs {
     /// behind by depth; holes never occlude).
     #[arg(long, value_name = "RULE", default_value = "honest")]
     label_rule: LabelRule,
-    /// What fills image2's holes before 2-D inpainting with the depth-aware merge: inpaint (Telea
-    /// alone, the paper's rule) or planes (what the MPI holds behind a moved object's place).
-    #[arg(long, value_name = "FILL", default_value = "inpaint")]
+    /// What fills image2's holes before 2-D inpainting with the depth-aware merge: inpaint (the
+    /// default: Telea alone, the paper's rule) or planes (what the MPI holds behind a moved
+    /// object's place, the completed background).
+    #[arg(long, value_name = "FILL", default_value_t = SampleConfig::default().background)]
     background: mpiflow::sample::background::Background,
     /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
     #[arg(long, value_name = "KERNEL", default_value_t = mpiflow::render::Resample::default())]
@@ -91,16 +92,6 @@ pub struct GenerateArgs {
     /// (part of the fingerprint).
     #[arg(long)]
     minify: bool,
-    /// MPI planes of the built-in layering (ignored for items with a given MPI or with --mpi-model).
-    #[arg(long, value_name = "N", default_value_t = 32)]
-    planes: usize,
-    /// Layering of the built-in MPI: soft (the default) or hard (each pixel on its nearest plane; docs/quality.md).
-    #[arg(long, default_value = "soft")]
-    layering: mpiflow::mpi::layering::Layering,
-    /// Complete the background behind objects and depth edges once per scene, and align the
-    /// object masks with their depth edges (built-in layering; docs/quality.md).
-    #[arg(long)]
-    backdrop: bool,
     /// What fills image2's holes: exemplar (texture from image1's background at the hole's
     /// depth) or a Telea variant (telea, telea-known-only, telea-zero-order, telea-opencv).
     #[arg(long, value_name = "METHOD", default_value_t = mpiflow::sample::config::InpaintMethod::default())]
@@ -112,16 +103,8 @@ pub struct GenerateArgs {
     /// Resize every source image to WxH (default: keep sizes; the bundled scenes are 640x480).
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     size: Option<(usize, usize)>,
-    /// Depth model for sources without depth: a NAME (`mpiflow models list`; fetched and cached on
-    /// first use) or an ONNX FILE (optional manifest FILE.toml beside it; docs/models.md).
-    #[arg(long, value_name = "NAME|FILE")]
-    depth_model: Option<PathBuf>,
-    /// MPI network (ONNX, AdaMPI-style default contract) instead of the built-in layering.
-    #[arg(long, value_name = "FILE.onnx")]
-    mpi_model: Option<PathBuf>,
-    /// Instance segmentation model for sources without masks: a NAME or an ONNX FILE.
-    #[arg(long, value_name = "NAME|FILE")]
-    segment_model: Option<PathBuf>,
+    #[command(flatten)]
+    scene: super::scene_flags::SceneFlags,
     /// Worker threads (default: all cores).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..=1024))]
     threads: Option<u64>,
@@ -158,14 +141,7 @@ fn parse_format(s: &str) -> Result<ExportFormat, String> {
 
 /// The scene models of the flags (the same [`ModelConfig`] the server reads).
 fn model_config(a: &GenerateArgs) -> ModelConfig {
-    ModelConfig {
-        planes: a.planes,
-        layering: a.layering,
-        backdrop: a.backdrop,
-        depth_model: a.depth_model.clone(),
-        mpi_model: a.mpi_model.clone(),
-        segment_model: a.segment_model.clone(),
-    }
+    a.scene.models()
 }
 
 /// The source of the flags, opened as the server opens a dataset's.
@@ -230,8 +206,9 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     if source.is_empty() {
         return Err(CliError(format!("{}: no images to make samples from", source.describe())));
     }
-    if !(1..=MAX_PLANES).contains(&a.planes) {
-        return Err(CliError(format!("--planes {}: expected 1 to {MAX_PLANES}", a.planes)));
+    let planes = a.scene.models().planes;
+    if !(1..=MAX_PLANES).contains(&planes) {
+        return Err(CliError(format!("--planes {planes}: expected 1 to {MAX_PLANES}")));
     }
     let stage = Arc::new(model_config(&a).build_stage().map_err(CliError)?);
     let config = SampleConfig {

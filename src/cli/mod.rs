@@ -10,6 +10,7 @@ mod health;
 mod models;
 mod pull;
 mod render;
+mod scene_flags;
 mod serve;
 
 use clap::{Parser, Subcommand};

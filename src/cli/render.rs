@@ -30,12 +30,19 @@ pub struct RenderArgs {
     /// non-finite or <= 0 means unknown.
     #[arg(long, value_name = "FILE.npy", requires = "image")]
     depth: Option<PathBuf>,
-    /// Number of MPI planes built from RGB-D input.
-    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=256))]
+    /// Number of MPI planes built from RGB-D input (default: the scene models' default).
+    #[arg(long, default_value_t = mpiflow::scene::models::ModelConfig::default().planes as u32, value_parser = clap::value_parser!(u32).range(1..=256))]
     planes: u32,
     /// How RGB-D pixels are assigned to planes.
     #[arg(long, value_enum, default_value = "soft")]
     layering: LayeringArg,
+    /// Where the planes go in disparity: uniform or content (dense where the photo's depths are;
+    /// default: the scene models' default, uniform).
+    #[arg(long, value_name = "KIND")]
+    placement: Option<mpiflow::mpi::layering::Placement>,
+    /// Complete the background beside depth steps (default: the scene models' default, off).
+    #[arg(long, value_name = "BOOL", num_args = 0..=1, default_missing_value = "true")]
+    backdrop: Option<bool>,
     /// Source intrinsics fx,fy,cx,cy in pixels (default: K of the npz, else 0.58W,0.58H,0.5W,0.5H).
     #[arg(long, value_name = "FX,FY,CX,CY", value_parser = parse_floats::<4>, allow_hyphen_values = true)]
     intrinsics: Option<[f64; 4]>,
@@ -103,7 +110,14 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
                 LayeringArg::Hard => Layering::Hard,
                 LayeringArg::Soft => Layering::Soft,
             };
-            let opts = LayeringOptions { planes: a.planes as usize, layering, ..LayeringOptions::default() };
+            let d = mpiflow::scene::models::ModelConfig::default().layering_options();
+            let opts = LayeringOptions {
+                planes: a.planes as usize,
+                layering,
+                placement: a.placement.unwrap_or(d.placement),
+                backdrop: a.backdrop.unwrap_or(d.backdrop),
+                ..d
+            };
             let mpi = build_mpi(&rgb.data, &depth, rgb.width, rgb.height, &opts)
                 .map_err(|e| CliError(format!("{}: {e}", dep.display())))?;
             (mpi, Some(rgb))

@@ -137,10 +137,55 @@ impl std::str::FromStr for Layering {
     }
 }
 
+/// Where the planes go in disparity between the nearest and the farthest (step 3 of the method).
+///
+/// `Content` (opt-in, `[models] placement`): with a finite number of planes, a soft pixel is split between the two
+/// planes around it and its two copies part under motion by the parallax of their spacing, so
+/// planes are best spent where the scene's pixels are. It places plane `i` of `n` (near to far)
+/// at the disparity where the mixture CDF `F = (1 - λ) F_pixels + λ F_uniform` (`λ` =
+/// [`CONTENT_UNIFORM_SHARE`], `F_pixels` the pixels' disparity distribution in 4,096 bins over the
+/// scene's range with linear interpolation in each bin, `F_uniform` uniform over the range)
+/// equals `1 - i / (n - 1)`: the uniform share keeps the planes strictly decreasing and every gap
+/// at most `1 / (λ (n - 1))` of the range.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Placement {
+    /// Uniform in disparity over the range (the default).
+    #[default]
+    Uniform,
+    /// Dense where the scene's pixels are (see the type's documentation).
+    Content,
+}
+
+/// The uniform share `λ` of [`Placement::Content`].
+pub const CONTENT_UNIFORM_SHARE: f64 = 0.25;
+
+impl std::fmt::Display for Placement {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Placement::Uniform => "uniform",
+            Placement::Content => "content",
+        })
+    }
+}
+
+impl std::str::FromStr for Placement {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "uniform" => Ok(Placement::Uniform),
+            "content" => Ok(Placement::Content),
+            _ => Err(format!("unknown plane placement `{s}` (expected content or uniform)")),
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LayeringOptions {
     pub planes: usize,
     pub layering: Layering,
+    /// Where the planes go within the range (ignored with `disparity_range`: uniform there).
+    pub placement: Placement,
     /// (nearest, farthest) plane disparities; None = the scene's own disparity range.
     pub disparity_range: Option<(f64, f64)>,
     /// Complete the background behind foreground ([`super::backdrop`]) and put it on the planes
@@ -150,9 +195,17 @@ pub struct LayeringOptions {
 }
 
 impl Default for LayeringOptions {
-    /// 32 planes, soft layering, the scene's own disparity range, no completed background.
+    /// 32 planes, soft layering, uniform placement over the scene's own disparity range, no
+    /// completed background (the layering's plain form; the commands' defaults are the scene
+    /// models' configuration's).
     fn default() -> Self {
-        Self { planes: 32, layering: Layering::Soft, disparity_range: None, backdrop: false }
+        Self {
+            planes: 32,
+            layering: Layering::Soft,
+            placement: Placement::Uniform,
+            disparity_range: None,
+            backdrop: false,
+        }
     }
 }
 
@@ -259,6 +312,41 @@ pub fn plane_disparities(scene_near: f64, scene_far: f64, opts: &LayeringOptions
     Ok(d)
 }
 
+/// [`Placement::Content`]'s planes: `n >= 3` disparities from `near` down to `far` (both kept)
+/// at the quantiles of the mixture of the pixels' disparity distribution (`disp`) and the
+/// uniform one (see [`Placement`]). Strictly decreasing because the mixture's density is at least
+/// `λ / (near - far)` everywhere.
+fn content_planes(disp: &[f64], near: f64, far: f64, n: usize) -> Vec<f64> {
+    const BINS: usize = 4096;
+    let range = near - far;
+    let mut hist = vec![0u64; BINS];
+    for &d in disp {
+        let b = (((d - far) / range) * BINS as f64).floor();
+        hist[(b.max(0.0) as usize).min(BINS - 1)] += 1;
+    }
+    let total = disp.len().max(1) as f64;
+    let lambda = CONTENT_UNIFORM_SHARE;
+    // cdf[b] = F at the lower edge of bin b (cdf[BINS] = 1)
+    let mut cdf = Vec::with_capacity(BINS + 1);
+    let mut acc = 0u64;
+    cdf.push(0.0);
+    for (b, &c) in hist.iter().enumerate() {
+        acc += c;
+        cdf.push((1.0 - lambda) * acc as f64 / total + lambda * (b + 1) as f64 / BINS as f64);
+    }
+    let mut out = Vec::with_capacity(n);
+    out.push(near);
+    for i in 1..n - 1 {
+        let q = 1.0 - i as f64 / (n - 1) as f64;
+        // the bin whose [cdf[b], cdf[b + 1]) holds q, then linear within it
+        let b = cdf.partition_point(|&c| c <= q).clamp(1, BINS) - 1;
+        let t = ((q - cdf[b]) / (cdf[b + 1] - cdf[b])).clamp(0.0, 1.0);
+        out.push(far + range * (b as f64 + t) / BINS as f64);
+    }
+    out.push(far);
+    out
+}
+
 fn check_planes(n: usize) -> Result<(), MpiError> {
     if !(1..=MAX_PLANES).contains(&n) {
         return Err(MpiError::Invalid(format!(
@@ -350,7 +438,10 @@ fn build(
     let (disp, dmin, dmax) = known_disparities(depth, width, height)?;
 
     // 3. planes, 4. assignment
-    let planes = plane_disparities(dmax, dmin, opts)?;
+    let mut planes = plane_disparities(dmax, dmin, opts)?;
+    if opts.placement == Placement::Content && opts.disparity_range.is_none() && planes.len() > 2 {
+        planes = content_planes(&disp, planes[0], planes[planes.len() - 1], planes.len());
+    }
     let n = planes.len();
     let slots: Vec<Slot> = disp.par_iter().map(|&d| assign(d, &planes, opts.layering)).collect();
     // Plane i's colour sources are the pixels on it or behind it: disparity <= disp_i or alpha
@@ -695,7 +786,45 @@ mod tests {
     use super::*;
 
     fn opts(planes: usize, layering: Layering) -> LayeringOptions {
-        LayeringOptions { planes, layering, disparity_range: None, backdrop: false }
+        LayeringOptions { planes, layering, disparity_range: None, backdrop: false, ..LayeringOptions::default() }
+    }
+
+    proptest::proptest! {
+        /// Content placement: the ends kept, strictly decreasing, no gap wider than
+        /// `range / (λ (n - 1))`, and planes denser where the pixels are than uniform placement.
+        #[test]
+        fn content_planes_follow_the_pixels(
+            n in 3usize..=256,
+            near in 0.01f64..1.0,
+            frac in 0.001f64..0.999,
+            cluster in 0.0f64..1.0,
+            seed in 0u64..1000,
+        ) {
+            let far = near * frac;
+            let range = near - far;
+            // a third of the pixels spread over the range, the rest in a cluster 1% wide
+            let c = far + cluster * 0.99 * range;
+            let disp: Vec<f64> = (0..3000u64)
+                .map(|i| {
+                    let h = (i.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ seed) % 10_000;
+                    let u = h as f64 / 10_000.0;
+                    if i % 3 == 0 { far + u * range } else { c + u * 0.01 * range }
+                })
+                .collect();
+            let p = content_planes(&disp, near, far, n);
+            proptest::prop_assert_eq!(p.len(), n);
+            proptest::prop_assert_eq!(p[0], near);
+            proptest::prop_assert_eq!(p[n - 1], far);
+            let widest = range / (CONTENT_UNIFORM_SHARE * (n - 1) as f64) * (1.0 + 1e-9);
+            for w in p.windows(2) {
+                proptest::prop_assert!(w[1] < w[0], "{:?}", w);
+                proptest::prop_assert!(w[0] - w[1] <= widest, "gap {} > {widest}", w[0] - w[1]);
+            }
+            let inside = p.iter().filter(|&&d| d >= c && d <= c + 0.01 * range).count();
+            // uniform placement puts about 1% of the planes in the cluster; content placement
+            // about (1 - λ) * 2/3 of them
+            proptest::prop_assert!(inside as f64 >= 0.4 * (n - 2) as f64 - 2.0, "{inside} of {n}");
+        }
     }
 
     #[test]

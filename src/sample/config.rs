@@ -118,9 +118,10 @@ pub struct SampleConfig {
     pub label_rule: LabelRule,
     /// What fills image2's holes before 2-D inpainting with the depth-aware merge
     /// ([`Background`]: the MPI's planes behind the moved objects, or Telea alone); the reference
-    /// merge always inpaints, as the paper. Default `inpaint`; part of the fingerprint when not
-    /// `inpaint`. With the layering's completed background (`backdrop`), `planes` leaves few
-    /// holes to Telea (docs/quality.md).
+    /// merge always inpaints, as the paper. Default `inpaint`: `planes` leaves few holes to Telea
+    /// with the completed background, but its render over the holes leaves thin lines where a
+    /// mask spans many depths (docs/quality.md, "The default, and the realistic scene"). Part of the fingerprint when not
+    /// `inpaint`.
     #[serde(skip_serializing_if = "is_inpaint")]
     pub background: Background,
     /// The mask threshold of the merge (the reference's 0.99).

@@ -56,11 +56,10 @@ use crate::rng::SampleRng;
 /// The public reference script's default `ext_cz` (extra forward distance of the camera).
 pub const REFERENCE_EXT_CZ: f64 = 0.15;
 
-/// The reveal budget of every preset that moves objects: uniform in this range of the frame's
-/// share ([`MotionRanges::reveal_budget`]; docs/quality.md, "The reveal budget"). Between two
-/// frames of a real clip a moving object uncovers a sliver along its trailing edge; 0.1% to 1%
-/// of the frame keeps a large object moving (by less) while the mean uncovered share stays near
-/// the camera's own.
+/// A reveal budget for laws that opt in to one ([`MotionRanges::with_reveal_budget`]): uniform
+/// in this range of the frame's share ([`MotionRanges::reveal_budget`]; docs/quality.md, "The
+/// reveal budget"). The presets carry none: objects move by their law's draw, unscaled, and what
+/// the motion uncovers is left to the completion.
 pub const REVEAL_BUDGET: (f64, f64) = (0.001, 0.01);
 
 /// Errors of motion configuration.
@@ -347,6 +346,14 @@ impl MotionRanges {
         self
     }
 
+    /// These laws with the reveal budget [`REVEAL_BUDGET`] (an object whose motion would uncover
+    /// more of the frame than its drawn share moves by less).
+    #[must_use]
+    pub fn with_reveal_budget(mut self) -> Self {
+        self.reveal_budget = Some(Component::Uniform { lo: REVEAL_BUDGET.0, hi: REVEAL_BUDGET.1 });
+        self
+    }
+
     /// Checks every range: finite bounds, `lo <= hi`, magnitudes `0 <= min <= max`, the forward
     /// law on translation z only, rotation components below pi in magnitude, and for axis-angle
     /// laws the largest possible rotation vector shorter than pi.
@@ -567,13 +574,7 @@ impl MotionPreset {
                 };
             }
         };
-        MotionRanges {
-            name: self.name().to_string(),
-            camera,
-            object,
-            stereo: false,
-            reveal_budget: Some(Component::Uniform { lo: REVEAL_BUDGET.0, hi: REVEAL_BUDGET.1 }),
-        }
+        MotionRanges { name: self.name().to_string(), camera, object, stereo: false, reveal_budget: None }
     }
 }
 

@@ -16,7 +16,9 @@ use super::scale::depth_from_disparity;
 use super::{Disparity, MpiBuilder, SceneError};
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
-use crate::mpi::layering::{build_mpi_for_camera, build_mpi_for_scene, Layering, LayeringOptions, MAX_PLANES};
+use crate::mpi::layering::{
+    build_mpi_for_camera, build_mpi_for_scene, Layering, LayeringOptions, Placement, MAX_PLANES,
+};
 use crate::mpi::Mpi;
 use crate::raster::InstanceMasks;
 
@@ -26,6 +28,8 @@ pub struct BuiltinMpi {
     /// Number of planes, 1 to [`MAX_PLANES`].
     pub planes: usize,
     pub layering: Layering,
+    /// Where the planes go within the scene's range ([`Placement`]).
+    pub placement: Placement,
     /// (nearest, farthest) plane disparities; `None` = the scene's own range.
     pub disparity_range: Option<(f64, f64)>,
     /// Complete the background behind objects and depth edges ([`crate::mpi::backdrop`]).
@@ -33,9 +37,9 @@ pub struct BuiltinMpi {
 }
 
 impl Default for BuiltinMpi {
-    /// 32 planes, soft layering, the scene's own range, no completed background.
+    /// 32 planes, soft layering uniform over the scene's own range, no completed background.
     fn default() -> Self {
-        BuiltinMpi { planes: 32, layering: Layering::Soft, disparity_range: None, backdrop: false }
+        BuiltinMpi::new(32, Layering::Soft)
     }
 }
 
@@ -44,13 +48,14 @@ impl BuiltinMpi {
         LayeringOptions {
             planes: self.planes,
             layering: self.layering,
+            placement: self.placement,
             disparity_range: self.disparity_range,
             backdrop: self.backdrop,
         }
     }
 
     pub fn new(planes: usize, layering: Layering) -> Self {
-        BuiltinMpi { planes, layering, disparity_range: None, backdrop: false }
+        BuiltinMpi { planes, layering, placement: Placement::Uniform, disparity_range: None, backdrop: false }
     }
 
     /// Checks the configuration (planes in range, range ordered), for start-up validation.
@@ -76,8 +81,10 @@ impl MpiBuilder for BuiltinMpi {
     fn name(&self) -> String {
         let kind = self.layering;
         let completed = if self.backdrop { " backdrop" } else { "" };
+        // uniform placement keeps the name (and so the fingerprints) it had before placements
+        let placed = if self.placement == Placement::Uniform { "" } else { " content" };
         match self.disparity_range {
-            None => format!("builtin {kind} {}{completed}", self.planes),
+            None => format!("builtin {kind} {}{placed}{completed}", self.planes),
             Some((near, far)) => format!("builtin {kind} {} range {near}-{far}{completed}", self.planes),
         }
     }

@@ -71,8 +71,9 @@ impl SceneStage {
         SceneStage { depth: None, mpi, segmenter: None }
     }
 
-    /// The model-free default: the built-in layering with 32 soft planes, no depth model, no
-    /// segmenter.
+    /// The plain built-in layering (32 soft planes uniform in disparity, no completed background),
+    /// no depth model, no segmenter: a light stage for tests and tools. What the commands use by
+    /// default is [`super::models::ModelConfig::default`]'s stage.
     pub fn builtin() -> Self {
         Self::new(Arc::new(super::builtin::BuiltinMpi::default()))
     }

@@ -230,7 +230,8 @@ struct SceneCtx<'a> {
 }
 
 fn layer(scene: &Scene, planes: usize, layering: Layering) -> Result<Mpi, AccuracyError> {
-    let opts = LayeringOptions { planes, layering, disparity_range: None, backdrop: false };
+    let opts =
+        LayeringOptions { planes, layering, disparity_range: None, backdrop: false, ..LayeringOptions::default() };
     Ok(build_mpi_for_camera(&scene.rgb, &scene.depth, scene.width, scene.height, &opts, &scene.k)?)
 }
 
