@@ -343,3 +343,56 @@ async fn bad_security_settings_fail_the_start_up() {
     let spaced = ServiceConfig { auth_token: Some("two words".into()), ..config() };
     assert!(start(spaced).await.unwrap_err().to_string().contains("auth_token"));
 }
+
+/// `mpiflow serve` with `auth_token_file` in its configuration file and one token setting of a
+/// layer above it empty: an empty `MPIFLOW_AUTH_TOKEN` or `MPIFLOW_AUTH_TOKEN_FILE` (which would
+/// otherwise replace the file's token file with nothing), an empty `--auth-token-file`, a token
+/// file that is empty or `/dev/zero`. Each stops the start-up (exit status 2) with an error
+/// naming the setting (one line for the configuration's own); none serves without the token.
+#[test]
+fn an_empty_token_setting_in_any_layer_stops_the_real_binary() {
+    use std::io::BufRead;
+    use std::process::Stdio;
+    let pki = pki("empty");
+    let token = pki.write("token", TOKEN);
+    let blank = pki.write("blank", " \n");
+    let with_file = |file: &Path| {
+        pki.write(
+            &format!("{}.toml", file.file_name().unwrap().to_str().unwrap()),
+            &format!("addr = \"127.0.0.1:0\"\nsize = \"64x48\"\nworkers = 1\nauth_token_file = \"{}\"\n", path(file)),
+        )
+    };
+    let good = with_file(&token);
+    /// (configuration file, environment, flags, what the error says)
+    type Case<'a> = (PathBuf, Vec<(&'a str, &'a str)>, Vec<&'a str>, &'a str);
+    let cases: Vec<Case> = vec![
+        (good.clone(), vec![("MPIFLOW_AUTH_TOKEN", "")], vec![], "MPIFLOW_AUTH_TOKEN is set but empty"),
+        (good.clone(), vec![("MPIFLOW_AUTH_TOKEN_FILE", "")], vec![], "MPIFLOW_AUTH_TOKEN_FILE is set but empty"),
+        (good.clone(), vec![("MPIFLOW_AUTH_TOKEN", "  ")], vec![], "MPIFLOW_AUTH_TOKEN is set but empty"),
+        // clap itself refuses an empty value of a path flag
+        (good, vec![], vec!["--auth-token-file", ""], "a value is required for '--auth-token-file"),
+        (with_file(&blank), vec![], vec![], "holds no token"),
+        (with_file(Path::new("/dev/zero")), vec![], vec![], "larger than"),
+    ];
+    for (config, env, flags, says) in cases {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mpiflow"));
+        cmd.args(["serve", "--log-level", "warn", "--config", path(&config)]).args(&flags);
+        cmd.env_remove("MPIFLOW_AUTH_TOKEN").env_remove("MPIFLOW_AUTH_TOKEN_FILE");
+        for (k, v) in &env {
+            cmd.env(k, v);
+        }
+        let mut child = cmd.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+        let mut line = String::new();
+        std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+        if !line.is_empty() {
+            child.kill().unwrap();
+            child.wait().unwrap();
+            panic!("{env:?} {flags:?}: the server started: {line}");
+        }
+        let out = child.wait_with_output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{env:?} {flags:?}: {err}");
+        assert!(err.starts_with("error: ") && err.contains(says), "{env:?} {flags:?}: {err}");
+        assert!(!flags.is_empty() || err.lines().count() == 1, "{env:?}: one line: {err}");
+    }
+}

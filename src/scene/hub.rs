@@ -7,15 +7,29 @@
 //!   `~/.cache/huggingface/hub`. A file lives at `models--ORG--NAME/blobs/SHA256` with the link
 //!   `models--ORG--NAME/snapshots/COMMIT/FILE` to it; a revision that is not a commit is recorded
 //!   in `refs/REVISION` (the commit the server named in `X-Repo-Commit`, else the revision
-//!   itself).
+//!   itself). A cached model is found by its pinned hash first (`blobs/SHA256`), then at its
+//!   snapshot path (a file put there by hand); either is hashed again each time it is opened.
 //! - `HF_HUB_OFFLINE=1` (or `true`, `yes`, `on`): the cache only; without the file there, the
 //!   error names the URL and the path to put the file at.
-//! - A download goes to `blobs/SHA256.incomplete` while it is hashed, and is renamed into place
-//!   only when whole and of the pinned SHA-256: a mismatch or an interrupted download keeps
-//!   nothing. A cached file is hashed again each time it is opened.
+//! - Bounds: name lookup, connecting and each read wait at most `HF_HUB_DOWNLOAD_TIMEOUT`
+//!   seconds ([`DEFAULT_TIMEOUT_S`], as `huggingface_hub`); a file is at most the registry's
+//!   `size` when it pins one, else [`MAX_MODEL_BYTES`]: a longer `Content-Length` is refused
+//!   before any byte is read, a longer body stops at the bound.
+//! - One download of a file at a time: it holds an exclusive lock on
+//!   `.locks/models--ORG--NAME/SHA256.lock` (where `huggingface_hub` keeps its locks), writes
+//!   `blobs/SHA256.incomplete`, and renames it into place only when whole and of the pinned
+//!   SHA-256, then hashes the file in place again. An interrupted download keeps its partial
+//!   file and the next one resumes it (an HTTP `Range` request); a mismatch keeps nothing.
+//! - No symbolic link is followed inside the cache folder (the folder itself may be one):
+//!   directories are checked before they are used and files opened with `O_NOFOLLOW`, a link
+//!   there is refused; the snapshot links are the only links, made here.
+//! - Registry paths (`repo`, `revision`, `file`) with `..`, `.`, empty or absolute components
+//!   are refused ([`check_entry`]).
 
-use std::io::{Read, Write};
-use std::path::{Path, PathBuf};
+use std::fs::{File, OpenOptions};
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::{Component, Path, PathBuf};
+use std::time::Duration;
 
 use sha2::{Digest, Sha256};
 
@@ -25,6 +39,14 @@ use super::registry::Entry;
 pub const DEFAULT_ENDPOINT: &str = "https://huggingface.co";
 /// Redirects followed per download (the hub sends files from a CDN).
 const MAX_REDIRECTS: usize = 8;
+/// The longest a name lookup, a connection or one read may take by default, in seconds
+/// (`HF_HUB_DOWNLOAD_TIMEOUT` sets it).
+pub const DEFAULT_TIMEOUT_S: f64 = 10.0;
+/// The variable that sets the download timeout, in seconds (as `huggingface_hub` reads it).
+pub const TIMEOUT_ENV: &str = "HF_HUB_DOWNLOAD_TIMEOUT";
+/// The largest model file fetched when the registry pins no size: 2 GiB, protobuf's limit on one
+/// message and so on an ONNX file without external data.
+pub const MAX_MODEL_BYTES: u64 = 2 << 30;
 
 #[derive(Debug, thiserror::Error)]
 pub enum HubError {
@@ -42,10 +64,18 @@ pub enum HubError {
         .path.display()
     )]
     Unreachable { url: String, path: PathBuf, message: String },
-    #[error("{url}: the download ended after {got} of {expected} bytes; nothing was kept (run it again)")]
+    #[error("{url}: no answer within {seconds} s ({TIMEOUT_ENV}); what was received is kept to resume")]
+    TimedOut { url: String, seconds: f64 },
+    #[error("{url}: the download ended after {got} of {expected} bytes; run it again to resume it")]
     Interrupted { url: String, got: u64, expected: u64 },
+    #[error("{url}: the file is larger than the {limit} bytes {what}: refused; nothing was kept")]
+    TooLarge { url: String, limit: u64, what: &'static str },
     #[error("{what} has SHA-256 {actual}, but the registry pins {expected}: refused{kept}")]
     Checksum { what: String, expected: String, actual: String, kept: &'static str },
+    #[error("{}: a symbolic link inside the hub cache: refused (nothing is written through it)", .path.display())]
+    Link { path: PathBuf },
+    #[error("model registry entry {name}: {message}")]
+    BadEntry { name: String, message: String },
     #[error("{}: {message}", .path.display())]
     Io { path: PathBuf, message: String },
 }
@@ -62,15 +92,25 @@ pub struct Hub {
     /// The hub cache folder (the one holding `models--ORG--NAME`).
     pub cache: PathBuf,
     pub offline: bool,
+    /// The longest a name lookup, a connection or one read may take.
+    pub timeout: Duration,
 }
 
 fn env_nonempty(key: &str) -> Option<String> {
     std::env::var(key).ok().filter(|v| !v.is_empty())
 }
 
+/// `HF_HUB_DOWNLOAD_TIMEOUT` as seconds: a positive number of at most a day, else the default.
+fn timeout_from(value: Option<&str>) -> Duration {
+    value
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .filter(|s| s.is_finite() && *s > 0.0 && *s <= 86_400.0)
+        .map_or(Duration::from_secs_f64(DEFAULT_TIMEOUT_S), Duration::from_secs_f64)
+}
+
 impl Hub {
-    /// From `HF_ENDPOINT`, `HF_HUB_CACHE` / `HF_HOME` / `XDG_CACHE_HOME` / `HOME` and
-    /// `HF_HUB_OFFLINE`, as `huggingface_hub` reads them.
+    /// From `HF_ENDPOINT`, `HF_HUB_CACHE` / `HF_HOME` / `XDG_CACHE_HOME` / `HOME`,
+    /// `HF_HUB_OFFLINE` and `HF_HUB_DOWNLOAD_TIMEOUT`, as `huggingface_hub` reads them.
     pub fn from_env() -> Self {
         let endpoint = env_nonempty("HF_ENDPOINT").unwrap_or_else(|| DEFAULT_ENDPOINT.into());
         let cache = match env_nonempty("HF_HUB_CACHE") {
@@ -90,7 +130,8 @@ impl Hub {
         };
         let offline = env_nonempty("HF_HUB_OFFLINE")
             .is_some_and(|v| matches!(v.to_ascii_lowercase().as_str(), "1" | "true" | "yes" | "on"));
-        Hub { endpoint: endpoint.trim_end_matches('/').to_string(), cache, offline }
+        let timeout = timeout_from(env_nonempty(TIMEOUT_ENV).as_deref());
+        Hub { endpoint: endpoint.trim_end_matches('/').to_string(), cache, offline, timeout }
     }
 
     /// `{endpoint}/{repo}/resolve/{revision}/{file}`.
@@ -98,21 +139,31 @@ impl Hub {
         format!("{}/{}/resolve/{}/{}", self.endpoint, e.repo, e.revision, e.file)
     }
 
+    /// `models--ORG--NAME`, the repository's folder name in the cache.
+    fn repo_name(e: &Entry) -> String {
+        format!("models--{}", e.repo.replace('/', "--"))
+    }
+
     /// `models--ORG--NAME` in the cache.
     pub fn repo_dir(&self, e: &Entry) -> PathBuf {
-        self.cache.join(format!("models--{}", e.repo.replace('/', "--")))
+        self.cache.join(Self::repo_name(e))
     }
 
     /// The commit a revision stands for in the cache: the revision itself when it is a commit,
-    /// else what `refs/REVISION` records, else the revision.
+    /// else the commit `refs/REVISION` records (read without following a link), else the
+    /// revision.
     fn commit(&self, e: &Entry) -> String {
         if is_commit(&e.revision) {
             return e.revision.clone();
         }
-        std::fs::read_to_string(self.repo_dir(e).join("refs").join(&e.revision))
+        let refs = self.repo_dir(e).join("refs").join(&e.revision);
+        open_nofollow(&refs, OpenOptions::new().read(true))
             .ok()
-            .map(|s| s.trim().to_string())
-            .filter(|s| !s.is_empty())
+            .and_then(|f| {
+                let mut s = String::new();
+                f.take(64).read_to_string(&mut s).ok().map(|_| s.trim().to_string())
+            })
+            .filter(|s| is_commit(s))
             .unwrap_or_else(|| e.revision.clone())
     }
 
@@ -121,42 +172,281 @@ impl Hub {
         self.repo_dir(e).join("snapshots").join(self.commit(e)).join(&e.file)
     }
 
+    /// `blobs/SHA256` of the entry.
+    fn blob_path(&self, e: &Entry) -> PathBuf {
+        self.repo_dir(e).join("blobs").join(&e.sha256)
+    }
+
     /// The model file of `e`: the cached copy (its SHA-256 checked), else downloaded into the
     /// cache (unless offline). `progress` draws a progress bar on stderr.
     pub fn fetch(&self, e: &Entry, progress: bool) -> Result<PathBuf, HubError> {
-        let cached = self.cached_path(e);
-        if cached.is_file() {
-            let actual = sha256_file(&cached)?;
-            if actual != e.sha256 {
-                return Err(HubError::Checksum {
-                    what: cached.display().to_string(),
-                    expected: e.sha256.clone(),
-                    actual,
-                    kept: " (the cached file is left as it is: delete it to download it again)",
-                });
-            }
-            return Ok(cached);
+        check_entry(e).map_err(|message| HubError::BadEntry { name: e.name.clone(), message })?;
+        if let Some(p) = self.cached(e)? {
+            return Ok(p);
         }
         if self.offline {
-            return Err(HubError::Offline { url: self.url(e), path: cached });
+            return Err(HubError::Offline { url: self.url(e), path: self.cached_path(e) });
         }
         self.download(e, progress)
     }
 
+    /// The cached file of `e`, checked: the blob of its hash first (then its snapshot path, made
+    /// when missing and the cache is writable), else a file put at the snapshot path by hand.
+    fn cached(&self, e: &Entry) -> Result<Option<PathBuf>, HubError> {
+        let blob = self.blob_path(e);
+        if self.inside_dirs_exist(e, &["blobs"])? && is_regular(&blob)? {
+            self.verify(&blob, e, " (the cached file is left as it is: delete it to download it again)")?;
+            let link = self.cached_path(e);
+            return Ok(Some(if self.is_our_link(&link, e) { link } else { blob }));
+        }
+        let snapshot = self.cached_path(e);
+        let commit = self.commit(e);
+        let file_dirs: Vec<&str> = e.file.split('/').collect();
+        let dirs: Vec<&str> = std::iter::once("snapshots")
+            .chain(commit.split('/'))
+            .chain(file_dirs[..file_dirs.len() - 1].iter().copied())
+            .collect();
+        if !self.inside_dirs_exist(e, &dirs)? {
+            return Ok(None);
+        }
+        // a link there is a snapshot link whose blob is missing: downloaded again, the link
+        // replaced; only a regular file put there is used
+        match std::fs::symlink_metadata(&snapshot) {
+            Ok(m) if m.is_file() => {
+                self.verify(&snapshot, e, " (the cached file is left as it is: delete it to download it again)")?;
+                Ok(Some(snapshot))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    /// Whether the folders `dirs` below the repository's folder all exist (none a link).
+    fn inside_dirs_exist(&self, e: &Entry, dirs: &[&str]) -> Result<bool, HubError> {
+        let mut p = self.cache.clone();
+        for d in std::iter::once(Self::repo_name(e).as_str()).chain(dirs.iter().copied()) {
+            p.push(d);
+            match std::fs::symlink_metadata(&p) {
+                Ok(m) if m.file_type().is_symlink() => return Err(HubError::Link { path: p }),
+                Ok(m) if m.is_dir() => {}
+                Ok(_) => return Ok(false),
+                Err(err) if err.kind() == std::io::ErrorKind::NotFound => return Ok(false),
+                Err(err) => return Err(io(&p)(err)),
+            }
+        }
+        Ok(true)
+    }
+
+    /// Checks the SHA-256 of the file at `path` (opened without following a link).
+    fn verify(&self, path: &Path, e: &Entry, kept: &'static str) -> Result<(), HubError> {
+        let actual = sha256_nofollow(path)?;
+        if actual != e.sha256 {
+            return Err(HubError::Checksum {
+                what: path.display().to_string(),
+                expected: e.sha256.clone(),
+                actual,
+                kept,
+            });
+        }
+        Ok(())
+    }
+
+    /// Whether `link` is the relative link to the entry's blob that [`place`] makes.
+    fn is_our_link(&self, link: &Path, e: &Entry) -> bool {
+        std::fs::read_link(link).is_ok_and(|t| t == link_target(e))
+    }
+
+    /// The folders below the cache folder, made where missing; a link among them is refused.
+    fn make_dirs(&self, parts: &[&str]) -> Result<PathBuf, HubError> {
+        let mut p = self.cache.clone();
+        std::fs::create_dir_all(&p).map_err(io(&p))?;
+        for part in parts {
+            p.push(part);
+            match std::fs::symlink_metadata(&p) {
+                Ok(m) if m.file_type().is_symlink() => return Err(HubError::Link { path: p }),
+                Ok(m) if m.is_dir() => continue,
+                Ok(_) => return Err(io(&p)(std::io::Error::other("not a folder"))),
+                Err(err) if err.kind() == std::io::ErrorKind::NotFound => {}
+                Err(err) => return Err(io(&p)(err)),
+            }
+            match std::fs::create_dir(&p) {
+                Ok(()) => {}
+                // made by another download meanwhile: checked again
+                Err(err) if err.kind() == std::io::ErrorKind::AlreadyExists => {
+                    if std::fs::symlink_metadata(&p).map_err(io(&p))?.file_type().is_symlink() {
+                        return Err(HubError::Link { path: p });
+                    }
+                }
+                Err(err) => return Err(io(&p)(err)),
+            }
+        }
+        Ok(p)
+    }
+
     fn download(&self, e: &Entry, progress: bool) -> Result<PathBuf, HubError> {
         let url = self.url(e);
-        let http = |message: String| HubError::Http { url: url.clone(), message };
-        let agent: ureq::Agent =
-            ureq::Agent::config_builder().max_redirects(0).http_status_as_error(false).build().into();
-        // follow redirects by hand: the first answer names the commit (X-Repo-Commit)
-        let mut next = url.clone();
+        let repo_name = Self::repo_name(e);
+        let limit = e.size.unwrap_or(MAX_MODEL_BYTES);
+        let locks = self.make_dirs(&[".locks", &repo_name])?;
+        let lock_path = locks.join(format!("{}.lock", e.sha256));
+        let lock = open_nofollow(&lock_path, OpenOptions::new().read(true).write(true).create(true))?;
+        lock.lock().map_err(io(&lock_path))?;
+        // another download may have finished while this one waited for the lock
+        if let Some(p) = self.cached(e)? {
+            return Ok(p);
+        }
+        let blobs = self.make_dirs(&[&repo_name, "blobs"])?;
+        let blob = blobs.join(&e.sha256);
+        let partial_path = blobs.join(format!("{}.incomplete", e.sha256));
+        // the bytes an interrupted download kept, resumed unless over the bound
+        let kept = if is_regular(&partial_path)? {
+            std::fs::symlink_metadata(&partial_path).map_err(io(&partial_path))?.len()
+        } else {
+            0
+        };
+        let (response, commit, resumed) = self.request(&url, e, if kept > limit { 0 } else { kept })?;
+        let mut got = if resumed { kept } else { 0 };
+        let mut partial =
+            open_nofollow(&partial_path, OpenOptions::new().read(true).write(true).create(true).truncate(false))?;
+        partial.set_len(got).map_err(io(&partial_path))?;
+        // the bytes kept from before go into the hash first
+        let mut hasher = Sha256::new();
+        partial.seek(SeekFrom::Start(0)).map_err(io(&partial_path))?;
+        let copied =
+            std::io::copy(&mut (&mut partial).take(got), &mut HashWriter(&mut hasher)).map_err(io(&partial_path))?;
+        if copied != got {
+            return Err(io(&partial_path)(std::io::Error::other("the partial file changed while it was read")));
+        }
+        let remaining =
+            response.headers().get("content-length").and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
+        let too_large = |what| HubError::TooLarge { url: url.clone(), limit, what };
+        let what = if e.size.is_some() { "the registry pins" } else { "a model file may have" };
+        if remaining.is_some_and(|r| got.saturating_add(r) > limit) {
+            drop(partial);
+            let _ = std::fs::remove_file(&partial_path);
+            return Err(too_large(what));
+        }
+        let expected = remaining.map(|r| got + r).or(e.size);
+        let bar = progress.then(|| progress_bar(expected, &e.name, got));
+        let mut reader = response.into_body().into_reader();
+        let mut buf = vec![0u8; 1 << 16];
+        let read_result = loop {
+            let n = match reader.read(&mut buf) {
+                Ok(0) => break Ok(()),
+                Ok(n) => n,
+                Err(err) if err.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(err) => break Err(err),
+            };
+            if got + n as u64 > limit {
+                drop(partial);
+                let _ = std::fs::remove_file(&partial_path);
+                return Err(too_large(what));
+            }
+            hasher.update(&buf[..n]);
+            partial.write_all(&buf[..n]).map_err(io(&partial_path))?;
+            got += n as u64;
+            if let Some(b) = &bar {
+                b.set_position(got);
+            }
+        };
+        if let Some(b) = bar {
+            b.finish_and_clear();
+        }
+        partial.sync_all().map_err(io(&partial_path))?;
+        drop(partial);
+        // an interrupted download keeps what it received, to be resumed; an empty file is not kept
+        let stop = |err: HubError| {
+            if got == 0 {
+                let _ = std::fs::remove_file(&partial_path);
+            }
+            Err(err)
+        };
+        if let Err(err) = read_result {
+            if is_timeout(&err) {
+                return stop(HubError::TimedOut { url, seconds: self.timeout.as_secs_f64() });
+            }
+            return stop(match expected {
+                Some(expected) => HubError::Interrupted { url, got, expected },
+                None => HubError::Http { url, message: format!("reading the body: {err}") },
+            });
+        }
+        if let Some(expected) = expected.filter(|&x| x != got) {
+            return stop(HubError::Interrupted { url, got, expected });
+        }
+        let actual = hex(&hasher.finalize());
+        if actual != e.sha256 {
+            let _ = std::fs::remove_file(&partial_path);
+            return Err(HubError::Checksum {
+                what: url,
+                expected: e.sha256.clone(),
+                actual,
+                kept: "; nothing was kept",
+            });
+        }
+        // rename replaces whatever is at `blob` (a link too) without following it
+        std::fs::rename(&partial_path, &blob).map_err(io(&blob))?;
+        if let Err(err) = self.verify(&blob, e, "; it was removed") {
+            let _ = std::fs::remove_file(&blob);
+            return Err(err);
+        }
+
+        // the snapshot link, and the ref of a revision that is not a commit
+        let commit = match commit {
+            Some(c) if is_commit(&c) => c,
+            _ => e.revision.clone(),
+        };
+        if !is_commit(&e.revision) {
+            let rev: Vec<&str> = e.revision.split('/').collect();
+            let mut dirs = vec![repo_name.as_str(), "refs"];
+            dirs.extend(&rev[..rev.len() - 1]);
+            let refs = self.make_dirs(&dirs)?;
+            let r = refs.join(rev[rev.len() - 1]);
+            let mut f = open_nofollow(&r, OpenOptions::new().write(true).create(true).truncate(true))?;
+            f.write_all(commit.as_bytes()).map_err(io(&r))?;
+        }
+        let parts: Vec<&str> = e.file.split('/').collect();
+        let mut dirs = vec![repo_name.as_str(), "snapshots", commit.as_str()];
+        dirs.extend(&parts[..parts.len() - 1]);
+        let dir = self.make_dirs(&dirs)?;
+        let link = dir.join(parts[parts.len() - 1]);
+        let _ = std::fs::remove_file(&link);
+        place(&blob, &link, e)?;
+        drop(lock);
+        Ok(link)
+    }
+
+    /// GETs `url` from byte `from` on (a `Range` request when `from` > 0), following redirects by
+    /// hand (the first answer names the commit, `X-Repo-Commit`): the response, the commit and
+    /// whether the server resumed at `from` (206), rather than sending the whole file (200).
+    fn request(
+        &self,
+        url: &str,
+        e: &Entry,
+        from: u64,
+    ) -> Result<(ureq::http::Response<ureq::Body>, Option<String>, bool), HubError> {
+        let http = |message: String| HubError::Http { url: url.to_string(), message };
+        let t = Some(self.timeout);
+        let agent: ureq::Agent = ureq::Agent::config_builder()
+            .max_redirects(0)
+            .http_status_as_error(false)
+            .timeout_resolve(t)
+            .timeout_connect(t)
+            .timeout_send_request(t)
+            .timeout_recv_response(t)
+            .timeout_per_read(t)
+            .build()
+            .into();
+        let mut next = url.to_string();
         let mut commit = None;
-        let mut response = None;
         for _ in 0..=MAX_REDIRECTS {
-            let r = agent.get(&next).call().map_err(|err| HubError::Unreachable {
-                url: next.clone(),
-                path: self.cached_path(e),
-                message: err.to_string(),
+            let mut req = agent.get(&next);
+            if from > 0 {
+                req = req.header("range", format!("bytes={from}-"));
+            }
+            let r = req.call().map_err(|err| match err {
+                ureq::Error::Timeout(_) => {
+                    HubError::TimedOut { url: next.clone(), seconds: self.timeout.as_secs_f64() }
+                }
+                err => HubError::Unreachable { url: next.clone(), path: self.cached_path(e), message: err.to_string() },
             })?;
             if commit.is_none() {
                 commit = r.headers().get("x-repo-commit").and_then(|v| v.to_str().ok()).map(str::to_string);
@@ -171,6 +461,23 @@ impl Hub {
                 next = join_location(&next, location);
                 continue;
             }
+            if from > 0 && status.as_u16() == 206 {
+                let start = r
+                    .headers()
+                    .get("content-range")
+                    .and_then(|v| v.to_str().ok())
+                    .and_then(|v| v.strip_prefix("bytes "))
+                    .and_then(|v| v.split('-').next())
+                    .and_then(|v| v.parse::<u64>().ok());
+                if start == Some(from) {
+                    return Ok((r, commit, true));
+                }
+                return Err(http(format!("HTTP 206 that does not start at byte {from}")));
+            }
+            if from > 0 && status.as_u16() == 416 {
+                // the partial file is not a prefix the server knows: start again
+                return self.request(url, e, 0);
+            }
             if !status.is_success() {
                 let hint = match status.as_u16() {
                     401 | 403 => " (a gated or private repository: not supported)",
@@ -179,100 +486,105 @@ impl Hub {
                 };
                 return Err(http(format!("HTTP {status}{hint}")));
             }
-            response = Some(r);
-            break;
+            return Ok((r, commit, false));
         }
-        let response = response.ok_or_else(|| http(format!("more than {MAX_REDIRECTS} redirects")))?;
-        let expected_len =
-            response.headers().get("content-length").and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
-
-        let blobs = self.repo_dir(e).join("blobs");
-        std::fs::create_dir_all(&blobs).map_err(io(&blobs))?;
-        let blob = blobs.join(&e.sha256);
-        let partial = blobs.join(format!("{}.incomplete", e.sha256));
-        let result = (|| -> Result<(), HubError> {
-            let mut out = std::fs::File::create(&partial).map_err(io(&partial))?;
-            let bar = progress.then(|| progress_bar(expected_len, &e.name));
-            let mut reader = response.into_body().into_reader();
-            let mut hasher = Sha256::new();
-            let mut got = 0u64;
-            let mut buf = vec![0u8; 1 << 16];
-            loop {
-                let n = match reader.read(&mut buf) {
-                    Ok(0) => break,
-                    Ok(n) => n,
-                    Err(err) if err.kind() == std::io::ErrorKind::Interrupted => continue,
-                    Err(err) => {
-                        return Err(match expected_len {
-                            Some(expected) => HubError::Interrupted { url: url.clone(), got, expected },
-                            None => http(format!("reading the body: {err}")),
-                        })
-                    }
-                };
-                hasher.update(&buf[..n]);
-                out.write_all(&buf[..n]).map_err(io(&partial))?;
-                got += n as u64;
-                if let Some(b) = &bar {
-                    b.set_position(got);
-                }
-            }
-            if let Some(b) = bar {
-                b.finish_and_clear();
-            }
-            if let Some(expected) = expected_len.filter(|&x| x != got) {
-                return Err(HubError::Interrupted { url: url.clone(), got, expected });
-            }
-            let actual = hex(&hasher.finalize());
-            if actual != e.sha256 {
-                return Err(HubError::Checksum {
-                    what: url.clone(),
-                    expected: e.sha256.clone(),
-                    actual,
-                    kept: "; nothing was kept",
-                });
-            }
-            out.sync_all().map_err(io(&partial))?;
-            Ok(())
-        })();
-        if let Err(err) = result {
-            let _ = std::fs::remove_file(&partial);
-            return Err(err);
-        }
-        std::fs::rename(&partial, &blob).map_err(io(&blob))?;
-
-        // the snapshot link, and the ref of a revision that is not a commit
-        let commit = match commit {
-            Some(c) if is_commit(&c) => c,
-            _ => e.revision.clone(),
-        };
-        if !is_commit(&e.revision) {
-            let refs = self.repo_dir(e).join("refs");
-            std::fs::create_dir_all(&refs).map_err(io(&refs))?;
-            let r = refs.join(&e.revision);
-            std::fs::write(&r, &commit).map_err(io(&r))?;
-        }
-        let link = self.repo_dir(e).join("snapshots").join(&commit).join(&e.file);
-        let dir = link.parent().unwrap_or(&link).to_path_buf();
-        std::fs::create_dir_all(&dir).map_err(io(&dir))?;
-        let _ = std::fs::remove_file(&link);
-        place(&blob, &link, e.file.split('/').count())?;
-        Ok(link)
+        Err(http(format!("more than {MAX_REDIRECTS} redirects")))
     }
 }
 
-/// Puts the snapshot entry at `link` for `blob`: a relative symbolic link
-/// (`../../[../]blobs/SHA256`, as `huggingface_hub` makes it) where links exist, else a copy.
-fn place(blob: &Path, link: &Path, file_depth: usize) -> Result<(), HubError> {
+/// Whether a body read failed for want of data within the timeout.
+fn is_timeout(err: &std::io::Error) -> bool {
+    let ureq_timeout = err
+        .get_ref()
+        .and_then(|e| e.downcast_ref::<ureq::Error>())
+        .is_some_and(|e| matches!(e, ureq::Error::Timeout(_)));
+    ureq_timeout || matches!(err.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock)
+}
+
+/// Feeds what is written into a SHA-256.
+struct HashWriter<'a>(&'a mut Sha256);
+
+impl Write for HashWriter<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.update(buf);
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// Checks the entry's paths before any of them reaches a URL or the cache: `repo` is `ORG/NAME`
+/// and `revision` and `file` relative paths, each component non-empty, not `.` or `..`, without
+/// `\` or control characters; `sha256` is 64 lower-case hex digits.
+pub fn check_entry(e: &Entry) -> Result<(), String> {
+    let component_ok =
+        |c: &str| !c.is_empty() && c != "." && c != ".." && !c.chars().any(|ch| ch == '\\' || ch.is_control());
+    let relative = |what: &str, p: &str| -> Result<(), String> {
+        let normal = Path::new(p).components().all(|c| matches!(c, Component::Normal(_)));
+        if p.is_empty() || p.starts_with('/') || !normal || !p.split('/').all(component_ok) {
+            return Err(format!("{what} {p:?} must be a relative path without `.`, `..` or empty parts"));
+        }
+        Ok(())
+    };
+    let repo: Vec<&str> = e.repo.split('/').collect();
+    let repo_ok = repo.len() == 2
+        && repo.iter().all(|c| component_ok(c) && c.chars().all(|ch| ch.is_ascii_alphanumeric() || "-_.".contains(ch)));
+    if !repo_ok {
+        return Err(format!("repo {:?} must be ORG/NAME (letters, digits, '-', '_', '.')", e.repo));
+    }
+    relative("revision", &e.revision)?;
+    relative("file", &e.file)?;
+    if !(e.sha256.len() == 64 && e.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))) {
+        return Err("sha256 must be 64 lower-case hex digits".into());
+    }
+    Ok(())
+}
+
+/// Opens `path` with `options`, never through a symbolic link (`O_NOFOLLOW`): a link there is
+/// [`HubError::Link`].
+fn open_nofollow(path: &Path, options: &mut OpenOptions) -> Result<File, HubError> {
     #[cfg(unix)]
     {
-        let up = "../".repeat(file_depth + 1);
-        let name = blob.file_name().and_then(|n| n.to_str()).unwrap_or_default();
-        let target = PathBuf::from(format!("{up}blobs/{name}"));
-        std::os::unix::fs::symlink(&target, link).map_err(io(link))
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NOFOLLOW);
+    }
+    match options.open(path) {
+        Ok(f) => Ok(f),
+        Err(err) => match std::fs::symlink_metadata(path) {
+            Ok(m) if m.file_type().is_symlink() => Err(HubError::Link { path: path.to_path_buf() }),
+            _ => Err(io(path)(err)),
+        },
+    }
+}
+
+/// Whether a regular file is at `path` (false when nothing is); a link there is refused.
+fn is_regular(path: &Path) -> Result<bool, HubError> {
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_symlink() => Err(HubError::Link { path: path.to_path_buf() }),
+        Ok(m) => Ok(m.is_file()),
+        Err(err) if err.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(err) => Err(io(path)(err)),
+    }
+}
+
+/// The relative link from `snapshots/COMMIT/FILE` to `blobs/SHA256`
+/// (`../../[../]blobs/SHA256`, as `huggingface_hub` makes it).
+fn link_target(e: &Entry) -> PathBuf {
+    PathBuf::from(format!("{}blobs/{}", "../".repeat(e.file.split('/').count() + 1), e.sha256))
+}
+
+/// Puts the snapshot entry at `link` for `blob`: a relative symbolic link where links exist, else
+/// a copy.
+fn place(blob: &Path, link: &Path, e: &Entry) -> Result<(), HubError> {
+    #[cfg(unix)]
+    {
+        let _ = blob;
+        std::os::unix::fs::symlink(link_target(e), link).map_err(io(link))
     }
     #[cfg(not(unix))]
     {
-        let _ = file_depth;
+        let _ = e;
         std::fs::copy(blob, link).map(|_| ()).map_err(io(link))
     }
 }
@@ -295,7 +607,7 @@ fn join_location(from: &str, location: &str) -> String {
     }
 }
 
-fn progress_bar(len: Option<u64>, name: &str) -> indicatif::ProgressBar {
+fn progress_bar(len: Option<u64>, name: &str, at: u64) -> indicatif::ProgressBar {
     let bar = match len {
         Some(n) => indicatif::ProgressBar::new(n),
         None => indicatif::ProgressBar::no_length(),
@@ -307,6 +619,7 @@ fn progress_bar(len: Option<u64>, name: &str) -> indicatif::ProgressBar {
             .progress_chars("=> ");
     bar.set_style(style);
     bar.set_message(format!("downloading {name}"));
+    bar.set_position(at);
     bar
 }
 
@@ -319,19 +632,20 @@ fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
+fn sha256_of(mut f: File, path: &Path) -> Result<String, HubError> {
+    let mut h = Sha256::new();
+    std::io::copy(&mut f, &mut HashWriter(&mut h)).map_err(io(path))?;
+    Ok(hex(&h.finalize()))
+}
+
 /// The SHA-256 of a file, lower-case hex.
 pub fn sha256_file(path: &Path) -> Result<String, HubError> {
-    let mut f = std::fs::File::open(path).map_err(io(path))?;
-    let mut h = Sha256::new();
-    let mut buf = vec![0u8; 1 << 16];
-    loop {
-        let n = f.read(&mut buf).map_err(io(path))?;
-        if n == 0 {
-            break;
-        }
-        h.update(&buf[..n]);
-    }
-    Ok(hex(&h.finalize()))
+    sha256_of(File::open(path).map_err(io(path))?, path)
+}
+
+/// The SHA-256 of a file opened without following a link.
+fn sha256_nofollow(path: &Path) -> Result<String, HubError> {
+    sha256_of(open_nofollow(path, OpenOptions::new().read(true))?, path)
 }
 
 #[cfg(test)]
@@ -349,5 +663,14 @@ mod tests {
     fn commits_are_forty_hex_digits() {
         assert!(is_commit("4472b7362082ad9968fee890ca0f1e5aca36b93d"));
         assert!(!is_commit("main"));
+    }
+
+    #[test]
+    fn the_timeout_variable_is_read_as_positive_seconds() {
+        assert_eq!(timeout_from(None), Duration::from_secs(10));
+        assert_eq!(timeout_from(Some("2.5")), Duration::from_millis(2500));
+        for bad in ["0", "-1", "nan", "inf", "1e300", "soon"] {
+            assert_eq!(timeout_from(Some(bad)), Duration::from_secs(10), "{bad}");
+        }
     }
 }

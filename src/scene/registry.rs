@@ -18,6 +18,9 @@ use crate::io::image::RgbImage;
 /// The built-in registry.
 const BUILTIN: &str = include_str!("registry.toml");
 
+/// The largest registry file read (bytes).
+pub const MAX_REGISTRY_BYTES: u64 = 1 << 20;
+
 /// A TOML file of further entries (the same layout as the built-in registry); an entry with a
 /// built-in name replaces it.
 pub const REGISTRY_ENV: &str = "MPIFLOW_MODEL_REGISTRY";
@@ -201,6 +204,10 @@ pub struct Entry {
     pub file: String,
     /// The SHA-256 of the file, lower-case hex.
     pub sha256: String,
+    /// The file's size in bytes: a download stops there (without it, at
+    /// [`super::hub::MAX_MODEL_BYTES`]).
+    #[serde(default)]
+    pub size: Option<u64>,
     pub licence: String,
     #[serde(default)]
     pub contract: Contract,
@@ -217,19 +224,8 @@ fn parse(text: &str, path: &str) -> Result<Vec<Entry>, ModelError> {
     let f: RegistryFile =
         toml::from_str(text).map_err(|e| ModelError::Registry { path: path.into(), message: e.to_string() })?;
     for e in &f.model {
-        let hex = e.sha256.len() == 64 && e.sha256.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b));
-        if !hex {
-            return Err(ModelError::Registry {
-                path: path.into(),
-                message: format!("{}: sha256 must be 64 lower-case hex digits", e.name),
-            });
-        }
-        if e.repo.split('/').count() != 2 || e.file.is_empty() || e.revision.is_empty() {
-            return Err(ModelError::Registry {
-                path: path.into(),
-                message: format!("{}: repo must be ORG/NAME, with a revision and a file", e.name),
-            });
-        }
+        super::hub::check_entry(e)
+            .map_err(|m| ModelError::Registry { path: path.into(), message: format!("{}: {m}", e.name) })?;
     }
     Ok(f.model)
 }
@@ -240,7 +236,7 @@ pub fn registry() -> Result<Vec<Entry>, ModelError> {
     let mut out = parse(BUILTIN, "(built in)")?;
     if let Some(p) = std::env::var_os(REGISTRY_ENV).filter(|p| !p.is_empty()) {
         let path = PathBuf::from(p);
-        let text = std::fs::read_to_string(&path)
+        let text = crate::io::bounded::read_to_string(&path, MAX_REGISTRY_BYTES)
             .map_err(|e| ModelError::Registry { path: path.display().to_string(), message: e.to_string() })?;
         for e in parse(&text, &path.display().to_string())? {
             match out.iter_mut().find(|o| o.name == e.name) {
@@ -280,7 +276,7 @@ pub fn resolve(spec: &Path, role: Role, hub: &Hub, progress: bool) -> Result<Res
     if spec.is_file() {
         let manifest = manifest_path(spec);
         let contract = if manifest.is_file() {
-            let text = std::fs::read_to_string(&manifest)
+            let text = crate::io::bounded::read_to_string(&manifest, MAX_REGISTRY_BYTES)
                 .map_err(|e| ModelError::Manifest { path: manifest.clone(), message: e.to_string() })?;
             toml::from_str(&text)
                 .map_err(|e| ModelError::Manifest { path: manifest.clone(), message: e.to_string() })?
@@ -405,5 +401,34 @@ mod tests {
         let text = BUILTIN.replace("afb6a5c28f3b6bf1618c6e43f02073ef9dfdc70e937502d51603e57b0a1df10c", "abc");
         let e = parse(&text, "x.toml").unwrap_err();
         assert!(e.to_string().contains("depth-anything-v2-small: sha256 must be 64"), "{e}");
+    }
+
+    /// Registry paths that would leave the hub cache or the repository's URL are refused: `..`,
+    /// `.`, empty and absolute components in `file` and `revision`, and a `repo` that is not
+    /// `ORG/NAME`.
+    #[test]
+    fn registry_paths_with_dot_dot_or_absolute_parts_are_refused() {
+        let with = |key: &str, from: &str, to: &str| {
+            let text = BUILTIN.replacen(&format!("{key} = \"{from}\""), &format!("{key} = \"{to}\""), 1);
+            assert_ne!(text, BUILTIN, "{key} {from}");
+            parse(&text, "x.toml").map(|_| ()).map_err(|e| e.to_string())
+        };
+        let file = "onnx/model.onnx";
+        let revision = "4472b7362082ad9968fee890ca0f1e5aca36b93d";
+        let repo = "onnx-community/depth-anything-v2-small";
+        for bad in ["../model.onnx", "onnx/../../x", "/etc/passwd", "onnx//model.onnx", "./model.onnx", "a\\\\b", ""] {
+            let e = with("file", file, bad).unwrap_err();
+            assert!(e.contains("depth-anything-v2-small: file"), "{bad}: {e}");
+        }
+        for bad in ["..", "../../x", "/abs", "main/.."] {
+            let e = with("revision", revision, bad).unwrap_err();
+            assert!(e.contains("depth-anything-v2-small: revision"), "{bad}: {e}");
+        }
+        for bad in ["../x", "a/b/c", "a/..", "a b/c"] {
+            let e = with("repo", repo, bad).unwrap_err();
+            assert!(e.contains("depth-anything-v2-small: repo"), "{bad}: {e}");
+        }
+        with("revision", revision, "refs/pr/1").unwrap();
+        with("file", file, "model.onnx").unwrap();
     }
 }

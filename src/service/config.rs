@@ -43,6 +43,25 @@ pub const DEFAULT_CACHE_MB: u64 = 3072;
 /// The largest gRPC message the server ever allows (well below protobuf's 2 GiB).
 pub const MAX_MESSAGE_CAP: u64 = 1 << 30;
 
+/// The largest configuration file read (bytes); a longer one is refused unread.
+pub const MAX_CONFIG_FILE_BYTES: u64 = 1 << 20;
+
+/// The largest token file read (bytes): a token is at most 4096 characters, with room for
+/// surrounding whitespace.
+pub const MAX_TOKEN_FILE_BYTES: u64 = 64 << 10;
+
+/// The longest any timeout or delay key may be: one day (in seconds).
+pub const MAX_SECONDS: f64 = 86_400.0;
+
+/// The most any count key (connections, streams, calls, uploads, samples in flight) may be.
+pub const MAX_COUNT: u64 = 1_000_000;
+
+/// The most any MiB key (`max_buffered_mb`, `cache_mb`, `max_upload_buffer_mb`) may be: 16 TiB.
+pub const MAX_MIB: u64 = 1 << 24;
+
+/// The most samples a stream may make ahead (`default_prefetch`, `max_prefetch`).
+pub const MAX_PREFETCH: u32 = 65_536;
+
 /// Log line format.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -167,8 +186,9 @@ pub struct ServiceConfig {
     /// before it is closed; also the HTTP/2 keepalive ping interval, a ping unanswered for this
     /// long closes the connection.
     pub idle_connection_timeout_s: f64,
-    /// Seconds a client may take less than 1 MiB while the server has bytes for it (it stopped
-    /// reading) before its connection is closed, ending its streams and freeing their slots.
+    /// Seconds a client may take no data while the server has bytes waiting for it (its writes
+    /// are blocked: it stopped reading) before its connection is closed, ending its streams and
+    /// freeing their slots; a stall ends when the client takes data again (`service::stall`).
     pub stall_timeout_s: f64,
     /// Concurrent GetSample and GetSamples calls from one client address (unsent replies
     /// included); more are refused with RESOURCE_EXHAUSTED.
@@ -272,10 +292,10 @@ impl Default for ServiceConfig {
 pub use crate::sample::pipeline::parse_size;
 
 impl ServiceConfig {
-    /// Reads a TOML file (every key optional).
+    /// Reads a TOML file (every key optional; at most [`MAX_CONFIG_FILE_BYTES`]).
     pub fn from_file(path: &Path) -> Result<Self, ServiceError> {
-        let text =
-            std::fs::read_to_string(path).map_err(|e| ServiceError::Config(format!("{}: {e}", path.display())))?;
+        let text = crate::io::bounded::read_to_string(path, MAX_CONFIG_FILE_BYTES)
+            .map_err(|e| ServiceError::Config(format!("{}: {e}", path.display())))?;
         Self::from_toml(&text).map_err(|e| ServiceError::Config(format!("{}: {e}", path.display())))
     }
 
@@ -309,20 +329,12 @@ impl ServiceConfig {
     /// Checks every value; the error names the key.
     pub fn validate(&self) -> Result<(), ServiceError> {
         let bad = |m: String| Err(ServiceError::Config(m));
+        self.validate_ranges()?;
         if self.max_streams == 0 {
             return bad("max_streams = 0 (expected at least 1)".into());
         }
         if self.max_connections == 0 {
             return bad("max_connections = 0 (expected at least 1)".into());
-        }
-        if !(self.idle_connection_timeout_s.is_finite() && self.idle_connection_timeout_s > 0.0) {
-            return bad(format!(
-                "idle_connection_timeout_s = {} (expected seconds > 0)",
-                self.idle_connection_timeout_s
-            ));
-        }
-        if !(self.stall_timeout_s.is_finite() && self.stall_timeout_s > 0.0) {
-            return bad(format!("stall_timeout_s = {} (expected seconds > 0)", self.stall_timeout_s));
         }
         if self.max_connections_per_peer == 0 || self.max_calls_per_connection == 0 {
             return bad("max_connections_per_peer and max_calls_per_connection must be at least 1".into());
@@ -342,9 +354,6 @@ impl ServiceConfig {
         if self.max_image_side < 16 || self.max_image_pixels < 256 {
             return bad("max_image_side must be at least 16 and max_image_pixels at least 256".into());
         }
-        if !(self.drain_timeout_s.is_finite() && self.drain_timeout_s >= 0.0) {
-            return bad(format!("drain_timeout_s = {} (expected seconds >= 0)", self.drain_timeout_s));
-        }
         if self.workers > 1024 {
             return bad(format!("workers = {} (expected at most 1024)", self.workers));
         }
@@ -354,6 +363,17 @@ impl ServiceConfig {
             }
         }
         self.sample.validate().map_err(|e| ServiceError::Config(format!("[sample]: {e}")))?;
+        let paths = [
+            ("auth_token_file", &self.auth_token_file),
+            ("tls_cert", &self.tls_cert),
+            ("tls_key", &self.tls_key),
+            ("tls_client_ca", &self.tls_client_ca),
+        ];
+        for (key, path) in paths {
+            if path.as_ref().is_some_and(|p| p.as_os_str().to_string_lossy().trim().is_empty()) {
+                return bad(format!("{key} is empty: give the path of the file, or leave the key out"));
+            }
+        }
         if self.tls_cert.is_some() != self.tls_key.is_some() {
             return bad("tls_cert and tls_key go together (both PEM files)".into());
         }
@@ -364,6 +384,9 @@ impl ServiceConfig {
             return bad("auth_token and auth_token_file: give one of them".into());
         }
         if let Some(t) = &self.auth_token {
+            if t.trim().is_empty() {
+                return bad("auth_token is empty: give the token, or leave the key out for no token check".into());
+            }
             check_token(t).map_err(|e| ServiceError::Config(format!("auth_token: {e}")))?;
         }
         let mut names = std::collections::HashSet::new();
@@ -383,17 +406,62 @@ impl ServiceConfig {
     }
 
     /// The bearer token to require: `auth_token`, or the contents of `auth_token_file`
-    /// (surrounding whitespace dropped); none = no token check.
+    /// (surrounding whitespace dropped; at most [`MAX_TOKEN_FILE_BYTES`] read); none = no token
+    /// check. A token file that cannot be read, is too long or holds no token is an error.
     pub fn resolved_auth_token(&self) -> Result<Option<String>, ServiceError> {
         if let Some(t) = &self.auth_token {
             return Ok(Some(t.clone()));
         }
         let Some(p) = &self.auth_token_file else { return Ok(None) };
-        let text = std::fs::read_to_string(p)
-            .map_err(|e| ServiceError::Config(format!("auth_token_file {}: {e}", p.display())))?;
+        let failed = |e: String| ServiceError::Config(format!("auth_token_file {}: {e}", p.display()));
+        let text = crate::io::bounded::read_to_string(p, MAX_TOKEN_FILE_BYTES).map_err(|e| failed(e.to_string()))?;
         let t = text.trim().to_string();
-        check_token(&t).map_err(|e| ServiceError::Config(format!("auth_token_file {}: {e}", p.display())))?;
+        if t.is_empty() {
+            return Err(failed("the file holds no token (it is empty or blank)".into()));
+        }
+        check_token(&t).map_err(failed)?;
         Ok(Some(t))
+    }
+
+    /// Checks that no duration, count or size key is out of the range the server can hold
+    /// ([`MAX_SECONDS`], [`MAX_COUNT`], [`MAX_MIB`], [`MAX_PREFETCH`]); the error names the key.
+    fn validate_ranges(&self) -> Result<(), ServiceError> {
+        let seconds = [
+            ("idle_connection_timeout_s", self.idle_connection_timeout_s, false),
+            ("stall_timeout_s", self.stall_timeout_s, false),
+            ("drain_timeout_s", self.drain_timeout_s, true),
+        ];
+        for (key, v, zero) in seconds {
+            let low_ok = if zero { v >= 0.0 } else { v > 0.0 };
+            if !(v.is_finite() && low_ok && v <= MAX_SECONDS) {
+                let low = if zero { ">= 0" } else { "> 0" };
+                return Err(ServiceError::Config(format!(
+                    "{key} = {v} (expected seconds {low} and at most {MAX_SECONDS})"
+                )));
+            }
+        }
+        let max_ms = (MAX_SECONDS * 1e3) as u64;
+        let counts = [
+            ("warmup_delay_ms", self.warmup_delay_ms, max_ms),
+            ("max_streams", self.max_streams as u64, MAX_COUNT),
+            ("max_in_flight", self.max_in_flight as u64, MAX_COUNT),
+            ("max_connections", self.max_connections as u64, MAX_COUNT),
+            ("max_connections_per_peer", self.max_connections_per_peer as u64, MAX_COUNT),
+            ("max_calls_per_connection", u64::from(self.max_calls_per_connection), MAX_COUNT),
+            ("max_random_access_calls", self.max_random_access_calls as u64, MAX_COUNT),
+            ("max_concurrent_uploads", self.max_concurrent_uploads as u64, MAX_COUNT),
+            ("default_prefetch", u64::from(self.default_prefetch), u64::from(MAX_PREFETCH)),
+            ("max_prefetch", u64::from(self.max_prefetch), u64::from(MAX_PREFETCH)),
+            ("max_buffered_mb", self.max_buffered_mb, MAX_MIB),
+            ("cache_mb", self.cache_mb, MAX_MIB),
+            ("max_upload_buffer_mb", self.max_upload_buffer_mb, MAX_MIB),
+        ];
+        for (key, v, most) in counts {
+            if v > most {
+                return Err(ServiceError::Config(format!("{key} = {v} (expected at most {most})")));
+            }
+        }
+        Ok(())
     }
 
     /// The parsed `size`.
@@ -546,18 +614,104 @@ mod tests {
         ])
         .unwrap();
         assert!(c.validate().unwrap_err().to_string().contains("auth_token"));
-        // empty values unset
-        c.apply_env_vars([
-            ("MPIFLOW_AUTH_TOKEN".to_string(), String::new()),
-            ("MPIFLOW_TLS_CERT".to_string(), String::new()),
-            ("MPIFLOW_TLS_KEY".to_string(), String::new()),
-            ("MPIFLOW_TLS_CLIENT_CA".to_string(), String::new()),
-        ])
-        .unwrap();
-        assert_eq!((&c.auth_token, &c.auth_token_file, &c.tls_cert), (&None, &None, &None));
-        c.validate().unwrap();
         let client_ca_alone = ServiceConfig { tls_client_ca: Some("/ca".into()), ..ServiceConfig::default() };
         assert!(client_ca_alone.validate().unwrap_err().to_string().contains("tls_client_ca"));
+    }
+
+    /// An empty security setting in any layer stops the start-up: the environment (which would
+    /// otherwise unset the key, and with `auth_token` the file's `auth_token_file` too), the file
+    /// and a token file that is empty or blank.
+    #[test]
+    fn an_empty_security_setting_is_an_error_in_every_layer() {
+        let file = ServiceConfig::from_toml("auth_token_file = \"/secret/token\"\n").unwrap();
+        for var in ["AUTH_TOKEN", "AUTH_TOKEN_FILE", "TLS_CERT", "TLS_KEY", "TLS_CLIENT_CA"] {
+            for empty in ["", "  "] {
+                let mut c = file.clone();
+                let e = c.apply_env_vars([(format!("MPIFLOW_{var}"), empty.to_string())]).unwrap_err();
+                assert!(e.starts_with(&format!("MPIFLOW_{var} is set but empty")), "{e}");
+                assert_eq!(c, file, "nothing changed");
+            }
+        }
+        // other keys: empty is still the default
+        let mut c = file.clone();
+        c.apply_env_vars([("MPIFLOW_METRICS_ADDR".to_string(), String::new())]).unwrap();
+        assert_eq!(c.auth_token_file.as_deref(), Some(Path::new("/secret/token")));
+        for text in ["auth_token = \"\"", "auth_token = \"  \""] {
+            let e = ServiceConfig::from_toml(text).unwrap().validate().unwrap_err().to_string();
+            assert!(e.contains("auth_token is empty"), "{e}");
+        }
+        for key in ["auth_token_file", "tls_cert", "tls_key", "tls_client_ca"] {
+            let e = ServiceConfig::from_toml(&format!("{key} = \"\"")).unwrap().validate().unwrap_err().to_string();
+            assert!(e.contains(&format!("{key} is empty")), "{e}");
+        }
+        let dir = std::env::temp_dir().join(format!("mpiflow-empty-token-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for (name, contents) in [("empty", "".to_string()), ("blank", " \n\t\n".to_string())] {
+            let p = dir.join(name);
+            std::fs::write(&p, contents).unwrap();
+            let c = ServiceConfig { auth_token_file: Some(p), ..ServiceConfig::default() };
+            c.validate().unwrap();
+            let e = c.resolved_auth_token().unwrap_err().to_string();
+            assert!(e.contains("auth_token_file") && e.contains("holds no token"), "{e}");
+        }
+        let missing = ServiceConfig { auth_token_file: Some(dir.join("missing")), ..ServiceConfig::default() };
+        assert!(missing.resolved_auth_token().unwrap_err().to_string().contains("missing"));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Files are read with a bound: a token file or a configuration file that is `/dev/zero` is
+    /// refused at the bound, not read without end.
+    #[cfg(unix)]
+    #[test]
+    fn endless_token_and_configuration_files_are_refused() {
+        let zero = PathBuf::from("/dev/zero");
+        let c = ServiceConfig { auth_token_file: Some(zero.clone()), ..ServiceConfig::default() };
+        let e = c.resolved_auth_token().unwrap_err().to_string();
+        assert!(
+            e.contains("auth_token_file /dev/zero") && e.contains(&format!("larger than {MAX_TOKEN_FILE_BYTES}")),
+            "{e}"
+        );
+        let e = ServiceConfig::from_file(&zero).unwrap_err().to_string();
+        assert!(e.contains("/dev/zero") && e.contains(&format!("larger than {MAX_CONFIG_FILE_BYTES}")), "{e}");
+    }
+
+    /// Durations and counts the server cannot hold (a timeout of 1e300 s, NaN, 2^63 - 1
+    /// connections) are configuration errors naming the key, never a panic later.
+    #[test]
+    fn out_of_range_values_are_refused_naming_the_key() {
+        let cases = [
+            "idle_connection_timeout_s = 1e300",
+            "idle_connection_timeout_s = nan",
+            "stall_timeout_s = inf",
+            "stall_timeout_s = 86400.5",
+            "stall_timeout_s = 0.0",
+            "drain_timeout_s = 1e300",
+            "drain_timeout_s = -1.0",
+            "warmup_delay_ms = 9223372036854775807",
+            "max_connections = 9223372036854775807",
+            "max_connections_per_peer = 9223372036854775807",
+            "max_streams = 9223372036854775807",
+            "max_in_flight = 9223372036854775807",
+            "max_random_access_calls = 9223372036854775807",
+            "max_concurrent_uploads = 9223372036854775807",
+            "max_calls_per_connection = 4294967295",
+            "default_prefetch = 4294967295",
+            "max_prefetch = 4294967295",
+            "max_buffered_mb = 9223372036854775807",
+            "cache_mb = 9223372036854775807",
+            "max_upload_buffer_mb = 9223372036854775807",
+        ];
+        for text in cases {
+            let key = text.split(' ').next().unwrap();
+            let e = ServiceConfig::from_toml(text).unwrap().validate().unwrap_err().to_string();
+            assert!(e.contains(&format!("{key} = ")) && e.contains("expected"), "{text}: {e}");
+        }
+        // the bounds themselves are accepted
+        let edge = format!(
+            "stall_timeout_s = {MAX_SECONDS}\nmax_connections = {MAX_COUNT}\nmax_prefetch = {MAX_PREFETCH}\n\
+             cache_mb = {MAX_MIB}\ndrain_timeout_s = 0.0"
+        );
+        ServiceConfig::from_toml(&edge).unwrap().validate().unwrap();
     }
 
     #[test]

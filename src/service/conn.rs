@@ -2,14 +2,15 @@
 //! `max_connections_per_peer` from one address (more are closed as they arrive); a connection
 //! must send its first bytes within `idle_connection_timeout_s`, and is closed once no call has
 //! been open on it for as long (HTTP/2 pings answered or not: calls are counted by the server's
-//! layer, `service::reply`, through the connection's [`Activity`]); a connection whose peer takes
-//! less than [`STALL_PROGRESS_BYTES`] over `stall_timeout_s` while the server has bytes for it is
-//! closed, which ends its streams and frees their slots (each batch carries its resume cursor).
-//! All of it holds on the plaintext and the TLS port alike (the TLS handshake runs over these
-//! connections). HTTP/2 keepalive pings (`Server::http2_keepalive_*`) close connections whose
-//! peer stops answering, and TCP keepalive (probes after `idle_connection_timeout_s` of silence,
-//! every such interval, 3 tries) lets the kernel drop connections whose peer vanished without a
-//! FIN (the cable, the node).
+//! layer, `service::reply`, through the connection's [`Activity`]); a connection whose peer has
+//! taken no data for `stall_timeout_s` while the server had bytes for it is closed
+//! ([`super::stall`]), which ends its streams and frees their slots (each batch carries its
+//! resume cursor). All of it holds on the plaintext and the TLS port alike (the TLS handshake
+//! runs over these connections). HTTP/2 keepalive pings (`Server::http2_keepalive_*`) close
+//! connections whose peer stops answering, and TCP keepalive (probes after
+//! `idle_connection_timeout_s` of silence, every such interval, 3 tries) lets the kernel drop
+//! connections whose peer vanished without a FIN (the cable, the node). A failed accept backs
+//! off when the process is out of descriptors or memory ([`AcceptErrors`]).
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -26,6 +27,8 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 use tokio::time::{Instant, Sleep};
 use tonic::transport::server::{Connected, TcpConnectInfo};
+
+use super::stall::StallWatch;
 
 /// The calls open on one connection and since when it has had none.
 #[derive(Debug)]
@@ -110,22 +113,16 @@ impl Drop for PeerSlot {
     }
 }
 
-/// Bytes a stalled connection must take within `stall_timeout` to count as reading again.
-pub const STALL_PROGRESS_BYTES: u64 = 1 << 20;
-
 /// An accepted connection holding its slots of the connection bounds until it is dropped. It
 /// ends itself (end of input to the HTTP/2 server, which then closes it) when no call has been
-/// open on it for the idle timeout, and fails its writes when the peer has taken less than
-/// [`STALL_PROGRESS_BYTES`] over the stall timeout while the server had bytes for it.
+/// open on it for the idle timeout, and fails its writes when the peer has taken no data for the
+/// stall timeout while the server had bytes for it ([`StallWatch`]).
 #[derive(Debug)]
 pub struct Guarded {
-    inner: TcpStream,
+    inner: StallWatch<TcpStream>,
     info: ConnInfo,
     limits: ConnLimits,
     idle_timer: Pin<Box<Sleep>>,
-    /// Since when writes have been waiting for the peer, and the bytes written since then.
-    stalled: Option<(Instant, u64)>,
-    stall_timer: Pin<Box<Sleep>>,
     ended: bool,
     _slot: OwnedSemaphorePermit,
     _peer: PeerSlot,
@@ -147,31 +144,13 @@ impl Guarded {
         }
     }
 
-    /// Notes a write that could not go on; true when the connection has stalled for too long.
-    fn write_stalled(&mut self, cx: &mut Context<'_>) -> bool {
-        let now = Instant::now();
-        let since = match self.stalled {
-            Some((t, _)) => t,
-            None => {
-                self.stalled = Some((now, 0));
-                self.stall_timer.as_mut().reset(now + self.limits.stall_timeout);
-                now
-            }
-        };
-        if now >= since + self.limits.stall_timeout {
-            return true;
+    /// A write's result, the connection ended (and logged once) when the stall watch cut it.
+    fn noted<T>(&mut self, r: Poll<io::Result<T>>) -> Poll<io::Result<T>> {
+        if matches!(r, Poll::Ready(Err(_))) && self.inner.is_cut() && !self.ended {
+            tracing::info!(peer = ?self.info.tcp.remote_addr(), stall_timeout_s = self.limits.stall_timeout.as_secs_f64(), "connection closed: the peer stopped reading");
+            self.ended = true;
         }
-        // wake the connection when the timeout passes, even if the peer never reads again
-        let _ = self.stall_timer.as_mut().poll(cx);
-        false
-    }
-
-    /// Notes `n` bytes written: enough of them end a stall.
-    fn wrote(&mut self, n: usize) {
-        if let Some((t, w)) = self.stalled {
-            let w = w + n as u64;
-            self.stalled = (w < STALL_PROGRESS_BYTES).then_some((t, w));
-        }
+        r
     }
 }
 
@@ -194,31 +173,15 @@ impl AsyncRead for Guarded {
     }
 }
 
-impl Guarded {
-    fn stall_error(&mut self) -> io::Error {
-        tracing::info!(peer = ?self.info.tcp.remote_addr(), stall_timeout_s = self.limits.stall_timeout.as_secs_f64(), "connection closed: the peer stopped reading");
-        self.ended = true;
-        io::Error::new(io::ErrorKind::TimedOut, "the peer stopped reading (stall_timeout_s)")
-    }
-}
-
 impl AsyncWrite for Guarded {
     fn poll_write(mut self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
-        match Pin::new(&mut self.inner).poll_write(cx, buf) {
-            Poll::Ready(Ok(n)) => {
-                self.wrote(n);
-                Poll::Ready(Ok(n))
-            }
-            Poll::Pending if self.write_stalled(cx) => Poll::Ready(Err(self.stall_error())),
-            other => other,
-        }
+        let r = Pin::new(&mut self.inner).poll_write(cx, buf);
+        self.noted(r)
     }
 
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        match Pin::new(&mut self.inner).poll_flush(cx) {
-            Poll::Pending if self.write_stalled(cx) => Poll::Ready(Err(self.stall_error())),
-            other => other,
-        }
+        let r = Pin::new(&mut self.inner).poll_flush(cx);
+        self.noted(r)
     }
 
     fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
@@ -230,14 +193,8 @@ impl AsyncWrite for Guarded {
         cx: &mut Context<'_>,
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
-        match Pin::new(&mut self.inner).poll_write_vectored(cx, bufs) {
-            Poll::Ready(Ok(n)) => {
-                self.wrote(n);
-                Poll::Ready(Ok(n))
-            }
-            Poll::Pending if self.write_stalled(cx) => Poll::Ready(Err(self.stall_error())),
-            other => other,
-        }
+        let r = Pin::new(&mut self.inner).poll_write_vectored(cx, bufs);
+        self.noted(r)
     }
 
     fn is_write_vectored(&self) -> bool {
@@ -263,8 +220,8 @@ pub struct ConnLimits {
     /// How long a new connection may stay silent before it is closed, and how long a connection
     /// may stay open with no call; also the TCP keepalive idle time and probe interval.
     pub first_bytes_timeout: Duration,
-    /// How long the peer may take less than [`STALL_PROGRESS_BYTES`] while the server has bytes
-    /// for it before the connection is closed.
+    /// How long the peer may take no data while the server has bytes for it before the
+    /// connection is closed.
     pub stall_timeout: Duration,
 }
 
@@ -279,6 +236,68 @@ fn set_keepalive(stream: &TcpStream, every: Duration) -> io::Result<()> {
     socket2::SockRef::from(stream).set_tcp_keepalive(&ka)
 }
 
+/// How long the accept loop pauses after an accept that failed for want of a resource (file
+/// descriptors, socket buffers, memory): the connections waiting are not accepted any sooner by
+/// trying again at once, and trying again at once spins a core and floods the log.
+pub const ACCEPT_BACKOFF: Duration = Duration::from_millis(100);
+
+/// At most one log line per this interval for failed accepts; it counts the failures since the
+/// line before.
+pub const ACCEPT_LOG_EVERY: Duration = Duration::from_secs(10);
+
+/// The failed accepts of one listener: what to do after each, and their rate-limited log.
+#[derive(Debug, Default)]
+struct AcceptErrors {
+    /// When the last line was logged.
+    logged_at: Option<Instant>,
+    /// Failures since then that were not logged.
+    unlogged: u64,
+}
+
+impl AcceptErrors {
+    /// Notes a failed accept at `now`: the pause before the next accept ([`ACCEPT_BACKOFF`]),
+    /// or none for an error of the one connection being accepted (it reset or aborted before it
+    /// was taken, or its network went away), which the next accept does not meet again.
+    fn failed(&mut self, e: &io::Error, now: Instant) -> Option<Duration> {
+        use io::ErrorKind as K;
+        let own = matches!(
+            e.kind(),
+            K::ConnectionAborted
+                | K::ConnectionReset
+                | K::ConnectionRefused
+                | K::Interrupted
+                | K::WouldBlock
+                | K::NetworkDown
+                | K::NetworkUnreachable
+                | K::HostUnreachable
+        );
+        if own {
+            tracing::debug!(error = %e, "accept failed for one connection");
+            return None;
+        }
+        match self.logged_at {
+            Some(t) if now.duration_since(t) < ACCEPT_LOG_EVERY => self.unlogged += 1,
+            _ => {
+                tracing::warn!(
+                    error = %e,
+                    failed_since_last_line = self.unlogged,
+                    backoff_ms = ACCEPT_BACKOFF.as_millis() as u64,
+                    "accept failed (out of file descriptors or memory?): pausing the accept loop"
+                );
+                self.logged_at = Some(now);
+                self.unlogged = 0;
+            }
+        }
+        Some(ACCEPT_BACKOFF)
+    }
+
+    /// Whether the next failure at `now` would be logged (for the tests).
+    #[cfg(test)]
+    fn would_log(&self, now: Instant) -> bool {
+        self.logged_at.is_none_or(|t| now.duration_since(t) >= ACCEPT_LOG_EVERY)
+    }
+}
+
 /// The accepted connections of `listener` under `limits`, as a stream for tonic's
 /// `serve_with_incoming`. The accept loop ends when the stream is dropped.
 pub fn incoming(
@@ -289,6 +308,7 @@ pub fn incoming(
     let slots = Arc::new(Semaphore::new(limits.max_connections.max(1)));
     let peers = Arc::new(Peers::default());
     tokio::spawn(async move {
+        let mut accept_errors = AcceptErrors::default();
         loop {
             let accepted = tokio::select! {
                 a = listener.accept() => a,
@@ -296,10 +316,14 @@ pub fn incoming(
             };
             let (stream, peer) = match accepted {
                 Ok((s, a)) => (s, a),
-                // a failed accept (e.g. out of file descriptors) is not the end of the listener
+                // a failed accept is not the end of the listener
                 Err(e) => {
-                    tracing::warn!(error = %e, "accept failed");
-                    tokio::task::yield_now().await;
+                    if let Some(pause) = accept_errors.failed(&e, Instant::now()) {
+                        tokio::select! {
+                            () = tokio::time::sleep(pause) => {}
+                            () = tx.closed() => return,
+                        }
+                    }
                     continue;
                 }
             };
@@ -324,14 +348,11 @@ pub fn incoming(
                 match tokio::time::timeout(limits.first_bytes_timeout, stream.peek(&mut probe)).await {
                     Ok(Ok(n)) if n > 0 => {
                         let info = ConnInfo { tcp: stream.connect_info(), activity: Activity::new() };
-                        let now = Instant::now();
                         let g = Guarded {
-                            inner: stream,
+                            inner: StallWatch::new(stream, limits.stall_timeout),
                             info,
                             limits,
-                            idle_timer: Box::pin(tokio::time::sleep_until(now + limits.first_bytes_timeout)),
-                            stalled: None,
-                            stall_timer: Box::pin(tokio::time::sleep_until(now + limits.stall_timeout)),
+                            idle_timer: Box::pin(tokio::time::sleep(limits.first_bytes_timeout)),
                             ended: false,
                             _slot: slot,
                             _peer: peer_slot,
@@ -367,12 +388,42 @@ mod tests {
         let mut client = TcpStream::connect(addr).await.unwrap();
         client.write_all(b"x").await.unwrap();
         let accepted = conns.next().await.unwrap().unwrap();
-        let sock = socket2::SockRef::from(&accepted.inner);
+        let sock = socket2::SockRef::from(accepted.inner.get_ref());
         assert!(sock.keepalive().unwrap());
         assert_eq!(sock.tcp_keepalive_time().unwrap(), Duration::from_secs(7));
         assert_eq!(sock.tcp_keepalive_interval().unwrap(), Duration::from_secs(7));
         assert_eq!(sock.tcp_keepalive_retries().unwrap(), KEEPALIVE_RETRIES);
         // the client's own socket is untouched: the option is the server's doing
         assert!(!socket2::SockRef::from(&client).keepalive().unwrap());
+    }
+
+    /// Out of descriptors (EMFILE, ENFILE), buffers (ENOBUFS) or memory (ENOMEM), the accept
+    /// loop pauses; an error of the one connection being accepted is skipped at once. Failures
+    /// are logged at most once per [`ACCEPT_LOG_EVERY`], the line counting those in between.
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn accept_errors_back_off_on_exhaustion_and_skip_one_connections_own() {
+        const EMFILE: i32 = 24;
+        const ENFILE: i32 = 23;
+        const ENOBUFS: i32 = 105;
+        const ENOMEM: i32 = 12;
+        const ECONNABORTED: i32 = 103;
+        let mut errors = AcceptErrors::default();
+        let t0 = Instant::now();
+        for (i, code) in [EMFILE, ENFILE, ENOBUFS, ENOMEM].into_iter().enumerate() {
+            let now = t0 + Duration::from_millis(i as u64);
+            let e = io::Error::from_raw_os_error(code);
+            assert_eq!(errors.failed(&e, now), Some(ACCEPT_BACKOFF), "{e}");
+        }
+        assert_eq!(errors.unlogged, 3, "one line for the first, the next three counted");
+        for own in [io::Error::from_raw_os_error(ECONNABORTED), io::ErrorKind::ConnectionReset.into()] {
+            assert_eq!(errors.failed(&own, t0), None, "{own}");
+        }
+        assert_eq!(errors.unlogged, 3, "a connection's own error is not an exhaustion");
+        assert!(!errors.would_log(t0 + ACCEPT_LOG_EVERY - Duration::from_millis(1)));
+        assert!(errors.would_log(t0 + ACCEPT_LOG_EVERY));
+        let later = t0 + ACCEPT_LOG_EVERY;
+        assert_eq!(errors.failed(&io::Error::from_raw_os_error(EMFILE), later), Some(ACCEPT_BACKOFF));
+        assert_eq!((errors.logged_at, errors.unlogged), (Some(later), 0));
     }
 }

@@ -7,9 +7,10 @@
 //!
 //! Hand-written, and why: two short names kept for the deployments that use them
 //! (`MPIFLOW_PREFETCH` = `default_prefetch`, `MPIFLOW_PRESET` = `[sample] motion`);
-//! `MPIFLOW_SOURCES` (a list of `NAME=PATH` in one variable, for `[[datasets]]`); and the rule
-//! that a layer giving `auth_token` or `auth_token_file` replaces both below it (a token from the
-//! environment replaces the file's token file).
+//! `MPIFLOW_SOURCES` (a list of `NAME=PATH` in one variable, for `[[datasets]]`); the rule that
+//! a layer giving `auth_token` or `auth_token_file` replaces both below it (a token from the
+//! environment replaces the file's token file); and the security keys ([`NEVER_EMPTY`]), which an
+//! empty variable does not unset: it is refused.
 
 use serde::de::{self, Deserialize, Deserializer, Visitor};
 use serde::Serialize;
@@ -29,6 +30,11 @@ const ENV_SOURCES: &str = "SOURCES";
 
 /// Keys of which a layer gives at most one: giving either replaces both below it.
 const ONE_OF: [&str; 2] = ["auth_token", "auth_token_file"];
+
+/// The security keys: an empty variable is refused instead of unsetting them, so that a setting
+/// lost on the way (an empty secret, a template that rendered nothing) stops the start-up rather
+/// than turning the token or TLS off.
+pub const NEVER_EMPTY: [&str; 5] = ["auth_token", "auth_token_file", "tls_cert", "tls_key", "tls_client_ca"];
 
 /// The field names serde gives a struct's `Deserialize` (what `deny_unknown_fields` accepts).
 pub fn field_names<'de, T: Deserialize<'de>>() -> &'static [&'static str] {
@@ -115,8 +121,9 @@ impl Layer {
 
     /// The layer of the `MPIFLOW_*` variables among `vars`: each value is read as a TOML value
     /// (a number, a boolean) or else as a string, whichever its key accepts; empty = the key's
-    /// default (for an optional key: unset). A value its key does not accept is refused naming
-    /// the variable and what the key expects. Variables that name no key are left alone.
+    /// default (for an optional key: unset), except for the [`NEVER_EMPTY`] security keys, where
+    /// it is refused. A value its key does not accept is refused naming the variable and what the
+    /// key expects. Variables that name no key are left alone.
     pub fn from_env(vars: impl IntoIterator<Item = (String, String)>) -> Result<Self, String> {
         let keys = env_keys();
         let mut out = Vec::new();
@@ -137,6 +144,12 @@ impl Layer {
             let Some((_, path)) = keys.iter().find(|(n, _)| n == name) else { continue };
             let path: Vec<String> = path.iter().map(|s| (*s).to_string()).collect();
             if value.is_empty() {
+                if path.len() == 1 && NEVER_EMPTY.contains(&path[0].as_str()) {
+                    return Err(format!(
+                        "{var} is set but empty: a security setting is never turned off by an empty value \
+                         (give a value, or unset the variable to keep the configuration file's)"
+                    ));
+                }
                 out.push((path, None));
                 continue;
             }

@@ -9,7 +9,8 @@
 //! Errors map to gRPC codes in one place ([`error`]). The server ([`server`]) adds health,
 //! reflection, Prometheus [`metrics`] and graceful drain; [`config`] holds the keys, read from
 //! the TOML file, the `MPIFLOW_*` variables and the flags, layered ([`layers`]); [`security`]
-//! the optional TLS and bearer-token check; [`client`] is the Rust client side used by
+//! the optional TLS and bearer-token check; [`conn`] the listeners' connection bounds and timeouts,
+//! [`stall`] the cut of a client that stops taking data; [`client`] is the Rust client side used by
 //! `mpiflow pull` and the tests. The API and its guarantees: `docs/api.md`.
 
 /// The generated protobuf messages and the tonic server and client of `mpiflow.v1`.
@@ -36,6 +37,7 @@ pub mod reply;
 pub mod security;
 pub mod server;
 pub mod spec;
+pub mod stall;
 pub mod tensor;
 pub mod validate;
 
