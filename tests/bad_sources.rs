@@ -110,6 +110,16 @@ fn every_index_gets_a_sample_from_the_next_good_source_deterministically() {
         let i = i as u64;
         assert_eq!((s.source_id.as_str(), s.skipped_sources), (good(i), passed(i)), "index {i}");
         assert_eq!(s.address.index, i);
+        // the record says whose slot a stand-in fills
+        let stand_in = s.provenance.iter().find(|p| p.starts_with("source: "));
+        match passed(i) {
+            0 => assert!(stand_in.is_none(), "index {i}: {stand_in:?}"),
+            _ => {
+                let line = stand_in.expect("a stand-in is recorded");
+                let own = format!("stands in for item {} (", i % n);
+                assert!(line.starts_with(&format!("source: {} ", good(i))) && line.contains(&own), "{line}");
+            }
+        }
     }
     // the address keeps its own motions: indices served by the same source differ
     assert_ne!(samples[1].camera, samples[3].camera);

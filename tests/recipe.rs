@@ -259,7 +259,7 @@ fn outputs_are_finite_binary_and_sized() {
 
 #[test]
 fn source_items_follow_motions_per_image() {
-    let config = SampleConfig { motions_per_image: 3, ..SampleConfig::default() };
+    let config = SampleConfig { motions_per_image: 3, scene_window: 1, ..SampleConfig::default() };
     let loader = Procedural::new(3);
     let g = generator(loader, config);
     let ids: Vec<String> = (0..10).map(|i| g.sample(0, i).unwrap().source_id).collect();
@@ -270,6 +270,60 @@ fn source_items_follow_motions_per_image() {
     assert_eq!(stats.misses, 3);
     assert_eq!(stats.hits, 7);
     assert_eq!(g.source_item(10), Some(0));
+}
+
+/// A window of K items interleaves their M motions: consecutive samples change item, each item's
+/// scene is built once per window, and the windows walk through the collection.
+#[test]
+fn a_scene_window_interleaves_its_items_motions() {
+    let config = SampleConfig { motions_per_image: 2, scene_window: 3, ..SampleConfig::default() };
+    let g = generator(Procedural::new(7), config);
+    let items: Vec<usize> = (0..24).map(|i| g.source_item(i).unwrap()).collect();
+    #[rustfmt::skip]
+    let expect = [0, 1, 2, 0, 1, 2, 3, 4, 5, 3, 4, 5, 6, 0, 1, 6, 0, 1, 2, 3, 4, 2, 3, 4];
+    assert_eq!(items, expect);
+    let ids: Vec<String> = (0..6).map(|i| g.sample(0, i).unwrap().source_id).collect();
+    assert_eq!(ids, [0, 1, 2, 0, 1, 2].map(|i| format!("procedural-{i}")));
+    let stats = g.cache().stats();
+    assert_eq!((stats.misses, stats.hits), (3, 3), "each scene of the window built once");
+    // a window wider than the collection is the collection
+    let small = SampleConfig { motions_per_image: 2, scene_window: 11, ..SampleConfig::default() };
+    let items: Vec<usize> = (0..8).map(|i| small.source_item(i, 3).unwrap()).collect();
+    assert_eq!(items, [0, 1, 2, 0, 1, 2, 0, 1]);
+}
+
+proptest::proptest! {
+    /// The default window (11, prime) gives every rank of a world size that is not a multiple of 11
+    /// different items in any 11 consecutive samples, when the collection holds the windows those
+    /// samples span; every window uses each of its items exactly M times (a partition of the
+    /// window's indices).
+    #[test]
+    fn ranks_see_different_items_in_consecutive_samples(
+        world in 1u64..=64,
+        rank_seed in 0u64..1_000,
+        motions in 1u64..=16,
+        start in 0u64..1_000_000,
+        extra in 0usize..40,
+    ) {
+        proptest::prop_assume!(world % 11 != 0);
+        let c = SampleConfig { motions_per_image: motions, ..SampleConfig::default() };
+        let k = c.scene_window;
+        let rank = rank_seed % world;
+        let first = (start / world) * world + rank;
+        let indices: Vec<u64> = (0..k).map(|j| first + j * world).collect();
+        let windows = indices.last().unwrap() / (k * motions) - indices[0] / (k * motions) + 1;
+        let len = (windows * k) as usize + extra;
+        let items: std::collections::BTreeSet<usize> = indices.iter().map(|&i| c.source_item(i, len).unwrap()).collect();
+        proptest::prop_assert_eq!(items.len(), k as usize, "rank {} of {}: {:?}", rank, world, indices);
+        // a window's K M indices: each of its K items M times
+        let w0 = (start / (k * motions)) * k * motions;
+        let mut counts = std::collections::BTreeMap::new();
+        for i in w0..w0 + k * motions {
+            *counts.entry(c.source_item(i, len).unwrap()).or_insert(0u64) += 1;
+        }
+        proptest::prop_assert_eq!(counts.len(), k as usize);
+        proptest::prop_assert!(counts.values().all(|&n| n == motions));
+    }
 }
 
 #[test]
@@ -421,7 +475,8 @@ fn config_round_trips_through_json() {
     }
     assert!(serde_json::from_str::<SampleConfig>(r#"{"max_object": 2}"#).is_err(), "unknown fields are refused");
     let d = SampleConfig::default();
-    assert_eq!((d.max_objects, d.merge, d.inpaint_radius, d.motions_per_image), (1, MergeRule::DepthAware, 3.0, 1));
+    assert_eq!((d.max_objects, d.merge, d.inpaint_radius), (1, MergeRule::DepthAware, 3.0));
+    assert_eq!((d.motions_per_image, d.scene_window), (8, 11));
 }
 
 #[test]

@@ -75,7 +75,7 @@ fn plain_dir_lists_images_sorted_and_loads_lazily() {
     let ids: Vec<String> = (0..3).map(|i| src.id(i)).collect();
     assert_eq!(ids, ["a", "b", "c.jpeg"]);
     // three sizes: one frame, the largest photo's (8x6 has the most pixels), each photo covering it
-    assert!(src.describe().contains("3 images of mixed sizes, each covering 8x6 centred"), "{}", src.describe());
+    assert!(src.describe().contains("3 images, working size 8x6: each covers it, centred"), "{}", src.describe());
     let a = src.load(0).unwrap();
     assert_eq!((a.image.width, a.image.height), (8, 6));
     assert!(a.depth.is_none() && a.masks.is_none() && a.mpi.is_none() && a.intrinsics.is_none());

@@ -179,8 +179,8 @@ async fn pull_all(addr: std::net::SocketAddr, r: pb::StreamRequest) -> Vec<pb::S
 }
 
 /// Photos of mixed sizes with no `--size`: every sample has the frame of the largest photo
-/// (120x72 here), so a crop that fits it fits every photo's samples (before, the crop was
-/// refused on the smaller photos); two servers give the same bytes; `--size` still sets the size.
+/// (120x72 here, smaller than the working size), so a crop that fits it fits every photo's
+/// samples; two servers give the same bytes; `--size` still sets the size.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn photos_of_mixed_sizes_serve_one_frame_and_any_crop_that_fits_it() {
     let dir = mixed_folder("mixed");
@@ -230,6 +230,35 @@ async fn photos_of_mixed_sizes_serve_one_frame_and_any_crop_that_fits_it() {
     for s in [a, b, c] {
         s.shutdown(std::time::Duration::from_secs(5)).await;
     }
+}
+
+/// A folder with photos larger than the working size is rendered at the working size (the
+/// largest photo's 4:3 aspect at 640x480), every photo covering it, whatever its own size.
+#[test]
+fn large_photos_are_rendered_at_the_working_size() {
+    let dir = tmp("working-size");
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::create_dir_all(dir.join("depths")).unwrap();
+    for (i, (w, h)) in [(1600u32, 1200u32), (800, 450)].into_iter().enumerate() {
+        std::fs::write(dir.join(format!("images/p{i}.png")), photo_png(w, h, i as u32)).unwrap();
+        let depth: Vec<f32> = (0..w * h).map(|k| 1.5 + ((k % w) as f32 / w as f32)).collect();
+        mpiflow::io::npy::write_f32(&dir.join(format!("depths/p{i}.npy")), &[h as u64, w as u64], &depth).unwrap();
+    }
+    let out = dir.join("out");
+    let r = Command::new(BIN)
+        .args(["generate", "--source", &dir.display().to_string(), "--count", "2", "--objects", "0"])
+        .args(["--preview-every", "0", "--out", &out.display().to_string()])
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    let mut ids = Vec::new();
+    for i in 0..2 {
+        assert_eq!(image::image_dimensions(out.join(format!("{i:08}_img1.png"))).unwrap(), (640, 480), "sample {i}");
+        let record: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join(format!("{i:08}.json"))).unwrap()).unwrap();
+        ids.push(record["source_id"].as_str().unwrap().to_owned());
+    }
+    assert_eq!(ids, ["p0", "p1"], "consecutive samples come from different photos");
 }
 
 /// `mpiflow generate` on the same mixed folder writes every sample at the frame's size.

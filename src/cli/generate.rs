@@ -20,7 +20,7 @@ use mpiflow::export::{
 };
 use mpiflow::geometry::Intrinsics;
 use mpiflow::mpi::layering::MAX_PLANES;
-use mpiflow::sample::config::SampleConfig;
+use mpiflow::sample::config::{SampleConfig, MAX_MOTIONS_PER_IMAGE, MAX_SCENE_WINDOW};
 use mpiflow::sample::error::SampleError;
 use mpiflow::sample::merge::{LabelRule, MergeRule};
 use mpiflow::sample::motion::MotionPreset;
@@ -53,9 +53,14 @@ pub struct GenerateArgs {
     /// disparity/ folders of rectified pairs; needs --preset stereo).
     #[arg(long, default_value = "flo", value_parser = parse_format)]
     format: ExportFormat,
-    /// Consecutive samples made from each source item (its scene is computed once).
-    #[arg(long, value_name = "M", default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..))]
+    /// Motions drawn from each source item while its scene is warm (its scene is computed once
+    /// for them).
+    #[arg(long, value_name = "M", default_value_t = SampleConfig::default().motions_per_image, value_parser = clap::value_parser!(u64).range(1..=MAX_MOTIONS_PER_IMAGE))]
     motions_per_image: u64,
+    /// Source items whose motions are interleaved, so that consecutive samples come from
+    /// different items (1 = each item's motions in a row; docs/export.md).
+    #[arg(long, value_name = "K", default_value_t = SampleConfig::default().scene_window, value_parser = clap::value_parser!(u64).range(1..=MAX_SCENE_WINDOW))]
+    scene_window: u64,
     /// Seed of the samples: same source, seed and index, same sample.
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -219,6 +224,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         restore_noise: a.restore_noise,
         minify: a.minify,
         motions_per_image: a.motions_per_image,
+        scene_window: a.scene_window,
         frames: a.frames as usize,
         backward: a.backward,
         resample: a.resample,

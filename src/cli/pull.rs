@@ -82,6 +82,8 @@ pub struct PullArgs {
     /// Crop every sample to WxH (centre, or random with --random-crop).
     #[arg(long, value_name = "WxH")]
     crop: Option<String>,
+    /// With --crop: a random window of each sample (deterministic by address) instead of the
+    /// centre.
     #[arg(long)]
     random_crop: bool,
     /// A preview sheet at every multiple of N (with --out; 0 = none).
@@ -147,6 +149,9 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
     })
 }
 
+/// The run of consecutive samples whose photos `pull` counts (a trainer's batch).
+const BATCH: usize = 8;
+
 pub fn run(a: PullArgs) -> Result<(), CliError> {
     let req = request(&a)?;
     let options = a.connect.options()?;
@@ -184,11 +189,33 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
         .map_err(|e| CliError(format!("cannot start the async runtime: {e}")))?;
     let report = rt.block_on(async {
         let mut client = connect_with(&a.addr, &options).await.map_err(|e| CliError(format!("{}: {e}", a.addr)))?;
-        pull(&mut client, req, |s| {
+        // a progress line on a terminal (stderr; nothing when it is not a terminal)
+        let bar = indicatif::ProgressBar::with_draw_target(Some(a.count), indicatif::ProgressDrawTarget::stderr());
+        bar.set_style(
+            indicatif::ProgressStyle::with_template("{pos}/{len} samples, {per_sec}, {elapsed} (eta {eta})")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        // how many different photos every 8 consecutive samples hold (a trainer's batch)
+        let mut last: std::collections::VecDeque<String> = std::collections::VecDeque::with_capacity(BATCH);
+        let mut fewest: Option<usize> = None;
+        let pulled = pull(&mut client, req, |s| {
+            if last.len() == BATCH {
+                last.pop_front();
+            }
+            last.push_back(s.source_id.clone());
+            if last.len() == BATCH {
+                let distinct = last.iter().collect::<std::collections::BTreeSet<_>>().len();
+                fewest = Some(fewest.map_or(distinct, |f| f.min(distinct)));
+            }
             let _ = tx.send(s);
+            bar.inc(1);
         })
-        .await
-        .map_err(|s| CliError(format!("{:?}: {}", s.code(), s.message())))
+        .await;
+        bar.finish_and_clear();
+        if let Some(f) = fewest {
+            println!("pull: every {BATCH} consecutive samples came from at least {f} different photos");
+        }
+        pulled.map_err(|s| CliError(format!("{:?}: {}", s.code(), s.message())))
     });
     drop(tx);
     let written = writer.join().map_err(|_| CliError("the writer thread panicked".into()))?;

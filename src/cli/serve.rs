@@ -127,9 +127,13 @@ struct SampleFlags {
     /// Default objects moved per sample.
     #[arg(long = "objects", value_name = "K")]
     max_objects: Option<usize>,
-    /// Default consecutive samples per source photo.
+    /// Default motions drawn from each source photo while its scene is warm (default 8).
     #[arg(long, value_name = "M")]
     motions_per_image: Option<u64>,
+    /// Source photos whose motions are interleaved, so that consecutive samples come from
+    /// different photos (default 11; 1 = each photo's motions in a row).
+    #[arg(long, value_name = "K")]
+    scene_window: Option<u64>,
     /// Default colour kernel of the target render: bilinear, bicubic, bspline3, bspline5 or
     /// lanczos3.
     #[arg(long, value_name = "KERNEL")]

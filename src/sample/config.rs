@@ -130,8 +130,17 @@ pub struct SampleConfig {
     pub inpaint_radius: f32,
     /// Default `telea-known-only`.
     pub inpaint_method: InpaintMethod,
-    /// Consecutive sample indices per source item (see the module documentation). Default 1.
+    /// Motions drawn from each source item in one pass of its window ([`source_item`]): its scene
+    /// is built once for them. Default [`DEFAULT_MOTIONS_PER_IMAGE`].
+    ///
+    /// [`source_item`]: SampleConfig::source_item
     pub motions_per_image: u64,
+    /// Source items whose motions are interleaved ([`source_item`]): consecutive samples come from
+    /// different items, each item's scene stays warm for its `motions_per_image` samples. Default
+    /// [`DEFAULT_SCENE_WINDOW`]; 1 gives runs of `motions_per_image` consecutive samples per item.
+    ///
+    /// [`source_item`]: SampleConfig::source_item
+    pub scene_window: u64,
     /// Render mode. Default `exact`.
     #[serde(with = "ModeDef")]
     pub mode: Mode,
@@ -178,6 +187,21 @@ pub struct SampleConfig {
 
 /// Fewest frames per sample (a pair).
 pub const MIN_FRAMES: usize = 2;
+
+/// The default `motions_per_image`: each scene serves 8 samples per pass, so a collection
+/// larger than the scene cache builds a scene every 8 samples (docs/performance.md).
+pub const DEFAULT_MOTIONS_PER_IMAGE: u64 = 8;
+
+/// Most `motions_per_image`.
+pub const MAX_MOTIONS_PER_IMAGE: u64 = 1_000_000;
+
+/// The default `scene_window`: 11 items interleaved. Prime, so that the ranks of any world size
+/// that is not a multiple of 11 each see 8 different photos in any 8 consecutive samples; 11
+/// scenes at the working size (about 45 MiB each at 640 x 480, 32 planes) stay warm together.
+pub const DEFAULT_SCENE_WINDOW: u64 = 11;
+
+/// Most `scene_window`.
+pub const MAX_SCENE_WINDOW: u64 = 4096;
 /// Most frames per sample.
 pub const MAX_FRAMES: usize = 8;
 
@@ -213,7 +237,8 @@ impl Default for SampleConfig {
             mask_threshold: 0.99,
             inpaint_radius: 3.0,
             inpaint_method: InpaintMethod::TeleaKnownOnly,
-            motions_per_image: 1,
+            motions_per_image: DEFAULT_MOTIONS_PER_IMAGE,
+            scene_window: DEFAULT_SCENE_WINDOW,
             mode: Mode::Exact,
             skip: Skip::DEFAULT,
             windowed: true,
@@ -263,8 +288,14 @@ impl SampleConfig {
         if (self.backward || self.frames > MIN_FRAMES) && self.mode != Mode::Exact {
             return bad("mode", "reference: the backward fields and clips need the exact mode".into());
         }
-        if self.motions_per_image == 0 {
-            return bad("motions_per_image", "0 (expected at least 1)".into());
+        if !(1..=MAX_MOTIONS_PER_IMAGE).contains(&self.motions_per_image) {
+            return bad(
+                "motions_per_image",
+                format!("{} (expected 1 to {MAX_MOTIONS_PER_IMAGE})", self.motions_per_image),
+            );
+        }
+        if !(1..=MAX_SCENE_WINDOW).contains(&self.scene_window) {
+            return bad("scene_window", format!("{} (expected 1 to {MAX_SCENE_WINDOW})", self.scene_window));
         }
         let s = self.skip;
         if !(s.transmittance_eps.is_finite() && (0.0..1.0).contains(&s.transmittance_eps)) {
@@ -286,8 +317,27 @@ impl SampleConfig {
         u64::from(self.preblend) | u64::from(degree) << 1 | u64::from(self.minify && self.mode == Mode::Exact) << 8
     }
 
-    /// The source item of sample `index` in a collection of `len` items.
+    /// The source item of sample `index` in a collection of `len` items: the index space is cut
+    /// into windows of `K M` samples (`K` = `scene_window`, at most `len`; `M` =
+    /// `motions_per_image`); window `b` draws from items `b K .. b K + K` (mod `len`), and its
+    /// sample `p` from item `b K + p mod K`. So consecutive samples come from `K` different items
+    /// in turn, each item gives `M` motions while its scene is warm, and `len / K` windows pass
+    /// over every item before the first comes round again with new motions. With `K` = 1, `M`
+    /// consecutive samples share an item; with `M` = 1, sample `I` uses item `I mod len`.
+    ///
+    /// For a rank of `R` consumers (indices `r, r + R, r + 2R, ...`) with `K` prime and `R` not a
+    /// multiple of it, any `K` consecutive samples of the rank come from different items when
+    /// `len` is at least `K` times the number of windows they span (within a window the slot
+    /// steps by `R mod K`, which returns to a slot only after `K` steps; the items of the windows
+    /// spanned are distinct numbers below that span).
     pub fn source_item(&self, index: u64, len: usize) -> Option<usize> {
-        (len > 0).then(|| ((index / self.motions_per_image.max(1)) % len as u64) as usize)
+        if len == 0 {
+            return None;
+        }
+        let k = self.scene_window.clamp(1, len as u64);
+        let m = self.motions_per_image.max(1);
+        // window * k + slot <= index / m: no overflow
+        let window = index / k.saturating_mul(m);
+        Some(((window * k + index % k) % len as u64) as usize)
     }
 }

@@ -103,6 +103,9 @@ pub struct OpenOptions {
     pub limits: ImageLimits,
     /// Follow symbolic links out of a folder source's root (see [`SourceOptions::follow_links`]).
     pub follow_links: bool,
+    /// Limits of a folder's photos, fitted to the working size before use
+    /// ([`SourceOptions::photo_limits`]); `None` = `limits`.
+    pub photo_limits: Option<ImageLimits>,
 }
 
 /// Opens the source of `spec` with `options`.
@@ -127,6 +130,7 @@ pub fn open_source(spec: &SourceSpec, options: &OpenOptions) -> Result<Arc<dyn S
                 intrinsics: options.intrinsics,
                 limits: options.limits,
                 follow_links: options.follow_links,
+                photo_limits: options.photo_limits,
                 ..SourceOptions::default()
             };
             crate::source::open_source(path, &o)
@@ -430,6 +434,15 @@ impl Generator {
             let address = SampleAddress { dataset: self.fingerprint, seed, index };
             let (mut s, z) = assemble_with_target_depth(&scene, address, &self.config, occ.as_deref())?;
             s.skipped_sources = passed;
+            if passed > 0 {
+                // the record says whose slot this sample fills, and why
+                let why = self.bad_items().get(&first).map_or_else(String::new, |b| format!(": {}", b.reason));
+                s.provenance.push(format!(
+                    "source: {} stands in for item {first} ({}), passed over{why}",
+                    s.source_id,
+                    self.loader.id(first)
+                ));
+            }
             s.timings.scene_ms = scene_ms;
             s.timings.total_ms += scene_ms;
             return Ok((s, z));

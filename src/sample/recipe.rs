@@ -3,11 +3,12 @@
 //!
 //! # The recipe
 //!
-//! 1. **Source.** Item `(index / motions_per_image) mod len` of the loader: consecutive indices
-//!    share a source (its scene is computed once and reused from the [`SceneCache`]), and a
-//!    collection of `len` images gives `len * motions_per_image` consecutive samples before the
-//!    first source comes round again (with new motions, since the index differs). No random
-//!    number is used for this ([`Purpose::SourceChoice`] is left for a future shuffled order).
+//! 1. **Source.** Item [`SampleConfig::source_item`] of the loader: the index space is cut into
+//!    windows of `scene_window x motions_per_image` samples; a window interleaves the motions of
+//!    `scene_window` items (sample `p` of window `b` uses item `b K + p mod K`), so consecutive
+//!    samples come from different items while each item's scene, computed once and reused from
+//!    the [`SceneCache`], serves `motions_per_image` samples. No random number is used for this
+//!    ([`Purpose::SourceChoice`] is left for a future shuffled order).
 //! 2. **Motions.** The camera motion from the `Purpose::CameraMotion` stream; the moving objects
 //!    from `Purpose::ObjectChoice` ([`choose_objects`]); object slot `j`'s motion from
 //!    `Purpose::ObjectMotion(j)`. Every stream is keyed by (fingerprint, seed, index, purpose), so

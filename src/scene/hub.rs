@@ -70,7 +70,12 @@ pub enum HubError {
     Interrupted { url: String, got: u64, expected: u64 },
     #[error("{url}: the file is larger than the {limit} bytes {what}: refused; nothing was kept")]
     TooLarge { url: String, limit: u64, what: &'static str },
-    #[error("{what} has SHA-256 {actual}, but the registry pins {expected}: refused{kept}")]
+    #[error(
+        "{what} has SHA-256 {actual}, but the registry pins {expected}: refused{kept}. To use this file \
+         anyway, give it as a FILE (--depth-model FILE, --segment-model FILE) or pin it in your own \
+         registry ({})",
+        crate::scene::registry::REGISTRY_ENV
+    )]
     Checksum { what: String, expected: String, actual: String, kept: &'static str },
     #[error("{}: a symbolic link inside the hub cache: refused (nothing is written through it)", .path.display())]
     Link { path: PathBuf },

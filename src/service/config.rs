@@ -35,10 +35,10 @@ pub const SAMPLE_METADATA_BYTES: u64 = 128 << 10;
 
 /// The scene cache's default budget in MiB: the 8 bundled 640x480 scenes (about 45 MiB each,
 /// 356 MiB together, since a prepared scene keeps its planes and B-spline coefficients only in
-/// the blocks where they have density) with room for about 60 more. When a scene took 270 MiB,
-/// a budget of 2048 did not hold the 8, and the default server rebuilt a scene for most samples
-/// (4.6 instead of ~25 samples/s).
-pub const DEFAULT_CACHE_MB: u64 = 3072;
+/// the blocks where they have density), or two windows of a photo folder at its working size
+/// (2 x `scene_window` = 22 scenes of 640x480: the window served and the next one built ahead),
+/// within a server's 2 GiB with the workers' buffers (docs/performance.md, "Photo folders").
+pub const DEFAULT_CACHE_MB: u64 = 1024;
 
 /// The largest gRPC message the server ever allows (well below protobuf's 2 GiB).
 pub const MAX_MESSAGE_CAP: u64 = 1 << 30;
@@ -170,8 +170,12 @@ pub struct ServiceConfig {
     pub max_batch_size: u32,
     /// Largest source image side in pixels (checked in the file header before decoding).
     pub max_image_side: u32,
-    /// Largest source image (and so sample) in pixels; sets the message limit.
+    /// Largest source image read as it is (and so sample) in pixels; sets the message limit.
     pub max_image_pixels: u64,
+    /// Largest photo of a folder source in pixels (checked in the header before decoding): a
+    /// folder's photos are fitted to its working size (or `size`) before use, so a phone's
+    /// 12-megapixel photo is read by default while samples stay within `max_image_pixels`.
+    pub max_photo_pixels: u64,
     /// Largest encoded source image file in bytes.
     pub max_image_bytes: u64,
     /// Largest upload (all files of one UploadSources call) in bytes.
@@ -258,6 +262,7 @@ impl Default for ServiceConfig {
             max_batch_size: 64,
             max_image_side: 8192,
             max_image_pixels: 4 << 20,
+            max_photo_pixels: 32 << 20,
             max_image_bytes: 64 << 20,
             max_upload_bytes: 256 << 20,
             max_connections: 512,
@@ -503,6 +508,12 @@ impl ServiceConfig {
             max_pixels: self.max_image_pixels,
             max_bytes: self.max_image_bytes,
         }
+    }
+
+    /// Limits for decoding a folder's photos ([`image_limits`](Self::image_limits) with
+    /// `max_photo_pixels`).
+    pub fn photo_limits(&self) -> ImageLimits {
+        ImageLimits { max_pixels: self.max_photo_pixels.max(self.max_image_pixels), ..self.image_limits() }
     }
 
     /// The largest sample in pixels: the resize size, else `max_image_pixels`.

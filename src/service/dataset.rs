@@ -200,6 +200,7 @@ impl Datasets {
         let open = OpenOptions {
             resize,
             limits: config.image_limits(),
+            photo_limits: Some(config.photo_limits()),
             follow_links: config.follow_source_links,
             ..OpenOptions::default()
         };
@@ -216,6 +217,8 @@ impl Datasets {
             if source.is_empty() {
                 return Err(ServiceError::Config(format!("dataset {name}: {} has no images", source.describe())));
             }
+            // the description names the frame the samples have (a folder's working size)
+            tracing::info!(dataset = %name, source = %source.describe(), "dataset opened");
             let sample = spec.sample.clone().unwrap_or_else(|| config.sample.clone());
             let ds = Dataset::new(name.clone(), source, stage.clone(), cache.clone(), sample).map_err(|e| match e {
                 e @ ServiceError::Unusable { .. } => e,
@@ -249,14 +252,21 @@ impl Datasets {
 
     /// The dataset called `name`; the empty name is the default (the first).
     pub fn get(&self, name: &str) -> Result<Arc<Dataset>, ServiceError> {
-        if name.is_empty() {
-            return self.list.first().cloned().ok_or_else(|| ServiceError::UnknownDataset(String::new()));
-        }
-        if let Some(d) = self.list.iter().find(|d| d.name == name) {
+        if let Some(d) = if name.is_empty() { self.list.first() } else { self.list.iter().find(|d| d.name == name) } {
             return Ok(d.clone());
         }
         let up = self.uploaded.read().unwrap_or_else(std::sync::PoisonError::into_inner);
-        up.get(name).cloned().ok_or_else(|| ServiceError::UnknownDataset(name.into()))
+        if let Some(d) = up.get(name) {
+            return Ok(d.clone());
+        }
+        // the known names, the first few (a long list of uploads is cut short)
+        const SHOWN: usize = 8;
+        let names: Vec<&str> = self.list.iter().map(|d| d.name.as_str()).chain(up.keys().map(String::as_str)).collect();
+        let mut known = names.iter().take(SHOWN).map(|n| crate::failure::echo(n)).collect::<Vec<_>>().join(", ");
+        if names.len() > SHOWN {
+            known.push_str(&format!(" and {} more", names.len() - SHOWN));
+        }
+        Err(ServiceError::UnknownDataset { name: name.into(), known })
     }
 
     /// Every dataset: the configured ones (the default first), then the uploaded ones by name.

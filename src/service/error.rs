@@ -19,8 +19,8 @@ pub enum ServiceError {
     #[error("{field}: {message}")]
     InvalidArgument { field: &'static str, message: String },
     /// The name is echoed short and escaped ([`echo`]).
-    #[error("unknown dataset {} (GetInfo lists the datasets)", echo(.0))]
-    UnknownDataset(String),
+    #[error("unknown dataset {}: the datasets are {} (GetInfo lists them)", echo(.name), .known)]
+    UnknownDataset { name: String, known: String },
     #[error(
         "fingerprint: the request expects dataset {} to have fingerprint {requested:016x}, but it has \
          {actual:016x} (different sources or sample configuration)",
@@ -66,7 +66,7 @@ impl ServiceError {
     pub fn code(&self) -> Code {
         match self {
             ServiceError::InvalidArgument { .. } => Code::InvalidArgument,
-            ServiceError::UnknownDataset(_) => Code::NotFound,
+            ServiceError::UnknownDataset { .. } => Code::NotFound,
             ServiceError::FingerprintMismatch { .. } | ServiceError::Unusable { .. } => Code::FailedPrecondition,
             ServiceError::TooManyStreams { .. } | ServiceError::LimitExceeded(_) => Code::ResourceExhausted,
             ServiceError::Draining => Code::Unavailable,

@@ -43,15 +43,21 @@
 //! and no depth is invented between surfaces: [`crate::raster::resize_depth`]), as the reference
 //! resizes all its inputs to one size. With [`SourceOptions::resize`] every item is resized to
 //! that size: the image with an antialiasing triangle filter, depth and disparity the same way
-//! as above, masks by nearest neighbour (the aspect is not kept). Without it, a folder whose photos
-//! differ in size gets one frame, the size of its largest photo (most pixels; among equals the
-//! wider, then the first listed; read from the image headers at open), and each item of another
-//! size is resized to cover that frame with its aspect kept (the image with the triangle filter,
-//! depth and masks as above) and cropped to the frame's centre ([`crate::raster::cover`]): every
-//! sample of the folder has one size, so a crop that fits its largest photo fits every sample. A
-//! folder of one size is read as it is, and so is an item with a given MPI. A given MPI
-//! must have the size of the (resized) image; it is never resized. Intrinsics are the reference's
-//! default (`0.58 W, 0.58 H`, centre; left to the scene stage) unless
+//! as above, masks by nearest neighbour (the aspect is not kept).
+//!
+//! **The working size.** Without [`SourceOptions::resize`] a folder (or a single photo) is not
+//! rendered at its photos' own resolution but at a working size that suits flow training
+//! ([`working_size`]): the frame has the aspect of the folder's largest photo (most pixels; among
+//! equals the wider, then the first listed; read from the image headers at open) and about
+//! [`WORKING_PIXELS`] pixels (640 x 480 for a 4:3 photo), widened where needed so that both sides
+//! cover [`WORKING_MIN`] (RAFT's largest common crop, 496 x 368, with a margin), each side a
+//! multiple of 8 and never larger than the photo. Every photo of another size is resized to cover
+//! that frame with its aspect kept (the image with the triangle filter, depth and masks as above)
+//! and cropped to its centre ([`crate::raster::cover`]): every sample of the folder has one size,
+//! so a crop that fits one sample fits every sample. A folder whose photos all have one size no
+//! larger than the working size is read as it is, and so is an item with a given MPI. A given
+//! MPI must have the size of the (resized) image; it is never resized. Intrinsics are the
+//! reference's default (`0.58 W, 0.58 H`, centre; left to the scene stage) unless
 //! [`SourceOptions::intrinsics`] sets them for the run.
 //!
 //! # Entries left out
@@ -129,6 +135,10 @@ pub struct SourceOptions {
     /// left out as `outside-root`). Links inside the root are followed either way; dangling links
     /// and links to what is not a regular file are left out either way.
     pub follow_links: bool,
+    /// Limits of a folder's (or a single file's) photos, which are fitted to the working size or
+    /// [`resize`](Self::resize) before use and so may be larger than `limits` allows (a phone's
+    /// 12-megapixel photos); `None` = `limits`. Sources read as they are keep `limits`.
+    pub photo_limits: Option<ImageLimits>,
 }
 
 impl SourceOptions {
@@ -159,6 +169,7 @@ impl Default for SourceOptions {
             intrinsics: None,
             hash_contents: false,
             follow_links: false,
+            photo_limits: None,
         }
     }
 }
@@ -229,8 +240,9 @@ pub struct DirSource {
     skipped: Vec<SkippedItem>,
     /// The `bake.json` of a baked reference-layout folder.
     baked: Option<BakeManifest>,
-    /// The frame every item is brought to when the folder's photos differ in size and no
-    /// [`SourceOptions::resize`] is set ([`frame_of`]); `None` when they share one size.
+    /// The frame every item is brought to when no [`SourceOptions::resize`] is set and the
+    /// folder's photos differ in size or are larger than the working size ([`frame_of`]);
+    /// `None` when they are read as they are.
     frame: Option<(usize, usize)>,
 }
 
@@ -392,6 +404,11 @@ impl DirSource {
     /// sizes only (and contents with [`SourceOptions::hash_contents`]). A path that does not
     /// exist, or a directory without images, is an error.
     pub fn open(path: &Path, options: &SourceOptions) -> Result<Self, SourceError> {
+        let mut fitted = *options;
+        if let Some(l) = options.photo_limits {
+            fitted.limits = l;
+        }
+        let options = &fitted;
         let meta = std::fs::metadata(path).map_err(|e| io_err(path, &e, FailureKind::Decode))?;
         let canonical = std::fs::canonicalize(path).map_err(|e| io_err(path, &e, FailureKind::Decode))?;
         let mut listing = Listing { root: &canonical, follow_links: options.follow_links, skipped: Vec::new() };
@@ -440,11 +457,7 @@ impl DirSource {
         let mut skipped = listing.skipped;
         skipped.sort_by(|a, b| a.item.cmp(&b.item));
         let baked = if layout == Layout::Reference { BakeManifest::read(path)? } else { None };
-        let frame = if options.resize.is_none() && layout != Layout::File {
-            frame_of(&root, &entries, &options.limits)
-        } else {
-            None
-        };
+        let frame = if options.resize.is_none() { frame_of(&root, &entries, &options.limits) } else { None };
         let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked, frame };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
@@ -636,11 +649,36 @@ impl DirSource {
     }
 }
 
-/// The frame of a folder whose photos differ in size: the size of its largest photo (most
+/// The pixel count of the working size ([`working_size`]): that of 640 x 480.
+pub const WORKING_PIXELS: usize = 640 * 480;
+
+/// The smallest working size (width, height): RAFT's largest common training crop (496 x 368,
+/// FlyingChairs) with a margin of 64 x 48 for random crop positions.
+pub const WORKING_MIN: (usize, usize) = (560, 416);
+
+/// The working size of a folder whose largest photo is `w x h` (see the module documentation):
+/// the photo's aspect at about [`WORKING_PIXELS`] pixels, widened so that both sides cover
+/// [`WORKING_MIN`], each side rounded to a multiple of 8; a photo no larger than that keeps its
+/// size, and no side is ever larger than the photo's.
+pub fn working_size(w: usize, h: usize) -> (usize, usize) {
+    if w == 0 || h == 0 || w * h <= WORKING_PIXELS {
+        return (w, h);
+    }
+    let (wf, hf) = (w as f64, h as f64);
+    let s = (WORKING_PIXELS as f64 / (wf * hf)).sqrt().max(WORKING_MIN.0 as f64 / wf).max(WORKING_MIN.1 as f64 / hf);
+    if s >= 1.0 {
+        return (w, h);
+    }
+    // a multiple of 8, at most the photo's side rounded down to one
+    let side = |v: f64, max: usize| (((v * s / 8.0).round() as usize) * 8).clamp(8, (max / 8 * 8).max(8));
+    (side(wf, w), side(hf, h))
+}
+
+/// The frame every item of a folder is brought to ([`working_size`] of its largest photo: most
 /// pixels; among equals the wider, then the first listed), read from the image headers; items
-/// with a given MPI are left out (they keep their size, as MPIs are never resized). `None`
-/// when every readable photo has one size (nothing is resized) or none is readable; a photo whose
-/// header cannot be read is left out here and fails when loaded.
+/// with a given MPI are left out (they keep their size, as MPIs are never resized). `None` when
+/// every readable photo has one size no larger than the working size (nothing is resized) or
+/// none is readable; a photo whose header cannot be read is left out here and fails when loaded.
 fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Option<(usize, usize)> {
     let mut sizes = entries.iter().filter(|e| e.mpi.is_none()).filter_map(|e| {
         let p = root.join(&e.image.rel);
@@ -662,7 +700,8 @@ fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Option<(usi
             best = s;
         }
     }
-    mixed.then_some(best)
+    let frame = working_size(best.0, best.1);
+    (mixed || frame != best).then_some(frame)
 }
 
 pub(crate) fn mpi_message(e: MpiError) -> String {
@@ -739,10 +778,14 @@ impl Source for DirSource {
         let root = self.root.display();
         match self.layout {
             Layout::Plain => match self.frame {
-                Some((w, h)) => format!("dir:{root} ({n} images of mixed sizes, each covering {w}x{h} centred)"),
+                Some((w, h)) => format!("dir:{root} ({n} images, working size {w}x{h}: each covers it, centred)"),
                 None => format!("dir:{root} ({n} images)"),
             },
-            Layout::File => format!("file:{}", self.root.join(&self.entries[0].image.rel).display()),
+            Layout::File => format!(
+                "file:{}{}",
+                self.root.join(&self.entries[0].image.rel).display(),
+                self.frame.map_or(String::new(), |(w, h)| format!(" (working size {w}x{h})"))
+            ),
             Layout::Reference => {
                 let count = |f: fn(&Entry) -> bool| self.entries.iter().filter(|e| f(e)).count();
                 format!(
@@ -751,9 +794,50 @@ impl Source for DirSource {
                     count(|e| e.disparity.is_some()),
                     count(|e| e.masks.is_some()),
                     count(|e| e.mpi.is_some()),
-                    self.frame.map_or(String::new(), |(w, h)| format!("; mixed sizes, each covering {w}x{h} centred"))
+                    self.frame
+                        .map_or(String::new(), |(w, h)| format!("; working size {w}x{h}: each covers it, centred"))
                 )
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    #[test]
+    fn the_working_size_of_common_photos() {
+        assert_eq!(working_size(4032, 3024), (640, 480), "a phone photo");
+        assert_eq!(working_size(1024, 768), (640, 480));
+        assert_eq!(working_size(1920, 1080), (736, 416), "16:9 is widened to cover 416 rows");
+        assert_eq!(working_size(3024, 4032), (560, 744), "a portrait photo covers 560 columns");
+        assert_eq!(working_size(640, 480), (640, 480), "no larger than the working size: as it is");
+        assert_eq!(working_size(1280, 384), (1280, 384), "a KITTI frame cannot cover 416 rows: as it is");
+        assert_eq!(working_size(320, 240), (320, 240));
+    }
+
+    proptest! {
+        /// The working size never enlarges a photo, keeps its aspect within the rounding to 8
+        /// pixels, has about WORKING_PIXELS pixels unless WORKING_MIN asks for more, and covers
+        /// WORKING_MIN wherever the photo does.
+        #[test]
+        fn the_working_size_shrinks_to_the_working_pixels_and_covers_the_crop(w in 16usize..9000, h in 16usize..9000) {
+            let (ww, wh) = working_size(w, h);
+            prop_assert!(ww <= w && wh <= h);
+            if (ww, wh) == (w, h) {
+                return Ok(());
+            }
+            prop_assert!(ww % 8 == 0 && wh % 8 == 0);
+            let aspect = |a: usize, b: usize| a as f64 / b as f64;
+            prop_assert!((aspect(ww, wh) / aspect(w, h) - 1.0).abs() < 8.0 / ww.min(wh) as f64 + 1e-9);
+            for (side, min, full) in [(ww, WORKING_MIN.0, w), (wh, WORKING_MIN.1, h)] {
+                prop_assert!(side + 4 >= min.min(full), "{}x{} -> {}x{}", w, h, ww, wh);
+            }
+            let widened = ww + 4 >= WORKING_MIN.0 && ww <= WORKING_MIN.0 + 4 || wh + 4 >= WORKING_MIN.1 && wh <= WORKING_MIN.1 + 4;
+            let pixels = (ww * wh) as f64 / WORKING_PIXELS as f64;
+            prop_assert!(widened || (0.95..1.05).contains(&pixels), "{}x{} -> {}x{}", w, h, ww, wh);
         }
     }
 }

@@ -1,0 +1,63 @@
+#!/usr/bin/env python3
+"""Writes a folder of RGB-D photos of mixed sizes in the reference layout (images/, depths/,
+masks/), made from the repository's real RGB-D photos (tests/data/rgbd: Cones and Chelsea) by
+cropping, flipping and resizing: what a user's folder of phone and camera photos with depth looks
+like to mpiflow, for the folder benchmarks (docs/performance.md).
+
+    python tools/make_rgbd_folder.py OUTDIR [--count 48] [--largest 4032x3024]
+
+Every photo is a random crop (at least half of each side) of one source, flipped at random,
+resized to one of the sizes below (the largest is --largest); its depth and mask follow it (depth
+and masks by nearest neighbour, so no depth is invented between surfaces). Deterministic: the
+same arguments write the same files. Needs numpy and pillow.
+"""
+
+import argparse
+import os
+
+import numpy as np
+from PIL import Image
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RGBD = os.path.join(HERE, "..", "tests", "data", "rgbd")
+SIZES = [(640, 480), (800, 600), (1024, 768), (1280, 720), (1920, 1080), (1600, 1200), (768, 1024)]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("out")
+    ap.add_argument("--count", type=int, default=48)
+    ap.add_argument("--largest", default="4032x3024", help="WxH of the largest photos (every 8th photo)")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args()
+    lw, lh = (int(v) for v in a.largest.lower().split("x"))
+    rng = np.random.default_rng(a.seed)
+    sources = []
+    for name in ("cones", "chelsea"):
+        img = np.asarray(Image.open(os.path.join(RGBD, name, "images", name + ".png")).convert("RGB"))
+        depth = np.load(os.path.join(RGBD, name, "depths", name + ".npy")).astype(np.float32)
+        mask = np.asarray(Image.open(os.path.join(RGBD, name, "masks", name + ".png")))
+        sources.append((name, img, depth, mask))
+    for sub in ("images", "depths", "masks"):
+        os.makedirs(os.path.join(a.out, sub), exist_ok=True)
+    for i in range(a.count):
+        name, img, depth, mask = sources[i % len(sources)]
+        h, w = depth.shape
+        cw, ch = int(rng.integers(w // 2, w + 1)), int(rng.integers(h // 2, h + 1))
+        x0, y0 = int(rng.integers(0, w - cw + 1)), int(rng.integers(0, h - ch + 1))
+        im, de, ma = img[y0 : y0 + ch, x0 : x0 + cw], depth[y0 : y0 + ch, x0 : x0 + cw], mask[y0 : y0 + ch, x0 : x0 + cw]
+        if rng.random() < 0.5:
+            im, de, ma = im[:, ::-1], de[:, ::-1], ma[:, ::-1]
+        size = (lw, lh) if i % 8 == 7 else SIZES[int(rng.integers(0, len(SIZES)))]
+        stem = f"{name}-{i:03d}"
+        Image.fromarray(np.ascontiguousarray(im)).resize(size, Image.BICUBIC).save(
+            os.path.join(a.out, "images", stem + ".jpg"), quality=92
+        )
+        de = np.asarray(Image.fromarray(np.ascontiguousarray(de)).resize(size, Image.NEAREST), dtype=np.float32)
+        np.save(os.path.join(a.out, "depths", stem + ".npy"), de)
+        Image.fromarray(np.ascontiguousarray(ma)).resize(size, Image.NEAREST).save(os.path.join(a.out, "masks", stem + ".png"))
+    print(f"{a.count} photos in {a.out} (largest {lw}x{lh})")
+
+
+if __name__ == "__main__":
+    main()
