@@ -60,7 +60,11 @@ fn detr_contract(things: [u32; 2]) -> String {
 fn contract_of(name: &str) -> String {
     let text = if name == DEPTH { DEPTH_CONTRACT.to_string() } else { detr_contract([1, 90]) };
     let parsed: registry::Contract = toml::from_str(&text).unwrap();
-    assert_eq!(parsed, registry::find(name).unwrap().unwrap().contract, "the test registry keeps the built-in contract");
+    assert_eq!(
+        parsed,
+        registry::find(name).unwrap().unwrap().contract,
+        "the test registry keeps the built-in contract"
+    );
     text
 }
 
@@ -194,7 +198,7 @@ fn serve_args(src: &Path, segment_model: &str) -> Vec<String> {
     let src = src.display().to_string();
     ["serve", "--addr", "127.0.0.1:0", "--log-level", "warn", "--source", &src, "--depth-model", DEPTH]
         .iter()
-        .map(|s| s.to_string())
+        .map(ToString::to_string)
         .chain(["--segment-model".to_string(), segment_model.to_string()])
         .collect()
 }

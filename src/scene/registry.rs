@@ -14,8 +14,8 @@ use super::onnx::{
     OnnxSegmenterConfig, RawDepth, SizePolicy,
 };
 use super::{DepthEstimator, Disparity, SceneError, Segmenter};
-use crate::raster::InstanceMasks;
 use crate::io::image::RgbImage;
+use crate::raster::InstanceMasks;
 
 /// The built-in registry.
 const BUILTIN: &str = include_str!("registry.toml");
