@@ -307,3 +307,17 @@ fn the_registry_contract_runs_the_detr_architecture() {
     let e = registry::load_depth(&resolved).map(|_| ()).unwrap_err().to_string();
     assert!(e.contains("output_kind `detr-panoptic` is a segment output: use the model as --segment-model"), "{e}");
 }
+
+/// A file that is not a DETR network, run with the DETR contract, is refused at load naming the
+/// missing tensor and listing the file's real ones.
+#[test]
+fn the_detr_contract_refuses_another_network_naming_the_tensor() {
+    let entry = registry::find(SEGMENTER).unwrap().unwrap();
+    let path = model_file("depth_anything_v2_tiny.onnx");
+    let resolved = registry::Resolved { path, contract: entry.contract, entry: None };
+    let e = registry::load_segmenter(&resolved).map(|_| ()).unwrap_err().to_string();
+    assert!(
+        e.contains("depth_anything_v2_tiny.onnx: has no output tensor `logits`; its outputs are: `predicted_depth`"),
+        "{e}"
+    );
+}
