@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use super::builtin::BuiltinMpi;
 use super::hub::Hub;
-use super::onnx::{OnnxMpi, OnnxMpiConfig, OnnxSegmenter};
+use super::onnx::{OnnxMpi, OnnxMpiConfig};
 use super::registry::{self, Role};
 use super::stage::SceneStage;
 use super::MpiBuilder;
@@ -97,9 +97,8 @@ impl ModelConfig {
         }
         if let Some(p) = &self.segment_model {
             let r = registry::resolve(p, Role::Segment, &hub, true).map_err(|e| e.to_string())?;
-            let m =
-                OnnxSegmenter::new(r.contract.segment_config(&r.path)).map_err(|e| format!("segment model: {e}"))?;
-            stage = stage.with_segmenter(Arc::new(m));
+            let m = registry::load_segmenter(&r).map_err(|e| format!("segment model: {e}"))?;
+            stage = stage.with_segmenter(m);
         }
         Ok(stage)
     }

@@ -1,5 +1,5 @@
 //! The scene models through ONNX Runtime (`ort` with `load-dynamic`): [`OnnxDepth`],
-//! [`OnnxMpi`] and [`OnnxSegmenter`], implementing the scene traits with the default contracts
+//! [`OnnxMpi`], [`OnnxSegmenter`] and [`OnnxDetr`], implementing the scene traits with the default contracts
 //! of `docs/models.md` (tensor names, normalisation and input size configurable).
 //!
 //! # Life cycle
@@ -29,6 +29,7 @@
 //! scripts resize with `align_corners=True`; the difference is below half a pixel.
 
 mod depth;
+mod detr;
 mod model;
 mod mpi;
 pub mod runtime;
@@ -36,6 +37,7 @@ mod segment;
 
 pub(crate) use depth::normalize_disparity;
 pub use depth::{OnnxDepth, OnnxDepthConfig, RawDepth, DEFAULT_DISPARITY_FLOOR};
+pub use detr::{detr_instances, DetrOutputs, DetrSelection, OnnxDetr, OnnxDetrConfig};
 pub use model::{InferenceStats, Normalization, SizePolicy};
 pub use mpi::{OnnxMpi, OnnxMpiConfig};
 pub use runtime::{init_runtime, runtime_info, RuntimeInfo, ORT_DYLIB_ENV};
@@ -52,5 +54,6 @@ mod tests {
         assert_send_sync::<OnnxDepth>();
         assert_send_sync::<OnnxMpi>();
         assert_send_sync::<OnnxSegmenter>();
+        assert_send_sync::<OnnxDetr>();
     }
 }

@@ -10,10 +10,12 @@ use serde::{Deserialize, Serialize};
 
 use super::hub::{Hub, HubError};
 use super::onnx::{
-    normalize_disparity, Normalization, OnnxDepth, OnnxDepthConfig, OnnxSegmenterConfig, RawDepth, SizePolicy,
+    normalize_disparity, Normalization, OnnxDepth, OnnxDepthConfig, OnnxDetr, OnnxDetrConfig, OnnxSegmenter,
+    OnnxSegmenterConfig, RawDepth, SizePolicy,
 };
-use super::{DepthEstimator, Disparity, SceneError};
+use super::{DepthEstimator, Disparity, SceneError, Segmenter};
 use crate::io::image::RgbImage;
+use crate::raster::InstanceMasks;
 
 /// The built-in registry.
 const BUILTIN: &str = include_str!("registry.toml");
@@ -65,15 +67,36 @@ impl std::fmt::Display for Role {
     }
 }
 
-/// What a depth network's output is.
+/// What a network's output is.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum OutputKind {
-    /// Larger = nearer, any scale and shift (MiDaS, Depth Anything): normalised as it is.
+    /// Depth: larger = nearer, any scale and shift (MiDaS, Depth Anything): normalised as it is.
     #[default]
     RelativeInverseDepth,
     /// Depth in metres (larger = farther): inverted before the normalisation.
     MetricDepth,
+    /// Segmentation: DETR's queries (`logits` [1,Q,C+1], `pred_masks` [1,Q,h,w]), turned into
+    /// instances by [`super::onnx::detr_instances`].
+    DetrPanoptic,
+}
+
+impl OutputKind {
+    /// The role whose outputs this kind describes.
+    pub fn role(self) -> Role {
+        match self {
+            OutputKind::RelativeInverseDepth | OutputKind::MetricDepth => Role::Depth,
+            OutputKind::DetrPanoptic => Role::Segment,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            OutputKind::RelativeInverseDepth => "relative-inverse-depth",
+            OutputKind::MetricDepth => "metric-depth",
+            OutputKind::DetrPanoptic => "detr-panoptic",
+        }
+    }
 }
 
 /// The tensor contract of a model; every field left out keeps mpiflow's default (docs/models.md).
@@ -87,6 +110,9 @@ pub struct Contract {
     pub output_kind: Option<OutputKind>,
     /// A fixed network input size `[width, height]`.
     pub size: Option<[usize; 2]>,
+    /// With no `size`: the image scaled to this longer side, keeping its aspect ratio (each side
+    /// then rounded to `multiple_of`).
+    pub long_side: Option<usize>,
     /// With no `size`: each side rounded to a multiple of this; with `size`, what the network
     /// needs of any other size (documentation; `size` is a multiple of it).
     pub multiple_of: Option<usize>,
@@ -97,14 +123,20 @@ pub struct Contract {
     pub masks_output: Option<String>,
     pub scores_output: Option<String>,
     pub labels_output: Option<String>,
+    /// `detr-panoptic`: the class logits output.
+    pub logits_output: Option<String>,
+    /// `detr-panoptic`: the first and last class id of the countable objects ("things"), the
+    /// classes that may move.
+    pub thing_labels: Option<[u32; 2]>,
 }
 
 impl Contract {
     fn size_policy(&self) -> Option<SizePolicy> {
-        match (self.size, self.multiple_of) {
-            (Some([width, height]), _) => Some(SizePolicy::Fixed { width, height }),
-            (None, Some(m)) => Some(SizePolicy::MultipleOf(m)),
-            (None, None) => None,
+        match (self.size, self.long_side, self.multiple_of) {
+            (Some([width, height]), _, _) => Some(SizePolicy::Fixed { width, height }),
+            (None, Some(side), m) => Some(SizePolicy::LongSide { side, multiple: m.unwrap_or(1) }),
+            (None, None, Some(m)) => Some(SizePolicy::MultipleOf(m)),
+            (None, None, None) => None,
         }
     }
 
@@ -155,13 +187,39 @@ impl Contract {
         c
     }
 
+    /// The DETR configuration of `model` under this contract (`output_kind = "detr-panoptic"`).
+    pub fn detr_config(&self, model: &Path) -> OnnxDetrConfig {
+        let mut c = OnnxDetrConfig::new(model);
+        if let Some(i) = &self.input {
+            c.input.clone_from(i);
+        }
+        if let Some(o) = &self.logits_output {
+            c.logits_output.clone_from(o);
+        }
+        if let Some(o) = &self.masks_output {
+            c.masks_output.clone_from(o);
+        }
+        if let Some([first, last]) = self.thing_labels {
+            c.selection.things = first..=last;
+        }
+        if let Some(s) = self.size_policy() {
+            c.size = s;
+        }
+        if let Some(n) = self.normalization() {
+            c.normalization = n;
+        }
+        c
+    }
+
     /// One line: the tensors, size, normalisation and output kind.
     pub fn describe(&self, role: Role) -> String {
         let name = |v: &Option<String>, d: &str| v.clone().unwrap_or_else(|| d.to_string());
-        let size = match (self.size, self.multiple_of) {
-            (Some([w, h]), _) => format!("{w}x{h}"),
-            (None, Some(m)) => format!("multiples of {m}"),
-            (None, None) => "the model's static size, else the image's".into(),
+        let size = match (self.size, self.long_side, self.multiple_of) {
+            (Some([w, h]), _, _) => format!("{w}x{h}"),
+            (None, Some(side), Some(m)) => format!("longer side {side} (multiples of {m})"),
+            (None, Some(side), None) => format!("longer side {side}"),
+            (None, None, Some(m)) => format!("multiples of {m}"),
+            (None, None, None) => "the model's static size, else the image's".into(),
         };
         let norm = match self.normalization() {
             Some(n) => format!("mean {:?} std {:?}", n.mean, n.std),
@@ -175,8 +233,19 @@ impl Contract {
                 match self.output_kind.unwrap_or_default() {
                     OutputKind::RelativeInverseDepth => "relative inverse depth",
                     OutputKind::MetricDepth => "metric depth",
+                    OutputKind::DetrPanoptic => "(a segmentation output)",
                 }
             ),
+            Role::Segment if self.output_kind == Some(OutputKind::DetrPanoptic) => {
+                let [first, last] = self.thing_labels.unwrap_or([1, 90]);
+                format!(
+                    "input `{}` [1,3,h,w] at {size}, normalisation {norm}; outputs `{}` [1,Q,C+1], `{}` [1,Q,h,w]: \
+                     DETR panoptic queries, classes {first} to {last} are objects that may move",
+                    name(&self.input, "pixel_values"),
+                    name(&self.logits_output, "logits"),
+                    name(&self.masks_output, "pred_masks"),
+                )
+            }
             Role::Segment => format!(
                 "input `{}` [1,3,h,w] at {size}, normalisation {norm}; outputs `{}`, `{}`, `{}`",
                 name(&self.input, "image"),
@@ -366,15 +435,77 @@ impl DepthEstimator for NamedDepth {
     }
 }
 
+/// Refuses a contract whose `output_kind` belongs to another role than `role`.
+fn check_kind(r: &Resolved, role: Role) -> Result<(), SceneError> {
+    match r.contract.output_kind {
+        Some(kind) if kind.role() != role => Err(SceneError::Model {
+            kind: if role == Role::Depth { "depth" } else { "segmentation" },
+            model: r.path.display().to_string(),
+            message: format!(
+                "output_kind `{}` is a {} output: use the model as --{}-model, or fix its manifest",
+                kind.name(),
+                kind.role(),
+                kind.role()
+            ),
+        }),
+        _ => Ok(()),
+    }
+}
+
 /// Loads a resolved depth model with its contract (sessions created and warmed here).
 pub fn load_depth(r: &Resolved) -> Result<Arc<dyn DepthEstimator>, SceneError> {
+    check_kind(r, Role::Depth)?;
     let model = OnnxDepth::new(r.contract.depth_config(&r.path))?;
     let model: Arc<dyn DepthEstimator> = match r.contract.output_kind.unwrap_or_default() {
-        OutputKind::RelativeInverseDepth => Arc::new(model),
         OutputKind::MetricDepth => Arc::new(MetricDepth(model)),
+        OutputKind::RelativeInverseDepth | OutputKind::DetrPanoptic => Arc::new(model),
     };
     Ok(match &r.entry {
         Some(e) => Arc::new(NamedDepth { name: e.name.clone(), inner: model }),
+        None => model,
+    })
+}
+
+/// A segmenter known by its registry name: shown as `NAME (onnx:FILE)`; its identity is the
+/// model's own.
+struct NamedSegmenter {
+    name: String,
+    inner: Arc<dyn Segmenter>,
+}
+
+impl Segmenter for NamedSegmenter {
+    fn name(&self) -> String {
+        format!("{} ({})", self.name, self.inner.name())
+    }
+
+    fn identity(&self) -> String {
+        self.inner.identity()
+    }
+
+    fn segment(&self, image: &RgbImage) -> Result<InstanceMasks, SceneError> {
+        self.inner.segment(image)
+    }
+
+    fn inference_runs(&self) -> Option<u64> {
+        self.inner.inference_runs()
+    }
+
+    fn content_hash(&self) -> Option<u64> {
+        self.inner.content_hash()
+    }
+}
+
+/// Loads a resolved segmentation model with its contract: a DETR network for
+/// `output_kind = "detr-panoptic"`, else the masks-scores-labels contract (sessions created and
+/// warmed here).
+pub fn load_segmenter(r: &Resolved) -> Result<Arc<dyn Segmenter>, SceneError> {
+    check_kind(r, Role::Segment)?;
+    let model: Arc<dyn Segmenter> = match r.contract.output_kind {
+        Some(OutputKind::DetrPanoptic) => Arc::new(OnnxDetr::new(r.contract.detr_config(&r.path))?),
+        _ => Arc::new(OnnxSegmenter::new(r.contract.segment_config(&r.path))?),
+    };
+    Ok(match &r.entry {
+        Some(e) => Arc::new(NamedSegmenter { name: e.name.clone(), inner: model }),
         None => model,
     })
 }
@@ -384,16 +515,27 @@ mod tests {
     use super::*;
 
     #[test]
-    fn the_built_in_registry_parses_and_names_both_depth_models() {
+    fn the_built_in_registry_parses_and_names_two_depth_models_and_a_segmenter() {
         let r = parse(BUILTIN, "(built in)").unwrap();
         let names: Vec<&str> = r.iter().map(|e| e.name.as_str()).collect();
-        assert_eq!(names, ["depth-anything-v2-small", "dpt-hybrid-midas"]);
+        assert_eq!(names, ["depth-anything-v2-small", "dpt-hybrid-midas", "detr-resnet-50-panoptic"]);
         let da = &r[0];
         let c = da.contract.depth_config(Path::new("m.onnx"));
         assert_eq!((c.input.as_str(), c.output.as_str()), ("pixel_values", "predicted_depth"));
         assert_eq!(c.size, SizePolicy::Fixed { width: 518, height: 518 });
         assert_eq!(c.normalization, Normalization::IMAGENET);
         assert_eq!(r[1].contract.depth_config(Path::new("m.onnx")).normalization, Normalization::HALF);
+        let detr = &r[2];
+        assert_eq!((detr.role, detr.licence.as_str()), (Role::Segment, "Apache-2.0"));
+        assert_eq!(detr.contract.output_kind.map(OutputKind::role), Some(Role::Segment));
+        let c = detr.contract.detr_config(Path::new("m.onnx"));
+        assert_eq!(
+            (c.input.as_str(), c.logits_output.as_str(), c.masks_output.as_str()),
+            ("pixel_values", "logits", "pred_masks")
+        );
+        assert_eq!(c.size, SizePolicy::LongSide { side: 640, multiple: 32 });
+        assert_eq!(c.normalization, Normalization::IMAGENET);
+        assert_eq!(c.selection.things, 1..=90);
     }
 
     #[test]

@@ -19,7 +19,8 @@
 //! 4. Without a given MPI, the MPI builder lifts image + disparity into an MPI (unless the
 //!    caller does not need it: [`SceneStage::parts`], for `mpiflow bake`).
 //! 5. **Masks given**: used (resized to the image by nearest neighbour if needed); the segmenter
-//!    does not run. No masks and no segmenter: no instances (objects simply do not move).
+//!    does not run. No masks and no segmenter: no instances (objects simply do not move); a
+//!    segmenter that finds none says so ("no object found: only the camera moves").
 //! 6. **Intrinsics**: the item's, else the given MPI's `K`, else the reference default
 //!    (`0.58 W, 0.58 H`, centre).
 //!
@@ -207,7 +208,10 @@ impl SceneStage {
                             ),
                         });
                     }
-                    masks_note = format!("masks: {} ({} instances)", seg.name(), m.masks.len());
+                    masks_note = match m.masks.len() {
+                        0 => format!("masks: {} (no object found: only the camera moves)", seg.name()),
+                        n => format!("masks: {} ({n} instances)", seg.name()),
+                    };
                     m
                 }
                 None => {

@@ -32,6 +32,9 @@ pub enum SizePolicy {
     Fixed { width: usize, height: usize },
     /// Each side rounded to the nearest multiple of `m` (at least `m`); AdaMPI wants `m = 128`.
     MultipleOf(usize),
+    /// The image scaled (up or down) so that its longer side is `side`, keeping its aspect ratio,
+    /// each side then rounded to the nearest multiple of `multiple` (at least `multiple`).
+    LongSide { side: usize, multiple: usize },
 }
 
 impl SizePolicy {
@@ -44,6 +47,12 @@ impl SizePolicy {
             SizePolicy::MultipleOf(m) => {
                 let m = m.max(1);
                 let round = |v: usize| (((v + m / 2) / m) * m).max(m);
+                (round(width), round(height))
+            }
+            SizePolicy::LongSide { side, multiple } => {
+                let m = multiple.max(1) as f64;
+                let scale = side as f64 / width.max(height).max(1) as f64;
+                let round = |v: usize| (((v as f64 * scale / m).round() * m) as usize).max(m as usize);
                 (round(width), round(height))
             }
         }
@@ -60,6 +69,7 @@ impl SizePolicy {
                 let s = m * 64usize.div_ceil(m);
                 (s, s)
             }
+            SizePolicy::LongSide { .. } => self.network_size(4, 3, model_static),
         }
     }
 }
@@ -415,8 +425,11 @@ impl OnnxModel {
                 )));
             }
         }
-        if let SizePolicy::Fixed { width: 0, .. } | SizePolicy::Fixed { height: 0, .. } | SizePolicy::MultipleOf(0) =
-            policy
+        if let SizePolicy::Fixed { width: 0, .. }
+        | SizePolicy::Fixed { height: 0, .. }
+        | SizePolicy::MultipleOf(0)
+        | SizePolicy::LongSide { side: 0, .. }
+        | SizePolicy::LongSide { multiple: 0, .. } = policy
         {
             return Err(self.err(format!("invalid input size policy {policy:?}")));
         }
@@ -488,6 +501,11 @@ mod tests {
         assert_eq!(SizePolicy::MultipleOf(128).network_size(10, 192, None), (128, 256));
         assert_eq!(SizePolicy::MultipleOf(128).warmup_size(None), (128, 128));
         assert_eq!(SizePolicy::MultipleOf(16).warmup_size(None), (64, 64));
+        let long = SizePolicy::LongSide { side: 640, multiple: 32 };
+        assert_eq!(long.network_size(451, 300, None), (640, 416));
+        assert_eq!(long.network_size(3000, 4000, Some((9, 9))), (480, 640));
+        assert_eq!(long.network_size(4000, 10, None), (640, 32));
+        assert_eq!(long.warmup_size(None), (640, 480));
     }
 
     #[test]
