@@ -271,7 +271,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
                     match outcome {
                         Outcome::Done(b) => {
                             let (sample, encoded) = *b;
-                            exporter.write_encoded(&encoded, Some(&sample))?;
+                            exporter.write_encoded(&encoded, &sample)?;
                         }
                         Outcome::Skipped(why) => {
                             skipped += 1;

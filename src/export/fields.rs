@@ -258,15 +258,6 @@ fn record<'a>(index: u64, key: &'a str, s: &'a Sample, flow: FlowEncoding, field
     }
 }
 
-/// The JSON record of a sample (what `I.json` holds, there with its keys in this order:
-/// `mpiflow_export`, `key`, `index`, `source_id`, `address`, `width`, `height`, `fields`,
-/// `flow_encoding`, `camera`, `objects`, `inpainted_pixels`, `stats`, `provenance`, `timings`).
-pub fn sample_json(index: u64, s: &Sample, flow: FlowEncoding, fields: &[String]) -> serde_json::Value {
-    let key = sample_key(index);
-    // serialising plain structs of numbers and strings cannot fail; non-finite floats become null
-    serde_json::to_value(record(index, &key, s, flow, fields)).unwrap_or(serde_json::Value::Null)
-}
-
 /// Field names of a clip's frames 3..8 (`img3` ...) and of the pairs ending in them
 /// (`flow23` = frame 2 -> 3 on frame 2's grid, `flow_bw32` = frame 3 -> 2 on frame 3's grid).
 const CLIP_IMG: [&str; 6] = ["img3", "img4", "img5", "img6", "img7", "img8"];
