@@ -26,8 +26,7 @@ pub enum FlowEncoding {
     KittiPng,
     /// NumPy `.npy`, float32 H x W x 2, exact.
     Npy,
-    /// The stereo layout: no flow file, the disparity `d = -u` as a one-channel PFM
-    /// ([`super::stereo`]).
+    /// The stereo layout: no flow file, the disparity `d = -u` as a one-channel PFM.
     DisparityPfm,
 }
 
