@@ -42,7 +42,8 @@ fn keys() -> Vec<Vec<String>> {
             _ => push(vec![k.clone()]),
         }
     }
-    let sections = [("models", field_names::<ModelConfig>()), ("sample", field_names::<mpiflow::sample::config::SampleConfig>())];
+    let sections =
+        [("models", field_names::<ModelConfig>()), ("sample", field_names::<mpiflow::sample::config::SampleConfig>())];
     for &k in field_names::<ServiceConfig>() {
         if let Some((_, subs)) = sections.iter().find(|(s, _)| *s == k) {
             for &sub in *subs {
@@ -132,7 +133,8 @@ fn every_key_round_trips_through_its_variable() {
             }
         }
         let Some((value, got)) = changed else {
-            failures.push(format!("MPIFLOW_{name} (key {}): no value changed the key (tried {tried:?})", path.join(".")));
+            failures
+                .push(format!("MPIFLOW_{name} (key {}): no value changed the key (tried {tried:?})", path.join(".")));
             continue;
         };
         // only that key changed

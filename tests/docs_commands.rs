@@ -64,9 +64,8 @@ fn documented(name: &str, text: &str) -> Vec<Documented> {
                 let span = span.split_whitespace().collect::<Vec<_>>().join(" ");
                 // prose quotes the server's own lines too (`mpiflow serving on HOST:PORT`): a span
                 // is a command when a subcommand or a flag follows `mpiflow`
-                let command = command_words(&span).filter(|w| {
-                    w.first().is_some_and(|w| w.starts_with('-') || TOP_COMMANDS.contains(&w.as_str()))
-                });
+                let command = command_words(&span)
+                    .filter(|w| w.first().is_some_and(|w| w.starts_with('-') || TOP_COMMANDS.contains(&w.as_str())));
                 if let Some(words) = command {
                     out.push(Documented { at: format!("{name} (paragraph at line {first_line})"), words });
                 }
@@ -134,7 +133,9 @@ fn parse_help(text: &str) -> Help {
             }
         }
         if trimmed.starts_with('-') {
-            let flag = trimmed.split(|c: char| c.is_whitespace() || c == ',' || c == '=' || c == '<' || c == '[').find(|w| w.starts_with("--"));
+            let flag = trimmed
+                .split(|c: char| c.is_whitespace() || c == ',' || c == '=' || c == '<' || c == '[')
+                .find(|w| w.starts_with("--"));
             if let Some(f) = flag {
                 help.flags.push(f.to_string());
             }
@@ -158,7 +159,12 @@ fn parse_help(text: &str) -> Help {
 fn help_of<'a>(cache: &'a mut HashMap<Vec<String>, Help>, path: &[String]) -> &'a Help {
     cache.entry(path.to_vec()).or_insert_with(|| {
         let out = Command::new(env!("CARGO_BIN_EXE_mpiflow")).args(path).arg("--help").output().unwrap();
-        assert!(out.status.success(), "mpiflow {} --help failed: {}", path.join(" "), String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "mpiflow {} --help failed: {}",
+            path.join(" "),
+            String::from_utf8_lossy(&out.stderr)
+        );
         parse_help(&String::from_utf8_lossy(&out.stdout))
     })
 }
@@ -244,8 +250,14 @@ fn the_subcommands_listed_here_are_the_binarys() {
 
 #[test]
 fn the_scanner_finds_commands_and_the_checker_faults() {
-    assert_eq!(command_words("$ MPIFLOW_X=1 target/release/mpiflow serve --addr a:1 | tee x").unwrap(), ["serve", "--addr", "a:1"]);
-    assert_eq!(command_words("cargo run --release --features plots -- bench accuracy --out x").unwrap(), ["bench", "accuracy", "--out", "x"]);
+    assert_eq!(
+        command_words("$ MPIFLOW_X=1 target/release/mpiflow serve --addr a:1 | tee x").unwrap(),
+        ["serve", "--addr", "a:1"]
+    );
+    assert_eq!(
+        command_words("cargo run --release --features plots -- bench accuracy --out x").unwrap(),
+        ["bench", "accuracy", "--out", "x"]
+    );
     assert!(command_words("docker run -d --name mpiflow mpiflow:latest").is_none());
     assert!(command_words("from mpiflow import Client").is_none());
     let text = "Run `mpiflow generate --count 4\n--no-such-flag` here; it says `mpiflow serving on x`.\n\n```sh\nmpiflow bench quality \\\n  --background planes\nmpiflow frobnicate\n```\n";

@@ -370,7 +370,7 @@ fn dot_dot_in_a_registry_path_is_refused() {
     for (i, e) in bad.iter().enumerate() {
         let dir = tmp(&format!("dotdot-{i}"));
         let err = hub(&dir, &m.endpoint, Duration::from_secs(10)).fetch(e, false).unwrap_err();
-        assert!(matches!(err, HubError::BadHubFile { .. }), "{err}");
+        assert!(matches!(err, HubError::BadEntry { .. }), "{err}");
         assert!(!dir.join("hub").exists(), "nothing made for {e:?}");
     }
     assert!(m.ranges.lock().unwrap().is_empty(), "nothing requested");

@@ -305,7 +305,8 @@ fn absolute_paths(text: &str, module: &[String], in_tests: bool) -> Vec<Vec<Stri
     let bytes = text.as_bytes();
     let mut i = 0;
     while i < text.len() {
-        let at_start = i == 0 || !(bytes[i - 1].is_ascii_alphanumeric() || bytes[i - 1] == b'_' || bytes[i - 1] == b':');
+        let at_start =
+            i == 0 || !(bytes[i - 1].is_ascii_alphanumeric() || bytes[i - 1] == b'_' || bytes[i - 1] == b':');
         let rest = &text[i..];
         let (base, mut tail): (Vec<String>, &str) = if at_start && rest.starts_with("crate::") {
             (Vec::new(), &rest[7..])

@@ -309,8 +309,11 @@ pub fn resolve(spec: &Path, role: Role, hub: &Hub, progress: bool) -> Result<Res
     if entry.role != role {
         return Err(ModelError::WrongRole { role, name: entry.name.clone(), actual: entry.role });
     }
-    let path =
-        hub.fetch(&entry.hub_file(), progress).map_err(|source| ModelError::Fetch { role, name: entry.name.clone(), source })?;
+    let path = hub.fetch(&entry.hub_file(), progress).map_err(|source| ModelError::Fetch {
+        role,
+        name: entry.name.clone(),
+        source,
+    })?;
     Ok(Resolved { path, contract: entry.contract.clone(), entry: Some(entry) })
 }
 
