@@ -847,7 +847,7 @@ fn generate_passes_over_a_failing_source_with_a_warning_and_counts_it() {
     let stderr = text(&r.stderr);
     assert!(stderr.lines().last().unwrap().starts_with("error: no sample written"), "{stderr}");
 
-    // no photo carries depth any more: refused before anything is made, naming the fix
+    // with no photo carrying depth: refused before anything is made, naming the fix
     std::fs::remove_file(src.join("depths/good.npy")).unwrap();
     let r = mpiflow(&["generate", "--source", src.to_str().unwrap(), "--count", "2", "--out", out.to_str().unwrap()]);
     assert_eq!(r.status.code(), Some(2));

@@ -3,10 +3,10 @@
 //! messages each get every message they wait for within a bounded number of the busy stream's
 //! samples. Real server on loopback, real clients; counted in samples, not seconds.
 //!
-//! Found by the soak: on one shared rayon pool a worker whose `join` waited (the renderer's
-//! parallel loops) ran newer jobs nested on its stack, and the older job could not finish before
-//! them, so under a steady feed a stream's sample stayed buried for as long as the feed lasted
-//! (a client got nothing for 20 s). The workers are now one-thread pools fed in FIFO order.
+//! The case, from the soak: on one shared rayon pool a worker whose `join` waits (the renderer's
+//! parallel loops) runs newer jobs nested on its stack, and the older job cannot finish before
+//! them, so under a steady feed a stream's sample stays buried for as long as the feed lasts (a
+//! client gets nothing for 20 s). The workers are one-thread pools fed in FIFO order.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;

@@ -1204,9 +1204,9 @@ fn peak_of<T>(f: impl FnOnce() -> T) -> (T, usize) {
     (out, PeakAlloc.peak_usage().saturating_sub(base))
 }
 
-/// `npy_depth`: a `.npy` of 1 MiB of u8 whose shape is over the pixel limit was read whole into
-/// f64 (8 bytes per byte of file, 10 MiB here, 2 GiB for a 256 MiB upload) before its shape was
-/// refused; the shape is now checked from the header first.
+/// `npy_depth`: a `.npy` of 1 MiB of u8 whose shape is over the pixel limit is refused by the
+/// shape in its header, before its data is read (read whole into f64 it would take 8 bytes per
+/// byte of file: 10 MiB here, 2 GiB for a 256 MiB upload).
 #[test]
 fn regression_npy_depth_over_the_pixel_limit_is_refused_before_its_data_is_read() {
     let _serial = serial();
@@ -1219,9 +1219,9 @@ fn regression_npy_depth_over_the_pixel_limit_is_refused_before_its_data_is_read(
 }
 
 /// `mask_disparity_png`: a 16-bit index PNG of 256 x 256 with 1024 distinct ids (a few KiB)
-/// made 1024 full-frame f32 masks (256 MiB; at the default limits 40 MP x 1024 x 4 B = 160 GB)
-/// before any limit; instance masks are now refused over `MAX_MASK_FRAMES` frames of the pixel
-/// limit, before they are allocated.
+/// stands for 1024 full-frame f32 masks (256 MiB; at the default limits 40 MP x 1024 x 4 B =
+/// 160 GB); instance masks over `MAX_MASK_FRAMES` frames of the pixel limit are refused before
+/// they are allocated.
 #[test]
 fn regression_mask_png_with_many_instances_is_refused_before_its_masks_are_made() {
     let _serial = serial();
@@ -1240,8 +1240,8 @@ fn regression_mask_png_with_many_instances_is_refused_before_its_masks_are_made(
 }
 
 /// `npz_mpi`: an `.npz` whose arrays decompress to more values than the limit (a zip bomb: 16 Mi
-/// zero f32 values deflate to 64 KiB) was decoded whole; arrays are now refused by their header's
-/// shape before their data is read.
+/// zero f32 values deflate to 64 KiB) is refused by its arrays' header shapes, before their data
+/// is read.
 #[test]
 fn regression_npz_zip_bomb_is_refused_by_its_shapes() {
     let _serial = serial();
@@ -1257,9 +1257,9 @@ fn regression_npz_zip_bomb_is_refused_by_its_shapes() {
     assert!(peak < 4 * MIB, "refusing it allocated {peak} bytes");
 }
 
-/// `npz_mpi`: an `.npz` member whose version-2 npy header claims 4 GiB (a u32 length) made the
-/// parser allocate that buffer before reading; the length is now checked against the member's
-/// size and the 64 KiB header limit first (as `.npy` depth files already were).
+/// `npz_mpi`: an `.npz` member whose version-2 npy header claims 4 GiB (a u32 length) is refused
+/// without allocating that buffer: the length is checked against the member's size and the 64 KiB
+/// header limit first (as for `.npy` depth files).
 #[test]
 fn regression_npz_member_header_length_is_checked_before_allocating() {
     let _serial = serial();
@@ -1407,8 +1407,8 @@ fn regression_npz_mpi_case_308105_huge_disparity_is_printed_short() {
 }
 
 /// `npz_mpi` case 28955 (the 150-second run): an `.npz` whose `K` member's header holds control
-/// bytes; the parser's error was cut to 300 characters and then escaped, 910 characters in all.
-/// Messages are now cut by their escaped length (`failure::printable`, `failure::echo`).
+/// bytes. Messages are cut by their escaped length (`failure::printable`, `failure::echo`): cut to
+/// 300 characters and then escaped, this one would be 910 characters.
 #[test]
 fn regression_npz_mpi_case_28955_escaped_error_is_cut() {
     let _serial = serial();

@@ -13,8 +13,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{mpsc, Arc, Barrier, Mutex};
 use std::time::Duration;
 
-use mpiflow::scene::hub::{Hub, HubError};
-use mpiflow::scene::registry::{Entry, Role};
+use mpiflow::scene::hub::{Hub, HubError, HubFile};
 use sha2::{Digest, Sha256};
 
 const REPO: &str = "test-org/blob-hub";
@@ -30,19 +29,15 @@ fn sha256(bytes: &[u8]) -> String {
     Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 
-fn entry(size: Option<u64>) -> Entry {
+fn entry(size: Option<u64>) -> HubFile {
     let body = model();
-    Entry {
+    HubFile {
         name: "blob-test".into(),
-        role: Role::Depth,
-        description: String::new(),
         repo: REPO.into(),
         revision: "main".into(),
         file: FILE.into(),
         sha256: sha256(&body),
         size,
-        licence: "test".into(),
-        contract: Default::default(),
     }
 }
 
@@ -217,7 +212,7 @@ fn files_under(dir: &Path) -> Vec<(String, u64)> {
 
 /// `hub.fetch(e)` on a thread of its own, the test waiting at most `guard` for it (so that a
 /// download that hangs fails the test instead of hanging it).
-fn fetch_guarded(hub: &Hub, e: &Entry, guard: Duration) -> Result<PathBuf, HubError> {
+fn fetch_guarded(hub: &Hub, e: &HubFile, guard: Duration) -> Result<PathBuf, HubError> {
     let (tx, rx) = mpsc::channel();
     let (hub, e) = (hub.clone(), e.clone());
     std::thread::spawn(move || {
@@ -367,10 +362,10 @@ fn a_symlink_in_the_cache_is_refused_and_nothing_outside_changes() {
 fn dot_dot_in_a_registry_path_is_refused() {
     let m = mirror(Serve::Whole);
     let bad = [
-        Entry { file: "../../outside.onnx".into(), ..entry(None) },
-        Entry { file: "/etc/passwd".into(), ..entry(None) },
-        Entry { revision: "../../../x".into(), ..entry(None) },
-        Entry { repo: "../escape".into(), ..entry(None) },
+        HubFile { file: "../../outside.onnx".into(), ..entry(None) },
+        HubFile { file: "/etc/passwd".into(), ..entry(None) },
+        HubFile { revision: "../../../x".into(), ..entry(None) },
+        HubFile { repo: "../escape".into(), ..entry(None) },
     ];
     for (i, e) in bad.iter().enumerate() {
         let dir = tmp(&format!("dotdot-{i}"));

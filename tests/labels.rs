@@ -215,11 +215,11 @@ fn object_law(forward: bool) -> MotionRanges {
 /// the default law and under forward and lateral object motion, image2 has no more thin-line
 /// runs than image1 (seed 0), and over five seeds the depth-aware merge draws few one-row label
 /// slivers (a row of object between rows of scene, or the reverse): at most one run per two
-/// samples. (With the paper's exact depth comparison in the depth-aware merge, image2 had 13
-/// runs against image1's 6 under the default law, 7 against 6 under lateral motion. With the
-/// depth maps upsampled by nearest neighbour and the occlusion test on single pixels, seeds 0-4
-/// gave 31, 4 and 37 sliver runs in 30 samples under the default, forward and lateral laws;
-/// now 4, 0 and 5.)
+/// samples. (Measured for comparison: with the paper's exact depth comparison in the
+/// depth-aware merge, image2 has 13 runs against image1's 6 under the default law, 7 against 6
+/// under lateral motion; with the depth maps upsampled by nearest neighbour and the occlusion
+/// test on single pixels, seeds 0-4 give 31, 4 and 37 sliver runs in 30 samples under the
+/// default, forward and lateral laws, where this merge gives 4, 0 and 5.)
 #[test]
 fn no_thin_lines_with_masks_spanning_many_depths() {
     let root = photos("lines");

@@ -84,7 +84,7 @@ fn bad_libraries_are_errors_and_a_good_one_still_loads() {
     assert_eq!(runtime_info(), Some(info));
     // Once loaded, another library cannot replace it.
     runtime_error(init_runtime(Some(&old)), &["already loaded", "libfake_onnxruntime.so"]);
-    // A model file that is missing is now a model error naming it.
+    // With the runtime loaded, a missing model file is a model error naming it.
     let err = OnnxDepth::new(OnnxDepthConfig::new(dir.join("depth.onnx"))).unwrap_err();
     assert!(matches!(err, SceneError::Model { .. }) && err.to_string().contains("depth.onnx"), "{err}");
 }

@@ -105,7 +105,7 @@ async fn raw_request(
     let (response, mut stream) = ready.send_request(req, false).unwrap();
     // a call refused on its headers alone (an unsupported encoding) may be answered and its
     // stream closed before the body goes out: the reply below is what the test reads, so a body
-    // the server no longer takes is not an error here
+    // the server does not take is not an error here
     let _ = stream.send_data(grpc_frame(body), true);
     *send = ready;
     response.await.expect("reply headers")
@@ -266,8 +266,8 @@ async fn random_access_calls_over_the_limit_are_refused() {
     s.shutdown(Duration::from_millis(500)).await;
 }
 
-/// A unary reply the client does not read stays counted in the byte budget until it goes (it
-/// used to leave the budget when handed to the transport, where it then sat uncounted).
+/// A unary reply the client does not read stays counted in the byte budget until it goes, not
+/// only until it is handed to the transport (where it would sit uncounted).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn unread_unary_replies_count_in_the_byte_budget() {
     let s = server(config()).await;

@@ -5,7 +5,7 @@
 //! the one the renderer would compute, and the higher-order kernels keep a photo's detail under a
 //! sub-pixel lateral translation where bilinear loses most of it.
 
-use mpiflow::bench::quality::laplacian_variance;
+use mpiflow::bench::measure::laplacian_variance;
 use mpiflow::geometry::{Intrinsics, Pose};
 use mpiflow::io::image::{load_rgb, ImageLimits};
 use mpiflow::mpi::{BsplineRgb, Mpi};

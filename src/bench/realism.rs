@@ -26,7 +26,7 @@
 //! patches apart, 1.0 that they always can. With fewer than 8 held-out patches of either class
 //! there is no figure (`None`).
 
-use super::quality::luminance;
+use super::measure::{ideal_warp, laplacian_variance, luminance};
 use crate::rng::mix64;
 use crate::sample::noise::noise_sigma;
 use crate::sample::Sample;
@@ -227,7 +227,7 @@ pub fn revealed_detail(s: &Sample, rev: &[bool]) -> RevealedDetail {
     let share = rev.iter().filter(|&&r| r).count() as f64 / (w * h) as f64;
     let in_rev = |i: usize| rev[i] && s.mask2[i] == 0;
     let other = |i: usize| !rev[i] && s.mask2[i] == 0 && s.holes[i] == 0;
-    let lap = |f: &dyn Fn(usize) -> bool| super::quality::laplacian_variance(&s.image2, w, h, f);
+    let lap = |f: &dyn Fn(usize) -> bool| laplacian_variance(&s.image2, w, h, f);
     let detail = match (lap(&in_rev), lap(&other)) {
         (Some(a), Some(b)) if b > 0.0 => Some(a / b),
         _ => None,
@@ -287,7 +287,7 @@ pub struct RealismAccumulator {
     pub pair: PatchSet,
     /// Revealed image2 background patches against image1 background patches.
     pub reveal: PatchSet,
-    /// Patches of image1 warped ideally ([`super::quality::ideal_warp`]) against image1 patches.
+    /// Patches of image1 warped ideally ([`ideal_warp`]) against image1 patches.
     pub ideal: PatchSet,
     shares: Vec<f64>,
     detail: Vec<f64>,
@@ -303,7 +303,7 @@ pub struct RealismReport {
     /// AUC of the classifier telling revealed image2 patches from image1 background patches.
     pub auc_revealed: Option<f64>,
     /// AUC of the classifier telling patches of image1 warped ideally by the sample's geometry
-    /// ([`super::quality::ideal_warp`]) from image1 patches: what an exact warp leaves for the
+    /// ([`ideal_warp`]) from image1 patches: what an exact warp leaves for the
     /// classifier (magnification's loss of detail); `None` without the backward fields.
     pub auc_ideal: Option<f64>,
     /// Mean revealed share of image2.
@@ -341,7 +341,7 @@ impl RealismAccumulator {
         self.pair.reference.extend(patches(&s.image1, w, h, |i| s.valid[i] != 0));
         self.reveal.test.extend(majority_patches(&s.image2, w, h, |i| rev[i] && s.mask2[i] == 0));
         self.reveal.reference.extend(patches(&s.image1, w, h, |i| s.mask1[i] == 0));
-        if let Some(ideal) = super::quality::ideal_warp(s) {
+        if let Some(ideal) = ideal_warp(s) {
             self.ideal.test.extend(patches(&ideal, w, h, |i| !rev[i] && s.holes[i] == 0 && s.backward.valid[i] != 0));
             self.ideal.reference.extend(patches(&s.image1, w, h, |i| s.valid[i] != 0));
         }

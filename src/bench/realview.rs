@@ -12,7 +12,7 @@ use crate::geometry::Intrinsics;
 use crate::sample::motion::{Component, MotionPreset, MotionRanges};
 use crate::sample::Sample;
 
-use super::quality::laplacian_variance;
+use super::measure::laplacian_variance;
 
 /// Columns at the right view's right border left out of the image comparison: what the left
 /// photo never saw enters there (at most the largest disparity).

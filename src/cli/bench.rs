@@ -48,9 +48,9 @@ pub struct QualityBench {
     preset: mpiflow::sample::motion::MotionPreset,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Colour kernels to compare (comma-separated: bilinear, bicubic, bspline3, lanczos3; default:
-    /// the default kernel); the table gets one block of rows per kernel.
-    #[arg(long, value_delimiter = ',')]
+    /// Colour kernels to compare (comma-separated; default: the default kernel); the table gets
+    /// one block of rows per kernel.
+    #[arg(long, value_name = "KERNEL", value_delimiter = ',', value_parser = super::kernels::resample_parser())]
     resample: Vec<Resample>,
     /// Replace the preset's camera law by a pure lateral translation: tx and ty of random sign
     /// and magnitude uniform in [0, T], no forward part, no rotation (T = 0.05 moves the nearest
@@ -192,9 +192,9 @@ pub struct RenderBench {
     /// Also time each work-skipping variant separately.
     #[arg(long)]
     variants: bool,
-    /// Colour kernels to time, comma-separated (bilinear, bicubic, bspline3, lanczos3; default:
-    /// the default kernel), one after the other.
-    #[arg(long, value_delimiter = ',')]
+    /// Colour kernels to time, comma-separated (default: the default kernel), one after the
+    /// other.
+    #[arg(long, value_name = "KERNEL", value_delimiter = ',', value_parser = super::kernels::resample_parser())]
     resample: Vec<Resample>,
     /// The passes to time: `both` (image2 and the forward flow, the default), `target` (image2,
     /// its depth and coverage) or `source` (the forward flow and its validity).

@@ -86,8 +86,9 @@ pub struct GenerateArgs {
     /// object's place, the completed background).
     #[arg(long, value_name = "FILL", default_value_t = SampleConfig::default().background)]
     background: mpiflow::sample::background::Background,
-    /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3.
-    #[arg(long, value_name = "KERNEL", default_value_t = mpiflow::render::Resample::default())]
+    /// Colour kernel of the target render.
+    #[arg(long, value_name = "KERNEL", default_value_t = mpiflow::render::Resample::default(),
+          value_parser = super::kernels::resample_parser())]
     resample: mpiflow::render::Resample,
     /// Restore image1's sensor-noise level in image2 and the later frames (per channel, the
     /// variance the render lost; deterministic by address; part of the fingerprint).
@@ -277,7 +278,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
                     match outcome {
                         Outcome::Done(b) => {
                             let (sample, encoded) = *b;
-                            exporter.write_encoded(&encoded, Some(&sample))?;
+                            exporter.write_encoded(&encoded, &sample)?;
                         }
                         Outcome::Skipped(why) => {
                             skipped += 1;

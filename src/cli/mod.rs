@@ -7,6 +7,7 @@ mod bench_soak;
 mod connect;
 mod generate;
 mod health;
+mod kernels;
 mod models;
 mod pull;
 mod render;

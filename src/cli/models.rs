@@ -49,11 +49,12 @@ pub fn run(c: ModelsCommand) -> Result<(), CliError> {
     match c {
         ModelsCommand::List => {
             for e in registry::registry()? {
-                let cached = hub.cached_path(&e);
+                let file = e.hub_file();
+                let cached = hub.cached_path(&file);
                 let state =
                     if cached.is_file() { format!("cached at {}", cached.display()) } else { "not cached".into() };
                 println!("{}  ({}, {})  {}", e.name, e.role, e.licence, e.description);
-                println!("    {} -> {state}", hub.url(&e));
+                println!("    {} -> {state}", hub.url(&file));
                 println!("    sha256 {}; {}", e.sha256, e.contract.describe(e.role));
             }
             println!(

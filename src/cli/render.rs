@@ -58,9 +58,10 @@ pub struct RenderArgs {
     /// `reference` reproduces the public implementation; `exact` ray-casts (coverage, validity, skipping).
     #[arg(long, default_value = "exact")]
     mode: Mode,
-    /// Colour kernel of the exact-mode target view: bilinear, bicubic, bspline3 or lanczos3
-    /// (density and masks stay bilinear; the reference mode is always bilinear).
-    #[arg(long, default_value_t = Resample::default())]
+    /// Colour kernel of the exact-mode target view (density and masks stay bilinear; the
+    /// reference mode is always bilinear).
+    #[arg(long, value_name = "KERNEL", default_value_t = Resample::default(),
+          value_parser = super::kernels::resample_parser())]
     resample: Resample,
     /// Alias-free minification of the exact-mode target view (planes the view shrinks are
     /// sampled from prefiltered levels).

@@ -26,8 +26,7 @@ pub enum FlowEncoding {
     KittiPng,
     /// NumPy `.npy`, float32 H x W x 2, exact.
     Npy,
-    /// The stereo layout: no flow file, the disparity `d = -u` as a one-channel PFM
-    /// ([`super::stereo`]).
+    /// The stereo layout: no flow file, the disparity `d = -u` as a one-channel PFM.
     DisparityPfm,
 }
 
@@ -256,15 +255,6 @@ fn record<'a>(index: u64, key: &'a str, s: &'a Sample, flow: FlowEncoding, field
         provenance: &s.provenance,
         timings: &s.timings,
     }
-}
-
-/// The JSON record of a sample (what `I.json` holds, there with its keys in this order:
-/// `mpiflow_export`, `key`, `index`, `source_id`, `address`, `width`, `height`, `fields`,
-/// `flow_encoding`, `camera`, `objects`, `inpainted_pixels`, `stats`, `provenance`, `timings`).
-pub fn sample_json(index: u64, s: &Sample, flow: FlowEncoding, fields: &[String]) -> serde_json::Value {
-    let key = sample_key(index);
-    // serialising plain structs of numbers and strings cannot fail; non-finite floats become null
-    serde_json::to_value(record(index, &key, s, flow, fields)).unwrap_or(serde_json::Value::Null)
 }
 
 /// Field names of a clip's frames 3..8 (`img3` ...) and of the pairs ending in them

@@ -208,14 +208,9 @@ impl Exporter {
         encode_for(self.options.format, index, sample)
     }
 
-    /// Whether the next sample written with this index will be drawn in a preview sheet.
-    pub fn wants_preview(&self, index: u64) -> bool {
-        self.previews.wants(index)
-    }
-
     /// Writes a sample encoded by [`Exporter::encode`]; `sample` (the same one) feeds the
-    /// preview sheets and may be `None` when [`Exporter::wants_preview`] said no.
-    pub fn write_encoded(&mut self, encoded: &EncodedSample, sample: Option<&Sample>) -> Result<(), ExportError> {
+    /// preview sheets.
+    pub fn write_encoded(&mut self, encoded: &EncodedSample, sample: &Sample) -> Result<(), ExportError> {
         match &mut self.sink {
             Sink::Files => {
                 layout::write_files(&self.options.out_dir, encoded)?;
@@ -228,14 +223,7 @@ impl Exporter {
                 stereo::write_stereo(&self.options.out_dir, encoded)?;
             }
         }
-        if let Some(s) = sample {
-            self.previews.add(encoded.index, s)?;
-        } else if self.previews.wants(encoded.index) {
-            return Err(ExportError::Invalid(format!(
-                "sample {} belongs in a preview sheet but was not passed to the exporter",
-                encoded.index
-            )));
-        }
+        self.previews.add(encoded.index, sample)?;
         self.samples += 1;
         self.bytes += encoded.byte_len() as u64;
         Ok(())
@@ -244,7 +232,7 @@ impl Exporter {
     /// Encodes and writes one sample.
     pub fn write(&mut self, index: u64, sample: &Sample) -> Result<(), ExportError> {
         let encoded = self.encode(index, sample)?;
-        self.write_encoded(&encoded, Some(sample))
+        self.write_encoded(&encoded, sample)
     }
 
     /// Finishes the open shard and the preview sheet in progress.

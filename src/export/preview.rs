@@ -227,11 +227,6 @@ impl PreviewCollector {
         !self.seen_any || index.is_multiple_of(self.options.every)
     }
 
-    /// Whether the sample with this index (the next one written) goes into a sheet.
-    pub fn wants(&self, index: u64) -> bool {
-        self.options.every > 0 && (self.starts_sheet(index) || !self.current.is_empty())
-    }
-
     /// Offers the next sample written (in writing order).
     pub fn add(&mut self, index: u64, s: &Sample) -> Result<(), ExportError> {
         if self.options.every == 0 {

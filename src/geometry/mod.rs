@@ -159,12 +159,6 @@ pub fn apply_homography(h: &DMat3, x: f64, y: f64) -> (f64, f64, f64) {
     (p.x / p.z, p.y / p.z, p.z)
 }
 
-/// The three rows of a matrix as arrays, for the f32 hot loops.
-pub fn rows_f32(m: &DMat3) -> [[f32; 3]; 3] {
-    let t = m.transpose();
-    [t.x_axis.as_vec3().to_array(), t.y_axis.as_vec3().to_array(), t.z_axis.as_vec3().to_array()]
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

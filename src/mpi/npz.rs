@@ -170,17 +170,12 @@ impl MpiDtype {
 }
 
 /// Writes `mpi` as an `.npz` in the layout [`load_npz`] reads (and the reference writes):
-/// `mpi_rgb` f32 `[N, 3, H, W]`, `mpi_sigma` f32 `[N, 1, H, W]`, `disparity` f64 `[N]` (near to
-/// far, exactly as held), `K` f64 `[3, 3]` when the MPI has intrinsics, `G` f64 `[4, 4]` when it
-/// has a pose, and `mask_in` f32 `[N, C, H, W]` when it has extra channels. Lossless: loading the
-/// file gives back the same values bit for bit. Members are deflated, as NumPy's `savez_compressed`,
-/// and dated 1980-01-01: the bytes depend on the MPI only, not on when it was written.
-pub fn save_npz<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W) -> std::io::Result<W> {
-    save_npz_as(mpi, writer, MpiDtype::F32)
-}
-
-/// [`save_npz`] with `mpi_rgb` and `mpi_sigma` in `dtype` (the rest as there). A packed MPI is
-/// written densely ([`Mpi::unpacked`]).
+/// `mpi_rgb` and `mpi_sigma` in `dtype` (`[N, 3, H, W]`, `[N, 1, H, W]`), `disparity` f64 `[N]`
+/// (near to far, exactly as held), `K` f64 `[3, 3]` when the MPI has intrinsics, `G` f64 `[4, 4]`
+/// when it has a pose, and `mask_in` f32 `[N, C, H, W]` when it has extra channels. Lossless in
+/// f32: loading the file gives back the same values bit for bit. Members are deflated, as NumPy's
+/// `savez_compressed`, and dated 1980-01-01: the bytes depend on the MPI only, not on when it was
+/// written. A packed MPI is written densely ([`Mpi::unpacked`]).
 pub fn save_npz_as<W: std::io::Write + std::io::Seek>(mpi: &Mpi, writer: W, dtype: MpiDtype) -> std::io::Result<W> {
     use npyz::WriterBuilder;
     let mpi = &*mpi.unpacked();

@@ -262,7 +262,8 @@ impl std::str::FromStr for Resample {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         Resample::ALL.into_iter().find(|r| r.name() == s).ok_or_else(|| {
-            format!("unknown resample kernel `{s}` (expected bilinear, bicubic, bspline3, bspline5 or lanczos3)")
+            let names: Vec<&str> = Resample::ALL.iter().map(|r| r.name()).collect();
+            format!("unknown resample kernel `{s}` (expected one of {})", names.join(", "))
         })
     }
 }

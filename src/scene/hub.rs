@@ -24,7 +24,7 @@
 //!   directories are checked before they are used and files opened with `O_NOFOLLOW`, a link
 //!   there is refused; the snapshot links are the only links, made here.
 //! - Registry paths (`repo`, `revision`, `file`) with `..`, `.`, empty or absolute components
-//!   are refused ([`check_entry`]).
+//!   are refused ([`check_file`]).
 
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -33,7 +33,22 @@ use std::time::Duration;
 
 use sha2::{Digest, Sha256};
 
-use super::registry::Entry;
+/// A pinned file in a hub repository: what [`Hub::fetch`] fetches (a registry entry names one).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct HubFile {
+    /// The name errors give the file (the registry entry's name).
+    pub name: String,
+    /// The hub repository, `ORG/NAME`.
+    pub repo: String,
+    /// A commit (40 hex digits) or a branch or tag name.
+    pub revision: String,
+    /// The file in the repository.
+    pub file: String,
+    /// The SHA-256 of the file, lower-case hex.
+    pub sha256: String,
+    /// The file's size in bytes: a download stops there (without it, at [`MAX_MODEL_BYTES`]).
+    pub size: Option<u64>,
+}
 
 /// The public hub.
 pub const DEFAULT_ENDPOINT: &str = "https://huggingface.co";
@@ -140,24 +155,24 @@ impl Hub {
     }
 
     /// `{endpoint}/{repo}/resolve/{revision}/{file}`.
-    pub fn url(&self, e: &Entry) -> String {
+    pub fn url(&self, e: &HubFile) -> String {
         format!("{}/{}/resolve/{}/{}", self.endpoint, e.repo, e.revision, e.file)
     }
 
     /// `models--ORG--NAME`, the repository's folder name in the cache.
-    fn repo_name(e: &Entry) -> String {
+    fn repo_name(e: &HubFile) -> String {
         format!("models--{}", e.repo.replace('/', "--"))
     }
 
     /// `models--ORG--NAME` in the cache.
-    pub fn repo_dir(&self, e: &Entry) -> PathBuf {
+    pub fn repo_dir(&self, e: &HubFile) -> PathBuf {
         self.cache.join(Self::repo_name(e))
     }
 
     /// The commit a revision stands for in the cache: the revision itself when it is a commit,
     /// else the commit `refs/REVISION` records (read without following a link), else the
     /// revision.
-    fn commit(&self, e: &Entry) -> String {
+    fn commit(&self, e: &HubFile) -> String {
         if is_commit(&e.revision) {
             return e.revision.clone();
         }
@@ -173,19 +188,19 @@ impl Hub {
     }
 
     /// Where the file is (or would be) in the cache: `snapshots/COMMIT/FILE`.
-    pub fn cached_path(&self, e: &Entry) -> PathBuf {
+    pub fn cached_path(&self, e: &HubFile) -> PathBuf {
         self.repo_dir(e).join("snapshots").join(self.commit(e)).join(&e.file)
     }
 
-    /// `blobs/SHA256` of the entry.
-    fn blob_path(&self, e: &Entry) -> PathBuf {
+    /// `blobs/SHA256` of the file.
+    fn blob_path(&self, e: &HubFile) -> PathBuf {
         self.repo_dir(e).join("blobs").join(&e.sha256)
     }
 
     /// The model file of `e`: the cached copy (its SHA-256 checked), else downloaded into the
     /// cache (unless offline). `progress` draws a progress bar on stderr.
-    pub fn fetch(&self, e: &Entry, progress: bool) -> Result<PathBuf, HubError> {
-        check_entry(e).map_err(|message| HubError::BadEntry { name: e.name.clone(), message })?;
+    pub fn fetch(&self, e: &HubFile, progress: bool) -> Result<PathBuf, HubError> {
+        check_file(e).map_err(|message| HubError::BadEntry { name: e.name.clone(), message })?;
         if let Some(p) = self.cached(e)? {
             return Ok(p);
         }
@@ -197,7 +212,7 @@ impl Hub {
 
     /// The cached file of `e`, checked: the blob of its hash first (then its snapshot path, made
     /// when missing and the cache is writable), else a file put at the snapshot path by hand.
-    fn cached(&self, e: &Entry) -> Result<Option<PathBuf>, HubError> {
+    fn cached(&self, e: &HubFile) -> Result<Option<PathBuf>, HubError> {
         let blob = self.blob_path(e);
         if self.inside_dirs_exist(e, &["blobs"])? && is_regular(&blob)? {
             self.verify(&blob, e, " (the cached file is left as it is: delete it to download it again)")?;
@@ -226,7 +241,7 @@ impl Hub {
     }
 
     /// Whether the folders `dirs` below the repository's folder all exist (none a link).
-    fn inside_dirs_exist(&self, e: &Entry, dirs: &[&str]) -> Result<bool, HubError> {
+    fn inside_dirs_exist(&self, e: &HubFile, dirs: &[&str]) -> Result<bool, HubError> {
         let mut p = self.cache.clone();
         for d in std::iter::once(Self::repo_name(e).as_str()).chain(dirs.iter().copied()) {
             p.push(d);
@@ -242,7 +257,7 @@ impl Hub {
     }
 
     /// Checks the SHA-256 of the file at `path` (opened without following a link).
-    fn verify(&self, path: &Path, e: &Entry, kept: &'static str) -> Result<(), HubError> {
+    fn verify(&self, path: &Path, e: &HubFile, kept: &'static str) -> Result<(), HubError> {
         let actual = sha256_nofollow(path)?;
         if actual != e.sha256 {
             return Err(HubError::Checksum {
@@ -255,8 +270,8 @@ impl Hub {
         Ok(())
     }
 
-    /// Whether `link` is the relative link to the entry's blob that [`place`] makes.
-    fn is_our_link(&self, link: &Path, e: &Entry) -> bool {
+    /// Whether `link` is the relative link to the file's blob that [`place`] makes.
+    fn is_our_link(&self, link: &Path, e: &HubFile) -> bool {
         std::fs::read_link(link).is_ok_and(|t| t == link_target(e))
     }
 
@@ -287,7 +302,7 @@ impl Hub {
         Ok(p)
     }
 
-    fn download(&self, e: &Entry, progress: bool) -> Result<PathBuf, HubError> {
+    fn download(&self, e: &HubFile, progress: bool) -> Result<PathBuf, HubError> {
         let url = self.url(e);
         let repo_name = Self::repo_name(e);
         let limit = e.size.unwrap_or(MAX_MODEL_BYTES);
@@ -425,7 +440,7 @@ impl Hub {
     fn request(
         &self,
         url: &str,
-        e: &Entry,
+        e: &HubFile,
         from: u64,
     ) -> Result<(ureq::http::Response<ureq::Body>, Option<String>, bool), HubError> {
         let http = |message: String| HubError::Http { url: url.to_string(), message };
@@ -519,10 +534,10 @@ impl Write for HashWriter<'_> {
     }
 }
 
-/// Checks the entry's paths before any of them reaches a URL or the cache: `repo` is `ORG/NAME`
+/// Checks the file's paths before any of them reaches a URL or the cache: `repo` is `ORG/NAME`
 /// and `revision` and `file` relative paths, each component non-empty, not `.` or `..`, without
 /// `\` or control characters; `sha256` is 64 lower-case hex digits.
-pub fn check_entry(e: &Entry) -> Result<(), String> {
+pub fn check_file(e: &HubFile) -> Result<(), String> {
     let component_ok =
         |c: &str| !c.is_empty() && c != "." && c != ".." && !c.chars().any(|ch| ch == '\\' || ch.is_control());
     let relative = |what: &str, p: &str| -> Result<(), String> {
@@ -575,13 +590,13 @@ fn is_regular(path: &Path) -> Result<bool, HubError> {
 
 /// The relative link from `snapshots/COMMIT/FILE` to `blobs/SHA256`
 /// (`../../[../]blobs/SHA256`, as `huggingface_hub` makes it).
-fn link_target(e: &Entry) -> PathBuf {
+fn link_target(e: &HubFile) -> PathBuf {
     PathBuf::from(format!("{}blobs/{}", "../".repeat(e.file.split('/').count() + 1), e.sha256))
 }
 
 /// Puts the snapshot entry at `link` for `blob`: a relative symbolic link where links exist, else
 /// a copy.
-fn place(blob: &Path, link: &Path, e: &Entry) -> Result<(), HubError> {
+fn place(blob: &Path, link: &Path, e: &HubFile) -> Result<(), HubError> {
     #[cfg(unix)]
     {
         let _ = blob;

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use super::hub::{Hub, HubError};
+use super::hub::{Hub, HubError, HubFile};
 use super::onnx::{
     normalize_disparity, Normalization, OnnxDepth, OnnxDepthConfig, OnnxDetr, OnnxDetrConfig, OnnxSegmenter,
     OnnxSegmenterConfig, RawDepth, SizePolicy,
@@ -282,6 +282,20 @@ pub struct Entry {
     pub contract: Contract,
 }
 
+impl Entry {
+    /// The file in the hub this entry names.
+    pub fn hub_file(&self) -> HubFile {
+        HubFile {
+            name: self.name.clone(),
+            repo: self.repo.clone(),
+            revision: self.revision.clone(),
+            file: self.file.clone(),
+            sha256: self.sha256.clone(),
+            size: self.size,
+        }
+    }
+}
+
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RegistryFile {
@@ -293,7 +307,7 @@ fn parse(text: &str, path: &str) -> Result<Vec<Entry>, ModelError> {
     let f: RegistryFile =
         toml::from_str(text).map_err(|e| ModelError::Registry { path: path.into(), message: e.to_string() })?;
     for e in &f.model {
-        super::hub::check_entry(e)
+        super::hub::check_file(&e.hub_file())
             .map_err(|m| ModelError::Registry { path: path.into(), message: format!("{}: {m}", e.name) })?;
     }
     Ok(f.model)
@@ -364,8 +378,11 @@ pub fn resolve(spec: &Path, role: Role, hub: &Hub, progress: bool) -> Result<Res
     if entry.role != role {
         return Err(ModelError::WrongRole { role, name: entry.name.clone(), actual: entry.role });
     }
-    let path =
-        hub.fetch(&entry, progress).map_err(|source| ModelError::Fetch { role, name: entry.name.clone(), source })?;
+    let path = hub.fetch(&entry.hub_file(), progress).map_err(|source| ModelError::Fetch {
+        role,
+        name: entry.name.clone(),
+        source,
+    })?;
     Ok(Resolved { path, contract: entry.contract.clone(), entry: Some(entry) })
 }
 

@@ -73,8 +73,8 @@ impl SceneStage {
     }
 
     /// The plain built-in layering (32 soft planes uniform in disparity, no completed background),
-    /// no depth model, no segmenter: a light stage for tests and tools. What the commands use by
-    /// default is [`super::models::ModelConfig::default`]'s stage.
+    /// no depth model, no segmenter: a light stage for tests and tools. The commands build theirs
+    /// from the default model configuration instead.
     pub fn builtin() -> Self {
         Self::new(Arc::new(super::builtin::BuiltinMpi::default()))
     }

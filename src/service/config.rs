@@ -1,6 +1,7 @@
 //! The server's configuration: a TOML file (`deploy/mpiflow.toml` documents every key and its
 //! default), then `MPIFLOW_*` environment variables, then command-line flags, each overriding the
-//! one before ([`super::layers`]: every key declared once, here).
+//! one before. Every key is declared once, here, as a field of `ServiceConfig` or of its
+//! sections; the layers are merged above this module, from these declarations.
 
 use std::path::{Path, PathBuf};
 
@@ -11,7 +12,6 @@ use crate::sample::config::SampleConfig;
 pub use crate::scene::models::ModelConfig;
 
 use super::error::ServiceError;
-use super::layers::Layer;
 
 /// Bytes per pixel of the largest sample a request can ask for: a clip of
 /// [`MAX_FRAMES`](crate::sample::config::MAX_FRAMES) frames with every field and f32 flow
@@ -306,29 +306,6 @@ impl ServiceConfig {
 
     pub fn from_toml(text: &str) -> Result<Self, String> {
         toml::from_str(text).map_err(|e| e.to_string().trim().replace('\n', " "))
-    }
-
-    /// Applies the `MPIFLOW_*` variables of the process environment ([`Self::apply_env_vars`]).
-    pub fn apply_env(&mut self) -> Result<(), ServiceError> {
-        self.apply_env_vars(std::env::vars()).map_err(ServiceError::Config)
-    }
-
-    /// Applies the `MPIFLOW_*` variables among `vars`: `MPIFLOW_` and a key in capitals sets that
-    /// key (of the top level, `[models]` or `[sample]`; empty = its default, unset for an
-    /// optional key), `MPIFLOW_SOURCES` (comma-separated `NAME=PATH` or `PATH`) replaces the
-    /// datasets, `MPIFLOW_PREFETCH` is `default_prefetch` and `MPIFLOW_PRESET` the motion preset
-    /// ([`super::layers`]). Other variables (e.g. `MPIFLOW_PHOTOS`, read by the bundled source)
-    /// are left alone.
-    pub fn apply_env_vars(&mut self, vars: impl IntoIterator<Item = (String, String)>) -> Result<(), String> {
-        *self = Layer::from_env(vars)?.apply(self)?;
-        Ok(())
-    }
-
-    /// Applies a struct of flags: each field given sets the key of its serde name (a nested
-    /// struct: the keys of the section of its name).
-    pub fn apply_flags<T: Serialize>(&mut self, flags: &T) -> Result<(), String> {
-        *self = Layer::from_flags(flags)?.apply(self)?;
-        Ok(())
     }
 
     /// Checks every value; the error names the key.

@@ -74,13 +74,6 @@ impl ServiceError {
             ServiceError::Unimplemented(_) => Code::Unimplemented,
         }
     }
-
-    /// The status of a stream that ends with this error, with the resume cursor in its trailers.
-    pub fn into_status_with_cursor(self, next_index: u64, resume_start_index: u64) -> Status {
-        let mut status: Status = self.into();
-        with_cursor(&mut status, next_index, resume_start_index);
-        status
-    }
 }
 
 /// Puts the resume cursor into a status's trailer metadata.

@@ -173,6 +173,26 @@ impl Layer {
     }
 }
 
+impl ServiceConfig {
+    /// Applies the `MPIFLOW_*` variables among `vars`: `MPIFLOW_` and a key in capitals sets that
+    /// key (of the top level, `[models]` or `[sample]`; empty = its default, unset for an
+    /// optional key), `MPIFLOW_SOURCES` (comma-separated `NAME=PATH` or `PATH`) replaces the
+    /// datasets, `MPIFLOW_PREFETCH` is `default_prefetch` and `MPIFLOW_PRESET` the motion preset
+    /// ([`Layer::from_env`]). Other variables (e.g. `MPIFLOW_PHOTOS`, read by the bundled source)
+    /// are left alone.
+    pub fn apply_env_vars(&mut self, vars: impl IntoIterator<Item = (String, String)>) -> Result<(), String> {
+        *self = Layer::from_env(vars)?.apply(self)?;
+        Ok(())
+    }
+
+    /// Applies a struct of flags: each field given sets the key of its serde name (a nested
+    /// struct: the keys of the section of its name).
+    pub fn apply_flags<T: Serialize>(&mut self, flags: &T) -> Result<(), String> {
+        *self = Layer::from_flags(flags)?.apply(self)?;
+        Ok(())
+    }
+}
+
 /// Sets (or removes, with `None`) the key at `path`, making the sections on the way.
 fn set(table: &mut Table, path: &[String], value: Option<Value>) {
     let Some((last, sections)) = path.split_last() else { return };

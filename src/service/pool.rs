@@ -769,10 +769,6 @@ impl Scheduler {
         }
     }
 
-    pub fn is_draining(&self) -> bool {
-        lock(&self.inner).draining
-    }
-
     pub fn stats(&self) -> SchedulerStats {
         let s = lock(&self.inner);
         SchedulerStats {

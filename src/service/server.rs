@@ -472,15 +472,17 @@ fn refused<T>(state: &State, r: Result<T, ServiceError>) -> Result<T, Status> {
 
 #[tonic::async_trait]
 impl MpiFlow for Service {
-    type StreamSamplesStream = Pin<Box<dyn Stream<Item = Result<pb::SampleBatch, Status>> + Send + 'static>>;
-    type GetSamplesStream = Pin<Box<dyn Stream<Item = Result<pb::Sample, Status>> + Send + 'static>>;
+    // StreamSamples and GetSamples are answered by `SampleRoutes`, which takes their paths before
+    // this service sees a request; the generated trait still requires a handler for each, so
+    // both are one refusal that names the route serving them.
+    type StreamSamplesStream = tokio_stream::Empty<Result<pb::SampleBatch, Status>>;
+    type GetSamplesStream = tokio_stream::Empty<Result<pb::Sample, Status>>;
 
     async fn stream_samples(
         &self,
-        request: Request<pb::StreamRequest>,
+        _request: Request<pb::StreamRequest>,
     ) -> Result<Response<Self::StreamSamplesStream>, Status> {
-        let stream = refused(&self.state, self.state.open_stream(request.get_ref(), peer_key(&request)))?;
-        Ok(Response::new(Box::pin(stream)))
+        Err(served_by_sample_routes(STREAM_SAMPLES_PATH))
     }
 
     async fn get_sample(&self, request: Request<pb::SampleRequest>) -> Result<Response<pb::Sample>, Status> {
@@ -499,10 +501,9 @@ impl MpiFlow for Service {
 
     async fn get_samples(
         &self,
-        request: Request<pb::SamplesRequest>,
+        _request: Request<pb::SamplesRequest>,
     ) -> Result<Response<Self::GetSamplesStream>, Status> {
-        let stream = refused(&self.state, self.state.open_samples(request.get_ref(), peer_key(&request)))?;
-        Ok(Response::new(Box::pin(samples_of(stream))))
+        Err(served_by_sample_routes(GET_SAMPLES_PATH))
     }
 
     async fn upload_sources(
@@ -516,6 +517,13 @@ impl MpiFlow for Service {
     async fn get_info(&self, _request: Request<pb::InfoRequest>) -> Result<Response<pb::InfoResponse>, Status> {
         Ok(Response::new(self.state.info()))
     }
+}
+
+/// The answer of the generated handlers of the calls [`SampleRoutes`] serves: a request for
+/// `path` reaches `SampleRoutes` first and never the generated service, so this is an internal
+/// error if it is ever sent.
+fn served_by_sample_routes(path: &str) -> Status {
+    Status::internal(format!("{path} is served by the sample routes, not the generated service"))
 }
 
 /// The calls answered by [`SampleRoutes`]: the sample streams.

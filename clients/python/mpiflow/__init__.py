@@ -11,8 +11,9 @@
 `MPIFlowDataset` and `MPIFlowMapDataset` import torch (when installed) on first use only.
 """
 from ._proto import mpiflow_pb2 as pb
-from .client import Client, MpiFlowError, NotReadyError, is_retryable, parse_addresses
+from .client import Client, parse_addresses
 from .decode import DEFAULT_FIELDS, DecodeError, Sample, decode_sample, decode_tensor, to_raft_dict
+from .errors import MpiFlowError, NotReadyError, is_retryable
 from .stream import FlowStream, Prefetcher, ProtocolError, StreamFailed
 
 __version__ = "0.1.0"

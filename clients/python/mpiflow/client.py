@@ -1,10 +1,8 @@
 """The gRPC client of an mpiflow server or of several replicas of it."""
 from __future__ import annotations
 
-import json
 import logging
 import random
-import re
 import threading
 import time
 from typing import Any, Dict, Iterable, List, Optional, Sequence, Tuple, Union
@@ -14,16 +12,12 @@ import grpc
 from . import _health
 from ._proto import mpiflow_pb2 as pb
 from ._proto import mpiflow_pb2_grpc as pb_grpc
-from .decode import Sample, decode_sample, parse_fields
+from .decode import Sample, decode_sample
+from .errors import MpiFlowError, NotReadyError, is_retryable
+from .spec import build_spec
+from .stream import FlowStream
 
-__all__ = [
-    "Client",
-    "MpiFlowError",
-    "NotReadyError",
-    "build_spec",
-    "is_retryable",
-    "parse_addresses",
-]
+__all__ = ["Client", "parse_addresses"]
 
 log = logging.getLogger("mpiflow")
 
@@ -32,45 +26,9 @@ DEFAULT_MAX_RECEIVE = 256 << 20
 # Indices one GetSamples call may carry when the server's Limits.max_indices is not known yet.
 DEFAULT_MAX_INDICES = 256
 
-_RETRYABLE = {
-    grpc.StatusCode.UNAVAILABLE,
-    grpc.StatusCode.UNKNOWN,
-    grpc.StatusCode.INTERNAL,
-    grpc.StatusCode.ABORTED,
-    grpc.StatusCode.CANCELLED,
-    grpc.StatusCode.DEADLINE_EXCEEDED,
-    grpc.StatusCode.RESOURCE_EXHAUSTED,
-}
-
-
-class MpiFlowError(RuntimeError):
-    """An mpiflow call that failed for good (bad request, or no replica within the retry time)."""
-
-
-class NotReadyError(MpiFlowError, TimeoutError):
-    """No replica reported SERVING within the timeout."""
-
 
 class _ShortAnswer(Exception):
     """A GetSamples call that ended cleanly before its last index."""
-
-
-def is_retryable(err: BaseException) -> bool:
-    """Whether a failed call may succeed on another replica or later (a transport failure, a
-    draining or overloaded server) rather than being refused for what it asks."""
-    if not isinstance(err, grpc.RpcError) or not hasattr(err, "code"):
-        return False
-    code = err.code()
-    if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
-        details = (err.details() or "").lower()
-        # The client's own receive limit, and a request whose sample is too large for the
-        # server's limits (refused before any work): the same on every replica.
-        return "larger than max" not in details and "sample too large" not in details
-    if code == grpc.StatusCode.INTERNAL:
-        # "sample N: ..." = that sample cannot be made (the same on every replica); other
-        # INTERNAL errors come from the transport (a reset stream, a broken connection).
-        return not re.match(r"sample \d+:", err.details() or "")
-    return code in _RETRYABLE
 
 
 def parse_addresses(addresses: Union[str, Iterable[str]]) -> List[str]:
@@ -97,93 +55,6 @@ def _pem(v: Union[str, bytes, None]) -> Optional[bytes]:
         return v
     with open(v, "rb") as f:
         return f.read()
-
-
-def _crop(crop: Any, mode: Union[str, int, None]) -> Optional["pb.OutputCrop"]:
-    if crop is None:
-        return None
-    if isinstance(crop, pb.OutputCrop):
-        return crop
-    if isinstance(crop, int):
-        w = h = crop
-    else:
-        w, h = (int(v) for v in crop)
-    if isinstance(mode, str) or mode is None:
-        modes = {None: pb.CROP_MODE_CENTER, "center": pb.CROP_MODE_CENTER, "random": pb.CROP_MODE_RANDOM}
-        key = mode.lower() if isinstance(mode, str) else None
-        if key not in modes:
-            raise ValueError(f"crop_mode must be 'center' or 'random', not {mode!r}")
-        mode = modes[key]
-    return pb.OutputCrop(width=w, height=h, mode=mode)
-
-
-def _augment(v: Any) -> str:
-    """The request's `augment`: a preset name or JSON text as is, a dict as JSON (docs/augment.md)."""
-    if v is None:
-        return ""
-    if isinstance(v, dict):
-        return json.dumps(v, sort_keys=True)
-    if isinstance(v, str):
-        return v
-    raise TypeError(f"augment must be a preset name, JSON text or a dict, not {type(v).__name__}")
-
-
-def _flow_dtype(v: Union[str, int, None]) -> int:
-    if v is None:
-        return pb.FLOW_DTYPE_F32
-    if isinstance(v, int):
-        return v
-    key = str(v).lower().replace("float", "f")
-    if key in ("f32", "32"):
-        return pb.FLOW_DTYPE_F32
-    if key in ("f16", "16", "half"):
-        return pb.FLOW_DTYPE_F16
-    raise ValueError(f"flow_dtype must be 'f32' or 'f16', not {v!r}")
-
-
-def build_spec(
-    *,
-    dataset: Optional[str] = None,
-    fingerprint: int = 0,
-    seed: int = 0,
-    fields: Optional[Iterable[Union[int, str]]] = None,
-    lz4: bool = False,
-    flow_dtype: Union[str, int, None] = None,
-    crop: Any = None,
-    crop_mode: Union[str, int, None] = None,
-    motion_preset: Optional[str] = None,
-    motion_ranges_json: Optional[str] = None,
-    max_objects: Optional[int] = None,
-    motions_per_image: Optional[int] = None,
-    augment: Any = None,
-    frames: Optional[int] = None,
-    resample: Optional[str] = None,
-) -> "pb.SampleSpec":
-    """The SampleSpec of a request: the sample options StreamRequest, SampleRequest and
-    SamplesRequest share. `frames` = K (2 to 8): K > 2 asks for a clip (stacked tensors, see
-    decode.CLIP_NAMES)."""
-    kw: Dict[str, Any] = dict(
-        dataset=dataset or "",
-        fingerprint=int(fingerprint or 0),
-        seed=int(seed),
-        fields=parse_fields(fields),
-        flow_dtype=_flow_dtype(flow_dtype),
-        compression=pb.COMPRESSION_LZ4 if lz4 else pb.COMPRESSION_NONE,
-        motion_preset=motion_preset or "",
-        motion_ranges_json=motion_ranges_json or "",
-        augment=_augment(augment),
-        resample=resample or "",
-    )
-    c = _crop(crop, crop_mode)
-    if c is not None:
-        kw["crop"] = c
-    if max_objects is not None:
-        kw["max_objects"] = int(max_objects)
-    if motions_per_image is not None:
-        kw["motions_per_image"] = int(motions_per_image)
-    if frames is not None:
-        kw["frames"] = int(frames)
-    return pb.SampleSpec(**kw)
 
 
 class _Replica:
@@ -654,10 +525,8 @@ class Client:
                 self._mark_down(addr)
                 last = e
 
-    def stream(self, **kwargs: Any) -> "FlowStream":
+    def stream(self, **kwargs: Any) -> FlowStream:
         """A FlowStream on this client (see FlowStream for the arguments)."""
-        from .stream import FlowStream
-
         return FlowStream(self, **kwargs)
 
     def open_stream(self, address: str, request: "pb.StreamRequest", *, timeout: Optional[float] = None):

@@ -6,13 +6,14 @@ import logging
 import queue
 import threading
 import time
-from typing import Any, Callable, Iterable, Iterator, Optional, Union
+from typing import Any, Callable, Iterable, Iterator, List, Optional, Protocol, Union
 
 import grpc
 
 from ._proto import mpiflow_pb2 as pb
-from .client import Client, MpiFlowError, build_spec, is_retryable
 from .decode import decode_sample
+from .errors import MpiFlowError, is_retryable
+from .spec import build_spec
 
 __all__ = ["FlowStream", "Prefetcher", "ProtocolError", "StreamFailed"]
 
@@ -33,6 +34,28 @@ class _Interrupted(Exception):
     pass
 
 
+class Replicas(Protocol):
+    """What a FlowStream needs of its client (`mpiflow.Client` is one): the replicas' addresses,
+    a SERVING replica to fail over to, the raw StreamSamples call, and the replica book-keeping."""
+
+    addresses: List[str]
+
+    def pick_replica(
+        self,
+        *,
+        prefer: Optional[str] = None,
+        avoid: Optional[str] = None,
+        deadline: Optional[float] = None,
+        stop: Optional[threading.Event] = None,
+    ) -> str: ...
+
+    def open_stream(self, address: str, request: "pb.StreamRequest", *, timeout: Optional[float] = None) -> Any: ...
+
+    def _mark_up(self, address: str) -> None: ...
+
+    def _mark_down(self, address: str) -> None: ...
+
+
 class FlowStream:
     """The samples of one consumer: indices start_index + rank + k * world_size, in order.
 
@@ -51,7 +74,7 @@ class FlowStream:
 
     def __init__(
         self,
-        client: Client,
+        client: Replicas,
         *,
         seed: int = 0,
         dataset: Optional[str] = None,

@@ -180,7 +180,7 @@ def test_a_crop_larger_than_the_frame_is_refused_not_shrunk(server, client):
 
 def test_every_entry_point_takes_the_same_field_names(server, client):
     for fields in (["motions"], ["img1", "flow", "motions"], ["FIELD_FLOW", "occ"]):
-        mpiflow.client.build_spec(fields=fields)
+        mpiflow.spec.build_spec(fields=fields)
     s = client.get_sample(1, crop=server.crop, fields=["flow", "motions"])
     assert set(s.keys()) == {"flow"}
     ss = client.get_samples([1], crop=server.crop, fields=["flow", "motions"])

@@ -15,7 +15,8 @@ import pytest
 
 import mpiflow
 from mpiflow import _health, pb
-from mpiflow.client import build_spec, parse_addresses
+from mpiflow.client import parse_addresses
+from mpiflow.spec import build_spec
 from mpiflow.dataset import (
     _MPIFlowDatasetImpl,
     consumer_count,
@@ -417,7 +418,7 @@ class _Err(grpc.RpcError):
 
 
 def test_a_sample_too_large_is_not_retried_but_a_busy_server_is():
-    from mpiflow.client import is_retryable
+    from mpiflow.errors import is_retryable
 
     too_large = _Err(grpc.StatusCode.RESOURCE_EXHAUSTED, "sample too large: up to 307200 pixels x 8 frames")
     busy = _Err(grpc.StatusCode.RESOURCE_EXHAUSTED, "too many GetSample/GetSamples calls: 32 are open")

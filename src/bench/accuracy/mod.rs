@@ -173,7 +173,7 @@ pub struct KernelRow {
     /// same kernel (what the planes and f32 cost this kernel).
     pub same_kernel: ImageErr,
     /// Variance of the Laplacian of the render (rounded to 8 bits, over its covered interior)
-    /// over that of the photo (`bench::quality::laplacian_variance`); None when either is empty.
+    /// over that of the photo (`bench::measure::laplacian_variance`); None when either is empty.
     pub sharpness: Option<f64>,
 }
 
@@ -461,7 +461,7 @@ fn kernel_rows(
     let scene = ctx.scene;
     let (w, h) = (scene.width, scene.height);
     let to_u8 = |v: &[f32]| -> Vec<u8> { v.iter().map(|&x| (x.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect() };
-    let photo = crate::bench::quality::laplacian_variance(&to_u8(&scene.rgb), w, h, |_| true);
+    let photo = crate::bench::measure::laplacian_variance(&to_u8(&scene.rgb), w, h, |_| true);
     let reference_mpi = layer(scene, cfg.reference_planes, Layering::Soft)?;
     for kernel in Resample::ALL {
         let mut m_k = mpi.clone();
@@ -478,7 +478,7 @@ fn kernel_rows(
         let reference = render::<f64>(&r_k, &pr, None)?;
         let same_kernel = image_error(&out.image, &reference.image, &reference.coverage);
         let covered = |i: usize| out.coverage[i] > 0.999;
-        let rendered = crate::bench::quality::laplacian_variance(&to_u8(&out.image), w, h, covered);
+        let rendered = crate::bench::measure::laplacian_variance(&to_u8(&out.image), w, h, covered);
         let sharpness = match (rendered, photo) {
             (Some(a), Some(b)) if b > 0.0 => Some(a / b),
             _ => None,

@@ -121,15 +121,6 @@ impl InferenceStats {
     pub fn total_ms(&self) -> f64 {
         self.total.as_secs_f64() * 1e3
     }
-
-    /// Mean ms per run (0 before the first run).
-    pub fn mean_ms(&self) -> f64 {
-        if self.runs == 0 {
-            0.0
-        } else {
-            self.total_ms() / self.runs as f64
-        }
-    }
 }
 
 /// A tensor's declared type and shape (dimensions < 0 are dynamic; `symbols` their names).
