@@ -340,8 +340,6 @@ fn absolute_paths(text: &str, module: &[String], in_tests: bool) -> Vec<Vec<Stri
 /// module (`super::hub::Hub` from `scene/registry.rs` reaches `scene/hub.rs`).
 #[test]
 fn no_two_files_name_each_other() {
-    // a circle of src/source/, listed here until those files are split (then this list is empty)
-    const ALLOWED: &[[&str; 2]] = &[["source/dir.rs", "source/given.rs"]];
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
     let mut files = Vec::new();
     rust_files(&src, &mut files);
@@ -378,7 +376,6 @@ fn no_two_files_name_each_other() {
     let circles: Vec<String> = edges
         .iter()
         .filter(|(a, b)| a < b && edges.contains(&(b.clone(), a.clone())))
-        .filter(|(a, b)| !ALLOWED.iter().any(|p| (p[0] == a && p[1] == b) || (p[0] == b && p[1] == a)))
         .map(|(a, b)| format!("src/{a} <-> src/{b}"))
         .collect();
     assert!(circles.is_empty(), "files that name each other:\n{}", circles.join("\n"));

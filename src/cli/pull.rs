@@ -68,13 +68,12 @@ pub struct PullArgs {
     /// Moving objects per sample (default: the dataset's).
     #[arg(long)]
     objects: Option<u32>,
-    /// Consecutive samples per source photo (default: the dataset's).
+    /// Motions drawn from each source photo while its scene is warm (default: the dataset's).
     #[arg(long)]
     motions_per_image: Option<u32>,
-    /// Colour kernel of the target render: bilinear, bicubic, bspline3 or lanczos3 (default: the
-    /// dataset's).
-    #[arg(long, default_value = "")]
-    resample: String,
+    /// Colour kernel of the target render (default: the dataset's).
+    #[arg(long, value_name = "KERNEL", value_parser = super::kernels::resample_parser())]
+    resample: Option<mpiflow::render::Resample>,
     /// Training augmentation: a preset (raft-chairs, raft-things, raft-sintel, raft-kitti, none)
     /// or its JSON form (docs/augment.md); with --crop, the crop replaces the preset's.
     #[arg(long, value_name = "NAME|JSON")]
@@ -136,7 +135,7 @@ fn request(a: &PullArgs) -> Result<pb::StreamRequest, CliError> {
         motions_per_image: a.motions_per_image,
         augment: a.augment.clone().unwrap_or_default(),
         frames: a.frames,
-        resample: a.resample.clone(),
+        resample: a.resample.map_or_else(String::new, |r| r.name().to_owned()),
     };
     Ok(pb::StreamRequest {
         spec: Some(spec),

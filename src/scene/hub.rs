@@ -59,6 +59,11 @@ const MAX_REDIRECTS: usize = 8;
 pub const DEFAULT_TIMEOUT_S: f64 = 10.0;
 /// The variable that sets the download timeout, in seconds (as `huggingface_hub` reads it).
 pub const TIMEOUT_ENV: &str = "HF_HUB_DOWNLOAD_TIMEOUT";
+/// The variable naming a TOML file of further registry entries (the same layout as the built-in
+/// registry); an entry with a built-in name replaces it. Named here, where the hub's errors say
+/// how to pin a file of one's own.
+pub const REGISTRY_ENV: &str = "MPIFLOW_MODEL_REGISTRY";
+
 /// The largest model file fetched when the registry pins no size: 2 GiB, protobuf's limit on one
 /// message and so on an ONNX file without external data.
 pub const MAX_MODEL_BYTES: u64 = 2 << 30;
@@ -89,7 +94,7 @@ pub enum HubError {
         "{what} has SHA-256 {actual}, but the registry pins {expected}: refused{kept}. To use this file \
          anyway, give it as a FILE (--depth-model FILE, --segment-model FILE) or pin it in your own \
          registry ({})",
-        crate::scene::registry::REGISTRY_ENV
+        REGISTRY_ENV
     )]
     Checksum { what: String, expected: String, actual: String, kept: &'static str },
     #[error("{}: a symbolic link inside the hub cache: refused (nothing is written through it)", .path.display())]

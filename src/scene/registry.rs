@@ -23,9 +23,7 @@ const BUILTIN: &str = include_str!("registry.toml");
 /// The largest registry file read (bytes).
 pub const MAX_REGISTRY_BYTES: u64 = 1 << 20;
 
-/// A TOML file of further entries (the same layout as the built-in registry); an entry with a
-/// built-in name replaces it.
-pub const REGISTRY_ENV: &str = "MPIFLOW_MODEL_REGISTRY";
+pub use super::hub::REGISTRY_ENV;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {

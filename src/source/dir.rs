@@ -79,10 +79,11 @@
 //! also covers its manifest's stage fingerprint (the models it was baked with).
 
 use super::baked::BakeManifest;
-use super::given::fit;
+pub use super::given::DepthFile;
 pub use super::given::{
     depth_npy_from_bytes, disparity_png_from_bytes, read_depth, read_depth_npy, read_disparity_png, resize_rgb,
 };
+use super::given::{file_err, fit, io_err, over_limit};
 use super::{Carried, FailureKind, Fnv64, GivenDepth, SkippedItem, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits, RgbImage};
@@ -185,14 +186,6 @@ pub enum Layout {
     File,
 }
 
-/// The kind of a depth file.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum DepthFile {
-    Npy,
-    Pfm,
-    Png16,
-}
-
 /// The kind of a mask file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MaskFile {
@@ -253,27 +246,6 @@ fn lower_ext(name: &str) -> Option<(String, String)> {
     let ext = p.extension()?.to_str()?.to_ascii_lowercase();
     let stem = p.file_stem()?.to_str()?.to_string();
     Some((stem, ext))
-}
-
-/// A file that cannot be opened or read; `part` is the kind of failure of the file's role
-/// ([`FailureKind::Decode`] for images, `Depth`, `Mask`, `Mpi` for companions).
-pub(crate) fn io_err(path: &Path, e: &std::io::Error, part: FailureKind) -> SourceError {
-    let message = if e.kind() == std::io::ErrorKind::NotFound { "not found".to_string() } else { e.to_string() };
-    SourceError::file(path.display().to_string(), part, message)
-}
-
-/// A file error of `kind` whose message does not repeat the path when the underlying error
-/// already starts with it.
-pub(crate) fn file_err(path: &Path, kind: FailureKind, e: impl std::fmt::Display) -> SourceError {
-    let p = path.display().to_string();
-    let m = e.to_string();
-    let message = m.strip_prefix(&format!("{p}: ")).map(str::to_string).unwrap_or(m);
-    SourceError::file(p, kind, message)
-}
-
-/// The message of a file over the byte limit.
-pub(crate) fn over_limit(size: u64, limits: &ImageLimits) -> String {
-    format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes)
 }
 
 /// Extensions of the files a folder source reads (entries with them are reported when left out).

@@ -2,12 +2,40 @@
 //! 8-bit disparity PNGs, from a path or from bytes (shards, uploads), and resizing them (and the
 //! image) to the run's size. Each failure carries its [`FailureKind`] (`depth`, `too-large`, ...).
 
-use super::dir::{file_err, io_err, over_limit, DepthFile};
 use super::{FailureKind, SourceError};
 use crate::io::image::{decode_file, load_depth_png16_with_limits, ImageLimits, RgbImage};
 use crate::raster::resize_depth;
 use ::image::DynamicImage;
 use std::path::Path;
+
+/// The kind of a depth file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthFile {
+    Npy,
+    Pfm,
+    Png16,
+}
+
+/// A file that cannot be opened or read; `part` is the kind of failure of the file's role
+/// ([`FailureKind::Decode`] for images, `Depth`, `Mask`, `Mpi` for companions).
+pub(crate) fn io_err(path: &Path, e: &std::io::Error, part: FailureKind) -> SourceError {
+    let message = if e.kind() == std::io::ErrorKind::NotFound { "not found".to_string() } else { e.to_string() };
+    SourceError::file(path.display().to_string(), part, message)
+}
+
+/// A file error of `kind` whose message does not repeat the path when the underlying error
+/// already starts with it.
+pub(crate) fn file_err(path: &Path, kind: FailureKind, e: impl std::fmt::Display) -> SourceError {
+    let p = path.display().to_string();
+    let m = e.to_string();
+    let message = m.strip_prefix(&format!("{p}: ")).map(str::to_string).unwrap_or(m);
+    SourceError::file(p, kind, message)
+}
+
+/// The message of a file over the byte limit.
+pub(crate) fn over_limit(size: u64, limits: &ImageLimits) -> String {
+    format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes)
+}
 
 /// Resizes a depth or disparity map `data` (w x h) to (w0 x h0) when the sizes differ:
 /// bilinear on a surface, nearest across its edges and next to unknown values

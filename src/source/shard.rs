@@ -379,11 +379,6 @@ impl ShardSource {
         &self.skipped
     }
 
-    /// The shard files, in order.
-    pub fn shard_paths(&self) -> Vec<PathBuf> {
-        self.shards.iter().map(|s| s.path.clone()).collect()
-    }
-
     pub fn options(&self) -> &SourceOptions {
         &self.options
     }
