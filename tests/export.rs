@@ -701,7 +701,19 @@ fn generate_flo_on_the_bundled_scenes() {
     let dir = tmpdir("gen-flo");
     let out = dir.join("out");
     let o = out.to_str().unwrap();
-    let common = ["generate", "--count", "3", "--format", "flo", "--size", "96x64", "--motions-per-image", "2"];
+    let common = [
+        "generate",
+        "--count",
+        "3",
+        "--format",
+        "flo",
+        "--size",
+        "96x64",
+        "--motions-per-image",
+        "2",
+        "--scene-window",
+        "1",
+    ];
     let r = mpiflow(&[&common[..], &["--out", o, "--preview-every", "2", "--threads", "2"]].concat());
     assert!(r.status.success(), "stdout: {}\nstderr: {}", text(&r.stdout), text(&r.stderr));
     let stdout = text(&r.stdout);
@@ -726,7 +738,7 @@ fn generate_flo_on_the_bundled_scenes() {
         assert_eq!((img.width(), img.height()), (96, 64));
         flos.push(out.join(format!("{key}_flow.flo")).to_string_lossy().into_owned());
     }
-    // consecutive indices share a source with --motions-per-image 2
+    // consecutive indices share a source with --motions-per-image 2 and --scene-window 1
     let id = |i: u64| -> Value {
         serde_json::from_slice::<Value>(&std::fs::read(out.join(format!("{}.json", sample_key(i)))).unwrap()).unwrap()
             ["source_id"]

@@ -388,12 +388,24 @@ pub fn quality_same_motions(
     seed: u64,
     count: u64,
 ) -> Result<QualityReport, SampleError> {
+    quality_on_motions(generator, config, generator.fingerprint(), seed, count)
+}
+
+/// [`quality_same_motions`] on the motions of the addresses `(dataset, seed, 0..count)`: two
+/// collections of the same photos (scenes built with other models) compared on the same draws.
+pub fn quality_on_motions(
+    generator: &Generator,
+    config: &SampleConfig,
+    dataset: u64,
+    seed: u64,
+    count: u64,
+) -> Result<QualityReport, SampleError> {
     let g = generator.with_config(config.clone())?;
     let mut acc = QualityAccumulator::default();
     for index in 0..count {
         let item = g.source_item(index).ok_or(SampleError::EmptySource)?;
         let scene = g.scene(item)?;
-        let address = SampleAddress { dataset: generator.fingerprint(), seed, index };
+        let address = SampleAddress { dataset, seed, index };
         let (s, z) = assemble_with_target_depth(&scene, address, config, None)?;
         acc.add(&s, &z);
     }
