@@ -334,7 +334,7 @@ async fn expect_refused(c: &mut MpiFlowClient<Channel>, r: pb::StreamRequest, co
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn refusals_have_the_right_code_and_name_the_field() {
-    let s = server(ServiceConfig { max_streams: 2, ..config() }).await;
+    let s = server(ServiceConfig { max_streams: 4, ..config() }).await;
     let mut c = client(s.addr).await;
     let d = pb::StreamRequest::default;
     let spec = pb::SampleSpec::default;
@@ -416,10 +416,10 @@ async fn refusals_have_the_right_code_and_name_the_field() {
     let chunks = tokio_stream::iter(vec![pb::SourceChunk::default()]);
     let e = c.upload_sources(chunks).await.unwrap_err();
     assert_eq!((e.code(), e.message().starts_with("dataset")), (inv, true), "{e:?}");
-    // the stream limit
+    // the stream limit: one client holds at most half of max_streams
     let s1 = c.stream_samples(d()).await.unwrap();
     let s2 = c.stream_samples(d()).await.unwrap();
-    expect_refused(&mut c, d(), Code::ResourceExhausted, "max_streams").await;
+    expect_refused(&mut c, d(), Code::ResourceExhausted, "half of max_streams").await;
     drop(s1);
     // the server sees the client's reset and closes the stream: its slot is free again
     until("the closed stream is dropped", || s.state.active_streams() == 1).await;
@@ -690,30 +690,42 @@ fn closed_by_server(mut s: std::net::TcpStream) -> bool {
 }
 
 /// Connection hygiene: a connection that sends nothing is closed after
-/// `idle_connection_timeout_s`; with `max_connections` open, a further connection is closed as
-/// it arrives, even one that speaks HTTP/2; when one closes, new clients get in again.
+/// `idle_connection_timeout_s`; with `max_connections` open, a newcomer takes the place of a
+/// connection with no call open, and is closed as it arrives when every connection has a call
+/// open (even one that speaks HTTP/2); when one closes, new clients get in again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn silent_connections_are_closed_and_connections_are_bounded() {
+    use std::io::Write;
     let idle = server(ServiceConfig { idle_connection_timeout_s: 0.5, ..config() }).await;
     let addr = idle.addr;
     let silent = tokio::task::spawn_blocking(move || closed_by_server(std::net::TcpStream::connect(addr).unwrap()));
     assert!(silent.await.unwrap(), "a silent connection is closed");
 
     let s = server(ServiceConfig { max_connections: 2, idle_connection_timeout_s: 600.0, ..config() }).await;
-    let (a, b) = (channel(&s.addr.to_string()).await, channel(&s.addr.to_string()).await);
-    let (mut ca, mut cb) = (client_for(a.clone()), client_for(b.clone()));
-    assert!(ca.get_info(pb::InfoRequest {}).await.is_ok() && cb.get_info(pb::InfoRequest {}).await.is_ok());
     let addr = s.addr;
-    let third = tokio::task::spawn_blocking(move || {
-        use std::io::Write;
+    let preface = move || {
         let mut t = std::net::TcpStream::connect(addr).unwrap();
-        // a real HTTP/2 preface: refused for the bound, not for silence (the timeout is 600 s)
+        // a real HTTP/2 preface: handled for the bound, not for silence (the timeout is 600 s)
         let _ = t.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n");
-        closed_by_server(t)
-    });
+        t
+    };
+    // a client with a stream open, and a connection with no call
+    let mut ca = client(s.addr).await;
+    let mut sa = ca.stream_samples(pb::StreamRequest::default()).await.unwrap().into_inner();
+    assert!(sa.message().await.unwrap().is_some());
+    let quiet = tokio::task::spawn_blocking(preface).await.unwrap();
+    // (the server accepts connections in the order they arrive: the quiet one is counted first)
+    // a newcomer takes the quiet connection's place
+    let mut cb = client(s.addr).await;
+    let mut sb = cb.stream_samples(pb::StreamRequest::default()).await.unwrap().into_inner();
+    assert!(sb.message().await.unwrap().is_some());
+    assert!(tokio::task::spawn_blocking(move || closed_by_server(quiet)).await.unwrap(), "the quiet one is closed");
+    // every connection has a call open: a third is closed as it arrives, the streams go on
+    let third = tokio::task::spawn_blocking(move || closed_by_server(preface()));
     assert!(third.await.unwrap(), "a connection over max_connections is closed");
+    assert!(sa.message().await.unwrap().is_some() && sb.message().await.unwrap().is_some());
     // one client leaves: a new one gets in (the server sees the close when it happens)
-    drop((ca, a));
+    drop((sa, ca));
     let t = Instant::now();
     loop {
         let ok = match Endpoint::from_shared(format!("http://{}", s.addr)).unwrap().connect().await {
@@ -726,7 +738,7 @@ async fn silent_connections_are_closed_and_connections_are_bounded() {
         assert!(t.elapsed() < Duration::from_secs(30), "no slot came back");
         tokio::task::yield_now().await;
     }
-    assert!(cb.get_info(pb::InfoRequest {}).await.is_ok(), "the connection that stayed is served");
+    assert!(sb.message().await.unwrap().is_some(), "the stream that stayed is served");
 }
 
 /// A request over the message limit is RESOURCE_EXHAUSTED (gRPC's code for "too large"), not

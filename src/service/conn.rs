@@ -11,15 +11,23 @@
 //! `idle_connection_timeout_s` of silence, every such interval, 3 tries) lets the kernel drop
 //! connections whose peer vanished without a FIN (the cable, the node). A failed accept backs
 //! off when the process is out of descriptors or memory ([`AcceptErrors`]).
+//!
+//! Peers are keyed by [`PeerKey`] (an IPv6 client by its /64). When all `max_connections` are
+//! taken, a new connection closes one that has no call open but health watches (one that
+//! has not sent its first bytes, is idle, or only watches health), from the peer with the most
+//! connections, the oldest first ([`Registry::evict`]); a connection with a call open is never
+//! closed for a newcomer. So connections that never authenticate, idle ones and health watches,
+//! from any number of addresses, cannot keep a client out. The worker pool may also close a
+//! connection ([`Activity::cut`]) that holds made samples it has not taken for a while when
+//! another client needs the room (`service::pool`).
 
 use std::collections::HashMap;
 use std::future::Future;
 use std::io;
-use std::net::IpAddr;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
-use std::task::{Context, Poll};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::task::{Context, Poll, Waker};
 use std::time::Duration;
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -28,25 +36,101 @@ use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 use tokio::time::{Instant, Sleep};
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
+use super::peer::PeerKey;
 use super::stall::StallWatch;
 
-/// The calls open on one connection and since when it has had none.
+fn locked<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// The calls open on one connection, since when it has had none, when its peer last took data,
+/// and its cut.
 #[derive(Debug)]
 pub struct Activity {
+    peer: PeerKey,
+    opened: Instant,
     calls: AtomicUsize,
+    /// Health watches among the calls: they keep the connection from the idle timeout, not from
+    /// being closed for a newcomer.
+    watches: AtomicUsize,
     /// When the last call ended (or the connection was accepted).
     quiet_since: Mutex<Instant>,
+    /// When the peer last took written bytes (or the connection was accepted).
+    taken_at: Mutex<Instant>,
+    cut: AtomicBool,
+    /// The connection's reader, woken by a cut.
+    waker: Mutex<Option<Waker>>,
 }
 
 impl Activity {
-    fn new() -> Arc<Self> {
-        Arc::new(Self { calls: AtomicUsize::new(0), quiet_since: Mutex::new(Instant::now()) })
+    /// The activity of a new connection of `peer`.
+    pub fn new(peer: PeerKey) -> Arc<Self> {
+        let now = Instant::now();
+        Arc::new(Self {
+            peer,
+            opened: now,
+            calls: AtomicUsize::new(0),
+            watches: AtomicUsize::new(0),
+            quiet_since: Mutex::new(now),
+            taken_at: Mutex::new(now),
+            cut: AtomicBool::new(false),
+            waker: Mutex::new(None),
+        })
     }
 
-    /// Counts a call on the connection until the guard is dropped.
-    pub fn begin(self: &Arc<Self>) -> CallGuard {
+    /// The peer of the connection.
+    pub fn peer(&self) -> PeerKey {
+        self.peer
+    }
+
+    /// Counts a call on the connection until the guard is dropped; a health watch counts as a
+    /// watch too.
+    pub fn begin(self: &Arc<Self>, watch: bool) -> CallGuard {
         self.calls.fetch_add(1, Ordering::SeqCst);
-        CallGuard(self.clone())
+        if watch {
+            self.watches.fetch_add(1, Ordering::SeqCst);
+        }
+        CallGuard { activity: self.clone(), watch }
+    }
+
+    /// Whether a newcomer may close the connection: no call open but health watches.
+    fn evictable(&self) -> bool {
+        self.calls.load(Ordering::SeqCst) <= self.watches.load(Ordering::SeqCst)
+    }
+
+    /// How long the peer has taken no written bytes.
+    pub fn not_taken_for(&self) -> Duration {
+        locked(&self.taken_at).elapsed()
+    }
+
+    fn took(&self) {
+        *locked(&self.taken_at) = Instant::now();
+    }
+
+    /// Closes the connection: its reads and writes fail from now on, which ends the HTTP/2
+    /// connection and every call on it (their samples and slots are given back as they drop).
+    pub fn cut(&self) {
+        self.cut.store(true, Ordering::SeqCst);
+        if let Some(w) = locked(&self.waker).take() {
+            w.wake();
+        }
+    }
+
+    pub fn is_cut(&self) -> bool {
+        self.cut.load(Ordering::SeqCst)
+    }
+
+    /// Ready once the connection is cut (the waker of `cx` is woken then).
+    fn poll_cut(&self, cx: &mut Context<'_>) -> Poll<()> {
+        if self.is_cut() {
+            return Poll::Ready(());
+        }
+        *locked(&self.waker) = Some(cx.waker().clone());
+        if self.is_cut() {
+            Poll::Ready(())
+        } else {
+            Poll::Pending
+        }
     }
 
     /// When the connection is idle for `idle` (None while a call is open).
@@ -60,12 +144,18 @@ impl Activity {
 
 /// A call counted on its connection ([`Activity::begin`]).
 #[derive(Debug)]
-pub struct CallGuard(Arc<Activity>);
+pub struct CallGuard {
+    activity: Arc<Activity>,
+    watch: bool,
+}
 
 impl Drop for CallGuard {
     fn drop(&mut self) {
-        *self.0.quiet_since.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Instant::now();
-        self.0.calls.fetch_sub(1, Ordering::SeqCst);
+        *locked(&self.activity.quiet_since) = Instant::now();
+        if self.watch {
+            self.activity.watches.fetch_sub(1, Ordering::SeqCst);
+        }
+        self.activity.calls.fetch_sub(1, Ordering::SeqCst);
     }
 }
 
@@ -77,37 +167,68 @@ pub struct ConnInfo {
     pub activity: Arc<Activity>,
 }
 
-/// The connections open per peer address (for `max_connections_per_peer`).
+/// The open connections of a listener: their number per peer (for `max_connections_per_peer`)
+/// and their activities (for [`Registry::evict`]).
 #[derive(Debug, Default)]
-struct Peers(Mutex<HashMap<IpAddr, usize>>);
+struct Registry(Mutex<Conns>);
 
-impl Peers {
-    /// Takes a slot of `ip` when it has fewer than `max` connections.
-    fn take(self: &Arc<Self>, ip: IpAddr, max: usize) -> Option<PeerSlot> {
-        let mut m = self.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        let n = m.entry(ip).or_insert(0);
+#[derive(Debug, Default)]
+struct Conns {
+    per_peer: HashMap<PeerKey, usize>,
+    open: Vec<Weak<Activity>>,
+}
+
+impl Registry {
+    /// Takes a place for a connection of `activity`'s peer when it has fewer than `max`.
+    fn take(self: &Arc<Self>, activity: &Arc<Activity>, max: usize) -> Option<PeerSlot> {
+        let mut m = locked(&self.0);
+        let n = m.per_peer.entry(activity.peer).or_insert(0);
         if *n >= max {
             return None;
         }
         *n += 1;
-        Some(PeerSlot { peers: self.clone(), ip })
+        m.open.retain(|w| w.strong_count() > 0);
+        m.open.push(Arc::downgrade(activity));
+        Some(PeerSlot { registry: self.clone(), peer: activity.peer })
+    }
+
+    /// Closes one connection for a newcomer: among those with no call open but health watches
+    /// (and not cut already), one of the peer with the most connections, the oldest first.
+    /// Never `newcomer` itself. Whether there was one.
+    fn evict(&self, newcomer: &Arc<Activity>) -> bool {
+        let m = locked(&self.0);
+        let victim = m
+            .open
+            .iter()
+            .filter_map(Weak::upgrade)
+            .filter(|a| a.evictable() && !a.is_cut() && !Arc::ptr_eq(a, newcomer))
+            .max_by_key(|a| (m.per_peer.get(&a.peer).copied().unwrap_or(0), std::cmp::Reverse(a.opened)));
+        drop(m);
+        match victim {
+            Some(a) => {
+                tracing::debug!(peer = %a.peer, "connection closed for a newcomer: no call open but health watches");
+                a.cut();
+                true
+            }
+            None => false,
+        }
     }
 }
 
 /// A connection's place in its peer's count.
 #[derive(Debug)]
 struct PeerSlot {
-    peers: Arc<Peers>,
-    ip: IpAddr,
+    registry: Arc<Registry>,
+    peer: PeerKey,
 }
 
 impl Drop for PeerSlot {
     fn drop(&mut self) {
-        let mut m = self.peers.0.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        if let Some(n) = m.get_mut(&self.ip) {
+        let mut m = locked(&self.registry.0);
+        if let Some(n) = m.per_peer.get_mut(&self.peer) {
             *n -= 1;
             if *n == 0 {
-                m.remove(&self.ip);
+                m.per_peer.remove(&self.peer);
             }
         }
     }
@@ -144,8 +265,16 @@ impl Guarded {
         }
     }
 
-    /// A write's result, the connection ended (and logged once) when the stall watch cut it.
-    fn noted<T>(&mut self, r: Poll<io::Result<T>>) -> Poll<io::Result<T>> {
+    /// A write's result: the peer's taking noted, the connection ended (and logged once) when the
+    /// stall watch cut it.
+    fn noted(&mut self, r: Poll<io::Result<usize>>) -> Poll<io::Result<usize>> {
+        if matches!(r, Poll::Ready(Ok(n)) if n > 0) {
+            self.info.activity.took();
+        }
+        self.stalled(r)
+    }
+
+    fn stalled<T>(&mut self, r: Poll<io::Result<T>>) -> Poll<io::Result<T>> {
         if matches!(r, Poll::Ready(Err(_))) && self.inner.is_cut() && !self.ended {
             tracing::info!(peer = ?self.info.tcp.remote_addr(), stall_timeout_s = self.limits.stall_timeout.as_secs_f64(), "connection closed: the peer stopped reading");
             self.ended = true;
@@ -156,6 +285,9 @@ impl Guarded {
 
 impl AsyncRead for Guarded {
     fn poll_read(mut self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<io::Result<()>> {
+        if self.info.activity.poll_cut(cx).is_ready() {
+            return Poll::Ready(Err(cut_error()));
+        }
         if self.ended {
             return Poll::Ready(Ok(()));
         }
@@ -175,13 +307,16 @@ impl AsyncRead for Guarded {
 
 impl AsyncWrite for Guarded {
     fn poll_write(mut self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
+        if self.info.activity.is_cut() {
+            return Poll::Ready(Err(cut_error()));
+        }
         let r = Pin::new(&mut self.inner).poll_write(cx, buf);
         self.noted(r)
     }
 
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         let r = Pin::new(&mut self.inner).poll_flush(cx);
-        self.noted(r)
+        self.stalled(r)
     }
 
     fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
@@ -193,6 +328,9 @@ impl AsyncWrite for Guarded {
         cx: &mut Context<'_>,
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
+        if self.info.activity.is_cut() {
+            return Poll::Ready(Err(cut_error()));
+        }
         let r = Pin::new(&mut self.inner).poll_write_vectored(cx, bufs);
         self.noted(r)
     }
@@ -200,6 +338,11 @@ impl AsyncWrite for Guarded {
     fn is_write_vectored(&self) -> bool {
         self.inner.is_write_vectored()
     }
+}
+
+/// The error of a cut connection's reads and writes.
+fn cut_error() -> io::Error {
+    io::Error::new(io::ErrorKind::ConnectionAborted, "the connection was closed by the server (room for other clients)")
 }
 
 impl Connected for Guarded {
@@ -244,6 +387,9 @@ pub const ACCEPT_BACKOFF: Duration = Duration::from_millis(100);
 /// At most one log line per this interval for failed accepts; it counts the failures since the
 /// line before.
 pub const ACCEPT_LOG_EVERY: Duration = Duration::from_secs(10);
+
+/// How long a newcomer waits for the slot of the connection closed for it.
+const EVICTION_WAIT: Duration = Duration::from_secs(1);
 
 /// The failed accepts of one listener: what to do after each, and their rate-limited log.
 #[derive(Debug, Default)]
@@ -306,7 +452,7 @@ pub fn incoming(
 ) -> tokio_stream::wrappers::ReceiverStream<io::Result<Guarded>> {
     let (tx, rx) = mpsc::channel::<io::Result<Guarded>>(64);
     let slots = Arc::new(Semaphore::new(limits.max_connections.max(1)));
-    let peers = Arc::new(Peers::default());
+    let registry = Arc::new(Registry::default());
     tokio::spawn(async move {
         let mut accept_errors = AcceptErrors::default();
         loop {
@@ -327,27 +473,53 @@ pub fn incoming(
                     continue;
                 }
             };
-            let Ok(slot) = slots.clone().try_acquire_owned() else {
-                tracing::debug!(max_connections = limits.max_connections, "connection refused: max_connections");
-                drop(stream);
-                continue;
-            };
-            let Some(peer_slot) = peers.take(peer.ip(), limits.max_per_peer.max(1)) else {
+            let activity = Activity::new(PeerKey::of(peer.ip()));
+            let Some(peer_slot) = registry.take(&activity, limits.max_per_peer.max(1)) else {
                 tracing::debug!(%peer, max_connections_per_peer = limits.max_per_peer, "connection refused: max_connections_per_peer");
                 drop(stream);
                 continue;
+            };
+            // all slots taken: one connection with no call open makes room, or the newcomer goes
+            let slot = match slots.clone().try_acquire_owned() {
+                Ok(slot) => Some(slot),
+                Err(_) if registry.evict(&activity) => None,
+                Err(_) => {
+                    tracing::debug!(
+                        max_connections = limits.max_connections,
+                        "connection refused: max_connections, every connection has a call open"
+                    );
+                    drop(stream);
+                    continue;
+                }
             };
             let _ = stream.set_nodelay(true);
             if let Err(e) = set_keepalive(&stream, limits.first_bytes_timeout) {
                 tracing::debug!(error = %e, "TCP keepalive not set");
             }
             let tx = tx.clone();
+            let slots = slots.clone();
             tokio::spawn(async move {
-                // the first bytes within the deadline, or the connection is closed
+                // the slot of the connection closed for this one, once it has closed
+                let slot = match slot {
+                    Some(slot) => slot,
+                    None => match tokio::time::timeout(EVICTION_WAIT, slots.acquire_owned()).await {
+                        Ok(Ok(slot)) => slot,
+                        _ => {
+                            tracing::debug!("connection refused: max_connections, no slot freed in time");
+                            return;
+                        }
+                    },
+                };
+                // the first bytes within the deadline, or the connection is closed (also when a
+                // newcomer needs its slot first)
                 let mut probe = [0u8; 1];
-                match tokio::time::timeout(limits.first_bytes_timeout, stream.peek(&mut probe)).await {
-                    Ok(Ok(n)) if n > 0 => {
-                        let info = ConnInfo { tcp: stream.connect_info(), activity: Activity::new() };
+                let first = tokio::select! {
+                    r = tokio::time::timeout(limits.first_bytes_timeout, stream.peek(&mut probe)) => r.ok(),
+                    () = std::future::poll_fn(|cx| activity.poll_cut(cx)) => None,
+                };
+                match first {
+                    Some(Ok(n)) if n > 0 => {
+                        let info = ConnInfo { tcp: stream.connect_info(), activity };
                         let g = Guarded {
                             inner: StallWatch::new(stream, limits.stall_timeout),
                             info,

@@ -1,5 +1,7 @@
 //! The service's one error enum and its mapping to gRPC status codes (the only place where codes
-//! are chosen), with the resume cursor in the trailers of an interrupted stream.
+//! are chosen), each status with its typed reason in the `mpiflow-reason` trailer ([`Reason`]:
+//! what clients and the server's own layers decide by, never the message text), and the resume
+//! cursor in the trailers of an interrupted stream.
 
 use tonic::metadata::MetadataValue;
 use tonic::{Code, Status};
@@ -12,6 +14,93 @@ use crate::source::SourceError;
 pub const NEXT_INDEX_TRAILER: &str = "mpiflow-next-index";
 /// Trailer key of the `start_index` that resumes an interrupted stream.
 pub const RESUME_START_TRAILER: &str = "mpiflow-resume-start-index";
+/// Trailer key of a failure's [`Reason`].
+pub const REASON_TRAILER: &str = "mpiflow-reason";
+
+/// Why a call failed, as a word on the wire (the `mpiflow-reason` trailer): whether trying again
+/// (later, or on another replica) can help is decided by it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reason {
+    InvalidArgument,
+    UnknownDataset,
+    FingerprintMismatch,
+    DatasetUnusable,
+    /// `max_streams`, or a client's half of it.
+    TooManyStreams,
+    /// `max_random_access_calls`.
+    TooManyCalls,
+    /// A request's largest sample is over the message limit or the byte budget.
+    SampleTooLarge,
+    /// An upload's size, slot or buffer limit.
+    UploadLimit,
+    /// A request message over `max_request_bytes`.
+    RequestTooLarge,
+    /// A request message that is not valid protobuf.
+    MalformedRequest,
+    Draining,
+    /// A sample that cannot be made (the same on every replica).
+    SampleFailed,
+    Unimplemented,
+    Internal,
+}
+
+impl Reason {
+    pub const ALL: [Reason; 14] = [
+        Reason::InvalidArgument,
+        Reason::UnknownDataset,
+        Reason::FingerprintMismatch,
+        Reason::DatasetUnusable,
+        Reason::TooManyStreams,
+        Reason::TooManyCalls,
+        Reason::SampleTooLarge,
+        Reason::UploadLimit,
+        Reason::RequestTooLarge,
+        Reason::MalformedRequest,
+        Reason::Draining,
+        Reason::SampleFailed,
+        Reason::Unimplemented,
+        Reason::Internal,
+    ];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Reason::InvalidArgument => "invalid-argument",
+            Reason::UnknownDataset => "unknown-dataset",
+            Reason::FingerprintMismatch => "fingerprint-mismatch",
+            Reason::DatasetUnusable => "dataset-unusable",
+            Reason::TooManyStreams => "too-many-streams",
+            Reason::TooManyCalls => "too-many-calls",
+            Reason::SampleTooLarge => "sample-too-large",
+            Reason::UploadLimit => "upload-limit",
+            Reason::RequestTooLarge => "request-too-large",
+            Reason::MalformedRequest => "malformed-request",
+            Reason::Draining => "draining",
+            Reason::SampleFailed => "sample-failed",
+            Reason::Unimplemented => "unimplemented",
+            Reason::Internal => "internal",
+        }
+    }
+
+    /// Whether another try (later, or on another replica) may succeed: the server's momentary
+    /// limits and its drain, not what the request asks.
+    pub fn retryable(self) -> bool {
+        matches!(
+            self,
+            Reason::TooManyStreams | Reason::TooManyCalls | Reason::UploadLimit | Reason::Draining | Reason::Internal
+        )
+    }
+
+    /// The reason in a status's trailers (or headers, for a trailers-only reply).
+    pub fn of(status: &Status) -> Option<Reason> {
+        let v = status.metadata().get(REASON_TRAILER)?.to_str().ok()?;
+        Reason::ALL.into_iter().find(|r| r.as_str() == v)
+    }
+
+    /// Puts the reason into a status's trailers.
+    pub fn set(self, status: &mut Status) {
+        status.metadata_mut().insert(REASON_TRAILER, MetadataValue::from_static(self.as_str()));
+    }
+}
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
@@ -38,8 +127,9 @@ pub enum ServiceError {
     },
     #[error("too many streams: {limit} are open (max_streams)")]
     TooManyStreams { limit: usize },
-    #[error("{0}")]
-    LimitExceeded(String),
+    /// A limit of the server (RESOURCE_EXHAUSTED), with its reason.
+    #[error("{1}")]
+    LimitExceeded(Reason, String),
     #[error("the server is shutting down: reconnect to another replica")]
     Draining,
     /// A sample could not be made.
@@ -68,10 +158,28 @@ impl ServiceError {
             ServiceError::InvalidArgument { .. } => Code::InvalidArgument,
             ServiceError::UnknownDataset { .. } => Code::NotFound,
             ServiceError::FingerprintMismatch { .. } | ServiceError::Unusable { .. } => Code::FailedPrecondition,
-            ServiceError::TooManyStreams { .. } | ServiceError::LimitExceeded(_) => Code::ResourceExhausted,
+            ServiceError::TooManyStreams { .. } | ServiceError::LimitExceeded(..) => Code::ResourceExhausted,
             ServiceError::Draining => Code::Unavailable,
             ServiceError::Generation { .. } | ServiceError::Internal(_) | ServiceError::Config(_) => Code::Internal,
             ServiceError::Unimplemented(_) => Code::Unimplemented,
+        }
+    }
+}
+
+impl ServiceError {
+    /// The error's [`Reason`].
+    pub fn reason(&self) -> Reason {
+        match self {
+            ServiceError::InvalidArgument { .. } => Reason::InvalidArgument,
+            ServiceError::UnknownDataset { .. } => Reason::UnknownDataset,
+            ServiceError::FingerprintMismatch { .. } => Reason::FingerprintMismatch,
+            ServiceError::Unusable { .. } => Reason::DatasetUnusable,
+            ServiceError::TooManyStreams { .. } => Reason::TooManyStreams,
+            ServiceError::LimitExceeded(r, _) => *r,
+            ServiceError::Draining => Reason::Draining,
+            ServiceError::Generation { .. } => Reason::SampleFailed,
+            ServiceError::Unimplemented(_) => Reason::Unimplemented,
+            ServiceError::Internal(_) | ServiceError::Config(_) => Reason::Internal,
         }
     }
 }
@@ -94,39 +202,33 @@ pub fn cursor_of(status: &Status) -> Option<(u64, u64)> {
 impl From<SourceError> for ServiceError {
     fn from(e: SourceError) -> Self {
         match e {
-            SourceError::Limit(m) => ServiceError::LimitExceeded(m),
+            SourceError::Limit(m) => ServiceError::LimitExceeded(Reason::UploadLimit, m),
             SourceError::Upload { field, message } => ServiceError::InvalidArgument { field, message },
             other => ServiceError::invalid("chunks", other.to_string()),
         }
     }
 }
 
-/// The message tonic gives a request over the decoding limit (with OUT_OF_RANGE).
-const TOO_LARGE: &str = "decoded message length too large";
-
-/// A failure reading a client stream's next message: over the message limit is
-/// RESOURCE_EXHAUSTED (gRPC's code for a request too large), anything else is the `chunks`' fault.
+/// A failure reading a client stream's next message: over the message limit (tonic's
+/// OUT_OF_RANGE, the only status its decoder gives that code) is RESOURCE_EXHAUSTED (gRPC's code
+/// for a request too large), anything else is the `chunks`' fault.
 pub fn from_request_stream(status: Status) -> ServiceError {
-    if status.code() == Code::OutOfRange && status.message().contains(TOO_LARGE) {
-        ServiceError::LimitExceeded(format!("chunks: {}", status.message()))
+    if status.code() == Code::OutOfRange {
+        ServiceError::LimitExceeded(Reason::RequestTooLarge, format!("chunks: {}", status.message()))
     } else {
         ServiceError::invalid("chunks", status.message().to_string())
     }
 }
 
-/// What tonic says of a request message that is not valid protobuf (or ends early): the client's
-/// fault, INVALID_ARGUMENT by the error table, not the INTERNAL tonic gives it.
-const MALFORMED: [&str; 3] =
-    ["failed to decode Protobuf message", "Unexpected EOF decoding stream", "received message with compressed-flag"];
-
-/// The code of the error table for a status tonic made before any handler ran (a trailers-only
-/// reply): a request over the decoding limit is RESOURCE_EXHAUSTED (gRPC's code for a request
-/// too large; tonic says OUT_OF_RANGE), a malformed request message INVALID_ARGUMENT (tonic says
-/// INTERNAL, which the table keeps for a sample that could not be made). None = keep the code.
-pub fn transport_code(code: Code, message: &str) -> Option<Code> {
+/// The code and reason of the error table for a status tonic made itself, before any handler
+/// ran (a trailers-only reply without a reason): its decoder's OUT_OF_RANGE (a request over the
+/// decoding limit) is RESOURCE_EXHAUSTED, gRPC's code for a request too large; its INTERNAL (a
+/// request message that is not valid protobuf, or ends early) is INVALID_ARGUMENT, the client's
+/// fault (the table keeps INTERNAL for a sample that could not be made). None = keep the code.
+pub fn transport_code(code: Code) -> Option<(Code, Reason)> {
     match code {
-        Code::OutOfRange if message.contains(TOO_LARGE) => Some(Code::ResourceExhausted),
-        Code::Internal if MALFORMED.iter().any(|m| message.contains(m)) => Some(Code::InvalidArgument),
+        Code::OutOfRange => Some((Code::ResourceExhausted, Reason::RequestTooLarge)),
+        Code::Internal => Some((Code::InvalidArgument, Reason::MalformedRequest)),
         _ => None,
     }
 }
@@ -137,7 +239,9 @@ pub const MAX_STATUS_CHARS: usize = 2048;
 
 impl From<ServiceError> for Status {
     fn from(e: ServiceError) -> Self {
-        Status::new(e.code(), printable(&e.to_string(), MAX_STATUS_CHARS))
+        let mut status = Status::new(e.code(), printable(&e.to_string(), MAX_STATUS_CHARS));
+        e.reason().set(&mut status);
+        status
     }
 }
 
@@ -161,6 +265,20 @@ mod tests {
         for (e, code, message) in cases {
             let status: Status = ServiceError::from(e).into();
             assert_eq!((status.code(), status.message()), (code, message));
+            assert!(Reason::of(&status).is_some(), "{status:?}");
         }
+    }
+
+    /// Every reason is its own word on the wire and reads back from a status.
+    #[test]
+    fn reasons_round_trip_through_a_status() {
+        let words: std::collections::HashSet<&str> = Reason::ALL.iter().map(|r| r.as_str()).collect();
+        assert_eq!(words.len(), Reason::ALL.len());
+        for r in Reason::ALL {
+            let mut s = Status::internal("x");
+            r.set(&mut s);
+            assert_eq!(Reason::of(&s), Some(r));
+        }
+        assert_eq!(Reason::of(&Status::internal("sample 3: no reason trailer")), None);
     }
 }

@@ -56,6 +56,9 @@ pub struct Metrics {
     pub buffered_budget: Gauge,
     /// Finished samples dropped to bring a stream back to its share of the budget.
     pub samples_dropped: Counter,
+    /// Connections closed because they held made samples they did not take while another client
+    /// needed the room.
+    pub holders_cut: Counter,
     /// The in-flight bound.
     pub capacity: Gauge,
     /// in_flight / capacity (0 to 1): the autoscaling signal.
@@ -115,6 +118,7 @@ impl Metrics {
             buffered_bytes: Gauge::default(),
             buffered_budget: Gauge::default(),
             samples_dropped: Counter::default(),
+            holders_cut: Counter::default(),
             capacity: Gauge::default(),
             saturation: Gauge::default(),
             busy_seconds: Counter::default(),
@@ -158,6 +162,11 @@ impl Metrics {
             "samples_dropped",
             "Finished samples dropped to bring a stream back to its share of the budget (made again when read)",
             m.samples_dropped.clone(),
+        );
+        r.register(
+            "holders_cut",
+            "Connections closed for holding made samples they did not take while another client needed the room",
+            m.holders_cut.clone(),
         );
         r.register("in_flight_capacity", "Bound on samples being made at once", m.capacity.clone());
         r.register("saturation", "in_flight_jobs / in_flight_capacity (0 to 1), for autoscaling", m.saturation.clone());

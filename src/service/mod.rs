@@ -32,6 +32,7 @@ pub mod error;
 pub mod frames;
 pub mod layers;
 pub mod metrics;
+pub mod peer;
 pub mod pool;
 pub mod reply;
 pub mod security;

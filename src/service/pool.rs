@@ -1,8 +1,8 @@
 //! The worker pool: samples are made on worker threads (never on tokio threads) that take their
 //! jobs in the order they were started, each stream keeps a bounded queue (its prefetch depth),
-//! the total number of samples being made is bounded, and free slots go round-robin first to the
-//! clients (peers: a key of their address), then to each client's streams, so that one client's
-//! many calls take one client's turn.
+//! the total number of samples being made is bounded, and free slots go first to the client
+//! (peer: [`PeerKey`]) that has used the least, by its samples' bytes, then round-robin to that
+//! client's streams, so that one client's many calls take one client's turn.
 //!
 //! # How it works
 //!
@@ -19,9 +19,9 @@
 //! wakes the stream. The stream is polled by tonic only when the transport can take a message,
 //! so a client that stops reading stops its stream after at most `prefetch` samples: back-pressure
 //! reaches the workers and memory stays bounded. Every change (a job done, a batch taken, a stream
-//! opened or closed) re-runs the dispatch ([`Scheduler::pump`]), which walks the peers from the
-//! one after the peer served last, and within a peer its streams from the one after the stream
-//! served last: one job per turn.
+//! opened or closed, and every [`TICK`]) re-runs the dispatch ([`Scheduler::pump`]), which
+//! takes the peers by their use (below), and within a peer its streams from the one after the
+//! stream served last: one job per turn.
 //!
 //! A stream may also carry an explicit index list (GetSamples, [`Scheduler::open_indices`]):
 //! position `k` is then the list's `k`-th entry, in the list's order; everything else (prefetch
@@ -42,27 +42,37 @@
 //!
 //! # The byte budget
 //!
-//! Over all streams, the bytes of samples made but not yet sent are bounded by `budget`
-//! (`max_buffered_mb`): a stream *holds* the encoded size of its finished samples waiting in its
-//! queue, of the last message handed to the transport (until the transport asks for the next
-//! one, which it does once it has room for it), and, for each running job, the size of the
-//! stream's previous sample (its estimate; a stream whose sample size is not known yet runs one
-//! job at a time). A stream may start a job while what it holds plus the estimate stays within
-//! its fair share, `budget / peers with open streams / the peer's open streams`; a stream holding
-//! nothing may start one while its peer holds less than the peer's share. When
-//! a stream opens and the shares shrink, streams holding more than their new share drop their
-//! newest finished samples (made again, byte for byte, when the stream reads on) and make no
-//! more ahead until they send a message, so a stalled stream never keeps more than its share,
-//! does not refill and drop again as other streams come and go, and the fast streams keep
-//! their share. A batch is filled within the share as well: a stream at its share with nothing
-//! running sends the samples it has as a shorter batch (and never drops the next sample to send),
-//! so a batch larger than the share is sent in parts. Beyond its share, a job starts only while
-//! the whole budget has room for its estimate (a stream's message in the transport, made under a
-//! larger share before others opened, cannot be dropped; this keeps it inside the total). In all
-//! at most `budget` plus, per peer, one sample per in-flight slot (started by streams holding
-//! nothing while their peer was within its share) is held. A unary
-//! reply (GetSample) keeps its stream, and so its bytes, until the reply has left
-//! (`service::reply`).
+//! Over all streams, the bytes of samples made, being made, or made but not yet sent are bounded
+//! by `budget` (`max_buffered_mb`), however many clients and addresses there are: a stream
+//! *holds* the encoded size of its finished samples waiting in its queue, of the last message
+//! handed to the transport (until the transport asks for the next one, which it does once it
+//! has room for it), and, for each running job, a reservation ([`StreamShared::reserve`]): the
+//! job's bound from its request (`validate::admit_size`) until the stream's first sample is
+//! made, then that sample's size plus an eighth. No job starts unless its
+//! reservation fits what the budget has left. Within that, a stream may start a job while what it
+//! holds plus the reservation stays within its fair share, `budget / peers with open streams /
+//! the peer's open streams`; a stream holding nothing may start one while its peer holds less
+//! than the peer's share. When a stream opens and the shares shrink, streams holding more than
+//! their new share drop their newest finished samples (made again, byte for byte, when the
+//! stream reads on) and make no more ahead until they send a message, so a stalled stream never
+//! keeps more than its share, does not refill and drop again as other streams come and go, and
+//! the fast streams keep their share. A batch is filled within the share as well: a stream at
+//! its share with nothing running sends the samples it has as a shorter batch (and never drops
+//! the next sample to send), so a batch larger than the share is sent in parts.
+//!
+//! A message in the transport cannot be dropped. When a stream may not start for want of room
+//! while its peer holds less than its share, the dispatch reclaims it ([`Scheduler::reclaim`]):
+//! peers over their share drop finished samples, and a connection whose message has waited in
+//! the transport for [`UNREAD_GRACE`] while its client took none of its bytes is closed (the
+//! client that stopped reading, the unary replies never read, the window never granted). A
+//! client that reads, however slowly, is never closed for room. A unary reply (GetSample) keeps
+//! its stream, and so its bytes, until the reply has left (`service::reply`).
+//!
+//! # Fairness by cost
+//!
+//! Turns go to peers by the bytes of the samples they were given ([`Scheduler::next_eligible`]),
+//! a proxy of pixels x frames x fields: a peer asking for 8-frame clips with every field waits
+//! its turn as long as the bytes it asked for take, not one turn per call.
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
@@ -75,9 +85,11 @@ use prost::Message;
 use tokio_stream::Stream;
 use tonic::Status;
 
+use super::conn::Activity;
 use super::error::{with_cursor, ServiceError};
 use super::metrics::Metrics;
 use super::pb;
+use super::peer::PeerKey;
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -92,19 +104,40 @@ pub type Make = Arc<dyn Fn(u64) -> Result<pb::Sample, ServiceError> + Send + Syn
 /// call) once it is built or failed.
 pub type Prepare = Arc<dyn Fn(u64, Box<dyn FnOnce() + Send>) -> bool + Send + Sync>;
 
-/// The job of a stream: how a sample is made, and how its scene is prepared ahead.
+/// The job of a stream: how a sample is made, how its scene is prepared ahead, and the most
+/// bytes one of its samples can take.
 #[derive(Clone)]
 pub struct Produce {
     pub make: Make,
     pub prepare: Option<Prepare>,
+    /// The encoded size no sample of the job exceeds (`validate::admit_size`); 0 = not known.
+    /// A job is reserved this much in the budget until the stream's first sample says its size.
+    pub bound: u64,
 }
 
 impl Produce {
-    /// A job with nothing to prepare (every sample is made straight away on a worker).
+    /// A job with nothing to prepare (every sample is made straight away on a worker) and no
+    /// known bound.
     pub fn new(make: Make) -> Self {
-        Produce { make, prepare: None }
+        Produce { make, prepare: None, bound: 0 }
     }
 }
+
+/// Who opens a stream: the key of its client (the fairness and the shares go by it) and its
+/// connection (closed when it holds samples it does not take while another client needs the
+/// room).
+#[derive(Clone, Debug, Default)]
+pub struct Client {
+    pub peer: PeerKey,
+    pub conn: Option<Arc<Activity>>,
+}
+
+/// How long a stream's message may wait in the transport, its client taking none of the
+/// connection's bytes, before the connection may be closed for a client that needs the room.
+pub const UNREAD_GRACE: std::time::Duration = std::time::Duration::from_millis(500);
+
+/// How often the dispatch runs with nothing else happening (for [`UNREAD_GRACE`]).
+const TICK: std::time::Duration = std::time::Duration::from_millis(100);
 
 /// The shape of one stream.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -170,6 +203,8 @@ struct StreamState {
     estimate: u64,
     /// Bytes of the last message handed to the transport, held until the next poll.
     in_transport: u64,
+    /// When that message was handed over.
+    in_transport_since: Instant,
     /// Samples were dropped to bring the stream back to its share: it makes no more ahead until
     /// it sends a message (a stalled stream stays small instead of refilling and dropping again
     /// every time another stream comes and goes).
@@ -193,14 +228,19 @@ struct PeerGroup {
     held: AtomicU64,
     /// The peer's share of the budget (budget / peers with open streams).
     share: AtomicU64,
+    /// The cost of the jobs started for the peer, on the dispatch's virtual clock
+    /// ([`Scheduler::next_eligible`]).
+    used: AtomicU64,
 }
 
 /// One stream's shared state.
 pub struct StreamShared {
     pub id: u64,
     pub spec: StreamSpec,
-    /// The client's address as a key (0 = not known): the fairness and the shares go by peer.
-    peer: u64,
+    /// The client's key: the fairness and the shares go by peer.
+    peer: PeerKey,
+    /// The client's connection.
+    conn: Option<Arc<Activity>>,
     group: Arc<PeerGroup>,
     /// This stream's share of the budget: its peer's share / the peer's open streams.
     share: AtomicU64,
@@ -230,25 +270,47 @@ impl StreamShared {
         }
     }
 
+    /// What a job of the stream reserves in the budget while it runs: the job's bound until a
+    /// sample's size is known, then that size and an eighth (never over the bound).
+    fn reserve(&self, s: &StreamState) -> u64 {
+        // the small fields vary with the sample's objects and its record: an eighth covers them
+        let known = s.estimate.saturating_add(s.estimate / 8);
+        match (self.produce.bound, known) {
+            (0, k) => k,
+            (b, 0) => b,
+            (b, k) => k.min(b),
+        }
+    }
+
+    /// What a job of the stream costs the peer on the dispatch's virtual clock: its sample's
+    /// bytes (pixels x frames x fields), known or bounded.
+    fn cost(&self, s: &StreamState) -> u64 {
+        if s.estimate > 0 {
+            s.estimate
+        } else {
+            self.produce.bound.max(1)
+        }
+    }
+
     /// Whether the stream may start a job now, with `room` what the budget has left over all
     /// streams.
     fn eligible(&self, s: &StreamState, room: u64) -> bool {
         let share = self.share.load(Ordering::Acquire);
         // a stream holding nothing may start one job while its peer is within the peer's share
-        // (so a new client always gets going, and one client's many calls hold its share and at
-        // most one job more per worker slot)
+        // (so a new client gets going even when its share is smaller than one sample)
         let peer_room = self.group.share.load(Ordering::Acquire) > self.group.held.load(Ordering::Acquire);
         let holds_nothing = s.held == 0 && s.running == 0 && peer_room;
         // a batch is filled within the share too: a stream at its share sends the batch it has
-        // (cut short, see `SampleStream::poll_next`); and within what the budget has left, so
-        // that messages made under larger shares (still in the transport) keep the total bound
-        let within_share =
-            holds_nothing || (!s.trimmed && s.estimate > 0 && s.held + s.estimate <= share && s.estimate <= room);
+        // (cut short, see `SampleStream::poll_next`); and every job within what the budget has
+        // left, so that the total holds whatever the shares
+        let reserve = self.reserve(s);
+        let within_share = holds_nothing || (!s.trimmed && s.estimate > 0 && s.held + reserve <= share);
         !s.closed
             && !s.draining
             && s.dispatched < self.len
             && (s.dispatched - s.delivered) < self.spec.prefetch as u64
             && within_share
+            && reserve <= room
     }
 
     /// (dispatched, delivered, produced, queued) for tests and diagnostics.
@@ -260,10 +322,11 @@ impl StreamShared {
 
 struct Sched {
     streams: Vec<Arc<StreamShared>>,
-    /// The peer served last, and per peer the position of the stream served last.
-    rr_peer: u64,
-    rr_in_peer: std::collections::HashMap<u64, u64>,
-    groups: std::collections::HashMap<u64, Arc<PeerGroup>>,
+    /// The virtual clock of the dispatch: the cost a peer had used when it was served last.
+    vclock: u64,
+    /// Per peer, the position of the stream served last.
+    rr_in_peer: std::collections::HashMap<PeerKey, u64>,
+    groups: std::collections::HashMap<PeerKey, Arc<PeerGroup>>,
     in_flight: usize,
     max_in_flight_seen: usize,
     draining: bool,
@@ -405,7 +468,7 @@ impl Scheduler {
         metrics.workers.set(workers as i64);
         metrics.set_in_flight(0, capacity.max(1));
         metrics.set_buffered(0, budget.max(1));
-        Ok(Arc::new(Self {
+        let scheduler = Arc::new(Self {
             pool,
             workers,
             capacity: capacity.max(1),
@@ -415,7 +478,7 @@ impl Scheduler {
             dropped: AtomicU64::new(0),
             inner: Mutex::new(Sched {
                 streams: Vec::new(),
-                rr_peer: 0,
+                vclock: 0,
                 rr_in_peer: std::collections::HashMap::new(),
                 groups: std::collections::HashMap::new(),
                 in_flight: 0,
@@ -426,7 +489,21 @@ impl Scheduler {
                 waiting_scene: 0,
             }),
             metrics,
-        }))
+        });
+        // the dispatch also runs as time passes: an unread message becomes reclaimable after
+        // UNREAD_GRACE with nothing else happening
+        let weak = Arc::downgrade(&scheduler);
+        std::thread::Builder::new()
+            .name("mpiflow-dispatch-tick".into())
+            .spawn(move || loop {
+                std::thread::sleep(TICK);
+                match weak.upgrade() {
+                    Some(s) => s.pump(),
+                    None => return,
+                }
+            })
+            .map_err(|e| ServiceError::Internal(format!("the dispatch's timer thread: {e}")))?;
+        Ok(scheduler)
     }
 
     pub fn workers(&self) -> usize {
@@ -459,14 +536,14 @@ impl Scheduler {
 
     /// Opens a stream; its samples are made as the returned stream is polled.
     pub fn open(self: &Arc<Self>, spec: StreamSpec, produce: Produce) -> Result<SampleStream, ServiceError> {
-        self.open_with(0, spec, None, produce)
+        self.open_with(Client::default(), spec, None, produce)
     }
 
-    /// Opens a stream of the client `peer` (a key of its address; the workers' turns and the
-    /// budget's shares go first by peer, then by stream).
+    /// Opens a stream of `client` (the workers' turns and the budget's shares go first by peer,
+    /// then by stream).
     pub fn open_for(
         self: &Arc<Self>,
-        peer: u64,
+        peer: Client,
         spec: StreamSpec,
         produce: Produce,
     ) -> Result<SampleStream, ServiceError> {
@@ -477,7 +554,7 @@ impl Scheduler {
     /// the list's order, `batch_size` samples per batch and `prefetch` made ahead.
     pub fn open_indices(
         self: &Arc<Self>,
-        peer: u64,
+        peer: Client,
         indices: Vec<u64>,
         batch_size: usize,
         prefetch: usize,
@@ -498,7 +575,7 @@ impl Scheduler {
 
     fn open_with(
         self: &Arc<Self>,
-        peer: u64,
+        client: Client,
         spec: StreamSpec,
         indices: Option<Arc<[u64]>>,
         produce: Produce,
@@ -514,11 +591,18 @@ impl Scheduler {
             }
             let id = s.next_id;
             s.next_id += 1;
-            let group = s.groups.entry(peer).or_default().clone();
+            // a peer new to the dispatch starts at the virtual clock: no credit from before
+            let vclock = s.vclock;
+            let group = s
+                .groups
+                .entry(client.peer)
+                .or_insert_with(|| Arc::new(PeerGroup { used: AtomicU64::new(vclock), ..PeerGroup::default() }))
+                .clone();
             let shared = Arc::new(StreamShared {
                 id,
                 spec,
-                peer,
+                peer: client.peer,
+                conn: client.conn,
                 group,
                 share: AtomicU64::new(0),
                 len: indices.as_ref().map_or_else(|| spec.len(), |l| l.len() as u64),
@@ -529,6 +613,7 @@ impl Scheduler {
                     held: 0,
                     estimate: 0,
                     in_transport: 0,
+                    in_transport_since: Instant::now(),
                     trimmed: false,
                     delivered: 0,
                     running: 0,
@@ -567,7 +652,7 @@ impl Scheduler {
             let (k, reserved) = {
                 let mut g = lock(&st.state);
                 let k = g.dispatched;
-                let reserved = g.estimate;
+                let reserved = st.reserve(&g);
                 g.dispatched += 1;
                 g.running += 1;
                 g.held += reserved;
@@ -588,32 +673,86 @@ impl Scheduler {
             let me = self.clone();
             self.pool.spawn(move || me.run_job(st, k, reserved));
         }
+        if s.in_flight < self.capacity {
+            self.reclaim(&s);
+        }
     }
 
-    /// The next stream to start a job, round-robin first over the peers (in the order of their
-    /// keys, from the one after the peer served last), then over the peer's streams (in the order
-    /// they opened, from the one after the stream served last); None when no stream may.
+    /// The next stream to start a job: first the peer that has used the least on the virtual
+    /// clock (each job costs its sample's bytes, so a client asking for 8-frame clips gets an
+    /// eighth of the turns of one asking for pairs; a peer below the clock, idle for a while,
+    /// counts from the clock; ties by key), then within the peer round-robin over its streams
+    /// (in the order they opened, from the one after the stream served last); None when no
+    /// stream may.
     fn next_eligible(&self, s: &mut Sched) -> Option<Arc<StreamShared>> {
         let room = self.room();
-        let mut peers: Vec<u64> = s.groups.keys().copied().collect();
+        let vclock = s.vclock;
+        let mut peers: Vec<(u64, PeerKey)> =
+            s.groups.iter().map(|(k, g)| (g.used.load(Ordering::Acquire).max(vclock), *k)).collect();
         peers.sort_unstable();
-        let start = peers.iter().position(|&p| p > s.rr_peer).unwrap_or(0);
-        for off in 0..peers.len() {
-            let peer = peers[(start + off) % peers.len()];
+        for (used, peer) in peers {
             let last = s.rr_in_peer.get(&peer).copied().unwrap_or(0);
             let of_peer: Vec<&Arc<StreamShared>> = s.streams.iter().filter(|st| st.peer == peer).collect();
             let first = of_peer.iter().position(|st| st.id > last).unwrap_or(0);
             for j in 0..of_peer.len() {
                 let st = of_peer[(first + j) % of_peer.len()];
-                if st.eligible(&lock(&st.state), room) {
+                let g = lock(&st.state);
+                if st.eligible(&g, room) {
+                    let cost = st.cost(&g);
+                    drop(g);
                     let st = st.clone();
-                    s.rr_peer = peer;
+                    s.vclock = used;
+                    st.group.used.store(used.saturating_add(cost), Ordering::Release);
                     s.rr_in_peer.insert(peer, st.id);
                     return Some(st);
                 }
             }
         }
         None
+    }
+
+    /// Makes room for a stream that may not start for want of it while its peer holds less than
+    /// its share: the streams of peers over their share drop their finished samples down to
+    /// their share (made again when read), and a connection whose message has waited in the
+    /// transport for [`UNREAD_GRACE`], its client taking none of its bytes as long, is closed
+    /// (its calls end, their bytes are freed).
+    fn reclaim(&self, s: &Sched) {
+        if s.draining {
+            return;
+        }
+        let room = self.room();
+        let starving = s.streams.iter().any(|st| {
+            let g = lock(&st.state);
+            st.group.held.load(Ordering::Acquire) < st.group.share.load(Ordering::Acquire)
+                && !st.eligible(&g, room)
+                && st.eligible(&g, u64::MAX)
+        });
+        if !starving {
+            return;
+        }
+        for st in &s.streams {
+            if st.group.held.load(Ordering::Acquire) <= st.group.share.load(Ordering::Acquire) {
+                continue;
+            }
+            let mut g = lock(&st.state);
+            if g.held > st.share.load(Ordering::Acquire) {
+                self.trim(st, &mut g);
+            }
+            let unread = g.in_transport > 0 && g.in_transport_since.elapsed() >= UNREAD_GRACE;
+            drop(g);
+            if let Some(conn) = st.conn.as_ref().filter(|c| unread && !c.is_cut()) {
+                if conn.not_taken_for() >= UNREAD_GRACE {
+                    tracing::info!(
+                        peer = %st.peer,
+                        stream = st.id,
+                        grace_ms = UNREAD_GRACE.as_millis() as u64,
+                        "connection closed: it holds made samples it does not take, and another client needs the room"
+                    );
+                    self.metrics.holders_cut.inc();
+                    conn.cut();
+                }
+            }
+        }
     }
 
     /// Sets every peer's and stream's share of the budget: budget / peers with open streams,
@@ -883,6 +1022,7 @@ impl Stream for SampleStream {
             let depth = g.ready.len();
             // the samples move from the queue to the transport: still held until the next poll
             g.in_transport = moved;
+            g.in_transport_since = Instant::now();
             g.trimmed = false;
             drop(g);
             let (next_index, resume_start_index) = shared.cursor(delivered);
@@ -897,7 +1037,7 @@ impl Stream for SampleStream {
             let delivered = g.delivered;
             g.closed = true;
             drop(g);
-            return self.end_with(Status::unavailable(ServiceError::Draining.to_string()), delivered);
+            return self.end_with(ServiceError::Draining.into(), delivered);
         }
         g.waker = Some(cx.waker().clone());
         Poll::Pending

@@ -33,6 +33,9 @@ pub const PIECE_BYTES: usize = 256 << 10;
 /// The first piece of a reply (HTTP/2's default frame size).
 pub const FIRST_PIECE_BYTES: usize = 16 << 10;
 
+/// The health service's Watch call.
+const HEALTH_WATCH_PATH: &str = "/grpc.health.v1.Health/Watch";
+
 /// Something a handler attaches to its reply (in the response's extensions) that must live until
 /// the reply is sent or abandoned: a unary sample's place in the byte budget.
 #[derive(Clone)]
@@ -61,9 +64,9 @@ pub struct Reply<S> {
     inner: S,
 }
 
-/// The connection of a request: its [`ConnInfo`], on plaintext or under TLS.
-fn conn_info<B>(req: &Request<B>) -> Option<ConnInfo> {
-    let e = req.extensions();
+/// The connection of a request (from its extensions): its [`ConnInfo`], on plaintext or under
+/// TLS.
+pub fn conn_of(e: &http::Extensions) -> Option<ConnInfo> {
     e.get::<ConnInfo>()
         .cloned()
         .or_else(|| e.get::<tonic::transport::server::TlsConnectInfo<ConnInfo>>().map(|t| t.get_ref().clone()))
@@ -84,12 +87,14 @@ where
     }
 
     fn call(&mut self, mut req: Request<ReqBody>) -> Self::Future {
-        let info = conn_info(&req);
+        let info = conn_of(req.extensions());
         // tonic's `Request::remote_addr` reads the plain TCP info
         if let Some(i) = &info {
             req.extensions_mut().insert::<TcpConnectInfo>(i.tcp.clone());
         }
-        let call = info.map(|i| i.activity.begin());
+        // a health watch keeps its connection from the idle timeout, not from a newcomer
+        let watch = req.uri().path() == HEALTH_WATCH_PATH;
+        let call = info.map(|i| i.activity.begin(watch));
         let fut = self.inner.call(req);
         Box::pin(async move {
             let mut response = fut.await?;
@@ -106,38 +111,23 @@ where
     }
 }
 
-/// Rewrites the status of a trailers-only reply that tonic made itself (a request over the
-/// decoding limit, a malformed message) to the code of the error table.
+/// Rewrites the status of a trailers-only reply that tonic made itself (it carries no
+/// `mpiflow-reason`: a request over the decoding limit, a malformed message) to the code and
+/// reason of the error table, by its code alone.
 fn rewrite_status<B>(response: &mut Response<B>) {
+    use super::error::REASON_TRAILER;
     let h = response.headers();
+    if h.contains_key(REASON_TRAILER) {
+        return;
+    }
     let Some(code) = h.get("grpc-status").and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<i32>().ok()) else {
         return;
     };
-    let message = h.get("grpc-message").and_then(|v| v.to_str().ok()).map(percent_decoded).unwrap_or_default();
-    if let Some(new) = super::error::transport_code(tonic::Code::from_i32(code), &message) {
-        let v = HeaderValue::from(new as i32);
-        response.headers_mut().insert("grpc-status", v);
+    if let Some((new, reason)) = super::error::transport_code(tonic::Code::from_i32(code)) {
+        let headers = response.headers_mut();
+        headers.insert("grpc-status", HeaderValue::from(new as i32));
+        headers.insert(REASON_TRAILER, HeaderValue::from_static(reason.as_str()));
     }
-}
-
-/// A `grpc-message` header (percent-encoded) as text.
-fn percent_decoded(header: &str) -> String {
-    let mut plain = Vec::with_capacity(header.len());
-    let b = header.as_bytes();
-    let mut i = 0;
-    while i < b.len() {
-        let hex = |c: u8| char::from(c).to_digit(16);
-        if b[i] == b'%' && i + 3 <= b.len() {
-            if let (Some(hi), Some(lo)) = (hex(b[i + 1]), hex(b[i + 2])) {
-                plain.push((hi * 16 + lo) as u8);
-                i += 3;
-                continue;
-            }
-        }
-        plain.push(b[i]);
-        i += 1;
-    }
-    String::from_utf8_lossy(&plain).into_owned()
 }
 
 /// A reply body handed on in pieces growing from [`FIRST_PIECE_BYTES`] to [`PIECE_BYTES`]; it
@@ -194,17 +184,5 @@ impl<B: Body<Data = Bytes> + Unpin> Body for ReplyBody<B> {
             h.set_upper(u + extra);
         }
         h
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn percent_decoding_reads_escapes_and_keeps_the_rest() {
-        assert_eq!(percent_decoded("failed%20to%20decode"), "failed to decode");
-        assert_eq!(percent_decoded("100%"), "100%");
-        assert_eq!(percent_decoded("%zz%41"), "%zzA");
     }
 }

@@ -26,7 +26,8 @@ use super::error::ServiceError;
 use super::metrics::{serve_metrics, Metrics};
 use super::pb;
 use super::pb::mpi_flow_server::{MpiFlow, MpiFlowServer};
-use super::pool::{Produce, SampleStream, Scheduler, StreamSpec};
+use super::peer::PeerKey;
+use super::pool::{Client, Produce, SampleStream, Scheduler, StreamSpec};
 use super::reply::{ReplyHold, ReplyLayer};
 use super::security::{server_tls, RequireToken};
 use super::spec::{self, Spec};
@@ -46,9 +47,11 @@ pub struct State {
     serving: AtomicBool,
     draining: AtomicBool,
     active_streams: AtomicUsize,
+    /// StreamSamples calls open now per peer (at most half of `max_streams`).
+    streams_per_peer: std::sync::Mutex<std::collections::HashMap<PeerKey, usize>>,
     /// GetSample and GetSamples calls open now per peer (`max_random_access_calls`), replies not
     /// yet sent included.
-    random_access_calls: std::sync::Mutex<std::collections::HashMap<u64, usize>>,
+    random_access_calls: std::sync::Mutex<std::collections::HashMap<PeerKey, usize>>,
 }
 
 impl std::fmt::Debug for State {
@@ -125,7 +128,7 @@ impl State {
             metrics.observe_sample(&timings, p.timings.as_ref().map_or(0.0, |t| t.encode_ms));
             Ok(p)
         });
-        Produce { make, prepare }
+        Produce { make, prepare, bound: 0 }
     }
 
     /// The one path of a request's spec (all three calls): validated into a [`Spec`], resolved
@@ -143,20 +146,21 @@ impl State {
             });
         }
         validate::outputs_fit_motion(&spec.out, generator.config())?;
-        validate::admit_size(&spec.out, spec.frames(), &self.config, self.scheduler.budget())?;
+        let bound = validate::admit_size(&spec.out, spec.frames(), &self.config, self.scheduler.budget())?;
         let (dataset, fingerprint, seed) = (ds.name.clone(), generator.fingerprint(), spec.seed);
-        let produce = self.produce(ds, generator, seed, spec.out);
+        let mut produce = self.produce(ds, generator, seed, spec.out);
+        produce.bound = bound;
         Ok(Prepared { dataset, fingerprint, seed, produce })
     }
 
-    fn open_stream(self: &Arc<Self>, r: &pb::StreamRequest, peer: u64) -> Result<CountedStream, ServiceError> {
+    fn open_stream(self: &Arc<Self>, r: &pb::StreamRequest, client: Client) -> Result<CountedStream, ServiceError> {
         if self.draining.load(Ordering::SeqCst) {
             return Err(ServiceError::Draining);
         }
         let (rank, world, batch, prefetch) = validate::stream_shape(r, &self.config)?;
         let p = self.prepare(r.spec.as_ref())?;
         // the stream limit
-        let admitted = self.admit(CallKind::Stream, peer)?;
+        let admitted = self.admit(CallKind::Stream, client.peer)?;
         let spec = StreamSpec {
             start_index: r.start_index,
             rank: u64::from(rank),
@@ -166,9 +170,11 @@ impl State {
             prefetch: prefetch as usize,
             max_message_bytes: self.config.max_message_bytes() as usize,
         };
-        let inner = self.scheduler.open_for(peer, spec, p.produce)?;
+        let peer = client.peer;
+        let inner = self.scheduler.open_for(client, spec, p.produce)?;
         self.metrics.active_streams.inc();
         tracing::info!(
+            %peer,
             stream = inner.id(),
             dataset = %p.dataset,
             fingerprint = format!("{:016x}", p.fingerprint),
@@ -184,27 +190,44 @@ impl State {
         Ok(CountedStream { inner, _admitted: admitted })
     }
 
-    /// Counts a new call against its limit: `max_streams` for StreamSamples over all clients,
-    /// `max_random_access_calls` for the GetSample and GetSamples calls of one peer (undone when
-    /// the returned slot is dropped, with the call's reply).
-    fn admit(self: &Arc<Self>, kind: CallKind, peer: u64) -> Result<Admitted, ServiceError> {
+    /// Counts a new call against its limit: `max_streams` for StreamSamples over all clients
+    /// and half of it per peer (so one client, one connection included, cannot keep every other
+    /// out), `max_random_access_calls` for the GetSample and GetSamples calls of one peer (undone
+    /// when the returned slot is dropped, with the call's reply).
+    fn admit(self: &Arc<Self>, kind: CallKind, peer: PeerKey) -> Result<Admitted, ServiceError> {
         match kind {
             CallKind::Stream => {
                 let limit = self.config.max_streams;
+                let per_peer = streams_per_peer(limit);
+                let mut of_peer = self.streams_per_peer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+                let n = of_peer.entry(peer).or_insert(0);
+                if *n >= per_peer {
+                    return Err(ServiceError::LimitExceeded(
+                        super::error::Reason::TooManyStreams,
+                        format!(
+                            "too many streams from this client: {per_peer} are open, half of max_streams ({limit}); \
+                         retry when one has ended"
+                        ),
+                    ));
+                }
                 if self.active_streams.fetch_add(1, Ordering::SeqCst) >= limit {
                     self.active_streams.fetch_sub(1, Ordering::SeqCst);
                     return Err(ServiceError::TooManyStreams { limit });
                 }
+                *n += 1;
             }
             CallKind::RandomAccess => {
                 let limit = self.config.max_random_access_calls;
                 let mut calls = self.random_access_calls.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
                 let n = calls.entry(peer).or_insert(0);
                 if *n >= limit {
-                    return Err(ServiceError::LimitExceeded(format!(
-                        "too many GetSample/GetSamples calls: {limit} of this client are open \
+                    return Err(ServiceError::LimitExceeded(
+                        super::error::Reason::TooManyCalls,
+                        format!(
+                            "too many GetSample/GetSamples calls: {limit} of this client are open \
                          (max_random_access_calls); retry when one has been answered"
-                    )));
+                        ),
+                    ));
                 }
                 *n += 1;
             }
@@ -213,10 +236,17 @@ impl State {
     }
 
     /// Gives a call's slot back.
-    fn release(&self, kind: CallKind, peer: u64) {
+    fn release(&self, kind: CallKind, peer: PeerKey) {
         match kind {
             CallKind::Stream => {
                 self.active_streams.fetch_sub(1, Ordering::SeqCst);
+                let mut of_peer = self.streams_per_peer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+                if let Some(n) = of_peer.get_mut(&peer) {
+                    *n -= 1;
+                    if *n == 0 {
+                        of_peer.remove(&peer);
+                    }
+                }
             }
             CallKind::RandomAccess => {
                 let mut calls = self.random_access_calls.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
@@ -232,13 +262,13 @@ impl State {
 
     /// The samples of an explicit index list, in its order (GetSamples): a stream of the pool
     /// with the list as its positions, counted against `max_streams`, one sample per message.
-    fn open_samples(self: &Arc<Self>, r: &pb::SamplesRequest, peer: u64) -> Result<CountedStream, ServiceError> {
+    fn open_samples(self: &Arc<Self>, r: &pb::SamplesRequest, client: Client) -> Result<CountedStream, ServiceError> {
         if self.draining.load(Ordering::SeqCst) {
             return Err(ServiceError::Draining);
         }
         let indices = validate::indices(&r.indices)?;
         let p = self.prepare(r.spec.as_ref())?;
-        let admitted = self.admit(CallKind::RandomAccess, peer)?;
+        let admitted = self.admit(CallKind::RandomAccess, client.peer)?;
         // as many made ahead as keep every worker busy (within max_prefetch)
         let prefetch = (self.config.default_prefetch as usize)
             .max(self.scheduler.workers())
@@ -246,7 +276,7 @@ impl State {
             .min(indices.len());
         let n = indices.len();
         let max_bytes = self.config.max_message_bytes() as usize;
-        let inner = self.scheduler.open_indices(peer, indices, 1, prefetch, max_bytes, p.produce)?;
+        let inner = self.scheduler.open_indices(client, indices, 1, prefetch, max_bytes, p.produce)?;
         self.metrics.active_streams.inc();
         tracing::debug!(
             stream = inner.id(),
@@ -266,7 +296,7 @@ impl State {
     pub async fn one_sample(
         self: &Arc<Self>,
         r: &pb::SampleRequest,
-        peer: u64,
+        client: Client,
     ) -> Result<(pb::Sample, SampleStream), Status> {
         if r.index == super::pool::END_INDEX {
             return Err(ServiceError::invalid("index", "2^64 - 1 is the end of the index space, not a sample").into());
@@ -281,10 +311,17 @@ impl State {
             prefetch: 1,
             max_message_bytes: self.config.max_message_bytes() as usize,
         };
-        let mut stream = self.scheduler.open_for(peer, spec, p.produce)?;
+        let mut stream = self.scheduler.open_for(client, spec, p.produce)?;
         match stream.next().await {
             Some(Ok(mut b)) if !b.samples.is_empty() => Ok((b.samples.swap_remove(0), stream)),
-            Some(Err(status)) => Err(Status::new(status.code(), status.message().to_string())),
+            // the status without the stream's cursor, with its reason
+            Some(Err(status)) => {
+                let mut s = Status::new(status.code(), status.message().to_string());
+                if let Some(r) = super::error::Reason::of(&status) {
+                    r.set(&mut s);
+                }
+                Err(s)
+            }
             _ => Err(ServiceError::Internal("no sample came back".into()).into()),
         }
     }
@@ -411,7 +448,7 @@ enum CallKind {
 struct Admitted {
     state: Arc<State>,
     kind: CallKind,
-    peer: u64,
+    peer: PeerKey,
 }
 
 impl Drop for Admitted {
@@ -420,16 +457,17 @@ impl Drop for Admitted {
     }
 }
 
-/// The key of a call's client for the fairness between clients (its IP address; 0 = unknown).
-fn peer_key<T>(request: &Request<T>) -> u64 {
-    match request.remote_addr().map(|a| a.ip()) {
-        Some(std::net::IpAddr::V4(a)) => u64::from(u32::from(a)) + 1,
-        Some(std::net::IpAddr::V6(a)) => {
-            let b = u128::from(a);
-            ((b >> 64) as u64 ^ b as u64) | (1 << 63)
-        }
-        None => 0,
+/// A call's client: its key for the fairness and the per-client limits, and its connection.
+fn client_of<T>(request: &Request<T>) -> Client {
+    Client {
+        peer: PeerKey::of_addr(request.remote_addr()),
+        conn: super::reply::conn_of(request.extensions()).map(|c| c.activity),
     }
+}
+
+/// The StreamSamples calls one client may hold: half of `max_streams` (at least 1).
+pub fn streams_per_peer(max_streams: usize) -> usize {
+    (max_streams / 2).max(1)
 }
 
 /// A stream counted against its limit while it lives.
@@ -489,9 +527,9 @@ impl MpiFlow for Service {
         if self.state.draining.load(Ordering::SeqCst) {
             return Err(refused::<()>(&self.state, Err(ServiceError::Draining)).unwrap_err());
         }
-        let peer = peer_key(&request);
-        let admitted = refused(&self.state, self.state.admit(CallKind::RandomAccess, peer))?;
-        let r = self.state.one_sample(request.get_ref(), peer).await;
+        let client = client_of(&request);
+        let admitted = refused(&self.state, self.state.admit(CallKind::RandomAccess, client.peer))?;
+        let r = self.state.one_sample(request.get_ref(), client).await;
         let (sample, stream) = r.inspect_err(|s| self.state.metrics.count_refused(s.code()))?;
         let mut response = Response::new(sample);
         // the sample's bytes and the call's slot are held until the reply has been sent
@@ -574,12 +612,12 @@ where
         match req.uri().path() {
             STREAM_SAMPLES_PATH => {
                 Box::pin(reply(req, max_request, max_message, move |r: Request<pb::StreamRequest>| {
-                    refused(&state, state.open_stream(r.get_ref(), peer_key(&r)))
+                    refused(&state, state.open_stream(r.get_ref(), client_of(&r)))
                 }))
             }
             GET_SAMPLES_PATH => {
                 Box::pin(reply(req, max_request, max_message, move |r: Request<pb::SamplesRequest>| {
-                    refused(&state, state.open_samples(r.get_ref(), peer_key(&r))).map(samples_of)
+                    refused(&state, state.open_samples(r.get_ref(), client_of(&r))).map(samples_of)
                 }))
             }
             _ => Box::pin(self.inner.call(req)),
@@ -702,6 +740,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         serving: AtomicBool::new(false),
         draining: AtomicBool::new(false),
         active_streams: AtomicUsize::new(0),
+        streams_per_peer: std::sync::Mutex::new(std::collections::HashMap::new()),
         random_access_calls: std::sync::Mutex::new(std::collections::HashMap::new()),
     });
     state.set_health(ServingStatus::NotServing).await;
@@ -813,7 +852,7 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
 fn spawn_warmup(warm: Arc<State>) -> JoinHandle<()> {
     tokio::spawn(async move {
         let t = Instant::now();
-        let r = warm.one_sample(&pb::SampleRequest::default(), 0).await;
+        let r = warm.one_sample(&pb::SampleRequest::default(), Client::default()).await;
         match r {
             Ok((s, _stream)) => tracing::info!(
                 ms = t.elapsed().as_secs_f64() * 1e3,

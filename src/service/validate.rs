@@ -281,8 +281,8 @@ pub fn sample_pixels_bound(out: &OutputSpec, config: &ServiceConfig) -> u64 {
 /// Admission by size, before any work: the largest sample of the request (its pixel bound times
 /// the bytes per pixel of its fields and frames, [`super::config::sample_bytes_bound`]) must fit
 /// the message limit and the byte budget of made-but-unsent samples; else RESOURCE_EXHAUSTED
-/// naming the fields that make it large.
-pub fn admit_size(out: &OutputSpec, frames: usize, config: &ServiceConfig, budget: u64) -> Result<(), ServiceError> {
+/// naming the fields that make it large. The bound, when admitted.
+pub fn admit_size(out: &OutputSpec, frames: usize, config: &ServiceConfig, budget: u64) -> Result<u64, ServiceError> {
     use super::config::sample_bytes_bound;
     let pixels = sample_pixels_bound(out, config);
     let mut per_field = super::encode::bytes_per_pixel(&out.fields, frames, out.flow_f16);
@@ -297,13 +297,15 @@ pub fn admit_size(out: &OutputSpec, frames: usize, config: &ServiceConfig, budge
         }
     };
     if bound <= limit {
-        return Ok(());
+        return Ok(bound);
     }
     per_field.sort_by_key(|(_, b)| std::cmp::Reverse(*b));
     let mb = |b: u64| b as f64 / 1e6;
     let largest: Vec<String> =
         per_field.iter().take(4).map(|(name, b)| format!("{name} {:.1} MB", mb(b.saturating_mul(pixels)))).collect();
-    Err(ServiceError::LimitExceeded(format!(
+    Err(ServiceError::LimitExceeded(
+        super::error::Reason::SampleTooLarge,
+        format!(
         "sample too large: up to {pixels} pixels x {frames} frames with {} fields is up to {:.1} MB, over {what} of \
          {:.1} MB (largest: {}); ask for fewer fields or frames, f16 flow, a smaller crop, or a server with a smaller size",
         per_field.len(),

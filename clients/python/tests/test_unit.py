@@ -405,10 +405,11 @@ def test_motions_is_a_field_name_of_every_entry_point():
 
 
 class _Err(grpc.RpcError):
-    """A gRPC error value as a call raises it (code and details)."""
+    """A gRPC error value as a call raises it (code, details and trailing metadata)."""
 
-    def __init__(self, code, details):
+    def __init__(self, code, details, reason=None):
         self._code, self._details = code, details
+        self._trailers = (("mpiflow-reason", reason),) if reason else ()
 
     def code(self):
         return self._code
@@ -416,12 +417,23 @@ class _Err(grpc.RpcError):
     def details(self):
         return self._details
 
+    def trailing_metadata(self):
+        return self._trailers
 
-def test_a_sample_too_large_is_not_retried_but_a_busy_server_is():
+
+def test_retries_are_decided_by_the_servers_reason_not_the_text():
     from mpiflow.errors import is_retryable
 
-    too_large = _Err(grpc.StatusCode.RESOURCE_EXHAUSTED, "sample too large: up to 307200 pixels x 8 frames")
-    busy = _Err(grpc.StatusCode.RESOURCE_EXHAUSTED, "too many GetSample/GetSamples calls: 32 are open")
+    code = grpc.StatusCode
+    # the same words, another reason: the reason decides
+    too_large = _Err(code.RESOURCE_EXHAUSTED, "too many GetSample/GetSamples calls", "sample-too-large")
+    busy = _Err(code.RESOURCE_EXHAUSTED, "sample too large", "too-many-calls")
     assert not is_retryable(too_large)
     assert is_retryable(busy)
-    assert not is_retryable(_Err(grpc.StatusCode.INVALID_ARGUMENT, "indices: [1] = 2^64 - 1"))
+    assert not is_retryable(_Err(code.INVALID_ARGUMENT, "indices: [1] = 2^64 - 1", "invalid-argument"))
+    assert not is_retryable(_Err(code.INTERNAL, "sample 3: failed", "sample-failed"))
+    assert is_retryable(_Err(code.UNAVAILABLE, "the server is shutting down", "draining"))
+    # no reason: the transport (a reset stream) or the client's own receive limit
+    assert is_retryable(_Err(code.INTERNAL, "Received RST_STREAM"))
+    assert is_retryable(_Err(code.UNAVAILABLE, "failed to connect"))
+    assert not is_retryable(_Err(code.RESOURCE_EXHAUSTED, "Received message larger than max"))
