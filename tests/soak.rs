@@ -30,6 +30,11 @@ fn a_short_soak_loses_and_repeats_no_index_and_sees_no_unexpected_error() {
         unread: 1,
         idle: 2,
         batch_stall: 1,
+        watch: 2,
+        window_streams: 3,
+        unread_calls: 8,
+        hostile_frames: 2,
+        attacker_addresses: 4,
         report_every: Duration::from_secs(5),
         server_args: vec!["--config".into(), config.display().to_string()],
     };
@@ -45,6 +50,9 @@ fn a_short_soak_loses_and_repeats_no_index_and_sees_no_unexpected_error() {
     assert!(report.stalled_streams >= 3 && report.slow_samples > 0, "{text}");
     assert!(report.cancelled_streams > 0 && report.uploads > 0, "{text}");
     assert!(report.unary_samples > 0 && report.unread_calls > 0 && report.idle_closed > 0, "{text}");
+    assert!(report.watches > 0 && report.window_streams > 0, "{text}");
+    // the byte budget held, whatever the hostile clients' addresses
+    assert!(report.budget_bytes > 0.0 && report.max_buffered_bytes <= report.budget_bytes, "{text}");
     // a newcomer was never turned away
     assert_eq!(report.newcomers_refused, 0, "{text}");
     // the server's memory was read over time

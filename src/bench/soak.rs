@@ -17,14 +17,18 @@
 //! - **uploading**: uploads two small photos with depth to its own dataset, checks that both are
 //!   accepted and pulls two samples of it; once a second.
 //!
-//! - **unary**: from 127.0.0.2, GetSample calls one after another, read whole (a flood when
-//!   there are many).
-//! - **unread**: from another loopback address (127.0.0.2), a raw HTTP/2 connection with a
-//!   one-byte window that keeps 8 GetSample calls of every field open and never reads them;
-//!   reconnects when the server closes it.
-//! - **idle**: from 127.0.0.2, a raw HTTP/2 connection that answers pings and opens no call;
-//!   reconnects when the server closes it.
-//! - **batch-stall**: like stalled, with batch 64, from 127.0.0.2.
+//! The hostile clients ([`super::hostile`]), each from an attacker address (127.0.0.2 and up,
+//! round-robin over `attacker_addresses`), asking for `hostile_frames`-frame samples:
+//! - **unary**: GetSample calls one after another, read whole (a flood when there are many).
+//! - **unread**: a raw HTTP/2 connection with a one-byte window that keeps `unread_calls`
+//!   GetSample calls of every field open and never reads them; reconnects when the server closes
+//!   it.
+//! - **idle**: a raw HTTP/2 connection that answers pings and opens no call; reconnects when the
+//!   server closes it.
+//! - **batch-stall**: like stalled, with batch 64.
+//! - **watch**: a raw HTTP/2 connection holding a health Watch open.
+//! - **window**: one raw connection granting no HTTP/2 window with `window_streams` StreamSamples
+//!   calls of every field open.
 //!
 //! Every reading also times a newcomer: a new connection from 127.0.0.1 and a GetInfo call.
 //!
@@ -40,10 +44,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use prost::Message;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::time::timeout_at;
 
+use super::hostile;
 use crate::service::client::{connect, Client};
 use crate::service::pb;
 
@@ -74,6 +78,16 @@ pub struct SoakConfig {
     pub unread: usize,
     pub idle: usize,
     pub batch_stall: usize,
+    /// Raw connections each holding a health Watch open.
+    pub watch: usize,
+    /// StreamSamples calls on one connection that grants no HTTP/2 window.
+    pub window_streams: usize,
+    /// GetSample calls each unread client keeps open.
+    pub unread_calls: usize,
+    /// Frames of the samples the unary, unread, batch-stall and window clients ask for (2 = pairs).
+    pub hostile_frames: u32,
+    /// Loopback addresses the hostile clients spread over (127.0.0.2 and up, round-robin).
+    pub attacker_addresses: usize,
     /// How often the server's memory is read and printed.
     pub report_every: Duration,
     /// More `mpiflow serve` flags (e.g. `--max-buffered-mb 512`).
@@ -124,6 +138,12 @@ pub struct SoakReport {
     pub unary_samples: u64,
     pub unread_calls: u64,
     pub idle_closed: u64,
+    /// Health watches opened; window-withholding streams opened.
+    pub watches: u64,
+    pub window_streams: u64,
+    /// The most `mpiflow_buffered_bytes` read during the mix, and the budget.
+    pub max_buffered_bytes: f64,
+    pub budget_bytes: f64,
     /// The fast clients' longest wait for a message during the mix, ms.
     pub fast_max_gap_ms: f64,
     /// The longest a newcomer waited for its first answer (connect + GetInfo), ms; and how many
@@ -167,14 +187,22 @@ impl SoakReport {
             ),
             format!(
                 "other clients: {} stalled streams, {} slow samples, {} cancelled streams, {} uploads, {} unary samples, \
-                 {} unread calls, {} idle connections closed by the server",
+                 {} unread calls, {} health watches, {} window-withholding streams, {} idle or watching connections \
+                 closed by the server",
                 self.stalled_streams,
                 self.slow_samples,
                 self.cancelled_streams,
                 self.uploads,
                 self.unary_samples,
                 self.unread_calls,
+                self.watches,
+                self.window_streams,
                 self.idle_closed
+            ),
+            format!(
+                "buffered: at most {:.1} MB of a {:.1} MB budget",
+                self.max_buffered_bytes / 1e6,
+                self.budget_bytes / 1e6
             ),
             format!(
                 "fast clients' longest wait for a message: {:.0} ms; newcomers: longest wait {:.0} ms, {} turned away",
@@ -312,7 +340,7 @@ pub async fn scrape(addr: &str) -> Option<String> {
 }
 
 /// Every field there is (`pb::Field` values but `FIELD_UNSPECIFIED`).
-fn all_fields() -> Vec<i32> {
+pub(super) fn all_fields() -> Vec<i32> {
     // every field of a pair of the default law (the disparity needs a stereo law)
     let of_a_pair = |f: pb::Field| f != pb::Field::Unspecified && f != pb::Field::Disparity;
     (1..64).filter(|&v| pb::Field::try_from(v).is_ok_and(of_a_pair)).collect()
@@ -320,7 +348,7 @@ fn all_fields() -> Vec<i32> {
 
 /// What the clients share: counters and the error table.
 #[derive(Default)]
-struct Shared {
+pub(super) struct Shared {
     fast_samples: AtomicU64,
     lost: AtomicU64,
     repeated: AtomicU64,
@@ -328,9 +356,11 @@ struct Shared {
     stalled_streams: AtomicU64,
     cancelled_streams: AtomicU64,
     uploads: AtomicU64,
-    unary_samples: AtomicU64,
-    unread_calls: AtomicU64,
-    idle_closed: AtomicU64,
+    pub(super) unary_samples: AtomicU64,
+    pub(super) unread_calls: AtomicU64,
+    pub(super) idle_closed: AtomicU64,
+    pub(super) watches: AtomicU64,
+    pub(super) window_streams: AtomicU64,
     /// The fast clients' longest wait for a message, µs.
     fast_max_gap_us: AtomicU64,
     errors: Mutex<(BTreeMap<String, u64>, u64, Vec<String>)>,
@@ -338,7 +368,7 @@ struct Shared {
 
 impl Shared {
     /// Counts an error of a client kind; RESOURCE_EXHAUSTED is expected unless `strict`.
-    fn error(&self, kind: &str, code: &str, message: &str, expected: bool) {
+    pub(super) fn error(&self, kind: &str, code: &str, message: &str, expected: bool) {
         let mut e = self.errors.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         *e.0.entry(format!("{kind}: {code}")).or_insert(0) += 1;
         if !expected {
@@ -433,16 +463,17 @@ async fn connected(kind: &str, addr: &str, until: tokio::time::Instant, sh: &Sha
 
 /// Opens a stream with prefetch 64, every field and `batch` samples per message, reads one
 /// batch, stops reading for `hold`.
+#[allow(clippy::too_many_arguments)] // the client's shape: its stream, its pause, its address
 async fn stalled_client(
     addr: String,
     seed: u64,
     batch: u32,
+    frames: u32,
     hold: Duration,
+    from: Option<std::net::IpAddr>,
     until: tokio::time::Instant,
     sh: Arc<Shared>,
 ) {
-    // the batch-stalled client is a hostile one, from its own address
-    let from = (batch > 1).then_some(std::net::IpAddr::from(ATTACKER));
     let options = crate::service::client::ClientOptions { local_address: from, ..Default::default() };
     let mut client = match timeout_at(until, crate::service::client::connect_with(&addr, &options)).await {
         Ok(Ok(c)) => c,
@@ -454,7 +485,7 @@ async fn stalled_client(
         let req = pb::StreamRequest {
             prefetch: 64,
             batch_size: batch,
-            ..pb::SampleSpec { seed: seed + round, fields: all_fields(), ..Default::default() }.stream()
+            ..pb::SampleSpec { seed: seed + round, fields: all_fields(), frames, ..Default::default() }.stream()
         };
         round += 1;
         match timeout_at(until, client.stream_samples(req)).await {
@@ -475,116 +506,6 @@ async fn stalled_client(
                 sh.status("stalled", &status, false);
                 tokio::time::sleep(Duration::from_millis(200)).await;
             }
-            Err(_) => return,
-        }
-    }
-}
-
-/// GetSample calls one after another from [`ATTACKER`], each read whole.
-async fn unary_client(addr: String, seed: u64, until: tokio::time::Instant, sh: Arc<Shared>) {
-    let options = crate::service::client::ClientOptions { local_address: Some(ATTACKER.into()), ..Default::default() };
-    let mut client = match timeout_at(until, crate::service::client::connect_with(&addr, &options)).await {
-        Ok(Ok(c)) => c,
-        Ok(Err(e)) => return sh.error("unary", "connect", &e.to_string(), false),
-        Err(_) => return,
-    };
-    let mut index = 0u64;
-    while tokio::time::Instant::now() < until {
-        index += 1;
-        match timeout_at(until, client.get_sample(pb::SampleSpec { seed, ..Default::default() }.sample(index))).await {
-            Ok(Ok(_)) => {
-                sh.unary_samples.fetch_add(1, Ordering::Relaxed);
-            }
-            Ok(Err(status)) => {
-                // refused (its peer's call bound), or its connection refused (its peer's
-                // connection bound): the flood's own doing, expected; a pause before the next try
-                sh.error("unary", &format!("{:?}", status.code()), status.message(), true);
-                tokio::time::sleep(Duration::from_millis(200)).await;
-            }
-            Err(_) => return,
-        }
-    }
-}
-
-/// The loopback address the misbehaving raw clients connect from (a peer of its own, as a
-/// different machine would be).
-const ATTACKER: std::net::Ipv4Addr = std::net::Ipv4Addr::new(127, 0, 0, 2);
-
-/// A raw HTTP/2 connection from [`ATTACKER`] with a `window`-byte stream window.
-async fn raw_h2(
-    addr: &str,
-    window: u32,
-) -> Result<(h2::client::SendRequest<bytes::Bytes>, tokio::task::JoinHandle<Result<(), h2::Error>>), String> {
-    let to: std::net::SocketAddr = addr.parse().map_err(|e| format!("{addr}: {e}"))?;
-    let sock = tokio::net::TcpSocket::new_v4().map_err(|e| e.to_string())?;
-    sock.bind((ATTACKER, 0).into()).map_err(|e| e.to_string())?;
-    let tcp = sock.connect(to).await.map_err(|e| e.to_string())?;
-    let (send, conn) =
-        h2::client::Builder::new().initial_window_size(window).handshake(tcp).await.map_err(|e| e.to_string())?;
-    Ok((send, tokio::spawn(conn)))
-}
-
-/// Keeps `calls` GetSample calls of every field open on a raw connection with a one-byte window,
-/// never reading them; reconnects when the server closes the connection.
-async fn unread_client(addr: String, calls: usize, until: tokio::time::Instant, sh: Arc<Shared>) {
-    let body = pb::SampleSpec { fields: all_fields(), ..Default::default() }.sample(0).encode_to_vec();
-    let mut frame = vec![0u8];
-    frame.extend_from_slice(&(body.len() as u32).to_be_bytes());
-    frame.extend_from_slice(&body);
-    let frame = bytes::Bytes::from(frame);
-    while tokio::time::Instant::now() < until {
-        let (send, conn) = match timeout_at(until, raw_h2(&addr, 1)).await {
-            Ok(Ok(c)) => c,
-            Ok(Err(e)) => {
-                sh.error("unread", "connect", &e, true);
-                tokio::time::sleep(Duration::from_millis(200)).await;
-                continue;
-            }
-            Err(_) => return,
-        };
-        let mut held = Vec::new();
-        for _ in 0..calls {
-            let call = async {
-                let mut ready = send.clone().ready().await?;
-                let req = http::Request::post("http://localhost/mpiflow.v1.MpiFlow/GetSample")
-                    .header("content-type", "application/grpc")
-                    .header("te", "trailers")
-                    .body(())
-                    .expect("a valid request");
-                let (response, mut stream) = ready.send_request(req, false)?;
-                stream.send_data(frame.clone(), true)?;
-                response.await
-            };
-            match timeout_at(until, call).await {
-                Ok(Ok(r)) => {
-                    sh.unread_calls.fetch_add(1, Ordering::Relaxed);
-                    held.push(r);
-                }
-                Ok(Err(_)) | Err(_) => break,
-            }
-        }
-        // hold them unread until the server closes the connection (or the run ends)
-        let _ = timeout_at(until, conn).await;
-        drop(held);
-    }
-}
-
-/// A raw HTTP/2 connection that opens no call; counts the server's closes and reconnects.
-async fn idle_client(addr: String, until: tokio::time::Instant, sh: Arc<Shared>) {
-    while tokio::time::Instant::now() < until {
-        match timeout_at(until, raw_h2(&addr, 1 << 16)).await {
-            Ok(Ok((_send, conn))) => {
-                let opened = tokio::time::Instant::now();
-                if timeout_at(until, conn).await.is_ok() {
-                    // closed at once: refused by the peer's connection bound; later: idle
-                    if opened.elapsed() > Duration::from_millis(500) {
-                        sh.idle_closed.fetch_add(1, Ordering::Relaxed);
-                    }
-                    tokio::time::sleep(Duration::from_secs(1)).await;
-                }
-            }
-            // refused (the peer's connection bound): try again a second later
-            Ok(Err(_)) => tokio::time::sleep(Duration::from_secs(1)).await,
             Err(_) => return,
         }
     }
@@ -824,23 +745,41 @@ fn spawn_clients(
     for k in 0..cfg.stalled {
         tasks.push((
             "stalled",
-            tokio::spawn(stalled_client(addr.to_string(), 1000 * (k as u64 + 1), 1, hold, until, sh.clone())),
+            tokio::spawn(stalled_client(addr.to_string(), 1000 * (k as u64 + 1), 1, 0, hold, None, until, sh.clone())),
         ));
     }
-    for k in 0..cfg.batch_stall {
+    // the hostile clients, each from its attacker address
+    let (n, frames) = (cfg.attacker_addresses, cfg.hostile_frames);
+    let mut k = 0;
+    let mut from = || {
+        k += 1;
+        hostile::attacker(k - 1, n)
+    };
+    for j in 0..cfg.batch_stall {
+        let seed = 5000 * (j as u64 + 1);
+        let f = Some(from().into());
         tasks.push((
             "batch-stall",
-            tokio::spawn(stalled_client(addr.to_string(), 5000 * (k as u64 + 1), 64, hold, until, sh.clone())),
+            tokio::spawn(stalled_client(addr.to_string(), seed, 64, frames, hold, f, until, sh.clone())),
         ));
     }
-    for k in 0..cfg.unary {
-        tasks.push(("unary", tokio::spawn(unary_client(addr.to_string(), 300 + k as u64, until, sh.clone()))));
+    for j in 0..cfg.unary {
+        let client = hostile::unary_client(addr.to_string(), 300 + j as u64, frames, from(), until, sh.clone());
+        tasks.push(("unary", tokio::spawn(client)));
     }
     for _ in 0..cfg.unread {
-        tasks.push(("unread", tokio::spawn(unread_client(addr.to_string(), 8, until, sh.clone()))));
+        let client = hostile::unread_client(addr.to_string(), cfg.unread_calls, frames, from(), until, sh.clone());
+        tasks.push(("unread", tokio::spawn(client)));
     }
     for _ in 0..cfg.idle {
-        tasks.push(("idle", tokio::spawn(idle_client(addr.to_string(), until, sh.clone()))));
+        tasks.push(("idle", tokio::spawn(hostile::idle_client(addr.to_string(), from(), until, sh.clone()))));
+    }
+    for _ in 0..cfg.watch {
+        tasks.push(("watch", tokio::spawn(hostile::watch_client(addr.to_string(), from(), until, sh.clone()))));
+    }
+    if cfg.window_streams > 0 {
+        let client = hostile::window_client(addr.to_string(), cfg.window_streams, frames, from(), until, sh.clone());
+        tasks.push(("window", tokio::spawn(client)));
     }
     for k in 0..cfg.slow {
         tasks.push(("slow", tokio::spawn(slow_client(addr.to_string(), 100 + k as u64, until, sh.clone()))));
@@ -963,6 +902,15 @@ async fn mix(
     report.unary_samples = sh.unary_samples.load(Ordering::Relaxed);
     report.unread_calls = sh.unread_calls.load(Ordering::Relaxed);
     report.idle_closed = sh.idle_closed.load(Ordering::Relaxed);
+    report.watches = sh.watches.load(Ordering::Relaxed);
+    report.window_streams = sh.window_streams.load(Ordering::Relaxed);
+    if let Some(text) = match metrics {
+        Some(m) => scrape(m).await,
+        None => None,
+    } {
+        report.max_buffered_bytes = metric_value(&text, "mpiflow_buffered_peak_bytes").unwrap_or(0.0);
+        report.budget_bytes = metric_value(&text, "mpiflow_buffered_budget_bytes").unwrap_or(0.0);
+    }
     report.fast_max_gap_ms = sh.fast_max_gap_us.load(Ordering::Relaxed) as f64 / 1e3;
     // each stalled client opens a stream at least once; the others get something every round
     for (kind, clients, done) in [
@@ -974,6 +922,8 @@ async fn mix(
         ("unary", cfg.unary, report.unary_samples),
         ("unread", cfg.unread, report.unread_calls),
         ("idle", cfg.idle, 1),
+        ("watch", cfg.watch, report.watches),
+        ("window", usize::from(cfg.window_streams > 0), report.window_streams),
     ] {
         if clients > 0 && done == 0 {
             report.idle_kinds.push(kind);

@@ -39,15 +39,30 @@ pub struct SoakBench {
     /// Clients making GetSample calls one after another (a flood when many).
     #[arg(long, default_value_t = 0)]
     unary: usize,
-    /// Raw HTTP/2 clients from 127.0.0.2 keeping 8 GetSample calls open, never reading them.
+    /// Raw HTTP/2 clients keeping `--unread-calls` GetSample calls open, never reading them.
     #[arg(long, default_value_t = 0)]
     unread: usize,
-    /// Raw HTTP/2 connections from 127.0.0.2 that answer pings and open no call.
+    /// GetSample calls each unread client keeps open.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(1..=64))]
+    unread_calls: u64,
+    /// Raw HTTP/2 connections that answer pings and open no call.
     #[arg(long, default_value_t = 0)]
     idle: usize,
     /// Stalled clients with batch 64.
     #[arg(long, default_value_t = 0)]
     batch_stall: usize,
+    /// Raw HTTP/2 connections each holding a health Watch open.
+    #[arg(long, default_value_t = 0)]
+    watch: usize,
+    /// StreamSamples calls on one raw connection that grants no HTTP/2 window.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=1000))]
+    window_streams: u64,
+    /// Frames of the samples the hostile clients (unary, unread, batch-stall, window) ask for.
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(2..=8))]
+    hostile_frames: u32,
+    /// Loopback addresses the hostile clients spread over, round-robin: 127.0.0.2 and up.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=250))]
+    attacker_addresses: u64,
     /// Seconds between readings of the server's memory.
     #[arg(long, default_value_t = 10.0)]
     report_every_s: f64,
@@ -68,7 +83,16 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         (Some(m), _) => seconds("--minutes", m * 60.0, 7.0 * 24.0 * 3600.0)?,
         (None, s) => seconds("--seconds", s.unwrap_or(60.0), 7.0 * 24.0 * 3600.0)?,
     };
-    let all = b.fast + b.stalled + b.slow + b.cancelling + b.uploading + b.unary + b.unread + b.idle + b.batch_stall;
+    let all = b.fast
+        + b.stalled
+        + b.slow
+        + b.cancelling
+        + b.uploading
+        + b.unary
+        + b.unread
+        + b.idle
+        + b.batch_stall
+        + b.watch;
     if b.fast == 0 || all > 2000 {
         return Err(CliError("bench soak: at least 1 fast client and at most 2000 clients in all".into()));
     }
@@ -88,12 +112,18 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         unread: b.unread,
         idle: b.idle,
         batch_stall: b.batch_stall,
+        watch: b.watch,
+        window_streams: b.window_streams as usize,
+        unread_calls: b.unread_calls as usize,
+        hostile_frames: b.hostile_frames,
+        attacker_addresses: b.attacker_addresses as usize,
         report_every: seconds("--report-every-s", b.report_every_s, 3600.0)?,
         server_args: b.server_args,
     };
     println!(
         "soak: {:.0} s of {} fast, {} stalled, {} slow, {} cancelling, {} uploading, {} unary, {} unread, {} idle, {} \
-         batch-stall clients; server --size {} --workers {} {}",
+         batch-stall, {} watch clients, {} window-withholding streams; hostile clients from {} addresses asking for \
+         {}-frame samples; server --size {} --workers {} {}",
         duration.as_secs_f64(),
         cfg.fast,
         cfg.stalled,
@@ -104,6 +134,10 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         cfg.unread,
         cfg.idle,
         cfg.batch_stall,
+        cfg.watch,
+        cfg.window_streams,
+        cfg.attacker_addresses,
+        cfg.hostile_frames,
         cfg.size,
         cfg.workers,
         cfg.server_args.join(" ")

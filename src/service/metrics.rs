@@ -54,6 +54,8 @@ pub struct Metrics {
     /// Bytes of samples made but not yet sent, over all streams, and their budget.
     pub buffered_bytes: Gauge,
     pub buffered_budget: Gauge,
+    /// The most `buffered_bytes` has been since the server started.
+    pub buffered_peak: Gauge,
     /// Finished samples dropped to bring a stream back to its share of the budget.
     pub samples_dropped: Counter,
     /// Connections closed because they held made samples they did not take while another client
@@ -117,6 +119,7 @@ impl Metrics {
             in_flight: Gauge::default(),
             buffered_bytes: Gauge::default(),
             buffered_budget: Gauge::default(),
+            buffered_peak: Gauge::default(),
             samples_dropped: Counter::default(),
             holders_cut: Counter::default(),
             capacity: Gauge::default(),
@@ -154,10 +157,11 @@ impl Metrics {
         r.register("in_flight_jobs", "Samples being made now", m.in_flight.clone());
         r.register(
             "buffered_bytes",
-            "Bytes of samples made but not yet sent, over all streams (queues and transport)",
+            "Bytes of samples being made and made but not yet sent, over all streams (reservations, queues, transport)",
             m.buffered_bytes.clone(),
         );
         r.register("buffered_budget_bytes", "Budget of buffered_bytes (max_buffered_mb)", m.buffered_budget.clone());
+        r.register("buffered_peak_bytes", "The most buffered_bytes has been since the start", m.buffered_peak.clone());
         r.register(
             "samples_dropped",
             "Finished samples dropped to bring a stream back to its share of the budget (made again when read)",
@@ -300,7 +304,21 @@ impl Metrics {
 
     /// Sets the buffered-bytes gauges.
     pub fn set_buffered(&self, bytes: u64, budget: u64) {
-        self.buffered_bytes.set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        let bytes = i64::try_from(bytes).unwrap_or(i64::MAX);
+        self.buffered_bytes.set(bytes);
+        // the peak only grows (a reading that races another keeps the larger)
+        let mut peak = self.buffered_peak.get();
+        while bytes > peak {
+            match self.buffered_peak.inner().compare_exchange(
+                peak,
+                bytes,
+                std::sync::atomic::Ordering::AcqRel,
+                std::sync::atomic::Ordering::Acquire,
+            ) {
+                Ok(_) => break,
+                Err(now) => peak = now,
+            }
+        }
         self.buffered_budget.set(i64::try_from(budget).unwrap_or(i64::MAX));
     }
 

@@ -64,15 +64,21 @@
 //! while its peer holds less than its share, the dispatch reclaims it ([`Scheduler::reclaim`]):
 //! peers over their share drop finished samples, and a connection whose message has waited in
 //! the transport for [`UNREAD_GRACE`] while its client took none of its bytes is closed (the
-//! client that stopped reading, the unary replies never read, the window never granted). A
-//! client that reads, however slowly, is never closed for room. A unary reply (GetSample) keeps
+//! client that stopped reading, the unary replies never read, the window never granted), and no
+//! sample starts for that client for [`PENALTY_FIRST`] (doubled at each repeat, up to
+//! [`PENALTY_MAX`]): a client that never reads cannot keep the workers making samples for it by
+//! reconnecting. A client that reads, however slowly, is never closed for room. A unary reply (GetSample) keeps
 //! its stream, and so its bytes, until the reply has left (`service::reply`).
 //!
 //! # Fairness by cost
 //!
 //! Turns go to peers by the bytes of the samples they were given ([`Scheduler::next_eligible`]),
-//! a proxy of pixels x frames x fields: a peer asking for 8-frame clips with every field waits
-//! its turn as long as the bytes it asked for take, not one turn per call.
+//! a proxy of pixels x frames x fields: the job that would finish first on a virtual clock of
+//! bytes goes first (weighted fair queueing), so a peer asking for 8-frame clips with every
+//! field waits its turn as long as the bytes it asked for take, not one turn per call, and many
+//! newcomers asking for clips do not each go ahead of a client of pairs already waiting. A
+//! peer's use is kept for a while after its last call ends (a client of GetSample calls, one
+//! at a time, keeps its place).
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
@@ -322,7 +328,7 @@ impl StreamShared {
 
 struct Sched {
     streams: Vec<Arc<StreamShared>>,
-    /// The virtual clock of the dispatch: the cost a peer had used when it was served last.
+    /// The virtual clock of the dispatch: the finish tag of the job started last.
     vclock: u64,
     /// Per peer, the position of the stream served last.
     rr_in_peer: std::collections::HashMap<PeerKey, u64>,
@@ -335,6 +341,52 @@ struct Sched {
     ready_jobs: std::collections::VecDeque<(Arc<StreamShared>, u64, u64)>,
     /// Jobs waiting for their scene now.
     waiting_scene: usize,
+    /// Clients whose connection was closed for holding samples they did not take: no job starts
+    /// for them until their time is up ([`Penalty`]).
+    penalties: std::collections::HashMap<PeerKey, Penalty>,
+    /// What clients with no open call had used on the virtual clock, so that a client whose
+    /// calls come one at a time (GetSample) keeps its place instead of starting again at the
+    /// clock with each call (at most [`MAX_PENALTIES`] clients; the least used go first).
+    past_used: std::collections::HashMap<PeerKey, u64>,
+}
+
+/// A client's time out after its connection was closed for holding samples it did not take:
+/// [`PENALTY_FIRST`], doubled at each repeat up to [`PENALTY_MAX`], so that a client that never
+/// reads cannot have the workers make sample after sample for it by reconnecting.
+#[derive(Clone, Copy, Debug)]
+struct Penalty {
+    until: Instant,
+    strikes: u32,
+}
+
+/// The first time out of a client closed for not reading.
+pub const PENALTY_FIRST: std::time::Duration = std::time::Duration::from_secs(10);
+/// The longest time out.
+pub const PENALTY_MAX: std::time::Duration = std::time::Duration::from_secs(300);
+/// The most clients remembered in time out (older entries go first when it is full).
+const MAX_PENALTIES: usize = 4096;
+
+impl Sched {
+    /// Puts `peer` in time out (see [`Penalty`]).
+    fn penalise(&mut self, peer: PeerKey) {
+        let now = Instant::now();
+        if self.penalties.len() >= MAX_PENALTIES {
+            self.penalties.retain(|_, p| p.until > now);
+            if self.penalties.len() >= MAX_PENALTIES {
+                if let Some(first) = self.penalties.iter().min_by_key(|(_, p)| p.until).map(|(k, _)| *k) {
+                    self.penalties.remove(&first);
+                }
+            }
+        }
+        let strikes = self.penalties.get(&peer).map_or(0, |p| p.strikes).saturating_add(1);
+        let time = PENALTY_FIRST.saturating_mul(1 << (strikes - 1).min(10)).min(PENALTY_MAX);
+        self.penalties.insert(peer, Penalty { until: now + time, strikes });
+    }
+
+    /// Whether `peer` is in time out now.
+    fn in_time_out(&self, peer: PeerKey, now: Instant) -> bool {
+        self.penalties.get(&peer).is_some_and(|p| p.until > now)
+    }
 }
 
 type Job = Box<dyn FnOnce() + Send>;
@@ -487,6 +539,8 @@ impl Scheduler {
                 next_id: 1,
                 ready_jobs: std::collections::VecDeque::new(),
                 waiting_scene: 0,
+                penalties: std::collections::HashMap::new(),
+                past_used: std::collections::HashMap::new(),
             }),
             metrics,
         });
@@ -591,8 +645,9 @@ impl Scheduler {
             }
             let id = s.next_id;
             s.next_id += 1;
-            // a peer new to the dispatch starts at the virtual clock: no credit from before
-            let vclock = s.vclock;
+            // a peer new to the dispatch starts at the virtual clock (no credit from before), or
+            // where it was when its last call ended, if that is later
+            let vclock = s.vclock.max(s.past_used.remove(&client.peer).unwrap_or(0));
             let group = s
                 .groups
                 .entry(client.peer)
@@ -674,49 +729,59 @@ impl Scheduler {
             self.pool.spawn(move || me.run_job(st, k, reserved));
         }
         if s.in_flight < self.capacity {
-            self.reclaim(&s);
+            self.reclaim(&mut s);
         }
     }
 
-    /// The next stream to start a job: first the peer that has used the least on the virtual
-    /// clock (each job costs its sample's bytes, so a client asking for 8-frame clips gets an
-    /// eighth of the turns of one asking for pairs; a peer below the clock, idle for a while,
-    /// counts from the clock; ties by key), then within the peer round-robin over its streams
-    /// (in the order they opened, from the one after the stream served last); None when no
-    /// stream may.
+    /// The next stream to start a job: of each peer, its next eligible stream (round-robin over
+    /// its streams, in the order they opened, from the one after the stream served last); of
+    /// those, the one whose job would finish first on the virtual clock: the peer's use plus
+    /// the job's cost, its sample's bytes (ties by key; self-clocked fair queueing: the clock is
+    /// the finish of the job started last, a peer new to the dispatch starts there, and one idle
+    /// for a while keeps at most one budget of credit below it). So a client of 8-frame clips gets about an eighth of the
+    /// turns of a client of pairs, and a newcomer asking for an expensive sample does not go
+    /// ahead of a cheap one already waiting. None when no stream may.
     fn next_eligible(&self, s: &mut Sched) -> Option<Arc<StreamShared>> {
         let room = self.room();
-        let vclock = s.vclock;
-        let mut peers: Vec<(u64, PeerKey)> =
-            s.groups.iter().map(|(k, g)| (g.used.load(Ordering::Acquire).max(vclock), *k)).collect();
-        peers.sort_unstable();
-        for (used, peer) in peers {
-            let last = s.rr_in_peer.get(&peer).copied().unwrap_or(0);
-            let of_peer: Vec<&Arc<StreamShared>> = s.streams.iter().filter(|st| st.peer == peer).collect();
+        // a peer that has used less than this, idle for a while, counts from here: its credit
+        // is at most one budget's bytes
+        let floor = s.vclock.saturating_sub(self.budget);
+        let now = Instant::now();
+        let mut best: Option<(u64, PeerKey, Arc<StreamShared>)> = None;
+        for (peer, group) in &s.groups {
+            if s.in_time_out(*peer, now) {
+                continue;
+            }
+            let used = group.used.load(Ordering::Acquire).max(floor);
+            let last = s.rr_in_peer.get(peer).copied().unwrap_or(0);
+            let of_peer: Vec<&Arc<StreamShared>> = s.streams.iter().filter(|st| st.peer == *peer).collect();
             let first = of_peer.iter().position(|st| st.id > last).unwrap_or(0);
             for j in 0..of_peer.len() {
                 let st = of_peer[(first + j) % of_peer.len()];
                 let g = lock(&st.state);
                 if st.eligible(&g, room) {
                     let cost = st.cost(&g);
-                    drop(g);
-                    let st = st.clone();
-                    s.vclock = used;
-                    st.group.used.store(used.saturating_add(cost), Ordering::Release);
-                    s.rr_in_peer.insert(peer, st.id);
-                    return Some(st);
+                    let finish = used.saturating_add(cost);
+                    if best.as_ref().is_none_or(|b| (finish, *peer) < (b.0, b.1)) {
+                        best = Some((finish, *peer, (*st).clone()));
+                    }
+                    break;
                 }
             }
         }
-        None
+        let (finish, peer, st) = best?;
+        s.vclock = finish;
+        st.group.used.store(finish, Ordering::Release);
+        s.rr_in_peer.insert(peer, st.id);
+        Some(st)
     }
 
     /// Makes room for a stream that may not start for want of it while its peer holds less than
     /// its share: the streams of peers over their share drop their finished samples down to
     /// their share (made again when read), and a connection whose message has waited in the
     /// transport for [`UNREAD_GRACE`], its client taking none of its bytes as long, is closed
-    /// (its calls end, their bytes are freed).
-    fn reclaim(&self, s: &Sched) {
+    /// (its calls end, their bytes are freed) and its client put in time out ([`Penalty`]).
+    fn reclaim(&self, s: &mut Sched) {
         if s.draining {
             return;
         }
@@ -730,6 +795,7 @@ impl Scheduler {
         if !starving {
             return;
         }
+        let mut cut = Vec::new();
         for st in &s.streams {
             if st.group.held.load(Ordering::Acquire) <= st.group.share.load(Ordering::Acquire) {
                 continue;
@@ -750,8 +816,12 @@ impl Scheduler {
                     );
                     self.metrics.holders_cut.inc();
                     conn.cut();
+                    cut.push(st.peer);
                 }
             }
+        }
+        for peer in cut {
+            s.penalise(peer);
         }
     }
 
@@ -880,7 +950,19 @@ impl Scheduler {
             let mut s = lock(&self.inner);
             s.streams.retain(|x| !Arc::ptr_eq(x, st));
             if !s.streams.iter().any(|x| x.peer == st.peer) {
-                s.groups.remove(&st.peer);
+                if let Some(g) = s.groups.remove(&st.peer) {
+                    let used = g.used.load(Ordering::Acquire);
+                    if s.past_used.len() >= MAX_PENALTIES {
+                        let vclock = s.vclock;
+                        s.past_used.retain(|_, u| *u > vclock);
+                        if s.past_used.len() >= MAX_PENALTIES {
+                            if let Some(least) = s.past_used.iter().min_by_key(|(_, u)| **u).map(|(k, _)| *k) {
+                                s.past_used.remove(&least);
+                            }
+                        }
+                    }
+                    s.past_used.insert(st.peer, used);
+                }
                 s.rr_in_peer.remove(&st.peer);
             }
             self.reshare(&s);
