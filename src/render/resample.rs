@@ -634,6 +634,53 @@ mod tests {
         }
     }
 
+    /// A plane's coefficients (rows turned and filtered together, columns in strips, the gain
+    /// applied on the way in) are the bits of every row line alone and then every column line
+    /// alone, for any size (one pixel, one row or column, partial strips and row groups); with
+    /// some columns flagged, the strips that hold them.
+    #[test]
+    fn plane_coefficients_are_each_line_alone() {
+        for degree in [3, 5] {
+            let z = poles(degree);
+            for (w, h) in [(1usize, 1usize), (1, 6), (7, 1), (2, 2), (17, 9), (37, 23), (40, 33)] {
+                let rgba: Vec<f32> = (0..4 * w * h).map(|i| ((i * 7919 + 13) % 97) as f32 / 97.0 - 0.2).collect();
+                let mut want: Vec<f64> = rgba.chunks_exact(4).flat_map(|p| p[..3].iter().map(|&v| f64::from(v))).collect();
+                for y in 0..h {
+                    for k in 0..3 {
+                        let mut line: Vec<f64> = (0..w).map(|x| want[3 * (y * w + x) + k]).collect();
+                        prefilter_line(&mut line, z);
+                        for (x, v) in line.into_iter().enumerate() {
+                            want[3 * (y * w + x) + k] = v;
+                        }
+                    }
+                }
+                for x in 0..w {
+                    for k in 0..3 {
+                        let mut line: Vec<f64> = (0..h).map(|y| want[3 * (y * w + x) + k]).collect();
+                        prefilter_line(&mut line, z);
+                        for (y, v) in line.into_iter().enumerate() {
+                            want[3 * (y * w + x) + k] = v;
+                        }
+                    }
+                }
+                let some: Vec<bool> = (0..w).map(|x| x == w - 1 || x == 16).collect();
+                for columns in [vec![true; w], some] {
+                    let mut buf = Vec::new();
+                    let strips = plane_coefficients(&rgba, w, h, z, &columns, &mut buf);
+                    for y in 0..h {
+                        for x in (0..w).filter(|&x| columns[x - x % 16..(x - x % 16 + 16).min(w)].contains(&true)) {
+                            let at = strips.at(x, y);
+                            for k in 0..3 {
+                                let (got, want) = (buf[at + k], want[3 * (y * w + x) + k]);
+                                assert_eq!(got.to_bits(), want.to_bits(), "degree {degree}, {w} x {h}, ({x}, {y}) {k}");
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn prefilter_interpolates_at_the_samples() {
         for degree in [3, 5] {
