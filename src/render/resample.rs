@@ -644,7 +644,8 @@ mod tests {
             let z = poles(degree);
             for (w, h) in [(1usize, 1usize), (1, 6), (7, 1), (2, 2), (17, 9), (37, 23), (40, 33)] {
                 let rgba: Vec<f32> = (0..4 * w * h).map(|i| ((i * 7919 + 13) % 97) as f32 / 97.0 - 0.2).collect();
-                let mut want: Vec<f64> = rgba.chunks_exact(4).flat_map(|p| p[..3].iter().map(|&v| f64::from(v))).collect();
+                let mut want: Vec<f64> =
+                    rgba.chunks_exact(4).flat_map(|p| p[..3].iter().map(|&v| f64::from(v))).collect();
                 for y in 0..h {
                     for k in 0..3 {
                         let mut line: Vec<f64> = (0..w).map(|x| want[3 * (y * w + x) + k]).collect();
