@@ -11,6 +11,70 @@ use rayon::prelude::*;
 /// `u32::MAX` in the block table: the block is not stored.
 const EMPTY: u32 = u32::MAX;
 
+/// The shape of a [`Bricks`] store: planes of `width` x `height` pixels, `stride` values each,
+/// cut into [`Bricks::SIZE`]-pixel blocks stored with an apron of `lo` pixels before and `hi`
+/// after.
+#[derive(Clone, Copy, Debug)]
+pub struct BlockGrid {
+    pub width: usize,
+    pub height: usize,
+    pub stride: usize,
+    pub lo: usize,
+    pub hi: usize,
+}
+
+impl BlockGrid {
+    /// Blocks per row and per column.
+    pub fn blocks(&self) -> (usize, usize) {
+        (self.width.div_ceil(Bricks::SIZE), self.height.div_ceil(Bricks::SIZE))
+    }
+
+    /// Side of a stored block (its apron included).
+    pub fn side(&self) -> usize {
+        Bricks::SIZE + self.lo + self.hi
+    }
+
+    /// The values of the `kept` blocks (`bh x bw` flags, row-major) of one plane into `out`,
+    /// block after block: `read(x, y, values)` writes the values of pixels x, x + 1, ...
+    /// (`values.len() / stride` of them, inside the frame) of row y; `index` is the boundary rule
+    /// of [`Bricks::build`]. A block whose columns lie inside the frame reads each of its rows
+    /// at once.
+    pub fn copy_blocks(
+        &self,
+        kept: &[bool],
+        index: impl Fn(isize, usize) -> usize,
+        read: impl Fn(usize, usize, &mut [f32]),
+        out: &mut [f32],
+    ) {
+        let (w, h, s, lo) = (self.width, self.height, self.stride, self.lo as isize);
+        let (bw, side) = (self.blocks().0, self.side());
+        let row = side * s;
+        let mut cols = vec![0usize; side];
+        let mut blocks = out.chunks_exact_mut(side * row);
+        for (b, _) in kept.iter().enumerate().filter(|&(_, &k)| k) {
+            let (bx, by) = (b % bw, b / bw);
+            let block = blocks.next().expect("copy_blocks: room for every kept block");
+            let x0 = (bx * Bricks::SIZE) as isize - lo;
+            let inside = x0 >= 0 && x0 as usize + side <= w;
+            if !inside {
+                for (u, c) in cols.iter_mut().enumerate() {
+                    *c = index(x0 + u as isize, w);
+                }
+            }
+            for (v, dst) in block.chunks_exact_mut(row).enumerate() {
+                let sy = index((by * Bricks::SIZE + v) as isize - lo, h);
+                if inside {
+                    read(x0 as usize, sy, dst);
+                } else {
+                    for (d, &sx) in dst.chunks_exact_mut(s).zip(&cols) {
+                        read(sx, sy, d);
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Block-sparse planes of `stride` values per pixel; see the module documentation.
 #[derive(Clone, Debug)]
 pub struct Bricks {
@@ -42,7 +106,8 @@ impl Bricks {
     /// owned or borrowed);
     /// `keep(i)` which of its blocks to store (`bh x bw` flags, row-major; `None`: all);
     /// `index(c, n)` maps a column or row index `c` that may lie outside `0..n` to the one whose
-    /// value the store holds there (the readers' boundary rule, e.g. a mirror).
+    /// value the store holds there (the readers' boundary rule, e.g. a mirror; the identity
+    /// inside `0..n`).
     ///
     /// # Panics
     /// If a plane has the wrong length, a flag list the wrong count, or the store would hold
@@ -59,52 +124,68 @@ impl Bricks {
         keep: impl Fn(usize) -> Option<Vec<bool>> + Sync,
         index: impl Fn(isize, usize) -> usize + Sync,
     ) -> Self {
-        let (bw, bh) = (width.div_ceil(Self::SIZE), height.div_ceil(Self::SIZE));
-        let side = Self::SIZE + lo + hi;
+        let grid = BlockGrid { width, height, stride, lo, hi };
+        let fill = |_: &mut (), i: usize, kept: &[bool], out: &mut [f32]| {
+            let dense = plane(i);
+            let dense = dense.as_ref();
+            assert_eq!(dense.len(), width * height * stride, "Bricks: plane {i} has the wrong length");
+            let read = |x: usize, y: usize, values: &mut [f32]| {
+                let at = (y * width + x) * stride;
+                values.copy_from_slice(&dense[at..at + values.len()]);
+            };
+            grid.copy_blocks(kept, &index, read, out);
+        };
+        Self::build_with(grid, planes, keep, || (), fill)
+    }
+
+    /// [`Self::build`] with each plane's stored blocks written by `fill(scratch, i, kept, out)`:
+    /// `out` holds the kept blocks of plane `i` one after the other (row-major order of the
+    /// blocks, [`BlockGrid::copy_blocks`]'s layout), `scratch` is the worker's own (`init`), for
+    /// buffers reused from plane to plane. Planes are filled in parallel.
+    ///
+    /// # Panics
+    /// If a flag list has the wrong count or the store would hold more than `u32::MAX` blocks.
+    pub fn build_with<S>(
+        grid: BlockGrid,
+        planes: usize,
+        keep: impl Fn(usize) -> Option<Vec<bool>> + Sync,
+        init: impl Fn() -> S + Sync + Send,
+        fill: impl Fn(&mut S, usize, &[bool], &mut [f32]) + Sync + Send,
+    ) -> Self {
+        let BlockGrid { width, height, stride, lo, .. } = grid;
+        let (bw, bh) = grid.blocks();
+        let side = grid.side();
         let block_len = side * side * stride;
-        let per_plane: Vec<(Vec<bool>, Vec<f32>)> = (0..planes)
+        let kept: Vec<Vec<bool>> = (0..planes)
             .into_par_iter()
             .map(|i| {
-                let dense = plane(i);
-                let dense = dense.as_ref();
-                assert_eq!(dense.len(), width * height * stride, "Bricks: plane {i} has the wrong length");
                 let kept = keep(i).unwrap_or_else(|| vec![true; bw * bh]);
                 assert_eq!(kept.len(), bw * bh, "Bricks: plane {i}'s block flags");
-                let mut data = Vec::with_capacity(kept.iter().filter(|&&k| k).count() * block_len);
-                for by in 0..bh {
-                    for bx in 0..bw {
-                        if !kept[by * bw + bx] {
-                            continue;
-                        }
-                        for v in 0..side {
-                            let sy = index((by * Self::SIZE + v) as isize - lo as isize, height);
-                            for u in 0..side {
-                                let sx = index((bx * Self::SIZE + u) as isize - lo as isize, width);
-                                let at = (sy * width + sx) * stride;
-                                data.extend_from_slice(&dense[at..at + stride]);
-                            }
-                        }
-                    }
-                }
-                (kept, data)
+                kept
             })
             .collect();
-        let stored: usize = per_plane.iter().map(|(_, d)| d.len() / block_len.max(1)).sum();
+        let counts: Vec<usize> = kept.iter().map(|k| k.iter().filter(|&&k| k).count()).collect();
+        let stored: usize = counts.iter().sum();
         assert!(stored < EMPTY as usize, "Bricks: too many blocks");
         let mut table = Vec::with_capacity(planes * bw * bh);
-        let mut data = Vec::with_capacity(stored * block_len);
         let mut next = 0u32;
-        for (kept, d) in per_plane {
-            for k in kept {
-                table.push(if k {
-                    next += 1;
-                    next - 1
-                } else {
-                    EMPTY
-                });
-            }
-            data.extend_from_slice(&d);
+        for k in kept.iter().flatten() {
+            table.push(if *k {
+                next += 1;
+                next - 1
+            } else {
+                EMPTY
+            });
         }
+        let mut data: Vec<f32> = crate::buf::zeros(stored * block_len);
+        let mut parts: Vec<(usize, &mut [f32])> = Vec::with_capacity(planes);
+        let mut rest: &mut [f32] = &mut data;
+        for (i, &c) in counts.iter().enumerate() {
+            let (part, after) = rest.split_at_mut(c * block_len);
+            parts.push((i, part));
+            rest = after;
+        }
+        parts.into_par_iter().for_each_init(&init, |scratch, (i, out)| fill(scratch, i, &kept[i], out));
         Self { width, height, stride, lo, side, block_len, bw, bh, table, data }
     }
 

@@ -36,7 +36,7 @@ use rayon::prelude::*;
 use super::real::Real;
 use super::tap::floor_index;
 use super::types::Resample;
-use crate::mpi::bricks::Bricks;
+use crate::mpi::bricks::{BlockGrid, Bricks};
 use crate::mpi::Mpi;
 
 /// The weights of a separable kernel at fractional offset `t` in [0, 1) from the tap
@@ -342,26 +342,105 @@ fn poles(degree: u32) -> &'static [f64] {
 /// continuous image representation and interpolation", 1991). Computed in f64 per line.
 pub fn bspline_coefficients(mpi: &Mpi, degree: u32) -> Vec<f32> {
     let mpi = &*mpi.unpacked();
+    let (w, h) = (mpi.width, mpi.height);
     let z = poles(degree);
-    let planes: Vec<Vec<f32>> = (0..mpi.planes()).into_par_iter().map(|i| plane_coefficients(mpi, i, z)).collect();
+    let every = vec![true; w];
+    let planes: Vec<Vec<f32>> = (0..mpi.planes())
+        .into_par_iter()
+        .map_init(Vec::new, |buf, i| {
+            let strips = plane_coefficients(mpi.plane_rgba(i), w, h, z, &every, buf);
+            let mut out = vec![0.0f32; 3 * w * h];
+            for (y, row) in out.chunks_exact_mut(3 * w).enumerate() {
+                strips.read(buf, 0, y, row);
+            }
+            out
+        })
+        .collect();
     planes.concat()
 }
 
-/// [`bspline_coefficients`] of plane `i` (H x W x 3) for the prefilter `poles`: every row's three
-/// channel lines, then all the columns' lines at once (row after row: the column pass streams
-/// through memory instead of striding down each column).
-fn plane_coefficients(mpi: &Mpi, i: usize, z: &[f64]) -> Vec<f32> {
-    let (w, h) = (mpi.width, mpi.height);
-    let rgba = mpi.plane_rgba(i);
-    let mut buf = vec![0.0f64; w * h * 3];
-    for (d, s) in buf.chunks_exact_mut(3).zip(rgba.chunks_exact(4)) {
-        d.copy_from_slice(&[f64::from(s[0]), f64::from(s[1]), f64::from(s[2])]);
+/// Rows of a plane prefiltered at once ([`plane_coefficients`]): their lines side by side, so
+/// each step of the recursion runs over `3 ROWS_AT_ONCE` adjacent values.
+const ROWS_AT_ONCE: usize = 8;
+
+/// Where [`plane_coefficients`] keeps a plane's values (3 per pixel, f64): in strips of
+/// [`Bricks::SIZE`] columns, each strip's rows one after the other, so that a column pass runs
+/// down a strip through contiguous memory.
+#[derive(Clone, Copy)]
+struct Strips {
+    width: usize,
+    height: usize,
+}
+
+impl Strips {
+    const WIDTH: usize = Bricks::SIZE;
+
+    /// Strip `s`'s first value and its row length in values.
+    fn strip(&self, s: usize) -> (usize, usize) {
+        let x0 = s * Self::WIDTH;
+        (3 * x0 * self.height, 3 * Self::WIDTH.min(self.width - x0))
     }
-    for row in buf.chunks_exact_mut(3 * w) {
-        prefilter_lines(row, w, 3, z);
+
+    /// The first value of pixel (x, y).
+    fn at(&self, x: usize, y: usize) -> usize {
+        let (start, row) = self.strip(x / Self::WIDTH);
+        start + y * row + 3 * (x % Self::WIDTH)
     }
-    prefilter_lines(&mut buf, h, 3 * w, z);
-    buf.iter().map(|&v| v as f32).collect()
+
+    /// The values of pixels x, x + 1, ... of row y (`out.len() / 3` of them) as f32.
+    fn read(&self, buf: &[f64], x: usize, y: usize, out: &mut [f32]) {
+        for (k, o) in out.chunks_exact_mut(3).enumerate() {
+            let at = self.at(x + k, y);
+            for (o, &v) in o.iter_mut().zip(&buf[at..at + 3]) {
+                *o = v as f32;
+            }
+        }
+    }
+}
+
+/// [`bspline_coefficients`] of one plane (`rgba`, W x H x 4) into `buf` (resized to fit), laid
+/// out as the returned [`Strips`]: every row's three channel lines, then the column lines of the
+/// strips that hold a column flagged in `columns` (W flags); the other strips hold their row
+/// pass only. Rows go through the recursion [`ROWS_AT_ONCE`] at a time (turned so that their
+/// values at one column lie side by side), columns a strip at a time: every line gets the
+/// operations of a line alone ([`recurse_lines`]; the [`gain`] is applied as the values are
+/// copied in), so the same bits as one line after the other.
+fn plane_coefficients(rgba: &[f32], w: usize, h: usize, z: &[f64], columns: &[bool], buf: &mut Vec<f64>) -> Strips {
+    assert_eq!(rgba.len(), 4 * w * h, "plane_coefficients: a W x H x 4 plane");
+    assert_eq!(columns.len(), w, "plane_coefficients: a flag per column");
+    let strips = Strips { width: w, height: h };
+    buf.resize(3 * w * h, 0.0);
+    let (row_gain, column_gain) = (gain(z, w), gain(z, h));
+    let mut turned = vec![0.0f64; 3 * w * ROWS_AT_ONCE];
+    for (c, rows) in rgba.chunks(4 * w * ROWS_AT_ONCE).enumerate() {
+        let r = rows.len() / (4 * w);
+        let m = 3 * r;
+        // value x of channel k of row j at turned[x m + 3 j + k]
+        for (x, t) in turned.chunks_exact_mut(m).take(w).enumerate() {
+            for (j, t) in t.chunks_exact_mut(3).enumerate() {
+                let px = &rows[4 * (j * w + x)..4 * (j * w + x) + 3];
+                for (t, &v) in t.iter_mut().zip(px) {
+                    *t = f64::from(v) * row_gain;
+                }
+            }
+        }
+        recurse_lines(&mut turned[..w * m], w, m, m, z);
+        for (x, t) in turned.chunks_exact(m).take(w).enumerate() {
+            for (j, t) in t.chunks_exact(3).enumerate() {
+                let at = strips.at(x, c * ROWS_AT_ONCE + j);
+                for (o, &v) in buf[at..at + 3].iter_mut().zip(t) {
+                    *o = v * column_gain;
+                }
+            }
+        }
+    }
+    for (s, held) in columns.chunks(Strips::WIDTH).enumerate() {
+        if held.iter().any(|&c| c) {
+            let (start, row) = strips.strip(s);
+            recurse_lines(&mut buf[start..start + row * h], h, row, row, z);
+        }
+    }
+    strips
 }
 
 /// The kernel's taps per axis for a B-spline of `degree` (3 or 5).
@@ -378,57 +457,102 @@ fn bspline_taps(degree: u32) -> usize {
 /// that block. `sparse`: only the blocks the colour kernel can reach, those of anchor pixels
 /// whose bilinear density taps (the pixel and its right, lower and lower-right neighbours) hold
 /// any density > 0: the target render asks for a plane's colour only where its bilinear density
-/// is > 0 ([`prefilter`]'s blocks); otherwise every block.
+/// is > 0 ([`prefilter`]'s blocks); otherwise every block. A plane's column pass runs only over
+/// the columns its stored blocks hold.
 pub fn bspline_bricks(mpi: &Mpi, degree: u32, sparse: bool) -> Bricks {
     let mpi = &*mpi.unpacked();
     let (w, h) = (mpi.width, mpi.height);
     let z = poles(degree);
     let n = bspline_taps(degree);
     let lo = n / 2 - 1;
+    let grid = BlockGrid { width: w, height: h, stride: 3, lo, hi: n - 1 - lo };
     let keep = |i: usize| sparse.then(|| super::store::reachable_blocks(mpi, i));
-    Bricks::build(w, h, mpi.planes(), 3, lo, n - 1 - lo, |i| plane_coefficients(mpi, i, z), keep, mirror)
+    let fill = |buf: &mut Vec<f64>, i: usize, kept: &[bool], out: &mut [f32]| {
+        let columns = held_columns(&grid, kept);
+        let strips = plane_coefficients(mpi.plane_rgba(i), w, h, z, &columns, buf);
+        grid.copy_blocks(kept, mirror, |x, y, values| strips.read(buf, x, y, values), out);
+    };
+    Bricks::build_with(grid, mpi.planes(), keep, Vec::new, fill)
 }
 
-/// In-place B-spline prefilter (mirror boundaries) of `m` lines of `n` values at once, `c` holding value k of line j at
-/// `c[k m + j]` (so each step runs over `m` adjacent values): every line gets the operations
-/// of a line alone, in the same order, so the same bits.
-fn prefilter_lines(c: &mut [f64], n: usize, m: usize, poles: &[f64]) {
-    assert_eq!(c.len(), n * m, "prefilter_lines: n x m values");
+/// The columns (W flags) whose values the `kept` blocks of `grid` hold, their aprons included,
+/// under the mirror boundary.
+fn held_columns(grid: &BlockGrid, kept: &[bool]) -> Vec<bool> {
+    let (bw, side) = (grid.blocks().0, grid.side());
+    let mut columns = vec![false; grid.width];
+    for bx in 0..bw {
+        if kept.iter().skip(bx).step_by(bw).any(|&k| k) {
+            let x0 = (bx * Bricks::SIZE) as isize - grid.lo as isize;
+            for u in 0..side {
+                columns[mirror(x0 + u as isize, grid.width)] = true;
+            }
+        }
+    }
+    columns
+}
+
+/// In-place B-spline prefilter (mirror boundaries) of `m` lines of `n` values at once, laid out
+/// as in [`recurse_lines`]: the [`gain`], then the recursions.
+#[cfg(test)]
+fn prefilter_lines(c: &mut [f64], n: usize, m: usize, stride: usize, poles: &[f64]) {
+    let g = gain(poles, n);
+    for k in 0..n {
+        for v in &mut c[k * stride..k * stride + m] {
+            *v *= g;
+        }
+    }
+    recurse_lines(c, n, m, stride, poles);
+}
+
+/// The prefilter's gain for lines of `n` values: the product over the poles of
+/// `(1 - z) (1 - 1 / z)`; 1 for lines of fewer than two values, which the prefilter leaves as
+/// they are.
+fn gain(poles: &[f64], n: usize) -> f64 {
+    if n < 2 {
+        return 1.0;
+    }
+    poles.iter().map(|&z| (1.0 - z) * (1.0 - 1.0 / z)).product()
+}
+
+/// The recursions of the B-spline prefilter (mirror boundaries; each pole's causal and
+/// anti-causal pass) of `m` lines of `n` values at once, already multiplied by the [`gain`]:
+/// `c` holds value k of line j at `c[k stride + j]` (`stride >= m`; so each step runs over `m`
+/// adjacent values). Every line gets the operations of a line alone, in the same order, so the
+/// same bits.
+fn recurse_lines(c: &mut [f64], n: usize, m: usize, stride: usize, poles: &[f64]) {
+    assert!(stride >= m, "recurse_lines: lines side by side");
     if n < 2 || m == 0 {
         return;
     }
-    let lambda: f64 = poles.iter().map(|&z| (1.0 - z) * (1.0 - 1.0 / z)).product();
-    for v in c.iter_mut() {
-        *v *= lambda;
-    }
+    assert!(c.len() >= (n - 1) * stride + m, "recurse_lines: n x m values");
     let mut init = vec![0.0f64; m];
     for &z in poles {
-        causal_init(c, n, m, z, &mut init);
+        causal_init(c, n, m, stride, z, &mut init);
         c[..m].copy_from_slice(&init);
         for k in 1..n {
-            let (before, from_k) = c.split_at_mut(k * m);
-            for (v, &p) in from_k[..m].iter_mut().zip(&before[(k - 1) * m..]) {
+            let (before, from_k) = c.split_at_mut(k * stride);
+            for (v, &p) in from_k[..m].iter_mut().zip(&before[(k - 1) * stride..]) {
                 *v += z * p;
             }
         }
         let a = z / (z * z - 1.0);
-        let (before, last) = c.split_at_mut((n - 1) * m);
-        for (v, &p) in last.iter_mut().zip(&before[(n - 2) * m..]) {
+        let (before, last) = c.split_at_mut((n - 1) * stride);
+        for (v, &p) in last[..m].iter_mut().zip(&before[(n - 2) * stride..]) {
             *v = a * (*v + z * p);
         }
         for k in (0..n - 1).rev() {
-            let (upto, after) = c.split_at_mut((k + 1) * m);
-            for (v, &q) in upto[k * m..].iter_mut().zip(&after[..m]) {
+            let (upto, after) = c.split_at_mut((k + 1) * stride);
+            for (v, &q) in upto[k * stride..k * stride + m].iter_mut().zip(&after[..m]) {
                 *v = z * (q - *v);
             }
         }
     }
 }
 
-/// Per line j of [`prefilter_lines`]' layout, `sum_k c[k] z^k` over the mirrored signal into
+/// Per line j of [`recurse_lines`]' layout, `sum_k c[k] z^k` over the mirrored signal into
 /// `out[j]`: truncated where `|z|^k < 1e-12`, exact for short lines.
-fn causal_init(c: &[f64], n: usize, m: usize, z: f64, out: &mut [f64]) {
-    let at = |k: usize| &c[k * m..(k + 1) * m];
+fn causal_init(c: &[f64], n: usize, m: usize, stride: usize, z: f64, out: &mut [f64]) {
+    let at = |k: usize| &c[k * stride..k * stride + m];
     let horizon = ((1e-12f64).ln() / z.abs().ln()).ceil() as usize;
     if horizon < n {
         out.fill(0.0);
@@ -481,7 +605,7 @@ mod tests {
     /// The prefilter of one line alone.
     fn prefilter_line(c: &mut [f64], poles: &[f64]) {
         let n = c.len();
-        prefilter_lines(c, n, 1, poles);
+        prefilter_lines(c, n, 1, 1, poles);
     }
 
     /// Lines prefiltered together (as the column pass does) get each line's bits alone, for
@@ -493,7 +617,7 @@ mod tests {
                 for m in [1usize, 2, 3, 7] {
                     let all: Vec<f64> = (0..n * m).map(|i| ((i * 7919 + 17) % 101) as f64 / 101.0 - 0.3).collect();
                     let mut together = all.clone();
-                    prefilter_lines(&mut together, n, m, poles(degree));
+                    prefilter_lines(&mut together, n, m, m, poles(degree));
                     for j in 0..m {
                         let mut alone: Vec<f64> = (0..n).map(|k| all[k * m + j]).collect();
                         prefilter_line(&mut alone, poles(degree));
@@ -503,6 +627,54 @@ mod tests {
                                 alone[k].to_bits(),
                                 "degree {degree} n {n} m {m} line {j}"
                             );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// A plane's coefficients (rows turned and filtered together, columns in strips, the gain
+    /// applied on the way in) are the bits of every row line alone and then every column line
+    /// alone, for any size (one pixel, one row or column, partial strips and row groups); with
+    /// some columns flagged, the strips that hold them.
+    #[test]
+    fn plane_coefficients_are_each_line_alone() {
+        for degree in [3, 5] {
+            let z = poles(degree);
+            for (w, h) in [(1usize, 1usize), (1, 6), (7, 1), (2, 2), (17, 9), (37, 23), (40, 33)] {
+                let rgba: Vec<f32> = (0..4 * w * h).map(|i| ((i * 7919 + 13) % 97) as f32 / 97.0 - 0.2).collect();
+                let mut want: Vec<f64> =
+                    rgba.chunks_exact(4).flat_map(|p| p[..3].iter().map(|&v| f64::from(v))).collect();
+                for y in 0..h {
+                    for k in 0..3 {
+                        let mut line: Vec<f64> = (0..w).map(|x| want[3 * (y * w + x) + k]).collect();
+                        prefilter_line(&mut line, z);
+                        for (x, v) in line.into_iter().enumerate() {
+                            want[3 * (y * w + x) + k] = v;
+                        }
+                    }
+                }
+                for x in 0..w {
+                    for k in 0..3 {
+                        let mut line: Vec<f64> = (0..h).map(|y| want[3 * (y * w + x) + k]).collect();
+                        prefilter_line(&mut line, z);
+                        for (y, v) in line.into_iter().enumerate() {
+                            want[3 * (y * w + x) + k] = v;
+                        }
+                    }
+                }
+                let some: Vec<bool> = (0..w).map(|x| x == w - 1 || x == 16).collect();
+                for columns in [vec![true; w], some] {
+                    let mut buf = Vec::new();
+                    let strips = plane_coefficients(&rgba, w, h, z, &columns, &mut buf);
+                    for y in 0..h {
+                        for x in (0..w).filter(|&x| columns[x - x % 16..(x - x % 16 + 16).min(w)].contains(&true)) {
+                            let at = strips.at(x, y);
+                            for k in 0..3 {
+                                let (got, want) = (buf[at + k], want[3 * (y * w + x) + k]);
+                                assert_eq!(got.to_bits(), want.to_bits(), "degree {degree}, {w} x {h}, ({x}, {y}) {k}");
+                            }
                         }
                     }
                 }
