@@ -310,7 +310,10 @@ impl StreamShared {
         // (cut short, see `SampleStream::poll_next`); and every job within what the budget has
         // left, so that the total holds whatever the shares
         let reserve = self.reserve(s);
-        let within_share = holds_nothing || (!s.trimmed && s.estimate > 0 && s.held + reserve <= share);
+        // beyond its share a stream may go on while the budget has room: the shares decide who
+        // gets the room back when a client waits for it (`Scheduler::reclaim`), not who idles
+        let within_share =
+            holds_nothing || (!s.trimmed && s.estimate > 0 && (s.held + reserve <= share || reserve <= room));
         !s.closed
             && !s.draining
             && s.dispatched < self.len
