@@ -1,4 +1,4 @@
-//! The hostile clients of `mpiflow bench soak` ([`super::soak`]): each misbehaves as an
+//! The hostile clients of `mpiflow bench soak`: each misbehaves as an
 //! attacker would, from a loopback address of its own ([`attacker`]: 127.0.0.2 and up, so that
 //! many addresses can be tried on one machine), mostly below gRPC on raw HTTP/2 (the `h2` crate).
 
@@ -10,7 +10,7 @@ use std::time::Duration;
 use prost::Message;
 use tokio::time::timeout_at;
 
-use super::soak::{all_fields, Shared};
+use super::clients::{all_fields, Shared};
 use crate::service::pb;
 
 /// The most attacker addresses: 127.0.0.2 .. 127.0.0.251.

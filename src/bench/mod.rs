@@ -2,6 +2,7 @@
 //! run time (`accuracy`), and a server under a mix of clients for a while (`soak`).
 
 pub mod accuracy;
+pub mod clients;
 pub mod hostile;
 pub mod measure;
 pub mod quality;

@@ -40,13 +40,14 @@ use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::time::timeout_at;
 
+use super::clients::{all_fields, Shared};
 use super::hostile;
 use crate::service::client::{connect, Client};
 use crate::service::pb;
@@ -340,51 +341,6 @@ pub async fn scrape(addr: &str) -> Option<String> {
 }
 
 /// Every field there is (`pb::Field` values but `FIELD_UNSPECIFIED`).
-pub(super) fn all_fields() -> Vec<i32> {
-    // every field of a pair of the default law (the disparity needs a stereo law)
-    let of_a_pair = |f: pb::Field| f != pb::Field::Unspecified && f != pb::Field::Disparity;
-    (1..64).filter(|&v| pb::Field::try_from(v).is_ok_and(of_a_pair)).collect()
-}
-
-/// What the clients share: counters and the error table.
-#[derive(Default)]
-pub(super) struct Shared {
-    fast_samples: AtomicU64,
-    lost: AtomicU64,
-    repeated: AtomicU64,
-    slow_samples: AtomicU64,
-    stalled_streams: AtomicU64,
-    cancelled_streams: AtomicU64,
-    uploads: AtomicU64,
-    pub(super) unary_samples: AtomicU64,
-    pub(super) unread_calls: AtomicU64,
-    pub(super) idle_closed: AtomicU64,
-    pub(super) watches: AtomicU64,
-    pub(super) window_streams: AtomicU64,
-    /// The fast clients' longest wait for a message, µs.
-    fast_max_gap_us: AtomicU64,
-    errors: Mutex<(BTreeMap<String, u64>, u64, Vec<String>)>,
-}
-
-impl Shared {
-    /// Counts an error of a client kind; RESOURCE_EXHAUSTED is expected unless `strict`.
-    pub(super) fn error(&self, kind: &str, code: &str, message: &str, expected: bool) {
-        let mut e = self.errors.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        *e.0.entry(format!("{kind}: {code}")).or_insert(0) += 1;
-        if !expected {
-            e.1 += 1;
-            if e.2.len() < 5 {
-                e.2.push(format!("{kind}: {code}: {}", crate::failure::printable(message, 200)));
-            }
-        }
-    }
-
-    fn status(&self, kind: &str, s: &tonic::Status, strict: bool) {
-        let expected = !strict && s.code() == tonic::Code::ResourceExhausted;
-        self.error(kind, &format!("{:?}", s.code()), s.message(), expected);
-    }
-}
-
 /// A fast client: rank `rank` of `world`, read as fast as it comes until `until`; checks that
 /// every index is the next of its rank, resumes an interrupted stream from its cursor.
 async fn fast_client(addr: String, seed: u64, rank: u32, world: u32, until: tokio::time::Instant, sh: Arc<Shared>) {
