@@ -516,23 +516,7 @@ async fn unread_replies_from_many_addresses_stay_within_the_budget() {
     assert!(32 * sample > 2 * MIB, "the attackers ask for twice the budget: {sample}");
     // 16 addresses, 2 unread calls each (every call waits for its reply's headers, which come
     // once the sample is made: the calls beyond the budget are admitted and wait for room)
-    let mut attackers = Vec::new();
-    let mut pending = Vec::new();
-    for a in 0..16u8 {
-        let (send, conn) = h2_connection_from([127, 0, 1, 2 + a], s.addr, 1).await;
-        for index in 0..2u64 {
-            let req = pb::SampleSpec { fields: all.clone(), ..Default::default() }.sample(u64::from(a) * 2 + index);
-            let mut send = send.clone();
-            // the reply is kept (unread) until the task is aborted
-            pending.push(tokio::spawn(async move {
-                let path = "/mpiflow.v1.MpiFlow/GetSample";
-                // a call whose connection is closed before its reply comes has nothing to keep
-                let _reply = try_raw_request(&mut send, path, &req.encode_to_vec(), &[]).await;
-                std::future::pending::<()>().await;
-            }));
-        }
-        attackers.push((send, conn));
-    }
+    let (attackers, pending) = unread_attackers(s.addr, 1, 0, &all).await;
     // a call that waits for room while its peer holds less than its share has the holders of
     // unread replies closed: the attackers close each other's connections
     let cut = |m: String| {
@@ -600,21 +584,7 @@ async fn a_slow_reader_is_not_closed_for_room() {
     let req = pb::SampleSpec { fields: all.clone(), ..Default::default() }.sample(0).encode_to_vec();
     let reply = raw_call(&mut send, "GetSample", &req).await;
     // then unread calls from 16 addresses press for room
-    let mut pending = Vec::new();
-    let mut attackers = Vec::new();
-    for a in 0..16u8 {
-        let (send, conn) = h2_connection_from([127, 0, 4, 2 + a], s.addr, 1).await;
-        for index in 0..2u64 {
-            let req = pb::SampleSpec { fields: all.clone(), ..Default::default() }.sample(1 + u64::from(a) * 2 + index);
-            let mut send = send.clone();
-            pending.push(tokio::spawn(async move {
-                let path = "/mpiflow.v1.MpiFlow/GetSample";
-                let _reply = try_raw_request(&mut send, path, &req.encode_to_vec(), &[]).await;
-                std::future::pending::<()>().await;
-            }));
-        }
-        attackers.push((send, conn));
-    }
+    let (attackers, pending) = unread_attackers(s.addr, 4, 1, &all).await;
     // read the reply a window at a time, a pause after each
     let mut body = reply.into_body();
     let mut bytes = 0usize;
@@ -635,4 +605,36 @@ async fn a_slow_reader_is_not_closed_for_room() {
         p.abort();
     }
     s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// 16 clients from 127.0.`net`.2 .. 127.0.`net`.17, each a raw connection with a one-byte window
+/// and 2 GetSample calls of `fields` (indices from `first`) whose replies it keeps unread until
+/// its task is aborted; the connections and the calls' tasks.
+async fn unread_attackers(
+    addr: std::net::SocketAddr,
+    net: u8,
+    first: u64,
+    fields: &[i32],
+) -> (
+    Vec<(h2::client::SendRequest<Bytes>, tokio::task::JoinHandle<Result<(), h2::Error>>)>,
+    Vec<tokio::task::JoinHandle<()>>,
+) {
+    let mut attackers = Vec::new();
+    let mut pending = Vec::new();
+    for a in 0..16u8 {
+        let (send, conn) = h2_connection_from([127, 0, net, 2 + a], addr, 1).await;
+        for index in 0..2u64 {
+            let req = pb::SampleSpec { fields: fields.to_vec(), ..Default::default() }
+                .sample(first + u64::from(a) * 2 + index);
+            let mut send = send.clone();
+            pending.push(tokio::spawn(async move {
+                let path = "/mpiflow.v1.MpiFlow/GetSample";
+                // a call whose connection is closed before its reply comes has nothing to keep
+                let _reply = try_raw_request(&mut send, path, &req.encode_to_vec(), &[]).await;
+                std::future::pending::<()>().await;
+            }));
+        }
+        attackers.push((send, conn));
+    }
+    (attackers, pending)
 }
