@@ -6,7 +6,7 @@
 //! The case, from the soak: on one shared rayon pool a worker whose `join` waits (the renderer's
 //! parallel loops) runs newer jobs nested on its stack, and the older job cannot finish before
 //! them, so under a steady feed a stream's sample stays buried for as long as the feed lasts (a
-//! client gets nothing for 20 s). The workers are one-thread pools fed in FIFO order.
+//! client gets nothing for 20 s). The workers are one-thread pools fed from one queue.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
@@ -184,4 +184,84 @@ async fn turns_go_to_clients_by_the_bytes_of_their_samples() {
     let big_got = big_got.load(Ordering::SeqCst);
     reader.abort();
     assert!((400 / 16..=400 / 4).contains(&big_got), "the large client got {big_got} samples for the small one's 400");
+}
+
+/// Work of a few milliseconds that the compiler cannot skip.
+fn work(seed: u64) -> u64 {
+    (0..2_000_000u64).fold(seed, |a, i| std::hint::black_box(a.wrapping_mul(6364136223846793005).wrapping_add(i)))
+}
+
+/// While a client that reads has a stream open, the clients that do not read (new ones, whose
+/// samples nobody takes) run on one worker at a time: 8 such clients from 8 addresses never read
+/// their streams (64 samples made ahead each) while one client reads 300 samples on 2 workers.
+/// Before the reader's 20th sample they have made fewer than 100 (while the reader is new, it
+/// takes its turns with them; once it reads, they get one worker at most); from then on, while
+/// the reader has samples left to make, at most one of their jobs is seen running at once; the reader gets all 300 in order; and they are not
+/// shut out (samples of theirs are made meanwhile).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn clients_that_do_not_read_take_one_worker_at_most_while_a_client_reads() {
+    use mpiflow::service::metrics::Metrics;
+    use mpiflow::service::peer::PeerKey;
+    use mpiflow::service::pool::{Client, Make, Produce, Scheduler, StreamSpec};
+    use std::sync::atomic::AtomicBool;
+    use tokio_stream::StreamExt;
+
+    let spec = |count| StreamSpec {
+        start_index: 0,
+        rank: 0,
+        world_size: 1,
+        count,
+        batch_size: 1,
+        prefetch: 64,
+        max_message_bytes: 1 << 20,
+    };
+    let sample = |index: u64, w: u64| pb::Sample { index, seed: w, ..Default::default() };
+    let sched = Scheduler::new(2, 4, 1 << 30, Arc::new(Metrics::new())).unwrap();
+    let (running, most, made) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
+    let watching = Arc::new(AtomicBool::new(false));
+    let make_others: Make = {
+        let (running, most, made, watching) = (running.clone(), most.clone(), made.clone(), watching.clone());
+        Arc::new(move |i| {
+            let now = running.fetch_add(1, Ordering::SeqCst) + 1;
+            if watching.load(Ordering::SeqCst) {
+                most.fetch_max(now, Ordering::SeqCst);
+            }
+            let w = work(i);
+            running.fetch_sub(1, Ordering::SeqCst);
+            made.fetch_add(1, Ordering::SeqCst);
+            Ok(sample(i, w))
+        })
+    };
+    let make_reader: Make = Arc::new(move |i| Ok(sample(i, work(i))));
+    let client = |ip: std::net::Ipv4Addr| Client { peer: PeerKey::of(ip.into()), conn: None };
+    let mut reader = sched.open_for(client([127, 0, 0, 1].into()), spec(300), Produce::new(make_reader)).unwrap();
+    let others: Vec<_> = (0..8u8)
+        .map(|a| {
+            let who = client(std::net::Ipv4Addr::new(127, 0, 9, 2 + a));
+            sched.open_for(who, spec(1000), Produce::new(make_others.clone())).unwrap()
+        })
+        .collect();
+    let mut got = Vec::new();
+    let mut made_before_20 = None;
+    while let Some(batch) = reader.next().await {
+        got.extend(batch.expect("the reader's samples").samples.iter().map(|s| s.index));
+        if got.len() == 20 {
+            made_before_20 = Some(made.load(Ordering::SeqCst));
+            watching.store(true, Ordering::SeqCst);
+        }
+        // near its end the reader has nothing left to make: the others may take every worker
+        if got.len() >= 280 {
+            watching.store(false, Ordering::SeqCst);
+        }
+    }
+    let made_before_20 = made_before_20.expect("the reader's 20th sample came");
+    assert!(made_before_20 < 100, "{made_before_20} samples of clients that do not read before the reader's 20th");
+    assert_eq!(got, (0..300).collect::<Vec<u64>>(), "the reader gets every sample in order");
+    assert!(
+        most.load(Ordering::SeqCst) <= 1,
+        "{} jobs of clients that do not read ran at once",
+        most.load(Ordering::SeqCst)
+    );
+    assert!(made.load(Ordering::SeqCst) > made_before_20, "the clients that do not read are not shut out");
+    drop(others);
 }

@@ -638,3 +638,77 @@ async fn unread_attackers(
     }
     (attackers, pending)
 }
+
+/// With a token required, 512 connections that never authenticate (silent ones from 8 addresses,
+/// and ones whose call was refused as UNAUTHENTICATED, kept open) fill `max_connections`; a
+/// client holding the token is still served, each time on a new connection, and refused callers
+/// make room for it like any connection with no call open.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unauthenticated_connections_do_not_keep_a_token_holder_out() {
+    const TOKEN: &str = "t0ken-for-the-overload-test";
+    let s = server(ServiceConfig {
+        max_connections: 512,
+        idle_connection_timeout_s: 600.0,
+        auth_token: Some(TOKEN.into()),
+        ..config()
+    })
+    .await;
+    let info = pb::InfoRequest {}.encode_to_vec();
+    let mut silent = Vec::new();
+    let mut refused = Vec::new();
+    for a in 0..8u8 {
+        for k in 0..64 {
+            let from = std::net::Ipv4Addr::new(127, 0, 5, 2 + a);
+            if k < 8 {
+                let (mut send, conn) = h2_connection_from(from.octets(), s.addr, 1 << 16).await;
+                let reply = raw_request(&mut send, "/mpiflow.v1.MpiFlow/GetInfo", &info, &[]).await;
+                assert_eq!(header_status(&reply), Some(16), "a call without the token is UNAUTHENTICATED");
+                refused.push((send, conn));
+            } else {
+                let socket = tokio::net::TcpSocket::new_v4().unwrap();
+                socket.bind((from, 0).into()).expect("binds a loopback address");
+                // a plain socket, asked without waiting whether the server closed it
+                let tcp = socket.connect(s.addr).await.expect("connects").into_std().unwrap();
+                tcp.set_nonblocking(true).unwrap();
+                silent.push(tcp);
+            }
+        }
+    }
+    let bearer = format!("Bearer {TOKEN}");
+    // the token holder's connections stay open: each takes the place of one that never authenticated
+    let mut holder = Vec::new();
+    for round in 0..4u8 {
+        let (mut send, conn) = h2_connection_from([127, 0, 0, 1], s.addr, 1 << 20).await;
+        holder.push((send.clone(), conn));
+        let reply = raw_request(&mut send, "/mpiflow.v1.MpiFlow/GetInfo", &info, &[("authorization", &bearer)]).await;
+        assert_eq!(header_status(&reply), None, "round {round}: the token holder's call is answered");
+        let mut body = reply.into_body();
+        while let Some(chunk) = body.data().await {
+            let chunk = chunk.expect("the token holder's reply arrives whole");
+            let _ = body.flow_control().release_capacity(chunk.len());
+        }
+        let trailers = body.trailers().await.expect("trailers").expect("a status");
+        assert_eq!(trailers.get("grpc-status").map(|v| v.to_str().unwrap()), Some("0"), "round {round}: {trailers:?}");
+    }
+    // the room was made by closing connections that never authenticated
+    until("4 unauthenticated connections were closed for the token holder", || {
+        let silent_closed = silent
+            .iter()
+            .filter(|t| {
+                let mut r: &std::net::TcpStream = t;
+                loop {
+                    match std::io::Read::read(&mut r, &mut [0u8; 256]) {
+                        Ok(0) => return true, // closed by the server
+                        Ok(_) => continue,    // what the server sent before
+                        Err(e) => return e.kind() != std::io::ErrorKind::WouldBlock,
+                    }
+                }
+            })
+            .count();
+        silent_closed + refused.iter().filter(|(_, conn)| conn.is_finished()).count() >= 4
+    })
+    .await;
+    drop(silent);
+    drop(refused);
+    s.shutdown(Duration::from_millis(500)).await;
+}

@@ -7,7 +7,9 @@
 //! # How it works
 //!
 //! Each worker is a rayon pool of one thread: a sample's own parallel loops run on its worker's
-//! thread, one sample per worker at a time, and the workers take jobs from one FIFO queue. (On
+//! thread, one sample per worker at a time, and the workers take jobs from one queue, the job of
+//! least finish tag first (below, "Fairness by cost"), so a job handed in early for a client that
+//! asked for much does not keep a worker from a client first in line. (On
 //! one shared rayon pool a thread whose `join` waits runs other jobs nested on its stack, and the
 //! waiting job cannot finish before they do: under a steady feed of new jobs an old one could
 //! stay buried for as long as the feed lasted, and its stream got nothing.)
@@ -52,7 +54,11 @@
 //! reservation fits what the budget has left. Within that, a stream may start a job while what it
 //! holds plus the reservation stays within its fair share, `budget / peers with open streams /
 //! the peer's open streams`; a stream holding nothing may start one while its peer holds less
-//! than the peer's share. When a stream opens and the shares shrink, streams holding more than
+//! than the peer's share. Beyond its share a stream may go on while the budget has room, but only
+//! the client first in line (the one whose next job would finish first on the virtual clock,
+//! below) may take the budget's last [`HEADROOM_DIVISOR`]th: a client reading small samples
+//! quickly among many that asked for clips and left them unread finds room at once, instead of
+//! waiting for the room to be reclaimed. When a stream opens and the shares shrink, streams holding more than
 //! their new share drop their newest finished samples (made again, byte for byte, when the
 //! stream reads on) and make no more ahead until they send a message, so a stalled stream never
 //! keeps more than its share, does not refill and drop again as other streams come and go, and
@@ -79,6 +85,18 @@
 //! newcomers asking for clips do not each go ahead of a client of pairs already waiting. A
 //! peer's use is kept for a while after its last call ends (a client of GetSample calls, one
 //! at a time, keeps its place).
+//!
+//! # Clients that read go first
+//!
+//! A client counts as reading ([`Scheduler::reading`]) once it has taken a message, until a
+//! message of its has waited [`UNREAD_GRACE`] untaken, and never for [`PENALTY_MAX`] after a
+//! time out. The server cannot know that a new client will read, nor stop a job once started
+//! (an 8-frame clip of every field holds a worker for about 0.7 s at 640x480), so while a client
+//! that reads has a call open, the others (a new client's first sample, clients that stopped
+//! reading) start one job at a time, and only while the workers' recent time on them is at most
+//! [`OTHERS_SHARE`]; otherwise the clients that read take the turns, by the same fair queueing.
+//! Fifty addresses that ask for clips and never read them cost the workers at most one clip at a
+//! time and an eighth of their time, instead of every worker for as long as the clips take.
 
 use std::collections::BTreeMap;
 use std::pin::Pin;
@@ -237,6 +255,8 @@ struct PeerGroup {
     /// The cost of the jobs started for the peer, on the dispatch's virtual clock
     /// ([`Scheduler::next_eligible`]).
     used: AtomicU64,
+    /// The peer has taken a message it was sent (see [`Scheduler::reading`]).
+    took: std::sync::atomic::AtomicBool,
 }
 
 /// One stream's shared state.
@@ -299,27 +319,37 @@ impl StreamShared {
     }
 
     /// Whether the stream may start a job now, with `room` what the budget has left over all
-    /// streams.
-    fn eligible(&self, s: &StreamState, room: u64) -> bool {
-        let share = self.share.load(Ordering::Acquire);
-        // a stream holding nothing may start one job while its peer is within the peer's share
-        // (so a new client gets going even when its share is smaller than one sample)
-        let peer_room = self.group.share.load(Ordering::Acquire) > self.group.held.load(Ordering::Acquire);
-        let holds_nothing = s.held == 0 && s.running == 0 && peer_room;
-        // a batch is filled within the share too: a stream at its share sends the batch it has
-        // (cut short, see `SampleStream::poll_next`); and every job within what the budget has
-        // left, so that the total holds whatever the shares
+    /// streams and `spare` what a job beyond its share may take of it (all of `room` for the
+    /// client first in line, less a budget / [`HEADROOM_DIVISOR`] for the others: [`Scheduler::spare`]).
+    fn eligible(&self, s: &StreamState, room: u64, spare: u64) -> bool {
+        if s.closed
+            || s.draining
+            || s.dispatched >= self.len
+            || (s.dispatched - s.delivered) >= self.spec.prefetch as u64
+        {
+            return false;
+        }
         let reserve = self.reserve(s);
-        // beyond its share a stream may go on while the budget has room: the shares decide who
-        // gets the room back when a client waits for it (`Scheduler::reclaim`), not who idles
-        let within_share =
-            holds_nothing || (!s.trimmed && s.estimate > 0 && (s.held + reserve <= share || reserve <= room));
-        !s.closed
-            && !s.draining
-            && s.dispatched < self.len
-            && (s.dispatched - s.delivered) < self.spec.prefetch as u64
-            && within_share
-            && reserve <= room
+        let (share, peer_share) = (self.share.load(Ordering::Acquire), self.group.share.load(Ordering::Acquire));
+        let peer_held = self.group.held.load(Ordering::Acquire);
+        let holds_nothing = s.held == 0 && s.running == 0;
+        // within its share a stream may start a job while the budget has room for it; the first
+        // job once its size is known (a batch is filled within the share too: a stream at its
+        // share sends the batch it has, cut short, see `SampleStream::poll_next`)
+        let fits_share = if holds_nothing {
+            peer_held.saturating_add(reserve) <= peer_share
+        } else {
+            !s.trimmed && s.estimate > 0 && s.held.saturating_add(reserve) <= share
+        };
+        if fits_share {
+            return reserve <= room;
+        }
+        // beyond its share a stream may go on while the budget has spare room: the shares decide
+        // who gets the room back when a client waits for it (`Scheduler::reclaim`), not who
+        // idles; a stream holding nothing may start one job while its peer holds less than its
+        // share (so a new client gets going even when its share is smaller than one sample)
+        let may_exceed = if holds_nothing { peer_held < peer_share } else { !s.trimmed && s.estimate > 0 };
+        may_exceed && reserve <= spare
     }
 
     /// (dispatched, delivered, produced, queued) for tests and diagnostics.
@@ -331,7 +361,7 @@ impl StreamShared {
 
 struct Sched {
     streams: Vec<Arc<StreamShared>>,
-    /// The virtual clock of the dispatch: the finish tag of the job started last.
+    /// The virtual clock of the dispatch: where the job started last started (its start tag), where a peer new to the dispatch starts.
     vclock: u64,
     /// Per peer, the position of the stream served last.
     rr_in_peer: std::collections::HashMap<PeerKey, u64>,
@@ -340,17 +370,55 @@ struct Sched {
     max_in_flight_seen: usize,
     draining: bool,
     next_id: u64,
-    /// Jobs whose scene became ready, to hand to the workers first: (stream, k, reserved).
-    ready_jobs: std::collections::VecDeque<(Arc<StreamShared>, u64, u64)>,
+    /// Jobs whose scene became ready, to hand to the workers first.
+    ready_jobs: std::collections::VecDeque<Ready>,
     /// Jobs waiting for their scene now.
     waiting_scene: usize,
     /// Clients whose connection was closed for holding samples they did not take: no job starts
     /// for them until their time is up ([`Penalty`]).
     penalties: std::collections::HashMap<PeerKey, Penalty>,
-    /// What clients with no open call had used on the virtual clock, so that a client whose
-    /// calls come one at a time (GetSample) keeps its place instead of starting again at the
-    /// clock with each call (at most [`MAX_PENALTIES`] clients; the least used go first).
-    past_used: std::collections::HashMap<PeerKey, u64>,
+    /// What clients with no open call had used on the virtual clock, and whether they had taken
+    /// a message, so that a client whose calls come one at a time (GetSample) keeps its place and
+    /// its standing instead of starting again with each call (at most [`MAX_PENALTIES`] clients;
+    /// the least used go first).
+    past_used: std::collections::HashMap<PeerKey, (u64, bool)>,
+    /// Jobs dispatched and not yet done for clients that are not reading ([`Scheduler::reading`]).
+    others_in_flight: usize,
+    /// The workers' recent time on the jobs of clients that are not reading, against all.
+    busy: Busy,
+}
+
+/// The workers' recent time on the jobs of clients that are not reading
+/// ([`Scheduler::reading`]), each second of it decayed by `exp(-age / BUSY_DECAY_S)`.
+#[derive(Clone, Copy, Debug)]
+struct Busy {
+    at: Instant,
+    others: f64,
+}
+
+/// How fast the workers' past time fades from [`Busy`], seconds.
+const BUSY_DECAY_S: f64 = 5.0;
+
+/// While a client that reads has a call open, the clients that do not read (a new client until it
+/// has taken its first message, and those whose sent message waits untaken) get at most this
+/// part of the workers' time, one job at a time: a job of theirs may take a worker for long (an
+/// 8-frame clip of every field takes one about 0.7 s at 640x480) and cannot be stopped once
+/// started.
+pub const OTHERS_SHARE: f64 = 0.125;
+
+impl Busy {
+    fn add(&mut self, now: Instant, seconds: f64) {
+        let fade = (-(now.saturating_duration_since(self.at).as_secs_f64()) / BUSY_DECAY_S).exp();
+        self.at = now;
+        self.others = self.others * fade + seconds;
+    }
+
+    /// The part of `workers`' recent time spent on clients that are not reading (a constant use
+    /// of all of them decays to `workers * BUSY_DECAY_S`).
+    fn others_part(&self, now: Instant, workers: usize) -> f64 {
+        let fade = (-(now.saturating_duration_since(self.at).as_secs_f64()) / BUSY_DECAY_S).exp();
+        self.others * fade / (workers.max(1) as f64 * BUSY_DECAY_S)
+    }
 }
 
 /// A client's time out after its connection was closed for holding samples it did not take:
@@ -361,6 +429,10 @@ struct Penalty {
     until: Instant,
     strikes: u32,
 }
+
+/// A job that takes a client beyond its share leaves `budget / HEADROOM_DIVISOR` of the budget
+/// free unless the client is first in line ([`Scheduler::first_in_line`]).
+pub const HEADROOM_DIVISOR: u64 = 4;
 
 /// The first time out of a client closed for not reading.
 pub const PENALTY_FIRST: std::time::Duration = std::time::Duration::from_secs(10);
@@ -381,6 +453,9 @@ impl Sched {
                 }
             }
         }
+        if let Some(group) = self.groups.get(&peer) {
+            group.took.store(false, Ordering::Release);
+        }
         let strikes = self.penalties.get(&peer).map_or(0, |p| p.strikes).saturating_add(1);
         let time = PENALTY_FIRST.saturating_mul(1 << (strikes - 1).min(10)).min(PENALTY_MAX);
         self.penalties.insert(peer, Penalty { until: now + time, strikes });
@@ -390,43 +465,108 @@ impl Sched {
     fn in_time_out(&self, peer: PeerKey, now: Instant) -> bool {
         self.penalties.get(&peer).is_some_and(|p| p.until > now)
     }
+
+    /// Whether `peer` was closed for not reading lately: in time out, or out of it for less than
+    /// [`PENALTY_MAX`]. Such a client is not counted among those that read
+    /// ([`Scheduler::reading`]) even when it takes a message again (a client that reads one
+    /// message of each call and then stops does not take the readers' turns).
+    fn struck(&self, peer: PeerKey, now: Instant) -> bool {
+        self.penalties.get(&peer).is_some_and(|p| p.until + PENALTY_MAX > now)
+    }
 }
+
+/// A peer's next job as the dispatch sees it ([`Scheduler::tags`]).
+#[derive(Clone)]
+struct Tag {
+    /// Where the job starts on the virtual clock (the peer's use, at least a budget below the
+    /// clock) and where it finishes (plus its cost).
+    start: u64,
+    finish: u64,
+    peer: PeerKey,
+    reading: bool,
+    stream: Arc<StreamShared>,
+}
+
+/// The job the dispatch starts next: its stream, its finish tag and whether its client is
+/// among those that do not read.
+struct Pick {
+    stream: Arc<StreamShared>,
+    finish: u64,
+    others: bool,
+}
+
+/// A job handed to the workers: (stream, k, reserved bytes, finish tag, for a client not reading).
+type Ready = (Arc<StreamShared>, u64, u64, u64, bool);
 
 type Job = Box<dyn FnOnce() + Send>;
 
-/// The workers: each is a rayon pool of one thread, and all take their jobs from one FIFO
-/// queue. A sample's own parallel loops run on its worker's thread; a worker never runs
-/// another job nested inside a waiting one (as the threads of a shared rayon pool do while a
-/// `join` waits, which buried an old job under a feed of new ones: a stream's sample could
-/// wait for as long as other streams kept the workers busy).
+/// The workers: each is a rayon pool of one thread, and all take their jobs from one queue, the
+/// job of least finish tag first ([`Scheduler::next_eligible`]; ties in the order they were
+/// handed in). A job handed in early for a client that asked for much does not keep a worker
+/// from the job of a client first in line handed in after it. A sample's own parallel loops run
+/// on its worker's thread; a worker never runs another job nested inside a waiting one (as the
+/// threads of a shared rayon pool do while a `join` waits, which buried an old job under a feed
+/// of new ones: a stream's sample could wait for as long as other streams kept the workers busy).
 struct Workers {
     queue: Arc<JobQueue>,
     _pools: Vec<rayon::ThreadPool>,
 }
 
+/// A job in the queue, ordered by (tag, the order it was handed in), least first.
+struct Queued {
+    tag: u64,
+    seq: u64,
+    job: Job,
+}
+
+impl PartialEq for Queued {
+    fn eq(&self, other: &Self) -> bool {
+        (self.tag, self.seq) == (other.tag, other.seq)
+    }
+}
+
+impl Eq for Queued {}
+
+impl PartialOrd for Queued {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ord for Queued {
+    // reversed: the heap's greatest is the least (tag, seq)
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        (other.tag, other.seq).cmp(&(self.tag, self.seq))
+    }
+}
+
 #[derive(Default)]
 struct JobQueue {
-    /// (jobs in the order they were handed in, closed)
-    jobs: Mutex<(std::collections::VecDeque<Job>, bool)>,
+    /// (the jobs handed in, how many were handed in, closed)
+    jobs: Mutex<(std::collections::BinaryHeap<Queued>, u64, bool)>,
     more: std::sync::Condvar,
 }
 
 impl JobQueue {
-    fn push(&self, job: Job) {
-        lock(&self.jobs).0.push_back(job);
+    fn push(&self, tag: u64, job: Job) {
+        let mut g = lock(&self.jobs);
+        let seq = g.1;
+        g.1 += 1;
+        g.0.push(Queued { tag, seq, job });
+        drop(g);
         self.more.notify_one();
     }
 
-    /// A worker's loop: the oldest job, until the queue is closed and empty.
+    /// A worker's loop: the job of least tag, until the queue is closed and empty.
     fn run(&self) {
         loop {
             let job = {
                 let mut g = lock(&self.jobs);
                 loop {
-                    if let Some(job) = g.0.pop_front() {
-                        break job;
+                    if let Some(q) = g.0.pop() {
+                        break q.job;
                     }
-                    if g.1 {
+                    if g.2 {
                         return;
                     }
                     g = self.more.wait(g).unwrap_or_else(std::sync::PoisonError::into_inner);
@@ -454,14 +594,14 @@ impl Workers {
         Ok(Self { queue, _pools: pools })
     }
 
-    fn spawn(&self, job: impl FnOnce() + Send + 'static) {
-        self.queue.push(Box::new(job));
+    fn spawn(&self, tag: u64, job: impl FnOnce() + Send + 'static) {
+        self.queue.push(tag, Box::new(job));
     }
 }
 
 impl Drop for Workers {
     fn drop(&mut self) {
-        lock(&self.queue.jobs).1 = true;
+        lock(&self.queue.jobs).2 = true;
         self.queue.more.notify_all();
     }
 }
@@ -544,6 +684,8 @@ impl Scheduler {
                 waiting_scene: 0,
                 penalties: std::collections::HashMap::new(),
                 past_used: std::collections::HashMap::new(),
+                others_in_flight: 0,
+                busy: Busy { at: Instant::now(), others: 0.0 },
             }),
             metrics,
         });
@@ -650,11 +792,18 @@ impl Scheduler {
             s.next_id += 1;
             // a peer new to the dispatch starts at the virtual clock (no credit from before), or
             // where it was when its last call ended, if that is later
-            let vclock = s.vclock.max(s.past_used.remove(&client.peer).unwrap_or(0));
+            let (past, took) = s.past_used.remove(&client.peer).unwrap_or((0, false));
+            let vclock = s.vclock.max(past);
             let group = s
                 .groups
                 .entry(client.peer)
-                .or_insert_with(|| Arc::new(PeerGroup { used: AtomicU64::new(vclock), ..PeerGroup::default() }))
+                .or_insert_with(|| {
+                    Arc::new(PeerGroup {
+                        used: AtomicU64::new(vclock),
+                        took: std::sync::atomic::AtomicBool::new(took),
+                        ..PeerGroup::default()
+                    })
+                })
                 .clone();
             let shared = Arc::new(StreamShared {
                 id,
@@ -698,15 +847,18 @@ impl Scheduler {
         let mut s = lock(&self.inner);
         // jobs whose scene is ready go first (they were dispatched before any drain began)
         while s.in_flight < self.capacity {
-            let Some((st, k, reserved)) = s.ready_jobs.pop_front() else { break };
+            let Some((st, k, reserved, tag, others)) = s.ready_jobs.pop_front() else { break };
             s.in_flight += 1;
             s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
             self.metrics.set_in_flight(s.in_flight, self.capacity);
             let me = self.clone();
-            self.pool.spawn(move || me.run_job(st, k, reserved));
+            self.pool.spawn(tag, move || me.run_job(st, k, reserved, others));
         }
         while s.in_flight < self.capacity && !s.draining {
-            let Some(st) = self.next_eligible(&mut s) else { break };
+            let Some(Pick { stream: st, finish: tag, others }) = self.next_eligible(&mut s) else { break };
+            if others {
+                s.others_in_flight += 1;
+            }
             let (k, reserved) = {
                 let mut g = lock(&st.state);
                 let k = g.dispatched;
@@ -719,7 +871,7 @@ impl Scheduler {
             };
             if let Some(prepare) = &st.produce.prepare {
                 let (me, st2) = (self.clone(), st.clone());
-                let done: Box<dyn FnOnce() + Send> = Box::new(move || me.scene_ready(st2, k, reserved));
+                let done: Box<dyn FnOnce() + Send> = Box::new(move || me.scene_ready((st2, k, reserved, tag, others)));
                 if !prepare(st.index(k), done) {
                     s.waiting_scene += 1;
                     continue;
@@ -729,28 +881,39 @@ impl Scheduler {
             s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
             self.metrics.set_in_flight(s.in_flight, self.capacity);
             let me = self.clone();
-            self.pool.spawn(move || me.run_job(st, k, reserved));
+            self.pool.spawn(tag, move || me.run_job(st, k, reserved, others));
         }
         if s.in_flight < self.capacity {
             self.reclaim(&mut s);
         }
     }
 
-    /// The next stream to start a job: of each peer, its next eligible stream (round-robin over
-    /// its streams, in the order they opened, from the one after the stream served last); of
-    /// those, the one whose job would finish first on the virtual clock: the peer's use plus
-    /// the job's cost, its sample's bytes (ties by key; self-clocked fair queueing: the clock is
-    /// the finish of the job started last, a peer new to the dispatch starts there, and one idle
-    /// for a while keeps at most one budget of credit below it). So a client of 8-frame clips gets about an eighth of the
-    /// turns of a client of pairs, and a newcomer asking for an expensive sample does not go
-    /// ahead of a cheap one already waiting. None when no stream may.
-    fn next_eligible(&self, s: &mut Sched) -> Option<Arc<StreamShared>> {
-        let room = self.room();
+    /// Whether `peer` reads what it is sent: it has taken a message, was not closed for not
+    /// reading lately ([`Sched::struck`]), and none of its streams
+    /// has a message that has waited in the transport for [`UNREAD_GRACE`] while its client
+    /// took none of its bytes as long. The clients that read go first for the workers; the
+    /// others (new clients, and those that stopped reading) share [`OTHERS_SHARE`] of them while
+    /// a client that reads waits ([`Scheduler::next_eligible`]).
+    fn reading(group: &PeerGroup, of_peer: &[&Arc<StreamShared>], struck: bool) -> bool {
+        !struck
+            && group.took.load(Ordering::Acquire)
+            && !of_peer.iter().any(|st| {
+                let g = lock(&st.state);
+                g.in_transport > 0
+                    && g.in_transport_since.elapsed() >= UNREAD_GRACE
+                    && st.conn.as_ref().is_none_or(|c| c.not_taken_for() >= UNREAD_GRACE)
+            })
+    }
+
+    /// Each peer's first stream that `pick` takes, with its next job's finish tag on the virtual
+    /// clock (the peer's use, at least a budget below the clock, plus the job's cost) and
+    /// whether the peer is reading ([`Scheduler::reading`]). Streams are taken round-robin
+    /// within a peer, from the one after the stream served last; peers in time out are left out.
+    fn tags(&self, s: &Sched, now: Instant, pick: impl Fn(&StreamShared, &StreamState) -> bool) -> Vec<Tag> {
         // a peer that has used less than this, idle for a while, counts from here: its credit
         // is at most one budget's bytes
         let floor = s.vclock.saturating_sub(self.budget);
-        let now = Instant::now();
-        let mut best: Option<(u64, PeerKey, Arc<StreamShared>)> = None;
+        let mut out = Vec::new();
         for (peer, group) in &s.groups {
             if s.in_time_out(*peer, now) {
                 continue;
@@ -762,21 +925,80 @@ impl Scheduler {
             for j in 0..of_peer.len() {
                 let st = of_peer[(first + j) % of_peer.len()];
                 let g = lock(&st.state);
-                if st.eligible(&g, room) {
-                    let cost = st.cost(&g);
-                    let finish = used.saturating_add(cost);
-                    if best.as_ref().is_none_or(|b| (finish, *peer) < (b.0, b.1)) {
-                        best = Some((finish, *peer, (*st).clone()));
-                    }
+                if pick(st, &g) {
+                    let finish = used.saturating_add(st.cost(&g));
+                    drop(g);
+                    let reading = Self::reading(group, &of_peer, s.struck(*peer, now));
+                    out.push(Tag { start: used, finish, peer: *peer, reading, stream: (*st).clone() });
                     break;
                 }
             }
         }
-        let (finish, peer, st) = best?;
-        s.vclock = finish;
-        st.group.used.store(finish, Ordering::Release);
-        s.rr_in_peer.insert(peer, st.id);
-        Some(st)
+        out
+    }
+
+    /// The client first in line: of the clients that would start a job if the budget had room,
+    /// those that read first, the one whose job would finish first on the virtual clock. It may
+    /// take all the room the budget has; a job that takes any other client beyond its share
+    /// leaves a budget / [`HEADROOM_DIVISOR`] free ([`Scheduler::spare`]), so that the client
+    /// first in line (a fast reader of small samples among many that asked for clips and do not
+    /// read them) does not wait for room to be reclaimed.
+    fn first_in_line(&self, s: &Sched, now: Instant) -> Option<PeerKey> {
+        let wanting = self.tags(s, now, |st, g| st.eligible(g, u64::MAX, u64::MAX));
+        wanting.into_iter().min_by_key(|t| (!t.reading, t.finish, t.peer)).map(|t| t.peer)
+    }
+
+    /// Whether a client that reads has a stream with positions left to make (whether or not it
+    /// may start one now: its window may be full for a moment).
+    fn reader_active(&self, s: &Sched, now: Instant) -> bool {
+        s.groups.iter().any(|(peer, group)| {
+            let of_peer: Vec<&Arc<StreamShared>> = s.streams.iter().filter(|st| st.peer == *peer).collect();
+            of_peer.iter().any(|st| {
+                let g = lock(&st.state);
+                !g.closed && g.dispatched < st.len
+            }) && Self::reading(group, &of_peer, s.struck(*peer, now))
+        })
+    }
+
+    /// What a job beyond its client's share may take of `room`: all of it for the client first in
+    /// line, else what is left above a budget / [`HEADROOM_DIVISOR`].
+    fn spare(&self, room: u64, first: bool) -> u64 {
+        if first {
+            room
+        } else {
+            room.saturating_sub(self.budget / HEADROOM_DIVISOR)
+        }
+    }
+
+    /// The next job to start: of each peer, its next eligible stream (round-robin over its
+    /// streams, in the order they opened, from the one after the stream served last); of those,
+    /// the one whose job would finish first on the virtual clock: the peer's use plus the job's
+    /// cost, its sample's bytes (ties by key; fair queueing with the clock at the start of the
+    /// job started last: a peer new to the dispatch starts there, so a newcomer asking for a
+    /// small sample goes ahead of clips asked for before it, and a peer idle for a while keeps
+    /// at most one budget of credit below the clock). So a client of 8-frame clips gets about an
+    /// eighth of the turns of a client of pairs, and a newcomer asking for an expensive sample
+    /// does not go ahead of a cheap one already waiting. The clients that read go first: while
+    /// one of them waits, the others (new clients, clients that stopped reading) start one job at
+    /// a time and only while the workers' recent time on them is at most [`OTHERS_SHARE`]
+    /// ([`Scheduler::reading`]). None when no stream may.
+    fn next_eligible(&self, s: &mut Sched) -> Option<Pick> {
+        let room = self.room();
+        let now = Instant::now();
+        let first = self.first_in_line(s, now);
+        let candidates = self.tags(s, now, |st, g| st.eligible(g, room, self.spare(room, Some(st.peer) == first)));
+        // while a client that reads has a call open, the others get their turn only one job at a
+        // time and within their part of the workers' time
+        let others_turn = (s.others_in_flight == 0 && s.busy.others_part(now, self.workers) <= OTHERS_SHARE)
+            || !self.reader_active(s, now);
+        let best = |reading: bool| {
+            candidates.iter().filter(|t| t.reading == reading).min_by_key(|t| (t.finish, t.peer)).cloned()
+        };
+        let tag = if others_turn { best(false).or_else(|| best(true)) } else { best(true) }?;
+        s.vclock = tag.start;
+        tag.stream.group.used.store(tag.finish, Ordering::Release);
+        s.rr_in_peer.insert(tag.peer, tag.stream.id);
+        Some(Pick { stream: tag.stream, finish: tag.finish, others: !tag.reading })
     }
 
     /// Makes room for a stream that may not start for want of it while its peer holds less than
@@ -789,11 +1011,12 @@ impl Scheduler {
             return;
         }
         let room = self.room();
+        let first = self.first_in_line(s, Instant::now());
         let starving = s.streams.iter().any(|st| {
             let g = lock(&st.state);
             st.group.held.load(Ordering::Acquire) < st.group.share.load(Ordering::Acquire)
-                && !st.eligible(&g, room)
-                && st.eligible(&g, u64::MAX)
+                && !st.eligible(&g, room, self.spare(room, Some(st.peer) == first))
+                && st.eligible(&g, u64::MAX, u64::MAX)
         });
         if !starving {
             return;
@@ -843,11 +1066,11 @@ impl Scheduler {
     }
 
     /// The scene of a waiting job is built (or failed): the job goes to the workers.
-    fn scene_ready(self: &Arc<Self>, st: Arc<StreamShared>, k: u64, reserved: u64) {
+    fn scene_ready(self: &Arc<Self>, job: Ready) {
         {
             let mut s = lock(&self.inner);
             s.waiting_scene -= 1;
-            s.ready_jobs.push_back((st, k, reserved));
+            s.ready_jobs.push_back(job);
         }
         self.pump();
     }
@@ -884,7 +1107,7 @@ impl Scheduler {
         }
     }
 
-    fn run_job(self: Arc<Self>, st: Arc<StreamShared>, k: u64, reserved: u64) {
+    fn run_job(self: Arc<Self>, st: Arc<StreamShared>, k: u64, reserved: u64, others: bool) {
         let t = Instant::now();
         let skip = lock(&st.state).closed;
         let item: Option<Item> = if skip {
@@ -934,6 +1157,12 @@ impl Scheduler {
         {
             let mut s = lock(&self.inner);
             s.in_flight -= 1;
+            if others {
+                s.others_in_flight -= 1;
+            }
+            if others {
+                s.busy.add(Instant::now(), t.elapsed().as_secs_f64());
+            }
             self.metrics.set_in_flight(s.in_flight, self.capacity);
         }
         self.pump();
@@ -942,6 +1171,11 @@ impl Scheduler {
     fn close(self: &Arc<Self>, st: &Arc<StreamShared>) {
         {
             let mut g = lock(&st.state);
+            // a unary reply's stream closes once the reply has left (`service::reply`): taken,
+            // unless its connection was closed for not taking it
+            if g.in_transport > 0 && !st.conn.as_ref().is_some_and(|c| c.is_cut()) {
+                st.group.took.store(true, Ordering::Release);
+            }
             g.closed = true;
             g.ready.clear();
             // what running jobs reserved is released here; they hand back nothing when done
@@ -957,14 +1191,14 @@ impl Scheduler {
                     let used = g.used.load(Ordering::Acquire);
                     if s.past_used.len() >= MAX_PENALTIES {
                         let vclock = s.vclock;
-                        s.past_used.retain(|_, u| *u > vclock);
+                        s.past_used.retain(|_, u| u.0 > vclock);
                         if s.past_used.len() >= MAX_PENALTIES {
-                            if let Some(least) = s.past_used.iter().min_by_key(|(_, u)| **u).map(|(k, _)| *k) {
+                            if let Some(least) = s.past_used.iter().min_by_key(|(_, u)| u.0).map(|(k, _)| *k) {
                                 s.past_used.remove(&least);
                             }
                         }
                     }
-                    s.past_used.insert(st.peer, used);
+                    s.past_used.insert(st.peer, (used, g.took.load(Ordering::Acquire)));
                 }
                 s.rr_in_peer.remove(&st.peer);
             }
@@ -1006,7 +1240,11 @@ impl Scheduler {
             dropped: self.dropped.load(Ordering::Acquire),
             held: s.streams.iter().map(|st| lock(&st.state).held).collect(),
             waiting_scene: s.waiting_scene + s.ready_jobs.len(),
-            eligible: s.streams.iter().filter(|st| st.eligible(&lock(&st.state), self.room())).count(),
+            eligible: {
+                let (room, first) = (self.room(), self.first_in_line(&s, Instant::now()));
+                let spare = |st: &StreamShared| self.spare(room, Some(st.peer) == first);
+                s.streams.iter().filter(|st| st.eligible(&lock(&st.state), room, spare(st))).count()
+            },
             per_stream: s
                 .streams
                 .iter()
@@ -1055,6 +1293,7 @@ impl Stream for SampleStream {
         // the transport asks for the next message: it has taken the previous one
         let released = std::mem::take(&mut g.in_transport);
         if released > 0 {
+            shared.group.took.store(true, Ordering::Release);
             g.held -= released;
             self.scheduler.account(&shared, 0, released);
             drop(g);
@@ -1082,7 +1321,10 @@ impl Stream for SampleStream {
         }
         let drained = g.draining && g.running == 0;
         // at its share of the budget, with nothing running, a stream sends the batch it has
-        let at_share = g.running == 0 && !shared.eligible(&g, self.scheduler.room());
+        // (the room a client first in line may take beyond its share is not counted here: the
+        // dispatch, which knows who is first, does not run under a stream's lock)
+        let room = self.scheduler.room();
+        let at_share = g.running == 0 && !shared.eligible(&g, room, self.scheduler.spare(room, false));
         if contiguous > 0 && (contiguous == want || drained || at_share) {
             let mut samples = Vec::with_capacity(contiguous);
             let mut bytes = 0usize;
