@@ -32,9 +32,11 @@
 //! known or already completed pixels against the source's photo colours): the sources of the
 //! eight neighbours shifted by the step to the target (coherence: whole patches of texture are
 //! copied, in the spirit of Ashikhmin 2001 and PatchMatch's propagation, Barnes et al. 2009),
-//! then a random search around the best so far at halving radii from [`SEARCH_RADIUS`], then
-//! random sources from the whole eligible set. The candidates are drawn from a counter-based
-//! hash of the pixel (no shared state), so the result is the same on every run and machine. The
+//! then `GLOBAL_DRAWS` random sources from the whole eligible set, then a random search around
+//! the best so far at halving radii from [`SEARCH_RADIUS`] (a pixel for which no candidate could
+//! be compared takes the eligible source nearest in depth). The candidates are drawn from a
+//! counter-based hash of the pixel (no shared state), so the result is the same on every run and
+//! machine. The
 //! synthesis is [`crate::raster::exemplar`], which the texture fill of image2's holes shares.
 //! Cost: `O(region x candidates x WINDOW^2)`, about 0.1-0.4 s for a 640 x 480 scene with a third
 //! of it in the region (`tests/backdrop.rs` prints nothing; `mpiflow bench quality --realism`
@@ -172,12 +174,12 @@ fn synthesise(r: &Region<'_>, out_rgb: &mut [f32]) {
     let order = peel_order(behind, w, h);
     let mut filled: Vec<bool> = behind.iter().map(|&b| !b).collect();
     let lay = Layout {
-        sw: w,
-        sh: h,
-        tw: w,
-        th: h,
-        ox: 0,
-        oy: 0,
+        source_width: w,
+        source_height: h,
+        target_width: w,
+        target_height: h,
+        target_left: 0,
+        target_top: 0,
         half: WINDOW / 2,
         search_radius: SEARCH_RADIUS,
         salt: 0x6261_636b_6472_6f70,

@@ -337,12 +337,12 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
                 .flat_map(|y| (y * w + win.x0..y * w + win.x1).map(|p| hole[p] == 0 && tex.mask[p] == 0))
                 .collect();
             let lay = Layout {
-                sw: w,
-                sh: h,
-                tw: cw,
-                th: ch,
-                ox: win.x0,
-                oy: win.y0,
+                source_width: w,
+                source_height: h,
+                target_width: cw,
+                target_height: ch,
+                target_left: win.x0,
+                target_top: win.y0,
                 half: TEXTURE_HALF,
                 search_radius: TEXTURE_SEARCH,
                 salt: 0x7465_7874_7572_6521,
