@@ -37,6 +37,7 @@
 use super::config::InpaintMethod;
 use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};
 use crate::raster::exemplar::{peel_order, synthesise, Draw, Layout, Sources};
+use crate::raster::morph::dilate;
 use crate::render::Rect;
 
 /// How far around a hole the texture fill looks for the background's depth (pixels, chessboard).
@@ -185,15 +186,6 @@ fn entering(hole: &[u8], w: usize, h: usize) -> Vec<bool> {
     seen
 }
 
-/// Whether a mask pixel lies within [`TEXTURE_MASK_GROW`] of `s` (the pixel, the corners and the
-/// edge midpoints of the square around it).
-fn near_object(masked: &[bool], w: usize, h: usize, s: usize) -> bool {
-    let (x, y, r) = (s % w, s / w, TEXTURE_MASK_GROW);
-    let xs = [x.saturating_sub(r), x, (x + r).min(w - 1)];
-    let ys = [y.saturating_sub(r), y, (y + r).min(h - 1)];
-    ys.iter().any(|&yy| xs.iter().any(|&xx| masked[yy * w + xx]))
-}
-
 /// The moved objects that continue beyond image1's frame: `reaches[k]` when label `k` of
 /// `labels1` has a pixel on the frame's border.
 fn reaching_border(labels1: &[u8], w: usize, h: usize) -> [bool; 256] {
@@ -260,6 +252,8 @@ struct Continued {
     label: u8,
     /// H x W, true outside the object (left out of the patch distance).
     outside: Vec<bool>,
+    /// H x W, true within [`TEXTURE_MASK_GROW`] of a pixel outside the object (never a source).
+    near_outside: Vec<bool>,
 }
 
 /// Draws of a place anywhere in image1 for one random candidate of a continued object: the first
@@ -274,7 +268,8 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
     assert!(tex.depth1.len() == n && tex.objects.len() == n && tex.depth.len() == n, "texture fill: sizes");
     assert!(tex.mask.len() == n && tex.labels1.len() == n, "texture fill: sizes");
     let masked = tex.objects;
-    let any_object = masked.contains(&true);
+    // sources keep their distance from every object: the objects grown once
+    let near_object = if masked.contains(&true) { dilate(w, h, masked, TEXTURE_MASK_GROW) } else { vec![false; n] };
     let entering = entering(hole, w, h);
     // what a moved object reaching image1's border brings into the frame is more of that object
     let reaches = reaching_border(tex.labels1, w, h);
@@ -284,7 +279,8 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
         .filter(|&k| reaches[usize::from(k)] && owner.contains(&k))
         .map(|label| {
             let outside: Vec<bool> = tex.labels1.iter().map(|&l| l != label).collect();
-            Continued { label, outside }
+            let near_outside = dilate(w, h, &outside, TEXTURE_MASK_GROW);
+            Continued { label, outside, near_outside }
         })
         .collect();
     let owned = |p: usize| !owner.is_empty() && owner[p] != 0;
@@ -356,7 +352,7 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
                 // edge rarely sits exactly on the object's)
                 eligible: |t: usize, s: usize| {
                     let d = tex.depth1[s];
-                    d > 0.0 && d >= nearest[t] && !(any_object && near_object(masked, w, h, s))
+                    d > 0.0 && d >= nearest[t] && !near_object[s]
                 },
                 // the pixel's own place in image1, and a few places anywhere
                 seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
@@ -385,7 +381,7 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
                 let mut src = Sources {
                     rgb: tex.image1,
                     masked: &c.outside,
-                    eligible: |_t: usize, s: usize| !c.outside[s] && !near_object(&c.outside, w, h, s),
+                    eligible: |_t: usize, s: usize| !c.near_outside[s],
                     seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
                         out.push((win.y0 + t / cw) * w + win.x0 + t % cw);
                         for _ in 0..TEXTURE_GLOBAL_DRAWS {
