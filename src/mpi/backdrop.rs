@@ -15,8 +15,8 @@
 //!
 //! For an edge pixel, the farthest disparity within [`EDGE_REACH`] (the background beside it).
 //! For a mask pixel, the background around the mask: the disparity of the pixels outside the
-//! grown masks, pulled into the masks by a push-pull pyramid (means of known pixels down to 1x1,
-//! bilinear up-sampling into the unknown cells), never from the masks themselves; and no nearer
+//! grown masks, pulled into the masks by the push-pull pyramid ([`crate::raster::pushpull`]: means
+//! of known pixels down to 1x1, bilinear up-sampling into the unknown cells), never from the masks themselves; and no nearer
 //! than the edge rule's value where both apply (the smaller disparity wins). A region pixel has a
 //! backdrop only where that disparity is below its own by more than [`EDGE_STEP`] (something
 //! lies behind it); elsewhere it is its own background.
@@ -32,9 +32,11 @@
 //! known or already completed pixels against the source's photo colours): the sources of the
 //! eight neighbours shifted by the step to the target (coherence: whole patches of texture are
 //! copied, in the spirit of Ashikhmin 2001 and PatchMatch's propagation, Barnes et al. 2009),
-//! then a random search around the best so far at halving radii from [`SEARCH_RADIUS`], then
-//! random sources from the whole eligible set. The candidates are drawn from a counter-based
-//! hash of the pixel (no shared state), so the result is the same on every run and machine. The
+//! then `GLOBAL_DRAWS` random sources from the whole eligible set, then a random search around
+//! the best so far at halving radii from [`SEARCH_RADIUS`] (a pixel for which no candidate could
+//! be compared takes the eligible source nearest in depth). The candidates are drawn from a
+//! counter-based hash of the pixel (no shared state), so the result is the same on every run and
+//! machine. The
 //! synthesis is [`crate::raster::exemplar`], which the texture fill of image2's holes shares.
 //! Cost: `O(region x candidates x WINDOW^2)`, about 0.1-0.4 s for a 640 x 480 scene with a third
 //! of it in the region (`tests/backdrop.rs` prints nothing; `mpiflow bench quality --realism`
@@ -42,6 +44,7 @@
 
 use crate::raster::exemplar::{peel_order, synthesise as synthesise_exemplar, Draw, Layout, Sources};
 use crate::raster::morph::dilate;
+use crate::raster::pushpull::push_pull;
 
 /// Mask pixels are grown by this many pixels (chessboard) before completion.
 pub const MASK_GROW: usize = 3;
@@ -93,65 +96,6 @@ fn min_filter(v: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
         }
     }
     out
-}
-
-/// Push-pull of `v` from the pixels where `known` into the others (means of known children down
-/// to 1x1, then nearest-cell up-sampling blended bilinearly).
-pub(crate) fn push_pull(v: &[f64], known: &[bool], w: usize, h: usize) -> Vec<f64> {
-    if !known.iter().any(|&k| k) {
-        return v.to_vec();
-    }
-    let mut levels: Vec<(usize, usize, Vec<f64>, Vec<bool>)> = vec![(w, h, v.to_vec(), known.to_vec())];
-    while {
-        let l = levels.last().expect("a level");
-        l.0 > 1 || l.1 > 1
-    } {
-        let (lw, lh, lv, lk) = levels.last().expect("a level");
-        let (cw, ch) = (lw.div_ceil(2), lh.div_ceil(2));
-        let (mut cv, mut ck) = (vec![0.0; cw * ch], vec![false; cw * ch]);
-        for cy in 0..ch {
-            for cx in 0..cw {
-                let (mut s, mut m) = (0.0, 0u32);
-                for y in 2 * cy..(2 * cy + 2).min(*lh) {
-                    for x in 2 * cx..(2 * cx + 2).min(*lw) {
-                        if lk[y * lw + x] {
-                            s += lv[y * lw + x];
-                            m += 1;
-                        }
-                    }
-                }
-                if m > 0 {
-                    cv[cy * cw + cx] = s / f64::from(m);
-                    ck[cy * cw + cx] = true;
-                }
-            }
-        }
-        levels.push((cw, ch, cv, ck));
-    }
-    for li in (0..levels.len() - 1).rev() {
-        let (upper, lower) = levels.split_at_mut(li + 1);
-        let (fw, fh, fv, fk) = &mut upper[li];
-        let (cw, ch, cv, _) = &lower[0];
-        for y in 0..*fh {
-            let fy = ((y as f64 - 0.5) * 0.5).clamp(0.0, (*ch - 1) as f64);
-            let (y0, wy) = (fy.floor() as usize, fy - fy.floor());
-            let y1 = (y0 + 1).min(ch - 1);
-            for x in 0..*fw {
-                let p = y * *fw + x;
-                if fk[p] {
-                    continue;
-                }
-                let fx = ((x as f64 - 0.5) * 0.5).clamp(0.0, (*cw - 1) as f64);
-                let (x0, wx) = (fx.floor() as usize, fx - fx.floor());
-                let x1 = (x0 + 1).min(cw - 1);
-                let top = cv[y0 * cw + x0] + wx * (cv[y0 * cw + x1] - cv[y0 * cw + x0]);
-                let bot = cv[y1 * cw + x0] + wx * (cv[y1 * cw + x1] - cv[y1 * cw + x0]);
-                fv[p] = top + wy * (bot - top);
-                fk[p] = true;
-            }
-        }
-    }
-    levels.swap_remove(0).2
 }
 
 /// Completes the background of a scene: `rgb` H x W x 3 in [0, 1], `disp` H x W disparities
@@ -230,12 +174,12 @@ fn synthesise(r: &Region<'_>, out_rgb: &mut [f32]) {
     let order = peel_order(behind, w, h);
     let mut filled: Vec<bool> = behind.iter().map(|&b| !b).collect();
     let lay = Layout {
-        sw: w,
-        sh: h,
-        tw: w,
-        th: h,
-        ox: 0,
-        oy: 0,
+        source_width: w,
+        source_height: h,
+        target_width: w,
+        target_height: h,
+        target_left: 0,
+        target_top: 0,
         half: WINDOW / 2,
         search_radius: SEARCH_RADIUS,
         salt: 0x6261_636b_6472_6f70,

@@ -90,6 +90,7 @@
 use super::{Mpi, MpiError, SIGMA_MAX};
 use crate::geometry::Intrinsics;
 use crate::mpi::planes::{plane_gaps, DELTA_LAST};
+use crate::raster::pushpull::Pyramid;
 use rayon::prelude::*;
 use std::collections::VecDeque;
 
@@ -470,8 +471,8 @@ fn build(
     let plane_len = len * 4;
     // 6. colours of plane i: own colour where alpha > 0, background fill elsewhere; densities
     let ctx = PlaneCtx { rgb, w: width, h: height, lim: &lim, hidden: &hidden, back: back_rgb };
-    mpi.rgba.par_chunks_mut(plane_len).enumerate().for_each_init(Vec::new, |levels, (i, out)| {
-        fill_plane(&ctx, i, levels, out);
+    mpi.rgba.par_chunks_mut(plane_len).enumerate().for_each_init(Pyramid::default, |pyramid, (i, out)| {
+        fill_plane(&ctx, i, pyramid, out);
         let ray = |p: usize| ray_len.as_ref().map_or(1.0, |r| r[p] as f64);
         if i + 1 == n {
             for (p, px) in out.chunks_exact_mut(4).enumerate() {
@@ -636,100 +637,11 @@ struct PlaneCtx<'a> {
     back: &'a [f32],
 }
 
-/// One level of the push-pull pyramid: colours and which of them are known.
-#[derive(Default)]
-struct Level {
-    w: usize,
-    h: usize,
-    c: Vec<[f32; 3]>,
-    known: Vec<bool>,
-}
-
-impl Level {
-    fn reset(&mut self, w: usize, h: usize) {
-        self.w = w;
-        self.h = h;
-        self.c.clear();
-        self.c.resize(w * h, [0.0; 3]);
-        self.known.clear();
-        self.known.resize(w * h, false);
-    }
-}
-
-/// Halves a level into `out`: each cell is the mean of its known children (known if any is).
-fn pull(w: usize, h: usize, at: impl Fn(usize) -> Option<[f32; 3]>, out: &mut Level) {
-    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-    out.reset(cw, ch);
-    for cy in 0..ch {
-        let rows = 2 * cy..(2 * cy + 2).min(h);
-        for cx in 0..cw {
-            let (mut s, mut m) = ([0.0f32; 3], 0u32);
-            for y in rows.clone() {
-                for x in 2 * cx..(2 * cx + 2).min(w) {
-                    if let Some(v) = at(y * w + x) {
-                        for k in 0..3 {
-                            s[k] += v[k];
-                        }
-                        m += 1;
-                    }
-                }
-            }
-            if m > 0 {
-                let inv = 1.0 / m as f32;
-                out.c[cy * cw + cx] = s.map(|v| v * inv);
-                out.known[cy * cw + cx] = true;
-            }
-        }
-    }
-}
-
-/// Bilinear taps of a coarse level for each fine column or row (fine pixel x lies at coarse
-/// coordinate (x - 0.5) / 2).
-fn taps(n: usize, cn: usize) -> Vec<(usize, usize, f32)> {
-    (0..n)
-        .map(|x| {
-            let f = ((x as f32 - 0.5) * 0.5).clamp(0.0, (cn - 1) as f32);
-            let x0 = (f.floor() as usize).min(cn - 1);
-            (x0, (x0 + 1).min(cn - 1), f - x0 as f32)
-        })
-        .collect()
-}
-
-#[inline(always)]
-fn bilinear(
-    c: &[[f32; 3]],
-    cw: usize,
-    (x0, x1, wx): (usize, usize, f32),
-    (y0, y1, wy): (usize, usize, f32),
-) -> [f32; 3] {
-    let (a, b, c, d) = (c[y0 * cw + x0], c[y0 * cw + x1], c[y1 * cw + x0], c[y1 * cw + x1]);
-    let mut o = [0.0f32; 3];
-    for k in 0..3 {
-        let top = a[k] + wx * (b[k] - a[k]);
-        let bot = c[k] + wx * (d[k] - c[k]);
-        o[k] = top + wy * (bot - top);
-    }
-    o
-}
-
-/// Fills the unknown cells of `fine` by bilinear up-sampling of the (fully filled) `coarse`.
-fn push(fine: &mut Level, coarse: &Level) {
-    let (xs, ys) = (taps(fine.w, coarse.w), taps(fine.h, coarse.h));
-    for (y, &ty) in ys.iter().enumerate() {
-        for (x, &tx) in xs.iter().enumerate() {
-            let p = y * fine.w + x;
-            if !fine.known[p] {
-                fine.c[p] = bilinear(&coarse.c, coarse.w, tx, ty);
-            }
-        }
-    }
-}
-
 /// Push-pull fill of plane `i`'s colours into `out` (4 values per pixel, colour in the first
 /// three): the image colour at the plane's sources (`i <= lim[p]`), elsewhere a smooth fill from
 /// the sources only (means of known pixels down to 1x1, then bilinear up-sampling into the
-/// unknown cells, level by level). Plane i always has a source: the farthest content.
-fn fill_plane(ctx: &PlaneCtx, i: usize, levels: &mut Vec<Level>, out: &mut [f32]) {
+/// unknown cells, level by level: [`Pyramid`]). Plane i always has a source: the farthest content.
+fn fill_plane(ctx: &PlaneCtx, i: usize, pyramid: &mut Pyramid<[f32; 3]>, out: &mut [f32]) {
     let (w, h, rgb, lim) = (ctx.w, ctx.h, ctx.rgb, ctx.lim);
     let (hidden, back) = (ctx.hidden, ctx.back);
     let source = |p: usize| -> Option<[f32; 3]> {
@@ -747,38 +659,7 @@ fn fill_plane(ctx: &PlaneCtx, i: usize, levels: &mut Vec<Level>, out: &mut [f32]
         }
         return;
     }
-    // pull: means of known pixels, down to 1x1
-    let mut depth = 0;
-    let (mut lw, mut lh) = (w, h);
-    while lw > 1 || lh > 1 {
-        if levels.len() <= depth {
-            levels.push(Level::default());
-        }
-        if depth == 0 {
-            pull(w, h, source, &mut levels[0]);
-        } else {
-            let (prev, next) = levels.split_at_mut(depth);
-            let l = &prev[depth - 1];
-            pull(l.w, l.h, |p| l.known[p].then_some(l.c[p]), &mut next[0]);
-        }
-        (lw, lh) = (levels[depth].w, levels[depth].h);
-        depth += 1;
-    }
-    // push: fill each level's unknown cells from the level above
-    for li in (0..depth.saturating_sub(1)).rev() {
-        let (fine, coarse) = levels.split_at_mut(li + 1);
-        push(&mut fine[li], &coarse[0]);
-    }
-    let top = &levels[0];
-    let (xs, ys) = (taps(w, top.w), taps(h, top.h));
-    for (y, &ty) in ys.iter().enumerate() {
-        let row = &mut out[4 * y * w..4 * (y + 1) * w];
-        for ((x, &tx), o) in xs.iter().enumerate().zip(row.chunks_exact_mut(4)) {
-            let p = y * w + x;
-            let c = source(p).unwrap_or_else(|| bilinear(&top.c, top.w, tx, ty));
-            o[..3].copy_from_slice(&c);
-        }
-    }
+    pyramid.fill(w, h, source, |p, c| out[4 * p..4 * p + 3].copy_from_slice(&c));
 }
 
 #[cfg(test)]
@@ -903,13 +784,13 @@ mod tests {
         }
         let ctx = PlaneCtx { rgb: &rgb, w, h, lim: &lim, hidden: &[], back: &[] };
         let mut out = vec![0.0f32; w * h * 4];
-        fill_plane(&ctx, 2, &mut Vec::new(), &mut out);
+        fill_plane(&ctx, 2, &mut Pyramid::default(), &mut out);
         for px in out.chunks_exact(4) {
             for (a, b) in px[..3].iter().zip([0.2, 0.4, 0.6]) {
                 assert!((a - b).abs() < 1e-6);
             }
         }
-        fill_plane(&ctx, 0, &mut Vec::new(), &mut out);
+        fill_plane(&ctx, 0, &mut Pyramid::default(), &mut out);
         for (o, c) in out.chunks_exact(4).zip(rgb.chunks_exact(3)) {
             assert_eq!(&o[..3], c);
         }

@@ -28,14 +28,15 @@ use crate::rng::mix64;
 /// Where the target grid lies in the source frame, and the synthesis' parameters.
 #[derive(Clone, Copy, Debug)]
 pub struct Layout {
-    /// Source frame size.
-    pub sw: usize,
-    pub sh: usize,
-    /// Target grid size and its top-left pixel in the source frame.
-    pub tw: usize,
-    pub th: usize,
-    pub ox: usize,
-    pub oy: usize,
+    /// Size of the source frame (the image copied from), in pixels.
+    pub source_width: usize,
+    pub source_height: usize,
+    /// Size of the target grid (the image completed), in pixels.
+    pub target_width: usize,
+    pub target_height: usize,
+    /// Where the target grid's top-left pixel lies in the source frame (column, row).
+    pub target_left: usize,
+    pub target_top: usize,
     /// Half the side of the matching window.
     pub half: usize,
     /// Largest radius of the random search.
@@ -48,6 +49,13 @@ pub struct Layout {
     /// Whether a target no source was found for keeps its value as completed (it then takes part
     /// in the patch distance of the pixels after it) or stays unknown.
     pub keep_unmatched: bool,
+}
+
+impl Layout {
+    /// The source-frame index of target pixel `t`.
+    fn place(&self, t: usize) -> usize {
+        (self.target_top + t / self.target_width) * self.source_width + self.target_left + t % self.target_width
+    }
 }
 
 /// A colour value the synthesis copies and compares: the squared differences of a pixel's three
@@ -114,6 +122,99 @@ pub struct Sources<'a, T, E, S, F> {
     pub fallback: F,
 }
 
+/// What the patch distance reads: the source's colours and masked pixels, and the weights of the
+/// target's pixels.
+struct Patch<'a, T> {
+    lay: &'a Layout,
+    rgb: &'a [T],
+    masked: &'a [bool],
+    /// The target pixels known on entry (empty when they weigh as much as completed ones).
+    known: Vec<bool>,
+}
+
+impl<T: Texel> Patch<'_, T> {
+    /// The mean squared colour difference between the window around target pixel `t` (its known
+    /// or completed pixels) and the window around source pixel `s` (its pixels not masked), over
+    /// the offsets inside both frames in row-major order; infinite where no pixel pairs up.
+    fn cost(&self, t: usize, s: usize, target: &[T], filled: &[bool]) -> f64 {
+        let (tw, th, sw, sh) =
+            (self.lay.target_width, self.lay.target_height, self.lay.source_width, self.lay.source_height);
+        let half = self.lay.half;
+        let (tx, ty, sx, sy) = (t % tw, t / tw, s % sw, s / sw);
+        // the window's reach left, right, up and down that stays inside both frames
+        let (left, right) = (half.min(tx).min(sx), half.min(tw - 1 - tx).min(sw - 1 - sx));
+        let (up, down) = (half.min(ty).min(sy), half.min(th - 1 - ty).min(sh - 1 - sy));
+        let (mut sum, mut m) = (T::Acc::default(), 0u32);
+        for r in 0..=up + down {
+            let a0 = (ty - up + r) * tw + tx - left;
+            let b0 = (sy - up + r) * sw + sx - left;
+            for k in 0..=left + right {
+                let (a, b) = (a0 + k, b0 + k);
+                if filled[a] && !self.masked[b] {
+                    let weight = if !self.known.is_empty() && self.known[a] { self.lay.known_weight } else { 1 };
+                    T::add_sq3(&mut sum, &target[3 * a..3 * a + 3], &self.rgb[3 * b..3 * b + 3], weight);
+                    m += weight;
+                }
+            }
+        }
+        if m == 0 {
+            f64::INFINITY
+        } else {
+            T::total(sum) / f64::from(m)
+        }
+    }
+}
+
+/// The candidates compared for one target and the best of them so far (lowest cost, the first
+/// of equal ones).
+#[derive(Default)]
+struct Choice {
+    seen: Vec<usize>,
+    best: Option<(f64, usize)>,
+}
+
+impl Choice {
+    fn reset(&mut self) {
+        self.seen.clear();
+        self.best = None;
+    }
+
+    /// Compares source `s` at `cost(s)`, unless it was compared before or is not `eligible(s)`.
+    fn consider(&mut self, s: usize, eligible: impl FnOnce(usize) -> bool, cost: impl FnOnce(usize) -> f64) {
+        if self.seen.contains(&s) || !eligible(s) {
+            return;
+        }
+        self.seen.push(s);
+        let c = cost(s);
+        if self.best.is_none_or(|b| c < b.0) {
+            self.best = Some((c, s));
+        }
+    }
+}
+
+/// Candidates 1 (coherence): the sources of target `t`'s eight neighbours shifted by the step to
+/// `t`, where inside the source frame, into `out`.
+fn coherent_candidates(lay: &Layout, src_of: &[u32], t: usize, out: &mut Vec<usize>) {
+    let (tw, th, sw, sh) = (lay.target_width, lay.target_height, lay.source_width, lay.source_height);
+    let (tx, ty) = ((t % tw) as isize, (t / tw) as isize);
+    for dy in -1..=1isize {
+        for dx in -1..=1isize {
+            let (nx, ny) = (tx + dx, ty + dy);
+            if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx as usize >= tw || ny as usize >= th {
+                continue;
+            }
+            let s = src_of[ny as usize * tw + nx as usize];
+            if s == u32::MAX {
+                continue;
+            }
+            let (sx, sy) = ((s as usize % sw) as isize - dx, (s as usize / sw) as isize - dy);
+            if sx >= 0 && sy >= 0 && (sx as usize) < sw && (sy as usize) < sh {
+                out.push(sy as usize * sw + sx as usize);
+            }
+        }
+    }
+}
+
 /// Completes the target pixels of `order` (target-grid indices) in `target` (`tw x th x 3`,
 /// known pixels where `filled`), see the module documentation. Returns, per target pixel, the
 /// source it copied (`u32::MAX` where none).
@@ -130,123 +231,43 @@ where
     S: FnMut(usize, &mut Draw, &mut Vec<usize>),
     F: Fn(usize) -> Option<usize>,
 {
-    let Layout { sw, sh, tw, th, ox, oy, half, search_radius, salt, known_weight, keep_unmatched } = *lay;
-    let known: Vec<bool> = if known_weight == 1 { Vec::new() } else { filled.to_vec() };
-    let weight = |a: usize| if known_weight != 1 && known[a] { known_weight } else { 1 };
-    let half = half as isize;
-    let mut src_of: Vec<u32> = vec![u32::MAX; tw * th];
-    let mut seen: Vec<usize> = Vec::new();
-    let mut seeds: Vec<usize> = Vec::new();
-    let rgb = src.rgb;
-    let masked = src.masked;
-    let cost = |t: usize, s: usize, out: &[T], filled: &[bool]| -> f64 {
-        let (tx, ty) = ((t % tw) as isize, (t / tw) as isize);
-        let (sx, sy) = ((s % sw) as isize, (s / sw) as isize);
-        let (mut sum, mut m) = (T::Acc::default(), 0u32);
-        let inside = tx >= half
-            && ty >= half
-            && sx >= half
-            && sy >= half
-            && tx + half < tw as isize
-            && ty + half < th as isize
-            && sx + half < sw as isize
-            && sy + half < sh as isize;
-        if inside {
-            // the whole window in both frames: no bounds to check
-            let side = 2 * half as usize + 1;
-            let a0 = (ty - half) as usize * tw + (tx - half) as usize;
-            let b0 = (sy - half) as usize * sw + (sx - half) as usize;
-            for r in 0..side {
-                let (ar, br) = (a0 + r * tw, b0 + r * sw);
-                for k in 0..side {
-                    let (a, b) = (ar + k, br + k);
-                    if filled[a] && !masked[b] {
-                        let k = weight(a);
-                        T::add_sq3(&mut sum, &out[3 * a..3 * a + 3], &rgb[3 * b..3 * b + 3], k);
-                        m += k;
-                    }
-                }
-            }
-        } else {
-            for dy in -half..=half {
-                for dx in -half..=half {
-                    let (ax, ay, bx, by) = (tx + dx, ty + dy, sx + dx, sy + dy);
-                    if ax < 0 || ay < 0 || bx < 0 || by < 0 {
-                        continue;
-                    }
-                    let (ax, ay, bx, by) = (ax as usize, ay as usize, bx as usize, by as usize);
-                    if ax >= tw || ay >= th || bx >= sw || by >= sh {
-                        continue;
-                    }
-                    let (a, b) = (ay * tw + ax, by * sw + bx);
-                    if filled[a] && !masked[b] {
-                        let k = weight(a);
-                        T::add_sq3(&mut sum, &out[3 * a..3 * a + 3], &rgb[3 * b..3 * b + 3], k);
-                        m += k;
-                    }
-                }
-            }
-        }
-        if m == 0 {
-            f64::INFINITY
-        } else {
-            T::total(sum) / f64::from(m)
-        }
-    };
+    let (sw, sh) = (lay.source_width, lay.source_height);
+    let known = if lay.known_weight == 1 { Vec::new() } else { filled.to_vec() };
+    let patch = Patch { lay, rgb: src.rgb, masked: src.masked, known };
+    let mut src_of: Vec<u32> = vec![u32::MAX; lay.target_width * lay.target_height];
+    let mut choice = Choice::default();
+    let mut candidates: Vec<usize> = Vec::new();
     for &t in order {
-        let (tx, ty) = ((t % tw) as isize, (t / tw) as isize);
-        let place = (oy + t / tw) * sw + ox + t % tw;
-        let mut best: Option<(f64, usize)> = None;
-        seen.clear();
-        let mut consider = |s: usize, best: &mut Option<(f64, usize)>, out: &[T], filled: &[bool]| {
-            if seen.contains(&s) || !(src.eligible)(t, s) {
-                return;
-            }
-            seen.push(s);
-            let c = cost(t, s, out, filled);
-            if best.is_none_or(|b| c < b.0) {
-                *best = Some((c, s));
-            }
-        };
-        for dy in -1..=1isize {
-            for dx in -1..=1isize {
-                let (nx, ny) = (tx + dx, ty + dy);
-                if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx as usize >= tw || ny as usize >= th {
-                    continue;
-                }
-                let s = src_of[ny as usize * tw + nx as usize];
-                if s == u32::MAX {
-                    continue;
-                }
-                let (sx, sy) = ((s as usize % sw) as isize - dx, (s as usize / sw) as isize - dy);
-                if sx >= 0 && sy >= 0 && (sx as usize) < sw && (sy as usize) < sh {
-                    consider(sy as usize * sw + sx as usize, &mut best, target, filled);
-                }
-            }
+        let place = lay.place(t);
+        let mut draw = Draw(mix64(place as u64 ^ lay.salt));
+        // 1. coherence, 2. the caller's seeds
+        candidates.clear();
+        coherent_candidates(lay, &src_of, t, &mut candidates);
+        (src.seeds)(t, &mut draw, &mut candidates);
+        choice.reset();
+        let (target_now, filled_now): (&[T], &[bool]) = (target, filled);
+        let cost = |s: usize| patch.cost(t, s, target_now, filled_now);
+        let eligible = |s: usize| (src.eligible)(t, s);
+        for &s in &candidates {
+            choice.consider(s, eligible, cost);
         }
-        let mut draw = Draw(mix64(place as u64 ^ salt));
-        seeds.clear();
-        (src.seeds)(t, &mut draw, &mut seeds);
-        for &s in &seeds {
-            consider(s, &mut best, target, filled);
-        }
-        let mut r = search_radius;
+        // 3. the random search around the best so far (or the target's place), halving radii
+        let mut r = lay.search_radius;
         while r >= 1 {
-            let (cx, cy) = best
-                .map_or(((place % sw) as isize, (place / sw) as isize), |b| ((b.1 % sw) as isize, (b.1 / sw) as isize));
-            let x = cx + draw.below(2 * r + 1) as isize - r as isize;
-            let y = cy + draw.below(2 * r + 1) as isize - r as isize;
+            let centre = choice.best.map_or(place, |b| b.1);
+            let x = (centre % sw) as isize + draw.below(2 * r + 1) as isize - r as isize;
+            let y = (centre / sw) as isize + draw.below(2 * r + 1) as isize - r as isize;
             if x >= 0 && y >= 0 && (x as usize) < sw && (y as usize) < sh {
-                consider(y as usize * sw + x as usize, &mut best, target, filled);
+                choice.consider(y as usize * sw + x as usize, eligible, cost);
             }
             r /= 2;
         }
-        let chosen = best.map(|b| b.1).or_else(|| (src.fallback)(t));
+        let chosen = choice.best.map(|b| b.1).or_else(|| (src.fallback)(t));
         if let Some(s) = chosen {
-            target[3 * t..3 * t + 3].copy_from_slice(&rgb[3 * s..3 * s + 3]);
+            target[3 * t..3 * t + 3].copy_from_slice(&src.rgb[3 * s..3 * s + 3]);
             src_of[t] = s as u32;
             filled[t] = true;
-        } else if keep_unmatched {
+        } else if lay.keep_unmatched {
             filled[t] = true;
         }
     }
@@ -331,12 +352,12 @@ mod tests {
         let masked = todo.clone();
         let order = peel_order(&todo, w, h);
         let lay = Layout {
-            sw: w,
-            sh: h,
-            tw: w,
-            th: h,
-            ox: 0,
-            oy: 0,
+            source_width: w,
+            source_height: h,
+            target_width: w,
+            target_height: h,
+            target_left: 0,
+            target_top: 0,
             half: 2,
             search_radius: 16,
             salt: 7,

@@ -1,7 +1,9 @@
-//! Rasters of a source image (a leaf: it imports only `io` and `failure`): object instance
+//! Rasters of a source image (a leaf: it imports only `io`, `failure` and `rng`): object instance
 //! masks ([`instances`]: the [`InstanceMasks`] type, instance-index PNGs, COCO annotation JSON,
 //! the choice of the objects to move), COCO run-length encodings ([`rle`]) and polygons
-//! ([`polygon`]), bit-compatible with pycocotools' `maskApi.c`, and resizing ([`resize`]).
+//! ([`polygon`]), bit-compatible with pycocotools' `maskApi.c`, and resizing ([`resize`]); and
+//! the fills the stages above share: dilation ([`morph`]), the push-pull pyramid ([`pushpull`])
+//! and exemplar synthesis ([`exemplar`]).
 //!
 //! # Conventions
 //!
@@ -37,6 +39,7 @@ pub mod exemplar;
 pub mod instances;
 pub mod morph;
 pub mod polygon;
+pub mod pushpull;
 pub mod resize;
 pub mod rle;
 

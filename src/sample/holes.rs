@@ -37,6 +37,7 @@
 use super::config::InpaintMethod;
 use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};
 use crate::raster::exemplar::{peel_order, synthesise, Draw, Layout, Sources};
+use crate::raster::morph::dilate;
 use crate::render::Rect;
 
 /// How far around a hole the texture fill looks for the background's depth (pixels, chessboard).
@@ -185,15 +186,6 @@ fn entering(hole: &[u8], w: usize, h: usize) -> Vec<bool> {
     seen
 }
 
-/// Whether a mask pixel lies within [`TEXTURE_MASK_GROW`] of `s` (the pixel, the corners and the
-/// edge midpoints of the square around it).
-fn near_object(masked: &[bool], w: usize, h: usize, s: usize) -> bool {
-    let (x, y, r) = (s % w, s / w, TEXTURE_MASK_GROW);
-    let xs = [x.saturating_sub(r), x, (x + r).min(w - 1)];
-    let ys = [y.saturating_sub(r), y, (y + r).min(h - 1)];
-    ys.iter().any(|&yy| xs.iter().any(|&xx| masked[yy * w + xx]))
-}
-
 /// The moved objects that continue beyond image1's frame: `reaches[k]` when label `k` of
 /// `labels1` has a pixel on the frame's border.
 fn reaching_border(labels1: &[u8], w: usize, h: usize) -> [bool; 256] {
@@ -260,6 +252,8 @@ struct Continued {
     label: u8,
     /// H x W, true outside the object (left out of the patch distance).
     outside: Vec<bool>,
+    /// H x W, true within [`TEXTURE_MASK_GROW`] of a pixel outside the object (never a source).
+    near_outside: Vec<bool>,
 }
 
 /// Draws of a place anywhere in image1 for one random candidate of a continued object: the first
@@ -273,136 +267,12 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
     assert!(image.len() == 3 * n && hole.len() == n && tex.image1.len() == 3 * n, "texture fill: sizes");
     assert!(tex.depth1.len() == n && tex.objects.len() == n && tex.depth.len() == n, "texture fill: sizes");
     assert!(tex.mask.len() == n && tex.labels1.len() == n, "texture fill: sizes");
-    let masked = tex.objects;
-    let any_object = masked.contains(&true);
-    let entering = entering(hole, w, h);
-    // what a moved object reaching image1's border brings into the frame is more of that object
-    let reaches = reaching_border(tex.labels1, w, h);
-    let owner =
-        if reaches.contains(&true) { continued_objects(hole, &entering, tex.mask, &reaches, w, h) } else { Vec::new() };
-    let continued: Vec<Continued> = (1..=255u8)
-        .filter(|&k| reaches[usize::from(k)] && owner.contains(&k))
-        .map(|label| {
-            let outside: Vec<bool> = tex.labels1.iter().map(|&l| l != label).collect();
-            Continued { label, outside }
-        })
-        .collect();
-    let owned = |p: usize| !owner.is_empty() && owner[p] != 0;
-    // the tiles with holes, each grown by the matching window's reach
-    let (tx, ty) = (w.div_ceil(TEXTURE_TILE), h.div_ceil(TEXTURE_TILE));
-    let tiles: Vec<(Rect, Rect)> = (0..tx * ty)
-        .map(|k| {
-            let (x0, y0) = ((k % tx) * TEXTURE_TILE, (k / tx) * TEXTURE_TILE);
-            Rect { x0, y0, x1: (x0 + TEXTURE_TILE).min(w), y1: (y0 + TEXTURE_TILE).min(h) }
-        })
-        .filter(|t| (t.y0..t.y1).any(|y| hole[y * w + t.x0..y * w + t.x1].iter().any(|&o| o != 0)))
-        .map(|t| (t, t.grow(TEXTURE_HALF, w, h)))
-        .collect();
-    let results: Vec<(Rect, Rect, Vec<u8>, Vec<u32>)> = tiles
+    let plan = FillPlan::new(w, h, hole, tex);
+    let frame: &[u8] = image;
+    let results: Vec<(Rect, Rect, Vec<u8>, Vec<u32>)> = hole_tiles(hole, w, h)
         .par_iter()
         .map(|&(tile, win)| {
-            let (cw, ch) = (win.width(), win.height());
-            let mut img = Vec::with_capacity(cw * ch * 3);
-            let mut todo = Vec::with_capacity(cw * ch);
-            for y in win.y0..win.y1 {
-                img.extend_from_slice(&image[3 * (y * w + win.x0)..3 * (y * w + win.x1)]);
-                let inside = (tile.y0..tile.y1).contains(&y);
-                todo.extend((win.x0..win.x1).map(|x| {
-                    let p = y * w + x;
-                    inside && (tile.x0..tile.x1).contains(&x) && hole[p] != 0 && !owned(p)
-                }));
-            }
-            // the far side's depth limit per 4 x 4 block of the frame (it varies slowly), at the
-            // block's centre; none for what enters the frame
-            let (bx0, by0) = (win.x0 / TEXTURE_BLOCK, win.y0 / TEXTURE_BLOCK);
-            let bw = (win.x1 - 1) / TEXTURE_BLOCK - bx0 + 1;
-            let bh = (win.y1 - 1) / TEXTURE_BLOCK - by0 + 1;
-            let mut blocks = vec![f32::NAN; bw * bh];
-            let mut buf = Vec::new();
-            let mut nearest = vec![0.0f32; cw * ch];
-            for l in (0..cw * ch).filter(|&l| todo[l] && !entering[(win.y0 + l / cw) * w + win.x0 + l % cw]) {
-                let (bx, by) = ((win.x0 + l % cw) / TEXTURE_BLOCK, (win.y0 + l / cw) / TEXTURE_BLOCK);
-                let b = &mut blocks[(by - by0) * bw + bx - bx0];
-                if b.is_nan() {
-                    let cx = (bx * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(w - 1);
-                    let cy = (by * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(h - 1);
-                    *b = nearest_source_depth(tex, hole, w, h, cx, cy, &mut buf);
-                }
-                nearest[l] = *b;
-            }
-            let order = peel_order(&todo, cw, ch);
-            // what is matched: the frame's background (not the holes of the neighbouring tiles,
-            // not the objects in front of the hole, which are not what lies behind it)
-            let mut filled: Vec<bool> = (win.y0..win.y1)
-                .flat_map(|y| (y * w + win.x0..y * w + win.x1).map(|p| hole[p] == 0 && tex.mask[p] == 0))
-                .collect();
-            let lay = Layout {
-                sw: w,
-                sh: h,
-                tw: cw,
-                th: ch,
-                ox: win.x0,
-                oy: win.y0,
-                half: TEXTURE_HALF,
-                search_radius: TEXTURE_SEARCH,
-                salt: 0x7465_7874_7572_6521,
-                known_weight: TEXTURE_KNOWN_WEIGHT,
-                keep_unmatched: false,
-            };
-            let mut src = Sources {
-                rgb: tex.image1,
-                masked,
-                // background at the far side's depth or farther, not next to an object (a mask's
-                // edge rarely sits exactly on the object's)
-                eligible: |t: usize, s: usize| {
-                    let d = tex.depth1[s];
-                    d > 0.0 && d >= nearest[t] && !(any_object && near_object(masked, w, h, s))
-                },
-                // the pixel's own place in image1, and a few places anywhere
-                seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
-                    out.push((win.y0 + t / cw) * w + win.x0 + t % cw);
-                    out.extend((0..TEXTURE_GLOBAL_DRAWS).map(|_| draw.below(n)));
-                },
-                fallback: |_: usize| None,
-            };
-            let mut src_of = synthesise(&lay, &mut src, &mut img, &mut filled, &order);
-            // the continued objects: their own pixels in image1 matched against what the frame
-            // shows of them
-            for c in &continued {
-                let todo: Vec<bool> = (0..cw * ch)
-                    .map(|l| {
-                        let (x, y) = (win.x0 + l % cw, win.y0 + l / cw);
-                        tile.contains(x, y) && owner[y * w + x] == c.label
-                    })
-                    .collect();
-                if !todo.contains(&true) {
-                    continue;
-                }
-                let order = peel_order(&todo, cw, ch);
-                let mut filled: Vec<bool> = (win.y0..win.y1)
-                    .flat_map(|y| (y * w + win.x0..y * w + win.x1).map(|p| hole[p] == 0 && tex.mask[p] == c.label))
-                    .collect();
-                let mut src = Sources {
-                    rgb: tex.image1,
-                    masked: &c.outside,
-                    eligible: |_t: usize, s: usize| !c.outside[s] && !near_object(&c.outside, w, h, s),
-                    seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
-                        out.push((win.y0 + t / cw) * w + win.x0 + t % cw);
-                        for _ in 0..TEXTURE_GLOBAL_DRAWS {
-                            let hit = (0..CONTINUED_DRAW_TRIES).map(|_| draw.below(n)).find(|&s| !c.outside[s]);
-                            out.extend(hit);
-                        }
-                    },
-                    fallback: |_: usize| None,
-                };
-                let lay = Layout { salt: lay.salt ^ u64::from(c.label), ..lay };
-                let own = synthesise(&lay, &mut src, &mut img, &mut filled, &order);
-                for (l, s) in own.into_iter().enumerate() {
-                    if todo[l] {
-                        src_of[l] = s;
-                    }
-                }
-            }
+            let (img, src_of) = plan.fill_tile(frame, tile, win);
             (tile, win, img, src_of)
         })
         .collect();
@@ -422,7 +292,208 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
             }
         }
     }
-    TextureFill { left, continued: owner }
+    TextureFill { left, continued: plan.owner }
+}
+
+/// The frame's [`TEXTURE_TILE`] tiles that hold a hole pixel, each with its window: the tile grown
+/// by the matching window's reach.
+fn hole_tiles(hole: &[u8], w: usize, h: usize) -> Vec<(Rect, Rect)> {
+    let (tx, ty) = (w.div_ceil(TEXTURE_TILE), h.div_ceil(TEXTURE_TILE));
+    (0..tx * ty)
+        .map(|k| {
+            let (x0, y0) = ((k % tx) * TEXTURE_TILE, (k / tx) * TEXTURE_TILE);
+            Rect { x0, y0, x1: (x0 + TEXTURE_TILE).min(w), y1: (y0 + TEXTURE_TILE).min(h) }
+        })
+        .filter(|t| (t.y0..t.y1).any(|y| hole[y * w + t.x0..y * w + t.x1].iter().any(|&o| o != 0)))
+        .map(|t| (t, t.grow(TEXTURE_HALF, w, h)))
+        .collect()
+}
+
+/// What every tile of one texture fill reads: the frame's holes, what enters the frame, the
+/// continued objects and where sources may not lie.
+struct FillPlan<'a> {
+    w: usize,
+    h: usize,
+    hole: &'a [u8],
+    tex: &'a TextureSource<'a>,
+    /// H x W, the hole pixels connected to the frame's border.
+    entering: Vec<bool>,
+    /// H x W, the moved object each hole pixel continues (0 = background); empty when no moved
+    /// object reaches image1's border.
+    owner: Vec<u8>,
+    continued: Vec<Continued>,
+    /// H x W, within [`TEXTURE_MASK_GROW`] of one of image1's objects (never a background source).
+    near_object: Vec<bool>,
+}
+
+/// One synthesis of a tile: which pixels it completes, from which of image1's pixels, matched
+/// against which of the frame's.
+struct Part<'a, E, D> {
+    /// The tile window's pixels to complete.
+    todo: &'a [bool],
+    /// The label of the frame's pixels matched (0: the background).
+    label: u8,
+    /// image1's pixels left out of the patch distance.
+    masked: &'a [bool],
+    /// Whether image1's pixel `s` may be copied into window pixel `t`.
+    eligible: E,
+    /// One random candidate anywhere in image1 (none: the draws missed).
+    draw: D,
+    salt: u64,
+}
+
+impl<'a> FillPlan<'a> {
+    fn new(w: usize, h: usize, hole: &'a [u8], tex: &'a TextureSource<'a>) -> Self {
+        let masked = tex.objects;
+        // sources keep their distance from every object: the objects grown once
+        let near_object =
+            if masked.contains(&true) { dilate(w, h, masked, TEXTURE_MASK_GROW) } else { vec![false; w * h] };
+        let entering = entering(hole, w, h);
+        // what a moved object reaching image1's border brings into the frame is more of that object
+        let reaches = reaching_border(tex.labels1, w, h);
+        let owner = if reaches.contains(&true) {
+            continued_objects(hole, &entering, tex.mask, &reaches, w, h)
+        } else {
+            Vec::new()
+        };
+        let continued: Vec<Continued> = (1..=255u8)
+            .filter(|&k| reaches[usize::from(k)] && owner.contains(&k))
+            .map(|label| {
+                let outside: Vec<bool> = tex.labels1.iter().map(|&l| l != label).collect();
+                let near_outside = dilate(w, h, &outside, TEXTURE_MASK_GROW);
+                Continued { label, outside, near_outside }
+            })
+            .collect();
+        Self { w, h, hole, tex, entering, owner, continued, near_object }
+    }
+
+    /// Fills the hole pixels of `tile` in a copy of `frame`'s window `win`: the background, then
+    /// each continued object. Returns the window's colours and, per window pixel, the source it
+    /// copied (`u32::MAX` where none).
+    fn fill_tile(&self, frame: &[u8], tile: Rect, win: Rect) -> (Vec<u8>, Vec<u32>) {
+        let (w, h, n, hole, tex) = (self.w, self.h, self.w * self.h, self.hole, self.tex);
+        let (cw, ch) = (win.width(), win.height());
+        let owned = |p: usize| !self.owner.is_empty() && self.owner[p] != 0;
+        let mut img = Vec::with_capacity(cw * ch * 3);
+        let mut todo = Vec::with_capacity(cw * ch);
+        for y in win.y0..win.y1 {
+            img.extend_from_slice(&frame[3 * (y * w + win.x0)..3 * (y * w + win.x1)]);
+            todo.extend((win.x0..win.x1).map(|x| tile.contains(x, y) && hole[y * w + x] != 0 && !owned(y * w + x)));
+        }
+        let nearest = self.depth_limits(&todo, win);
+        let lay = Layout {
+            source_width: w,
+            source_height: h,
+            target_width: cw,
+            target_height: ch,
+            target_left: win.x0,
+            target_top: win.y0,
+            half: TEXTURE_HALF,
+            search_radius: TEXTURE_SEARCH,
+            salt: 0x7465_7874_7572_6521,
+            known_weight: TEXTURE_KNOWN_WEIGHT,
+            keep_unmatched: false,
+        };
+        let background = Part {
+            todo: &todo,
+            label: 0,
+            masked: tex.objects,
+            // background at the far side's depth or farther, not next to an object (a mask's
+            // edge rarely sits exactly on the object's)
+            eligible: |t: usize, s: usize| {
+                let d = tex.depth1[s];
+                d > 0.0 && d >= nearest[t] && !self.near_object[s]
+            },
+            draw: |draw: &mut Draw| Some(draw.below(n)),
+            salt: lay.salt,
+        };
+        let mut src_of = self.synthesise_part(&lay, win, background, &mut img);
+        // the continued objects: their own pixels in image1 matched against what the frame shows
+        // of them
+        for c in &self.continued {
+            let todo: Vec<bool> = (0..cw * ch)
+                .map(|l| {
+                    let (x, y) = (win.x0 + l % cw, win.y0 + l / cw);
+                    tile.contains(x, y) && self.owner[y * w + x] == c.label
+                })
+                .collect();
+            if !todo.contains(&true) {
+                continue;
+            }
+            let part = Part {
+                todo: &todo,
+                label: c.label,
+                masked: &c.outside,
+                eligible: |_t: usize, s: usize| !c.near_outside[s],
+                draw: |draw: &mut Draw| (0..CONTINUED_DRAW_TRIES).map(|_| draw.below(n)).find(|&s| !c.outside[s]),
+                salt: lay.salt ^ u64::from(c.label),
+            };
+            let own = self.synthesise_part(&lay, win, part, &mut img);
+            for (l, s) in own.into_iter().enumerate() {
+                if todo[l] {
+                    src_of[l] = s;
+                }
+            }
+        }
+        (img, src_of)
+    }
+
+    /// The far side's depth limit of each pixel to complete in window `win` (0 elsewhere), one
+    /// per [`TEXTURE_BLOCK`] block of the frame (it varies slowly), at the block's centre; none
+    /// for what enters the frame.
+    fn depth_limits(&self, todo: &[bool], win: Rect) -> Vec<f32> {
+        let (w, h) = (self.w, self.h);
+        let cw = win.width();
+        let (bx0, by0) = (win.x0 / TEXTURE_BLOCK, win.y0 / TEXTURE_BLOCK);
+        let bw = (win.x1 - 1) / TEXTURE_BLOCK - bx0 + 1;
+        let bh = (win.y1 - 1) / TEXTURE_BLOCK - by0 + 1;
+        let mut blocks = vec![f32::NAN; bw * bh];
+        let mut buf = Vec::new();
+        let mut nearest = vec![0.0f32; todo.len()];
+        for l in (0..todo.len()).filter(|&l| todo[l] && !self.entering[(win.y0 + l / cw) * w + win.x0 + l % cw]) {
+            let (bx, by) = ((win.x0 + l % cw) / TEXTURE_BLOCK, (win.y0 + l / cw) / TEXTURE_BLOCK);
+            let b = &mut blocks[(by - by0) * bw + bx - bx0];
+            if b.is_nan() {
+                let cx = (bx * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(w - 1);
+                let cy = (by * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(h - 1);
+                *b = nearest_source_depth(self.tex, self.hole, w, h, cx, cy, &mut buf);
+            }
+            nearest[l] = *b;
+        }
+        nearest
+    }
+
+    /// Completes `part.todo` in `img` (window `win` of the frame) in onion-peel order, each pixel
+    /// from image1 ([`synthesise`]): the candidates are the neighbours' sources shifted, the
+    /// pixel's own place in image1 and [`TEXTURE_GLOBAL_DRAWS`] random ones; what is matched is
+    /// the frame's pixels of `part.label` (not the holes of the neighbouring tiles, not what
+    /// stands in front of the hole).
+    fn synthesise_part<E, D>(&self, lay: &Layout, win: Rect, part: Part<'_, E, D>, img: &mut [u8]) -> Vec<u32>
+    where
+        E: Fn(usize, usize) -> bool,
+        D: Fn(&mut Draw) -> Option<usize>,
+    {
+        let (w, cw) = (self.w, win.width());
+        let (hole, mask) = (self.hole, self.tex.mask);
+        let order = peel_order(part.todo, cw, win.height());
+        let mut filled: Vec<bool> = (win.y0..win.y1)
+            .flat_map(|y| (y * w + win.x0..y * w + win.x1).map(|p| hole[p] == 0 && mask[p] == part.label))
+            .collect();
+        let draw_one = &part.draw;
+        let mut src = Sources {
+            rgb: self.tex.image1,
+            masked: part.masked,
+            eligible: part.eligible,
+            seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
+                out.push((win.y0 + t / cw) * w + win.x0 + t % cw);
+                for _ in 0..TEXTURE_GLOBAL_DRAWS {
+                    out.extend(draw_one(draw));
+                }
+            },
+            fallback: |_: usize| None,
+        };
+        synthesise(&Layout { salt: part.salt, ..*lay }, &mut src, img, &mut filled, &order)
+    }
 }
 
 /// Fills the pixels where `hole` is non-zero in the u8 RGB image (`w` x `h` x 3) with `method`

@@ -58,13 +58,14 @@ pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u6
     f.u64(loader_fingerprint).str(&json).finish()
 }
 
-/// The revision words of the opt-in rules a configuration uses: the `exemplar` fill's second
-/// revision continues a moved object that reaches image1's border into what enters the frame
-/// beside it (and labels it in the frame's mask).
+/// The revision words of the opt-in rules a configuration uses: the `exemplar` fill's third
+/// revision (its second continues a moved object that reaches image1's border into what enters
+/// the frame beside it and labels it in the frame's mask; its third keeps every source
+/// `TEXTURE_MASK_GROW` pixels from every object, however thin).
 fn rule_revisions(config: &SampleConfig) -> Vec<&'static str> {
     let mut words = Vec::new();
     if config.inpaint_method == super::config::InpaintMethod::Exemplar {
-        words.push("exemplar r2");
+        words.push("exemplar r3");
     }
     words
 }

@@ -9,14 +9,15 @@
 //! (chessboard) of its edge, on either side: the object's disparity `d_in` is pulled from the
 //! mask's core (inside pixels farther than [`BAND`] from the edge) and the background's `d_out`
 //! from the pixels farther than [`BAND`] outside, each by the push-pull fill of
-//! [`crate::mpi::backdrop`]. Where the object stands out (`d_in > (1 + `[`EDGE_STEP`]`) d_out`) a
+//! [`crate::raster::pushpull`]. Where the object stands out (`d_in > (1 + `[`EDGE_STEP`]`) d_out`) a
 //! band pixel belongs to the object (mask 1) when its own disparity is nearer `d_in` than
 //! `d_out` (in ratio), else to the background (mask 0). Elsewhere (no depth step: the object
 //! touches what is around it) the mask is kept as it is. Pixels of other instances are left
 //! alone.
 
-use crate::mpi::backdrop::{push_pull, EDGE_STEP};
+use crate::mpi::backdrop::EDGE_STEP;
 use crate::raster::morph::dilate;
+use crate::raster::pushpull::push_pull;
 use crate::raster::InstanceMasks;
 
 /// Half-width of the band around a mask's edge that is re-decided by depth, in pixels.
