@@ -47,6 +47,26 @@ impl Shared {
         }
     }
 
+    /// A client of `addr` from the local address `from` (the system's choice if None); a failure
+    /// counted as `kind`'s unexpected error; None then, or once `until` has passed.
+    pub(super) async fn connect(
+        &self,
+        kind: &str,
+        addr: &str,
+        from: Option<std::net::IpAddr>,
+        until: tokio::time::Instant,
+    ) -> Option<crate::service::client::Client> {
+        let options = crate::service::client::ClientOptions { local_address: from, ..Default::default() };
+        match tokio::time::timeout_at(until, crate::service::client::connect_with(addr, &options)).await {
+            Ok(Ok(c)) => Some(c),
+            Ok(Err(e)) => {
+                self.error(kind, "connect", &e.to_string(), false);
+                None
+            }
+            Err(_) => None,
+        }
+    }
+
     pub(super) fn status(&self, kind: &str, s: &tonic::Status, strict: bool) {
         let expected = !strict && s.code() == tonic::Code::ResourceExhausted;
         self.error(kind, &format!("{:?}", s.code()), s.message(), expected);

@@ -60,12 +60,7 @@ pub(super) async fn unary_client(
     until: tokio::time::Instant,
     sh: Arc<Shared>,
 ) {
-    let options = crate::service::client::ClientOptions { local_address: Some(from.into()), ..Default::default() };
-    let mut client = match timeout_at(until, crate::service::client::connect_with(&addr, &options)).await {
-        Ok(Ok(c)) => c,
-        Ok(Err(e)) => return sh.error("unary", "connect", &e.to_string(), false),
-        Err(_) => return,
-    };
+    let Some(mut client) = sh.connect("unary", &addr, Some(from.into()), until).await else { return };
     let mut index = 0u64;
     while tokio::time::Instant::now() < until {
         index += 1;
@@ -101,6 +96,28 @@ async fn raw_h2(
     Ok((send, tokio::spawn(conn)))
 }
 
+/// [`raw_h2`] until it connects (a refusal counted as `kind`'s expected error, then tried again
+/// 200 ms later); None once `until` has passed.
+async fn raw_h2_until(
+    kind: &str,
+    addr: &str,
+    from: Ipv4Addr,
+    window: u32,
+    until: tokio::time::Instant,
+    sh: &Shared,
+) -> Option<(h2::client::SendRequest<bytes::Bytes>, tokio::task::JoinHandle<Result<(), h2::Error>>)> {
+    loop {
+        match timeout_at(until, raw_h2(addr, from, window)).await {
+            Ok(Ok(c)) => return Some(c),
+            Ok(Err(e)) => {
+                sh.error(kind, "connect", &e, true);
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(_) => return None,
+        }
+    }
+}
+
 /// Keeps `calls` GetSample calls of `frames`-frame samples with every field open on a raw
 /// connection from `from` with a one-byte window, never reading them; reconnects when the server
 /// closes the connection.
@@ -115,15 +132,7 @@ pub(super) async fn unread_client(
     let body = pb::SampleSpec { fields: all_fields(), frames, ..Default::default() }.sample(0).encode_to_vec();
     let frame = grpc_frame(&body);
     while tokio::time::Instant::now() < until {
-        let (send, conn) = match timeout_at(until, raw_h2(&addr, from, 1)).await {
-            Ok(Ok(c)) => c,
-            Ok(Err(e)) => {
-                sh.error("unread", "connect", &e, true);
-                tokio::time::sleep(Duration::from_millis(200)).await;
-                continue;
-            }
-            Err(_) => return,
-        };
+        let Some((send, conn)) = raw_h2_until("unread", &addr, from, 1, until, &sh).await else { return };
         let mut held = Vec::new();
         for _ in 0..calls {
             let call = raw_call(&send, "/mpiflow.v1.MpiFlow/GetSample", frame.clone());
@@ -204,15 +213,7 @@ pub(super) async fn window_client(
     .encode_to_vec();
     let frame = grpc_frame(&body);
     while tokio::time::Instant::now() < until {
-        let (send, conn) = match timeout_at(until, raw_h2(&addr, from, 0)).await {
-            Ok(Ok(c)) => c,
-            Ok(Err(e)) => {
-                sh.error("window", "connect", &e, true);
-                tokio::time::sleep(Duration::from_millis(200)).await;
-                continue;
-            }
-            Err(_) => return,
-        };
+        let Some((send, conn)) = raw_h2_until("window", &addr, from, 0, until, &sh).await else { return };
         let mut held = Vec::new();
         for _ in 0..streams {
             match timeout_at(until, raw_call(&send, "/mpiflow.v1.MpiFlow/StreamSamples", frame.clone())).await {

@@ -430,12 +430,7 @@ async fn stalled_client(
     until: tokio::time::Instant,
     sh: Arc<Shared>,
 ) {
-    let options = crate::service::client::ClientOptions { local_address: from, ..Default::default() };
-    let mut client = match timeout_at(until, crate::service::client::connect_with(&addr, &options)).await {
-        Ok(Ok(c)) => c,
-        Ok(Err(e)) => return sh.error("stalled", "connect", &e.to_string(), false),
-        Err(_) => return,
-    };
+    let Some(mut client) = sh.connect("stalled", &addr, from, until).await else { return };
     let mut round = 0u64;
     while tokio::time::Instant::now() < until {
         let req = pb::StreamRequest {
