@@ -162,12 +162,34 @@ pub fn force(isa: Isa) -> Result<(), IsaError> {
 pub trait Wide {
     type Output;
     fn run<const LANES: usize>(self) -> Self::Output;
+
+    /// [`Self::run`] on the AVX-512 path with its token, for loops that use its instructions
+    /// directly (`pulp`'s safe wrappers); by default `run::<16>`.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn run_v4(self, v4: pulp::x86::V4) -> Self::Output
+    where
+        Self: Sized,
+    {
+        let _ = v4;
+        self.run::<16>()
+    }
 }
 
 /// Runs `job` compiled for the chosen path ([`current`]).
 #[inline(always)]
 pub fn dispatch<W: Wide>(job: W) -> W::Output {
     struct Op<W, const LANES: usize>(W);
+    #[cfg(target_arch = "x86_64")]
+    struct OpV4<W>(W, pulp::x86::V4);
+    #[cfg(target_arch = "x86_64")]
+    impl<W: Wide> pulp::WithSimd for OpV4<W> {
+        type Output = W::Output;
+        #[inline(always)]
+        fn with_simd<S: pulp::Simd>(self, _: S) -> W::Output {
+            self.0.run_v4(self.1)
+        }
+    }
     impl<W: Wide, const LANES: usize> pulp::WithSimd for Op<W, LANES> {
         type Output = W::Output;
         #[inline(always)]
@@ -178,7 +200,7 @@ pub fn dispatch<W: Wide>(job: W) -> W::Output {
     match current() {
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => match pulp::x86::V4::try_new() {
-            Some(v4) => pulp::Simd::vectorize(v4, Op::<W, 16>(job)),
+            Some(v4) => pulp::Simd::vectorize(v4, OpV4(job, v4)),
             None => job.run::<4>(),
         },
         #[cfg(target_arch = "x86_64")]

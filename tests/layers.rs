@@ -32,6 +32,7 @@ const ROOMS: &[(&str, &[&[&str]])] = &[
             &["tap"],
             &["band", "guard", "store"],
             &["mip", "occupancy", "resample"],
+            &["row16"],
             &["exact", "reference"],
             &["cut"],
         ],

@@ -214,12 +214,13 @@ proptest! {
         prop_assert!(lanes.flow.iter().any(|v| *v != 0.0), "the pose moves something");
     }
 
-    /// Both passes take four adjacent pixels at a time in f32 lanes where they can; a window one
-    /// pixel wide leaves no four pixels in a row, so it runs the scalar loops, which stay the
-    /// reference. Over random MPIs, poses (also ones that carry the camera through and behind
-    /// the planes), both skipping settings, three colour kernels and with no extra channel or a
-    /// broadcast mask (the cases the target view's lanes take), every pixel of the full frame
-    /// equals its one-pixel-wide column's, bit for bit, in every field.
+    /// Both passes take four adjacent pixels at a time in f32 lanes where they can (the target
+    /// view sixteen, reading packed planes in registers, on AVX-512); a window one pixel wide
+    /// leaves no four pixels in a row, so it runs the scalar loops, which stay the reference.
+    /// Over random MPIs, dense or packed as a prepared scene is, poses (also ones that carry the
+    /// camera through and behind the planes), both skipping settings, three colour kernels and
+    /// with no extra channel or a broadcast mask (the cases the target view's lanes take), every
+    /// pixel of the full frame equals its one-pixel-wide column's, bit for bit, in every field.
     #[test]
     fn the_lanes_give_the_scalar_loops_bits(
         seed in any::<u64>(),
@@ -230,6 +231,7 @@ proptest! {
         kernel in 0usize..3,
         broadcast in any::<bool>(),
         centre in prop::array::uniform2(0.0f32..1.0),
+        packed in any::<bool>(),
     ) {
         let mut mpi = random_mpi(W, H, planes, seed, seed.is_multiple_of(3));
         mpi.extras.clear();
@@ -237,6 +239,12 @@ proptest! {
         let skip = if skip_on { Skip::DEFAULT } else { Skip::NONE };
         let mut p = params(&mpi, Pose::from_axis_angle(r, t), skip);
         p.resample = [Resample::Bilinear, Resample::Bspline3, Resample::Bicubic][kernel];
+        if packed {
+            mpiflow::render::resample::prefilter(&mut mpi, p.resample);
+            if mpiflow::render::store::packs(p.mode, p.resample, false) {
+                mpiflow::render::store::pack(&mut mpi);
+            }
+        }
         let mask = disc(W, H, centre[0] * W as f32, centre[1] * H as f32, 9.0);
         let ch = if broadcast { Channels::Broadcast(&mask) } else { Channels::PerPlane };
         let full = render_window::<f32>(&mpi, &p, None, &Rect::full(W, H), ch, None).unwrap();

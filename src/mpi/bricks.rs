@@ -262,6 +262,26 @@ impl Bricks {
         Some(b as usize * self.block_len + (v * self.side + u) * self.stride)
     }
 
+    /// Where block (bx, by) of plane `i` starts in [`Self::data`] (its [`Self::side`] rows of
+    /// [`Self::row_len`] values follow, the apron included); `None` where it is not stored.
+    #[inline(always)]
+    pub fn block_start(&self, i: usize, bx: usize, by: usize) -> Option<usize> {
+        let b = self.table[(i * self.bh + by) * self.bw + bx];
+        (b != EMPTY).then(|| b as usize * self.block_len)
+    }
+
+    /// Side of a stored block in pixels (its apron included).
+    #[inline(always)]
+    pub fn side(&self) -> usize {
+        self.side
+    }
+
+    /// The apron before a block (columns and rows).
+    #[inline(always)]
+    pub fn lo(&self) -> usize {
+        self.lo
+    }
+
     /// All stored values, block after block ([`Self::offset`]).
     #[inline(always)]
     pub fn data(&self) -> &[f32] {

@@ -51,6 +51,7 @@ use super::real::Real;
 use super::resample::{
     bspline_bricks, sample_rgb_bricks_weighted, sample_rgb_weighted, Bspline3, Bspline5, Kernel, Keys, Lanczos3,
 };
+use super::row16::{Blocks16, TargetLanes, KERNEL_MIN_WEIGHT};
 use super::store::Rgba;
 use super::tap::Tap;
 use super::types::{Channels, DensityCut, RenderOutput, RenderParams, RenderStats, Resample, View};
@@ -106,6 +107,11 @@ trait PlaneSampler<T: Real>: Sync {
         wgt: [f32; 4],
     ) -> [[f32; 3]; 4] {
         colour_per_lane(self, lanes, q, i, wgt)
+    }
+    /// The blocks the sixteen-lane loop reads ([`super::row16`]) when this sampler is one it
+    /// does (packed planes, the bilinear or cubic B-spline colour, no minified plane).
+    fn blocks16(&self) -> Option<Blocks16<'_>> {
+        None
     }
 }
 
@@ -176,6 +182,13 @@ impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
         self.rgba.texel(tap, i)
     }
 
+    fn blocks16(&self) -> Option<Blocks16<'_>> {
+        match &self.rgba {
+            Rgba::Blocks(b) if self.mip.iter().all(Option::is_none) => Some(Blocks16 { rgba: b, bspline3: None }),
+            _ => None,
+        }
+    }
+
     #[inline(always)]
     fn colour(&self, _: &Tap<T>, texel: &[T; 4], qx: T, qy: T, i: usize, _: T) -> [T; 3] {
         let base = || [texel[0], texel[1], texel[2]];
@@ -186,11 +199,6 @@ impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
     }
 }
 
-/// Composite weights below this take the bilinear colour even with a higher-order kernel: the
-/// difference is at most this fraction of full scale (below half an 8-bit step), and such
-/// samples are common (the faint tails of soft layers), so the kernel's cost goes where it shows.
-pub(crate) const KERNEL_MIN_WEIGHT: f32 = 1.0 / 1024.0;
-
 /// Where a [`HighOrder`] sampler's kernel reads colour: `Some` colour of plane `i` at (qx, qy)
 /// by kernel `K`, `None` where the source holds nothing there (the sampler then takes the
 /// bilinear colour).
@@ -199,6 +207,10 @@ trait KernelColour: Sync {
     #[inline(always)]
     fn rgb<T: Real, K: Kernel<N>, const N: usize>(&self, i: usize, tap: &Tap<T>) -> Option<[T; 3]> {
         self.rgb_weighted(i, tap, &K::weights(tap.wx), &K::weights(tap.wy))
+    }
+    /// The store itself when it is one of blocks ([`Bricks`]).
+    fn as_bricks(&self) -> Option<&Bricks> {
+        None
     }
     /// The colour with the kernel's weights at the tap's fractions given.
     fn rgb_weighted<T: Real, const N: usize>(&self, i: usize, tap: &Tap<T>, wx: &[T; N], wy: &[T; N])
@@ -227,6 +239,10 @@ impl<const S: usize> KernelColour for DenseColour<'_, S> {
 
 /// The B-spline coefficients in blocks ([`crate::mpi::Mpi::bspline_rgb`]).
 impl KernelColour for Bricks {
+    fn as_bricks(&self) -> Option<&Bricks> {
+        Some(self)
+    }
+
     #[inline(always)]
     fn rgb_weighted<T: Real, const N: usize>(
         &self,
@@ -250,6 +266,15 @@ struct HighOrder<'a, K, const N: usize, C> {
 }
 
 impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for HighOrder<'_, K, N, C> {
+    fn blocks16(&self) -> Option<Blocks16<'_>> {
+        match (&self.rgba, self.src.as_bricks()) {
+            (Rgba::Blocks(b), Some(c)) if K::BSPLINE3 && self.mip.iter().all(Option::is_none) => {
+                Some(Blocks16 { rgba: b, bspline3: Some(c) })
+            }
+            _ => None,
+        }
+    }
+
     #[inline(always)]
     fn texel(&self, tap: &Tap<T>, i: usize) -> [T; 4] {
         // the bilinear colour too (the four channels in one vector operation, one block look-up):
@@ -536,15 +561,26 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> crate::isa::Wide for TargetBa
     type Output = RenderStats;
     #[inline(always)]
     fn run<const LANES: usize>(self) -> RenderStats {
-        self.band.band(self.y0, self.rows, self.b)
+        self.band.band(self.y0, self.rows, self.b, None)
+    }
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn run_v4(self, v4: pulp::x86::V4) -> RenderStats {
+        self.band.band(self.y0, self.rows, self.b, Some(v4))
     }
 }
+
+/// The AVX-512 token where the band runs on that path (the sixteen-lane loop needs it).
+#[cfg(target_arch = "x86_64")]
+type Token = pulp::x86::V4;
+#[cfg(not(target_arch = "x86_64"))]
+type Token = std::convert::Infallible;
 
 impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
     /// The band of `rows` rows from window row `y0`: tile by tile, the planes that may
     /// contribute, then per pixel (four at a time in lanes where they can) the plane loop.
     #[inline(always)]
-    fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 10]) -> RenderStats {
+    fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 10], v4: Option<Token>) -> RenderStats {
         let TargetBand { geo, sampler, occ, win, consts, lanes, ex_planes, ex_rect, c, w, h } = *self;
         let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } = geo;
         let (fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last) =
@@ -566,6 +602,14 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
         let mut rev: Vec<usize> = Vec::with_capacity(n);
         let mut acc_ex = vec![T::zero(); c];
         let mut ex = vec![T::zero(); c];
+        // sixteen pixels at a time on AVX-512 where the planes are blocks it reads
+        let blocks16 = v4.zip(lanes).and_then(|_| sampler.blocks16()).filter(|s| {
+            let (r, k) = (s.rgba, s.bspline3);
+            r.stride() == 4
+                && r.lo() == 0
+                && r.side() == 17
+                && k.is_none_or(|k| k.stride() == 3 && k.lo() == 1 && k.side() == 19)
+        });
         for tx0 in (win.x0..win.x1).step_by(TILE) {
             let tx1 = (tx0 + TILE).min(win.x1) - 1;
             let ty1 = fy0 + rows - 1;
@@ -584,6 +628,14 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
             for ry in 0..rows {
                 let uy_y = uy[y0 + ry];
                 let mut x = tx0;
+                #[cfg(target_arch = "x86_64")]
+                if let (Some(v4), Some(l), Some(src)) = (v4, lanes, blocks16.filter(|_| tx1 + 1 - tx0 == TILE)) {
+                    let o = ry * ww + (x - win.x0);
+                    let out = super::row16::RowOut { b: &mut *b, stats: &mut stats };
+                    if super::row16::row16(v4, l, src, ex_lanes, [x - win.x0, y0 + ry], [&fwd, &rev], o, out) {
+                        continue;
+                    }
+                }
                 while x <= tx1 {
                     if let Some(l) = lanes.filter(|_| x + 3 <= tx1) {
                         let o = ry * ww + (x - win.x0);
@@ -775,36 +827,6 @@ impl<T: Real> TargetGeometry<T> {
     }
 }
 
-/// The target view's per-pixel loop for four adjacent pixels of a row at once (`f32`, without
-/// links, with no or one extra channel; the scalar loop of [`target_view_with`] stays the
-/// reference and runs everything else). The ray set-up, the plane intersection, the "leaves the
-/// source image" test, the clamps, the depth, the gap to the next plane, the exponential and the
-/// compositing run in `f32x4` lanes with the scalar loop's operations in its order; the taps and
-/// the colour kernel run per lane through the same [`PlaneSampler`] calls. A plane a lane does
-/// not take is masked out, a lane whose transmittance fell below `t_eps` is done (counted as
-/// the scalar loop counts its early exit), and the loop ends when all four are done, so every
-/// pixel gets the scalar loop's bits (`tests/render_window.rs` compares the two).
-struct TargetLanes {
-    /// R^T and the window's columns and rows as u = K_t^-1 p (the rays are set up in lanes)
-    rt: [[f32; 3]; 3],
-    ux: Vec<f32>,
-    uy: Vec<f32>,
-    a: Vec<f32>,
-    depth: Vec<f32>,
-    ox: Vec<f32>,
-    oy: Vec<f32>,
-    fxs: f32,
-    fys: f32,
-    lo: f32,
-    hix: f32,
-    hiy: f32,
-    wm: f32,
-    hm: f32,
-    t_eps: f32,
-    w: usize,
-    h: usize,
-}
-
 /// The lanes of the bits of `on` (bit k: lane k) as an `f32x4` mask, computed in registers (an
 /// array of flags stored one by one and loaded as a vector stalls the store forwarding: the
 /// profile of the `bspline3` target pass put 8% of its samples on that load).
@@ -815,6 +837,15 @@ fn lane_mask(on: u32) -> wide::f32x4 {
     wide::bytemuck::cast::<i32x4, wide::f32x4>((i32x4::splat(on as i32) & bits).simd_eq(bits))
 }
 
+/// The target view's per-pixel loop for four adjacent pixels of a row at once (`f32`, without
+/// links, with no or one extra channel; the scalar loop of [`target_view_with`] stays the
+/// reference and runs everything else). The ray set-up, the plane intersection, the "leaves the
+/// source image" test, the clamps, the depth, the gap to the next plane, the exponential and the
+/// compositing run in `f32x4` lanes with the scalar loop's operations in its order; the taps and
+/// the colour kernel run per lane through the same [`PlaneSampler`] calls. A plane a lane does
+/// not take is masked out, a lane whose transmittance fell below `t_eps` is done (counted as
+/// the scalar loop counts its early exit), and the loop ends when all four are done, so every
+/// pixel gets the scalar loop's bits (`tests/render_window.rs` compares the two).
 impl TargetLanes {
     /// The lanes' copy of the scalar loop's constants ([`TargetGeometry`]) in `f32`.
     fn new<T: Real>(g: &TargetGeometry<T>, w: usize, h: usize) -> Self {

@@ -63,6 +63,7 @@ mod occupancy;
 mod real;
 mod reference;
 pub mod resample;
+mod row16;
 mod simd;
 pub mod store;
 mod tap;

@@ -42,6 +42,10 @@ use crate::mpi::Mpi;
 /// The weights of a separable kernel at fractional offset `t` in [0, 1) from the tap
 /// `floor(q)`; tap `k` sits at `floor(q) + k - (N / 2 - 1)`.
 pub(crate) trait Kernel<const N: usize>: Sync {
+    /// Whether this is the cubic B-spline ([`Bspline3`]), which the sixteen-lane target loop
+    /// evaluates itself (`render::row16`).
+    const BSPLINE3: bool = false;
+
     fn weights<T: Real>(t: T) -> [T; N];
 
     /// [`Self::weights`] of four fractions at once (`f32`, the same bits): `[k][lane]`.
@@ -96,6 +100,8 @@ impl Kernel<4> for Keys {
 }
 
 impl Kernel<4> for Bspline3 {
+    const BSPLINE3: bool = true;
+
     #[inline(always)]
     fn weights<T: Real>(t: T) -> [T; 4] {
         let s = T::one() / T::of(6.0);

@@ -1,0 +1,533 @@
+//! The target view's plane loop for the sixteen pixels of a tile row at once on AVX-512
+//! ([`row16`]), reading the planes from their blocks ([`Bricks`]) in registers.
+//!
+//! The four-lane loop (`exact.rs`, `TargetLanes::four`) does the geometry in vectors but reads
+//! every texel lane by lane: a block look-up, four 4-channel loads and a bilinear step per lane,
+//! and for the cubic B-spline a second look-up and twelve row loads; those per-lane reads were
+//! most of the target view's instructions. Here the sixteen lanes share each read: the lanes
+//! whose tap lies in one block form a group, each block row the group needs is loaded once
+//! (four or five 512-bit loads), split into one vector per channel by permutes, and every lane's
+//! texel of that row is picked out of it with one permute (`vpermt2ps`) per channel and tap
+//! column. The bilinear tap then takes 4 channels x 4 pixels in sixteen lanes; the B-spline's
+//! column sums run over the block rows in order, each lane adding only its own four rows.
+//!
+//! Every lane does the scalar loop's operations in its order (the ray set-up, the plane
+//! intersection, the clamps, the tap, the gap, the exponential, the kernel's sums, the
+//! compositing), so every pixel gets the scalar loop's bits on every path
+//! (`tests/render_window.rs`, `tests/simd_paths.rs`); only the data movement differs.
+//! The loop is taken for the packed planes (`render::store`) with the bilinear kernel or the
+//! cubic B-spline and no minified planes; the four-lane loop takes the rest.
+
+use super::types::RenderStats;
+use crate::mpi::bricks::Bricks;
+use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
+
+/// Composite weights below this take the bilinear colour even with a higher-order kernel: the
+/// difference is at most this fraction of full scale (below half an 8-bit step), and such
+/// samples are common (the faint tails of soft layers), so the kernel's cost goes where it shows.
+pub(crate) const KERNEL_MIN_WEIGHT: f32 = 1.0 / 1024.0;
+
+/// The target view's per-render constants in `f32`, as the lane loops read them: R^T, the
+/// window's columns and rows as u = K_t^-1 p, the planes' `1 + k disp`, depths and source
+/// offsets, the source focal lengths, the bounds of the "leaves the source image" test and of
+/// the edge clamp, the early-termination threshold and the planes' size.
+pub(super) struct TargetLanes {
+    pub(super) rt: [[f32; 3]; 3],
+    pub(super) ux: Vec<f32>,
+    pub(super) uy: Vec<f32>,
+    pub(super) a: Vec<f32>,
+    pub(super) depth: Vec<f32>,
+    pub(super) ox: Vec<f32>,
+    pub(super) oy: Vec<f32>,
+    pub(super) fxs: f32,
+    pub(super) fys: f32,
+    pub(super) lo: f32,
+    pub(super) hix: f32,
+    pub(super) hiy: f32,
+    pub(super) wm: f32,
+    pub(super) hm: f32,
+    pub(super) t_eps: f32,
+    pub(super) w: usize,
+    pub(super) h: usize,
+}
+
+/// Where [`row16`] reads the planes: the packed (r, g, b, sigma) and, for the cubic B-spline,
+/// its coefficients (`None`: the bilinear colour).
+#[derive(Clone, Copy)]
+pub(super) struct Blocks16<'a> {
+    pub(super) rgba: &'a Bricks,
+    pub(super) bspline3: Option<&'a Bricks>,
+}
+
+/// Sixteen lanes.
+const L: usize = 16;
+type F = [f32; L];
+type I = [i32; L];
+/// A set of lanes (bit k: lane k), an AVX-512 mask register.
+type Lanes = u16;
+const ALL: Lanes = Lanes::MAX;
+
+#[inline(always)]
+fn f16(f: impl Fn(usize) -> f32) -> F {
+    let mut o = [0.0; L];
+    for (k, v) in o.iter_mut().enumerate() {
+        *v = f(k);
+    }
+    o
+}
+
+#[inline(always)]
+fn i16(f: impl Fn(usize) -> i32) -> I {
+    let mut o = [0; L];
+    for (k, v) in o.iter_mut().enumerate() {
+        *v = f(k);
+    }
+    o
+}
+
+/// The lanes of `m`, in order.
+#[inline(always)]
+fn each(mut m: Lanes) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        (m != 0).then(|| {
+            let k = m.trailing_zeros() as usize;
+            m &= m - 1;
+            k
+        })
+    })
+}
+
+#[cfg(target_arch = "x86_64")]
+use avx512::*;
+
+/// The lane operations on AVX-512 registers (`pulp`'s safe wrappers of the intrinsics): lane
+/// sets as mask registers, blends, compares and the permutes that pick each lane's texel.
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use super::{Lanes, F, I, L};
+    use core::arch::x86_64::{__m512, __m512i};
+    use pulp::bytemuck::cast;
+    use pulp::x86::V4;
+
+    pub(super) const LT: i32 = 0x11; // _CMP_LT_OQ
+    pub(super) const GE: i32 = 0x1D; // _CMP_GE_OQ
+    pub(super) const GT: i32 = 0x1E; // _CMP_GT_OQ
+    /// `!(a <= b)`: true where a NaN is involved, as the scalar loop's negated compares
+    pub(super) const NLE: i32 = 0x16; // _CMP_NLE_UQ
+    /// `!(a < b)`
+    pub(super) const NLT: i32 = 0x15; // _CMP_NLT_UQ
+
+    /// Lane k: `a[idx[k]]` for idx[k] in 0..16, `b[idx[k] - 16]` for 16..32 (`vpermt2ps`).
+    #[inline(always)]
+    pub(super) fn two(v4: V4, a: &F, idx: &I, b: &F) -> F {
+        let (a, idx, b): (__m512, __m512i, __m512) = (cast(*a), cast(*idx), cast(*b));
+        cast(v4.avx512f._mm512_permutex2var_ps(a, idx, b))
+    }
+
+    /// `a` in the lanes of `m`, else `b`.
+    #[inline(always)]
+    pub(super) fn pick(v4: V4, m: Lanes, a: &F, b: &F) -> F {
+        cast(v4.avx512f._mm512_mask_blend_ps(m, cast(*b), cast(*a)))
+    }
+
+    /// The lanes where `a P b` (`P` one of the predicates above).
+    #[inline(always)]
+    pub(super) fn cmp<const P: i32>(v4: V4, a: &F, b: &F) -> Lanes {
+        v4.avx512f._mm512_cmp_ps_mask::<P>(cast(*a), cast(*b))
+    }
+
+    /// The lanes where `a P s`.
+    #[inline(always)]
+    pub(super) fn cmp1<const P: i32>(v4: V4, a: &F, s: f32) -> Lanes {
+        cmp::<P>(v4, a, &[s; L])
+    }
+
+    /// The lanes where `a == s`.
+    #[inline(always)]
+    pub(super) fn eq(v4: V4, a: &I, s: i32) -> Lanes {
+        v4.avx512f._mm512_cmpeq_epi32_mask(cast(*a), cast([s; L]))
+    }
+
+    /// `a[k] as i32` for values inside i32's range (`vcvttps2dq`; Rust's saturating `as`
+    /// goes lane by lane).
+    #[inline(always)]
+    pub(super) fn trunc(v4: V4, a: &F) -> I {
+        cast(v4.avx512f._mm512_cvttps_epi32(cast(*a)))
+    }
+
+    /// The lanes where `0 <= a < n` (unsigned compare).
+    #[inline(always)]
+    pub(super) fn below(v4: V4, a: &I, n: i32) -> Lanes {
+        v4.avx512f._mm512_cmplt_epu32_mask(cast(*a), cast([n; L]))
+    }
+}
+
+/// One block row split by channel: `main[c][p]` the value of channel c at pixel p (0..16) of
+/// the row, `rest[c][p - 16]` at pixels 16.. (the apron after the block).
+struct RowChannels<const S: usize> {
+    main: [F; S],
+    rest: [F; S],
+}
+
+/// Pixels 0 .. 16 + `after` of a block row of `S` values per pixel from `data[at..]`, split by
+/// channel (S <= 4, (16 + after) S <= 80; values past `data`'s end read as 0: no lane reads
+/// them).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn split_row<const S: usize>(v4: pulp::x86::V4, data: &[f32], at: usize) -> RowChannels<S> {
+    const N: usize = 5 * L;
+    let mut t = [[0.0f32; L]; 5];
+    if at + N <= data.len() {
+        for (r, reg) in t.iter_mut().enumerate() {
+            *reg = data[at + r * L..at + r * L + L].try_into().expect("16 values");
+        }
+    } else {
+        for (j, v) in data[at.min(data.len())..].iter().take(N).enumerate() {
+            t[j / L][j % L] = *v;
+        }
+    }
+    let [t0, t1, t2, t3, t4] = t;
+    // pixels 16 + q: values 16 S + S q + c, from register S
+    let tail = if S == 3 { t3 } else { t4 };
+    let mut main = [[0.0; L]; S];
+    let mut rest = [[0.0; L]; S];
+    for c in 0..S {
+        // pixel p's value c is value S p + c of the row: registers 0-1 below 32, 2-3 below 64
+        let idx = i16(|p| (S * p + c) as i32);
+        let lo = two(v4, &t0, &idx, &t1);
+        let hi = two(v4, &t2, &idx, &t3);
+        let high: Lanes = (0..L).filter(|&p| S * p + c >= 2 * L).fold(0, |m, p| m | 1 << p);
+        main[c] = pick(v4, high, &hi, &lo);
+        let idx = i16(|q| (S * q + c) as i32);
+        rest[c] = two(v4, &tail, &idx, &tail);
+    }
+    RowChannels { main, rest }
+}
+
+/// The lanes' tap pixels: their blocks (one key per block) and their place in it.
+struct TapPixels {
+    block: I,
+    bx: I,
+    by: I,
+    u: I,
+    v: I,
+}
+
+impl TapPixels {
+    #[inline(always)]
+    fn of(x0: &I, y0: &I) -> Self {
+        // x0, y0 >= 0: a shift and a mask are the division and remainder by the block size
+        const SHIFT: u32 = Bricks::SIZE.trailing_zeros();
+        const MASK: i32 = Bricks::SIZE as i32 - 1;
+        let (bx, by) = (i16(|k| x0[k] >> SHIFT), i16(|k| y0[k] >> SHIFT));
+        TapPixels { block: i16(|k| by[k] << 16 | bx[k]), bx, by, u: i16(|k| x0[k] & MASK), v: i16(|k| y0[k] & MASK) }
+    }
+
+    /// The lanes of `todo` in the block of its first lane, and that block.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn group(&self, v4: pulp::x86::V4, todo: Lanes) -> (Lanes, usize, usize) {
+        let k0 = todo.trailing_zeros() as usize;
+        (todo & eq(v4, &self.block, self.block[k0]), self.bx[k0] as usize, self.by[k0] as usize)
+    }
+
+    /// The least and greatest `v` of the lanes of `g`.
+    #[inline(always)]
+    fn rows(&self, g: Lanes) -> (i32, i32) {
+        each(g).fold((i32::MAX, i32::MIN), |(lo, hi), k| (lo.min(self.v[k]), hi.max(self.v[k])))
+    }
+}
+
+/// The bilinear (r, g, b, sigma) of plane `i` at the taps of the lanes of `take` (pixels `x0`,
+/// `y0`, fractions `fx`, `fy`): `Tap::sample4_at`'s arithmetic per lane; 0 where the tap's
+/// block is not stored, and in the other lanes.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn texels(v4: pulp::x86::V4, rgba: &Bricks, i: usize, px: &TapPixels, f: [&F; 2], take: Lanes) -> [F; 4] {
+    // the four pixels (x0, y0), (x0 + 1, y0), (x0, y0 + 1), (x0 + 1, y0 + 1), per channel
+    let (mut p00, mut p10, mut p01, mut p11) = ([[0.0f32; L]; 4], [[0.0f32; L]; 4], [[0.0f32; L]; 4], [[0.0f32; L]; 4]);
+    let row_len = rgba.row_len();
+    let data = rgba.data();
+    let u1 = i16(|k| px.u[k] + 1);
+    let mut todo = take;
+    while todo != 0 {
+        let (g, bx, by) = px.group(v4, todo);
+        todo &= !g;
+        let Some(start) = rgba.block_start(i, bx, by) else { continue };
+        let (vmin, vmax) = px.rows(g);
+        for r in vmin..=vmax + 1 {
+            let top = g & eq(v4, &px.v, r);
+            let bottom = g & eq(v4, &px.v, r - 1);
+            let row = split_row::<4>(v4, data, start + r as usize * row_len);
+            if top != 0 {
+                pixel_pair(v4, &row, [&px.u, &u1], top, [&mut p00, &mut p10]);
+            }
+            if bottom != 0 {
+                pixel_pair(v4, &row, [&px.u, &u1], bottom, [&mut p01, &mut p11]);
+            }
+        }
+    }
+    let (wx, wy) = (f[0], f[1]);
+    [
+        lerp([&p00[0], &p10[0], &p01[0], &p11[0]], wx, wy),
+        lerp([&p00[1], &p10[1], &p01[1], &p11[1]], wx, wy),
+        lerp([&p00[2], &p10[2], &p01[2], &p11[2]], wx, wy),
+        lerp([&p00[3], &p10[3], &p01[3], &p11[3]], wx, wy),
+    ]
+}
+
+/// The values of a block row at pixels `x[0]` and `x[1]` (block columns) into the lanes `m` of
+/// `out[0]` and `out[1]`, channel by channel.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn pixel_pair(v4: pulp::x86::V4, row: &RowChannels<4>, x: [&I; 2], m: Lanes, out: [&mut [F; 4]; 2]) {
+    let [left, right] = out;
+    for c in 0..4 {
+        let a = two(v4, &row.main[c], x[0], &row.rest[c]);
+        let b = two(v4, &row.main[c], x[1], &row.rest[c]);
+        left[c] = pick(v4, m, &a, &left[c]);
+        right[c] = pick(v4, m, &b, &right[c]);
+    }
+}
+
+/// Bilinear interpolation per lane: top = a + wx (b - a), bot = c + wx (d - c),
+/// top + wy (bot - top) (`Tap::sample1`'s arithmetic).
+#[inline(always)]
+fn lerp([a, b, c, d]: [&F; 4], wx: &F, wy: &F) -> F {
+    let top = f16(|k| a[k] + wx[k] * (b[k] - a[k]));
+    let bot = f16(|k| c[k] + wx[k] * (d[k] - c[k]));
+    f16(|k| top[k] + wy[k] * (bot[k] - top[k]))
+}
+
+/// `q` clamped to [0, hi] (`q` not NaN): 0 below 0, `hi` above it.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn clamp_to(v4: pulp::x86::V4, q: &F, hi: f32) -> F {
+    let q = pick(v4, cmp1::<GT>(v4, q, hi), &[hi; L], q);
+    pick(v4, cmp1::<LT>(v4, &q, 0.0), &[0.0; L], &q)
+}
+
+/// The cubic B-spline colour of plane `i` from its coefficients at the taps of the lanes of
+/// `want` (`sample_rgb_bricks_weighted`'s arithmetic per lane: the column sums over the four
+/// rows in order, then the row sum, clamped to [0, 1]) and the lanes whose block is stored
+/// (the others take the bilinear colour).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn bspline3(v4: pulp::x86::V4, coef: &Bricks, i: usize, px: &TapPixels, f: [&F; 2], want: Lanes) -> ([F; 3], Lanes) {
+    let wx: [F; 4] = weights(f[0]);
+    let wy: [F; 4] = weights(f[1]);
+    let mut col = [[[0.0f32; L]; 3]; 4];
+    let row_len = coef.row_len();
+    let data = coef.data();
+    let tap = |t: i32| i16(|k| px.u[k] + t);
+    let idx: [I; 4] = [tap(0), tap(1), tap(2), tap(3)];
+    let mut found = 0;
+    let mut todo = want;
+    while todo != 0 {
+        let (g, bx, by) = px.group(v4, todo);
+        todo &= !g;
+        let Some(start) = coef.block_start(i, bx, by) else { continue };
+        found |= g;
+        let (vmin, vmax) = px.rows(g);
+        // row r of the block is row j = r - v of lane k's neighbourhood
+        for r in vmin..=vmax + 3 {
+            let j = i16(|k| r - px.v[k]);
+            let m = g & below(v4, &j, 4);
+            if m == 0 {
+                continue;
+            }
+            let wr = pick(v4, eq(v4, &j, 0), &wy[0], &wy[1]);
+            let wr = pick(v4, eq(v4, &j, 2), &wy[2], &wr);
+            let wr = pick(v4, eq(v4, &j, 3), &wy[3], &wr);
+            let row = split_row::<3>(v4, data, start + r as usize * row_len);
+            for (col_t, idx) in col.iter_mut().zip(&idx) {
+                for (c, col_tc) in col_t.iter_mut().enumerate() {
+                    let p = two(v4, &row.main[c], idx, &row.rest[c]);
+                    let sum = f16(|k| col_tc[k] + wr[k] * p[k]);
+                    *col_tc = pick(v4, m, &sum, col_tc);
+                }
+            }
+        }
+    }
+    let mut acc = [[0.0f32; L]; 3];
+    for (t, col_t) in col.iter().enumerate() {
+        for (a, col_tc) in acc.iter_mut().zip(col_t) {
+            *a = f16(|k| a[k] + wx[t][k] * col_tc[k]);
+        }
+    }
+    let clamp = |a: &F| f16(|k| a[k].max(0.0).min(1.0));
+    ([clamp(&acc[0]), clamp(&acc[1]), clamp(&acc[2])], found)
+}
+
+/// `f32::exp_neg` (`exp_neg_f32` of `real.rs`) in lanes, operation for operation: the same
+/// clamps, argument reduction, polynomial and exponent bits, so the same bits.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn exp_neg16(v4: pulp::x86::V4, x: &F) -> F {
+    use super::simd::EXP2_TAYLOR as C;
+    let x = f16(|k| if x[k] < 80.0 { x[k] } else { 80.0 });
+    let x = f16(|k| if x[k] > 0.0 { x[k] } else { 0.0 });
+    let t = f16(|k| -x[k] * std::f32::consts::LOG2_E);
+    let n = f16(|k| (t[k] + 12_582_912.0) - 12_582_912.0);
+    let f = f16(|k| t[k] - n[k]);
+    let p = f16(|k| {
+        let f = f[k];
+        C[0] + f * (C[1] + f * (C[2] + f * (C[3] + f * (C[4] + f * (C[5] + f * C[6])))))
+    });
+    // n in [-116, 0]: inside i32, so truncation is Rust's `as`
+    let n = trunc(v4, &n);
+    let half = i16(|k| n[k] / 2);
+    let a = f16(|k| f32::from_bits(((127 + half[k]) as u32) << 23));
+    let b = f16(|k| f32::from_bits(((127 + n[k] - half[k]) as u32) << 23));
+    f16(|k| p[k] * a[k] * b[k])
+}
+
+/// The cubic B-spline's weights of the lanes' fractions (`Bspline3::weights`' operations in
+/// lanes, the same bits).
+#[inline(always)]
+fn weights(t: &F) -> [F; 4] {
+    let s = 1.0f32 / 6.0;
+    let u = f16(|k| 1.0 - t[k]);
+    let t2 = f16(|k| t[k] * t[k]);
+    let t3 = f16(|k| t[k] * t[k] * t[k]);
+    [
+        f16(|k| u[k] * u[k] * u[k] * s),
+        f16(|k| (3.0 * t3[k] - 6.0 * t2[k] + 4.0) * s),
+        f16(|k| (-3.0 * t3[k] + 3.0 * t2[k] + 3.0 * t[k] + 1.0) * s),
+        f16(|k| t3[k] * s),
+    ]
+}
+
+/// What [`row16`] writes to and counts in.
+pub(super) struct RowOut<'a, 'b> {
+    /// the band's buffers (image, depth, coverage, the extra channel, ...)
+    pub(super) b: &'a mut [&'b mut [f32]; 10],
+    pub(super) stats: &'a mut RenderStats,
+}
+
+/// Pixels `o .. o + 16` of the band's buffers (image, depth, coverage, the extra channel when
+/// `ex` is given), the window's columns `at[0] .. at[0] + 16` of its row `at[1]`, the planes of
+/// `fwd` (or `rev` when the rays look back): false, with nothing written, when the sixteen
+/// rays do not all meet the planes in the same order (a narrower loop then takes them).
+#[cfg(target_arch = "x86_64")]
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(super) fn row16(
+    v4: pulp::x86::V4,
+    c: &TargetLanes,
+    src: Blocks16<'_>,
+    ex: Option<&[&[f32]]>,
+    at: [usize; 2],
+    [fwd, rev]: [&[usize]; 2],
+    o: usize,
+    out: RowOut<'_, '_>,
+) -> bool {
+    let ux: &F = c.ux[at[0]..at[0] + L].try_into().expect("sixteen columns");
+    let uy = c.uy[at[1]];
+    let rt = &c.rt;
+    let ray = |r: usize| f16(|k| rt[r][0] * ux[k] + rt[r][1] * uy + rt[r][2]);
+    let (v0, v1, v2) = (ray(0), ray(1), ray(2));
+    let norm_u = f16(|k| (ux[k] * ux[k] + uy * uy + 1.0).sqrt());
+    let forward = v2[0] > 0.0;
+    if !v2.iter().all(|&s| s.abs() > 1e-12_f64 as f32 && (s > 0.0) == forward) {
+        return false;
+    }
+    let inv_s = f16(|k| 1.0 / v2[k]);
+    let (fv0, fv1) = (f16(|k| c.fxs * v0[k]), f16(|k| c.fys * v1[k]));
+    let (depth_max, delta_last) = (DEPTH_MAX as f32, DELTA_LAST as f32);
+    let cap = |v: f32, max: f32| if v > max { max } else { v };
+    let order = if forward { fwd } else { rev };
+    let (mut tr, mut sum_w, mut sum_z) = ([1.0f32; L], [0.0f32; L], [0.0f32; L]);
+    let mut rgb = [[0.0f32; L]; 3];
+    let mut acc1 = [0.0f32; L];
+    let mut done: Lanes = 0;
+    let (w, h) = (c.w as i32, c.h as i32);
+    for (j, &i) in order.iter().enumerate() {
+        let g = f16(|k| c.a[i] * inv_s[k]);
+        let front = cmp1::<NLE>(v4, &g, 0.0);
+        // a lane in front of the plane with its transmittance below t_eps stops here
+        let stop = front & cmp1::<LT>(v4, &tr, c.t_eps) & !done;
+        if stop != 0 {
+            out.stats.skipped_early += u64::from(stop.count_ones()) * (order.len() - j) as u64;
+            done |= stop;
+            if done == ALL {
+                break;
+            }
+        }
+        let (ox, oy) = (c.ox[i], c.oy[i]);
+        let qx = f16(|k| ox + fv0[k] * g[k]);
+        let qy = f16(|k| oy + fv1[k] * g[k]);
+        let inside = cmp1::<GE>(v4, &qx, c.lo)
+            & cmp1::<LT>(v4, &qx, c.hix)
+            & cmp1::<GE>(v4, &qy, c.lo)
+            & cmp1::<LT>(v4, &qy, c.hiy);
+        let take = front & inside & !done;
+        if take == 0 {
+            continue;
+        }
+        let (qx, qy) = (clamp_to(v4, &qx, c.wm), clamp_to(v4, &qy, c.hm));
+        // `Tap::new` in lanes: q >= 0, so truncation is floor; at most the last pixel
+        let (x0, y0) = (trunc(v4, &qx), trunc(v4, &qy));
+        let x0 = i16(|k| x0[k].min(w - 1));
+        let y0 = i16(|k| y0[k].min(h - 1));
+        let fx = f16(|k| qx[k] - x0[k] as f32);
+        let fy = f16(|k| qy[k] - y0[k] as f32);
+        let px = TapPixels::of(&x0, &y0);
+        let texel = texels(v4, src.rgba, i, &px, [&fx, &fy], take);
+        out.stats.samples += u64::from(take.count_ones());
+        // the scalar loop goes on with this plane unless sigma <= 0
+        let lit = take & cmp1::<NLE>(v4, &texel[3], 0.0);
+        if lit == 0 {
+            continue;
+        }
+        let sig = pick(v4, lit, &texel[3], &[0.0; L]);
+        let lambda = f16(|k| cap(g[k] * c.depth[i], depth_max));
+        let next = if forward { i + 1 } else { i.wrapping_sub(1) };
+        let delta = match c.a.get(next) {
+            Some(&an) => {
+                let dn = c.depth[next];
+                let an = f16(|k| an * inv_s[k]);
+                let d = f16(|k| cap((cap(an[k] * dn, depth_max) - lambda[k]) * norm_u[k], delta_last));
+                pick(v4, cmp1::<GT>(v4, &an, 0.0), &d, &[delta_last; L])
+            }
+            None => [delta_last; L],
+        };
+        let e = exp_neg16(v4, &f16(|k| sig[k] * delta[k]));
+        let wgt = f16(|k| tr[k] * (1.0 - e[k]));
+        tr = pick(v4, lit, &f16(|k| tr[k] * e[k]), &tr);
+        let mut colour = [texel[0], texel[1], texel[2]];
+        if let Some(coef) = src.bspline3 {
+            let want = lit & cmp1::<NLT>(v4, &wgt, KERNEL_MIN_WEIGHT);
+            if want != 0 {
+                let (kc, found) = bspline3(v4, coef, i, &px, [&fx, &fy], want);
+                for (col, kc) in colour.iter_mut().zip(&kc) {
+                    *col = pick(v4, found, kc, col);
+                }
+            }
+        }
+        for (acc, col) in rgb.iter_mut().zip(&colour) {
+            *acc = pick(v4, lit, &f16(|k| acc[k] + wgt[k] * col[k]), acc);
+        }
+        if let Some(ex) = ex {
+            for k in each(lit) {
+                let tap = super::tap::Tap::from_parts(x0[k] as usize, y0[k] as usize, c.w, c.h, fx[k], fy[k]);
+                acc1[k] += wgt[k] * tap.sample1(ex[i]);
+            }
+        }
+        sum_w = pick(v4, lit, &f16(|k| sum_w[k] + wgt[k]), &sum_w);
+        sum_z = pick(v4, lit, &f16(|k| sum_z[k] + wgt[k] * lambda[k]), &sum_z);
+    }
+    // the scalar loop's T::of(1e-6)
+    const EPS: f32 = 1e-6_f64 as f32;
+    let b = out.b;
+    for k in 0..L {
+        let o = o + k;
+        b[0][3 * o..3 * o + 3].copy_from_slice(&[rgb[0][k], rgb[1][k], rgb[2][k]]);
+        b[1][o] = if sum_w[k] > EPS { sum_z[k] / sum_w[k] } else { 0.0 };
+        b[2][o] = sum_w[k];
+        if ex.is_some() {
+            b[3][o] = acc1[k];
+        }
+    }
+    true
+}
