@@ -35,7 +35,7 @@ where
         bands.push((y0, rows, heads));
         y0 += rows;
     }
-    bands.par_iter_mut().map(|(y0, rows, slices)| f(*y0, *rows, slices)).reduce(RenderStats::default, |mut a, b| {
+    bands.par_iter_mut().with_max_len(1).map(|(y0, rows, slices)| f(*y0, *rows, slices)).reduce(RenderStats::default, |mut a, b| {
         a += b;
         a
     })
