@@ -35,10 +35,13 @@ where
         bands.push((y0, rows, heads));
         y0 += rows;
     }
-    bands.par_iter_mut().with_max_len(1).map(|(y0, rows, slices)| f(*y0, *rows, slices)).reduce(RenderStats::default, |mut a, b| {
-        a += b;
-        a
-    })
+    bands.par_iter_mut().with_max_len(1).map(|(y0, rows, slices)| f(*y0, *rows, slices)).reduce(
+        RenderStats::default,
+        |mut a, b| {
+            a += b;
+            a
+        },
+    )
 }
 
 /// `valid` = the point is (by rendered weight, mostly) in front of the target camera and its

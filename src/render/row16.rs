@@ -155,6 +155,21 @@ mod avx512 {
         cast(v4.avx512f._mm512_cvttps_epi32(cast(*a)))
     }
 
+    /// `acc + a b` in the lanes of `m` (the product rounded, then the sum), `acc` elsewhere.
+    #[inline(always)]
+    pub(super) fn add_mul(v4: V4, m: Lanes, acc: &F, a: &F, b: &F) -> F {
+        let acc: __m512 = cast(*acc);
+        let prod = v4.avx512f._mm512_mul_ps(cast(*a), cast(*b));
+        cast(v4.avx512f._mm512_mask_add_ps(acc, m, acc, prod))
+    }
+
+    /// The least and the greatest of `a` over the lanes of `m` (not empty).
+    #[inline(always)]
+    pub(super) fn min_max(v4: V4, m: Lanes, a: &I) -> (i32, i32) {
+        let a: __m512i = cast(*a);
+        (v4.avx512f._mm512_mask_reduce_min_epi32(m, a), v4.avx512f._mm512_mask_reduce_max_epi32(m, a))
+    }
+
     /// The lanes where `0 <= a < n` (unsigned compare).
     #[inline(always)]
     pub(super) fn below(v4: V4, a: &I, n: i32) -> Lanes {
@@ -232,9 +247,10 @@ impl TapPixels {
     }
 
     /// The least and greatest `v` of the lanes of `g`.
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    fn rows(&self, g: Lanes) -> (i32, i32) {
-        each(g).fold((i32::MAX, i32::MIN), |(lo, hi), k| (lo.min(self.v[k]), hi.max(self.v[k])))
+    fn rows(&self, v4: pulp::x86::V4, g: Lanes) -> (i32, i32) {
+        min_max(v4, g, &self.v)
     }
 }
 
@@ -254,7 +270,7 @@ fn texels(v4: pulp::x86::V4, rgba: &Bricks, i: usize, px: &TapPixels, f: [&F; 2]
         let (g, bx, by) = px.group(v4, todo);
         todo &= !g;
         let Some(start) = rgba.block_start(i, bx, by) else { continue };
-        let (vmin, vmax) = px.rows(g);
+        let (vmin, vmax) = px.rows(v4, g);
         for r in vmin..=vmax + 1 {
             let top = g & eq(v4, &px.v, r);
             let bottom = g & eq(v4, &px.v, r - 1);
@@ -328,7 +344,7 @@ fn bspline3(v4: pulp::x86::V4, coef: &Bricks, i: usize, px: &TapPixels, f: [&F; 
         todo &= !g;
         let Some(start) = coef.block_start(i, bx, by) else { continue };
         found |= g;
-        let (vmin, vmax) = px.rows(g);
+        let (vmin, vmax) = px.rows(v4, g);
         // row r of the block is row j = r - v of lane k's neighbourhood
         for r in vmin..=vmax + 3 {
             let j = i16(|k| r - px.v[k]);
@@ -343,8 +359,7 @@ fn bspline3(v4: pulp::x86::V4, coef: &Bricks, i: usize, px: &TapPixels, f: [&F; 
             for (col_t, idx) in col.iter_mut().zip(&idx) {
                 for (c, col_tc) in col_t.iter_mut().enumerate() {
                     let p = two(v4, &row.main[c], idx, &row.rest[c]);
-                    let sum = f16(|k| col_tc[k] + wr[k] * p[k]);
-                    *col_tc = pick(v4, m, &sum, col_tc);
+                    *col_tc = add_mul(v4, m, col_tc, &wr, &p);
                 }
             }
         }
@@ -506,7 +521,7 @@ pub(super) fn row16(
             }
         }
         for (acc, col) in rgb.iter_mut().zip(&colour) {
-            *acc = pick(v4, lit, &f16(|k| acc[k] + wgt[k] * col[k]), acc);
+            *acc = add_mul(v4, lit, acc, &wgt, col);
         }
         if let Some(ex) = ex {
             for k in each(lit) {
@@ -515,7 +530,7 @@ pub(super) fn row16(
             }
         }
         sum_w = pick(v4, lit, &f16(|k| sum_w[k] + wgt[k]), &sum_w);
-        sum_z = pick(v4, lit, &f16(|k| sum_z[k] + wgt[k] * lambda[k]), &sum_z);
+        sum_z = add_mul(v4, lit, &sum_z, &wgt, &lambda);
     }
     // the scalar loop's T::of(1e-6)
     const EPS: f32 = 1e-6_f64 as f32;
