@@ -33,7 +33,7 @@ pub enum GradientTerm {
     Propagated,
     /// Known pixels as above; filled pixels contribute their value only (zero order). Not exact
     /// on linear images deeper than `radius` into the hole, but less overshoot on textured
-    /// photographs with large holes (see the module documentation).
+    /// photographs with large holes (see the documentation of `sample::inpaint`).
     KnownOnly,
     /// No gradient term: a weighted mean of the available values (zero order).
     Off,
