@@ -406,34 +406,7 @@ fn build(
     k: Option<&Intrinsics>,
     masks: Option<&[bool]>,
 ) -> Result<Mpi, MpiError> {
-    if width == 0 || height == 0 {
-        return Err(MpiError::Invalid(format!("layering: empty image size {width}x{height}")));
-    }
-    let len = width
-        .checked_mul(height)
-        .filter(|l| l.checked_mul(4 * MAX_PLANES).is_some())
-        .ok_or_else(|| MpiError::Invalid(format!("layering: image size {width}x{height} is too large")))?;
-    if rgb.len() != len * 3 {
-        return Err(MpiError::Invalid(format!(
-            "layering: rgb has {} values, expected {width}x{height}x3 = {}",
-            rgb.len(),
-            len * 3
-        )));
-    }
-    if depth.len() != len {
-        return Err(MpiError::Invalid(format!(
-            "layering: depth has {} values, expected {width}x{height} = {len}",
-            depth.len()
-        )));
-    }
-    check_planes(opts.planes)?;
-    if let Some(r) = opts.disparity_range {
-        check_range(r)?;
-    }
-    let bad_colours = rgb.iter().filter(|v| !v.is_finite()).count();
-    if bad_colours > 0 {
-        return Err(MpiError::Invalid(format!("layering: the image holds {bad_colours} non-finite colour values")));
-    }
+    let len = check_inputs(rgb, depth, width, height, opts)?;
 
     // 2. disparities, unknown ones filled from the nearest known pixel
     let (disp, dmin, dmax) = known_disparities(depth, width, height)?;
@@ -517,6 +490,46 @@ fn build(
         });
     }
     Ok(mpi)
+}
+
+/// Step 1: the inputs' sizes, the options' plane count and range, finite colours; returns the
+/// pixel count.
+fn check_inputs(
+    rgb: &[f32],
+    depth: &[f32],
+    width: usize,
+    height: usize,
+    opts: &LayeringOptions,
+) -> Result<usize, MpiError> {
+    if width == 0 || height == 0 {
+        return Err(MpiError::Invalid(format!("layering: empty image size {width}x{height}")));
+    }
+    let len = width
+        .checked_mul(height)
+        .filter(|l| l.checked_mul(4 * MAX_PLANES).is_some())
+        .ok_or_else(|| MpiError::Invalid(format!("layering: image size {width}x{height} is too large")))?;
+    if rgb.len() != len * 3 {
+        return Err(MpiError::Invalid(format!(
+            "layering: rgb has {} values, expected {width}x{height}x3 = {}",
+            rgb.len(),
+            len * 3
+        )));
+    }
+    if depth.len() != len {
+        return Err(MpiError::Invalid(format!(
+            "layering: depth has {} values, expected {width}x{height} = {len}",
+            depth.len()
+        )));
+    }
+    check_planes(opts.planes)?;
+    if let Some(r) = opts.disparity_range {
+        check_range(r)?;
+    }
+    let bad_colours = rgb.iter().filter(|v| !v.is_finite()).count();
+    if bad_colours > 0 {
+        return Err(MpiError::Invalid(format!("layering: the image holds {bad_colours} non-finite colour values")));
+    }
+    Ok(len)
 }
 
 /// Step 2: disparities (1 / depth, f64), unknown ones copied from the nearest known pixel, with
