@@ -34,7 +34,7 @@
 //! file) are written to a finished shard, the rest is redone. Items already in a finished shard
 //! are skipped, so nothing is lost or repeated.
 //!
-//! Without an MPI network the bake does not build the built-in MPI ([`SceneStage::parts`]): the
+//! Without an MPI network the bake does not build the built-in MPI ([`SceneStage::parts`](crate::scene::stage::SceneStage::parts)): the
 //! server's layering builds it from the baked disparity, so building it here was wasted (it was
 //! most of an item's time).
 //!
