@@ -34,9 +34,9 @@
 //! file) are written to a finished shard, the rest is redone. Items already in a finished shard
 //! are skipped, so nothing is lost or repeated.
 //!
-//! Without an MPI network the bake does not build the built-in MPI ([`SceneStage::parts`](crate::scene::stage::SceneStage::parts)): the
-//! server's layering builds it from the baked disparity, so building it here was wasted (it was
-//! most of an item's time).
+//! Without an MPI network the bake does not build the built-in MPI
+//! ([`SceneStage::parts`](crate::scene::stage::SceneStage::parts)): the server's layering builds
+//! it from the baked disparity, so building it here was wasted (it was most of an item's time).
 //!
 //! An item whose MPI came from a network is served from its `mpis/` file, so its served
 //! disparity is the MPI's own composite (the rule for every given MPI, see
