@@ -104,29 +104,7 @@ fn load_npz_from<R: std::io::Read + std::io::Seek>(reader: R, p: &str, max_value
         }
     }
     if let Some(m) = mask {
-        let dims = m.shape.len();
-        let (per_plane, channels) = match (dims, m.shape.as_slice()) {
-            (2, [mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
-            (3, [1, mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
-            (4, [1, 1, mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
-            (4, [mn, c, mh, mw]) if (*mn as usize, *mh as usize, *mw as usize) == (n, h, w) => (true, *c as usize),
-            (5, [1, mn, c, mh, mw]) if (*mn as usize, *mh as usize, *mw as usize) == (n, h, w) => (true, *c as usize),
-            _ => return Err(shape_err("mask_in", &m, &format!("[1?, 1, {h}, {w}] or [1?, {n}, C, {h}, {w}]"))),
-        };
-        mpi.extra_channels = channels;
-        mpi.extras = vec![0.0; n * hw * channels];
-        for i in 0..n {
-            for c in 0..channels {
-                let src = if per_plane {
-                    &m.data[(i * channels + c) * hw..(i * channels + c + 1) * hw]
-                } else {
-                    &m.data[..hw]
-                };
-                for (j, &v) in src.iter().enumerate() {
-                    mpi.extras[(i * hw + j) * channels + c] = v as f32;
-                }
-            }
-        }
+        attach_mask(&mut mpi, &m, (n, h, w), &p)?;
     }
     if let Some(k) = k {
         let arr: [f64; 9] = k.data.as_slice().try_into().map_err(|_| shape_err("K", &k, "[1?, 3, 3]"))?;
@@ -145,6 +123,40 @@ fn load_npz_from<R: std::io::Read + std::io::Seek>(reader: R, p: &str, max_value
     }
     mpi.validate().map_err(|e| MpiError::Invalid(format!("{p}: {e}")))?;
     Ok(mpi)
+}
+
+/// `mask_in` as the MPI's extra channels (`n` planes of `h` x `w`): one 2-D mask shared by all
+/// planes, or per-plane channels; `p` names the file in errors.
+fn attach_mask(mpi: &mut Mpi, m: &Array, (n, h, w): (usize, usize, usize), p: &str) -> Result<(), MpiError> {
+    let hw = w * h;
+    let dims = m.shape.len();
+    let (per_plane, channels) = match (dims, m.shape.as_slice()) {
+        (2, [mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
+        (3, [1, mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
+        (4, [1, 1, mh, mw]) if (*mh as usize, *mw as usize) == (h, w) => (false, 1),
+        (4, [mn, c, mh, mw]) if (*mn as usize, *mh as usize, *mw as usize) == (n, h, w) => (true, *c as usize),
+        (5, [1, mn, c, mh, mw]) if (*mn as usize, *mh as usize, *mw as usize) == (n, h, w) => (true, *c as usize),
+        _ => {
+            return Err(MpiError::BadShape {
+                path: p.to_string(),
+                key: "mask_in".to_string(),
+                shape: m.shape.clone(),
+                expected: format!("[1?, 1, {h}, {w}] or [1?, {n}, C, {h}, {w}]"),
+            })
+        }
+    };
+    mpi.extra_channels = channels;
+    mpi.extras = vec![0.0; n * hw * channels];
+    for i in 0..n {
+        for c in 0..channels {
+            let src =
+                if per_plane { &m.data[(i * channels + c) * hw..(i * channels + c + 1) * hw] } else { &m.data[..hw] };
+            for (j, &v) in src.iter().enumerate() {
+                mpi.extras[(i * hw + j) * channels + c] = v as f32;
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The element type of the colour and density arrays an `.npz` is written with.

@@ -91,6 +91,13 @@ pub fn polygon_to_rle(xy: &[f64], h: usize, w: usize) -> Result<Vec<u32>, MaskEr
             }
         }
     }
+    Ok(crossings_to_runs(a, n))
+}
+
+/// The column-major crossing positions of an outline (the last, `n`, appended here) as COCO run
+/// lengths, as `rleFrPoly` turns them into counts: sorted, differenced, and zero-length runs
+/// merged with the run after them.
+fn crossings_to_runs(mut a: Vec<u32>, n: u32) -> Vec<u32> {
     a.push(n);
     a.sort_unstable();
     let mut p = 0;
@@ -114,7 +121,7 @@ pub fn polygon_to_rle(xy: &[f64], h: usize, w: usize) -> Result<Vec<u32>, MaskEr
             }
         }
     }
-    Ok(b)
+    b
 }
 
 /// Rasterises the polygons of one object (united) to a row-major `h x w` mask of 0 and 1, as

@@ -413,50 +413,7 @@ pub fn merge_target(
             units_to_u8(&image[3 * y * w..3 * (y + 1) * w], img);
             for x in 0..w {
                 let s = scene_s(x, y);
-                let mut filled: Option<(f32, f32)> = None;
-                let mut best: Option<Hit> = None;
-                // the largest partial share not hidden (depth-aware rule): the seam's other half
-                let mut partial: Option<Hit> = None;
-                for (slot, o) in objects.iter().enumerate() {
-                    let Some(idx) = o.render.index(x, y) else { continue };
-                    let m = o.render.out.extras[idx];
-                    if m.is_nan() || (m < tau && (rule == MergeRule::Reference || s >= tau || s + m < tau)) {
-                        continue;
-                    }
-                    let depth = o.render.out.depth[idx];
-                    let hit = Hit { slot, m, depth, idx };
-                    match rule {
-                        MergeRule::Reference => {
-                            if best.is_none_or(|b| m > b.m) {
-                                best = Some(hit);
-                            }
-                        }
-                        MergeRule::DepthAware if m < tau => {
-                            let hidden = dep[x] * (1.0 + OCCLUSION_TOLERANCE) < depth;
-                            if !hidden && partial.is_none_or(|p| m > p.m) {
-                                partial = Some(hit);
-                            }
-                        }
-                        MergeRule::DepthAware => {
-                            let hidden = |s: f32, d_t: f32| d_t * (1.0 + OCCLUSION_TOLERANCE) < depth && s * m >= 0.5;
-                            // filling dips only raises s and lowers D_t: hidden as the pixel is,
-                            // hidden after filling (so only the others need their neighbours)
-                            if hidden(s, dep[x]) {
-                                continue; // nearer background stays in front
-                            }
-                            let (s_near, d_near) = *filled.get_or_insert_with(|| near(x, y));
-                            if hidden(s_near, d_near) {
-                                continue;
-                            }
-                            if best.is_none_or(|b| depth < b.depth) {
-                                best = Some(hit);
-                            }
-                        }
-                    }
-                }
-                // a seam: the scene and an object cover the pixel together; the larger share shows
-                let best = best.or_else(|| partial.filter(|p| p.m > s));
-                let seam = partial.is_some();
+                let (best, seam) = shown_object(objects, rule, tau, (x, y), s, dep[x], &near);
                 match best {
                     Some(b) => {
                         let src = &objects[b.slot].render.out.image[3 * b.idx..3 * b.idx + 3];
@@ -481,6 +438,65 @@ pub fn merge_target(
         .sum();
 
     TargetSide { image: image2, mask: mask2, shown_depth, hole, holes }
+}
+
+/// The object pixel (x, y) of the target shows by `rule` (scene mask `s`, scene depth `d_t`,
+/// `near`: both with one-pixel dips filled), and whether an object's partial share not hidden
+/// makes the pixel a seam.
+fn shown_object(
+    objects: &[ObjectView<'_>],
+    rule: MergeRule,
+    tau: f32,
+    (x, y): (usize, usize),
+    s: f32,
+    d_t: f32,
+    near: &impl Fn(usize, usize) -> (f32, f32),
+) -> (Option<Hit>, bool) {
+    let mut filled: Option<(f32, f32)> = None;
+    let mut best: Option<Hit> = None;
+    // the largest partial share not hidden (depth-aware rule): the seam's other half
+    let mut partial: Option<Hit> = None;
+    for (slot, o) in objects.iter().enumerate() {
+        let Some(idx) = o.render.index(x, y) else { continue };
+        let m = o.render.out.extras[idx];
+        if m.is_nan() || (m < tau && (rule == MergeRule::Reference || s >= tau || s + m < tau)) {
+            continue;
+        }
+        let depth = o.render.out.depth[idx];
+        let hit = Hit { slot, m, depth, idx };
+        match rule {
+            MergeRule::Reference => {
+                if best.is_none_or(|b| m > b.m) {
+                    best = Some(hit);
+                }
+            }
+            MergeRule::DepthAware if m < tau => {
+                let hidden = d_t * (1.0 + OCCLUSION_TOLERANCE) < depth;
+                if !hidden && partial.is_none_or(|p| m > p.m) {
+                    partial = Some(hit);
+                }
+            }
+            MergeRule::DepthAware => {
+                let hidden = |s: f32, d_t: f32| d_t * (1.0 + OCCLUSION_TOLERANCE) < depth && s * m >= 0.5;
+                // filling dips only raises s and lowers D_t: hidden as the pixel is,
+                // hidden after filling (so only the others need their neighbours)
+                if hidden(s, d_t) {
+                    continue; // nearer background stays in front
+                }
+                let (s_near, d_near) = *filled.get_or_insert_with(|| near(x, y));
+                if hidden(s_near, d_near) {
+                    continue;
+                }
+                if best.is_none_or(|b| depth < b.depth) {
+                    best = Some(hit);
+                }
+            }
+        }
+    }
+    // a seam: the scene and an object cover the pixel together; the larger share shows
+    let best = best.or_else(|| partial.filter(|p| p.m > s));
+    let seam = partial.is_some();
+    (best, seam)
 }
 
 /// The scene mask `s` and depth `D_t` of pixel (x, y) with one-pixel dips filled: `s` raised

@@ -188,38 +188,7 @@ impl SceneStage {
         }
         let mut provenance = Vec::with_capacity(3);
 
-        let masks_note;
-        let mut masks = match masks {
-            Some(m) => {
-                let m = if (m.width, m.height) != (w, h) { m.resize_nearest(w, h) } else { m };
-                masks_note = format!("masks: given ({} instances)", m.masks.len());
-                m
-            }
-            None => match &self.segmenter {
-                Some(seg) => {
-                    let m = seg.segment(&image)?;
-                    if (m.width, m.height) != (w, h) || m.masks.iter().any(|i| i.mask.len() != w * h) {
-                        return Err(SceneError::Model {
-                            kind: "segmentation",
-                            model: seg.name(),
-                            message: format!(
-                                "source {id}: masks of {} x {} for an image of {w} x {h}",
-                                m.width, m.height
-                            ),
-                        });
-                    }
-                    masks_note = match m.masks.len() {
-                        0 => format!("masks: {} (no object found: only the camera moves)", seg.name()),
-                        n => format!("masks: {} ({n} instances)", seg.name()),
-                    };
-                    m
-                }
-                None => {
-                    masks_note = "masks: none (no masks given and no segmenter configured)".to_string();
-                    InstanceMasks::new(w, h)
-                }
-            },
-        };
+        let (mut masks, masks_note) = self.masks(&id, masks, &image)?;
 
         let (disparity, mpi, intrinsics) = if let Some(given) = mpi {
             let (mpi, note) = prepare_given_mpi(&id, given, w, h)?;
@@ -229,40 +198,7 @@ impl SceneStage {
             provenance.push(format!("mpi: given ({} planes{note})", mpi.planes()));
             (disparity, Some(Arc::new(mpi)), k)
         } else {
-            let disparity = match depth {
-                Some(GivenDepth::Depth(d)) => {
-                    let (disp, d_min) = scale::disparity_from_depth(&d, w, h).map_err(|e| in_source(&id, e))?;
-                    provenance.push(format!("depth: given metric depth, nearest {d_min} -> disparity 1"));
-                    disp
-                }
-                Some(GivenDepth::Disparity(d)) => {
-                    let disp = scale::disparity_from_unit(&d, w, h).map_err(|e| in_source(&id, e))?;
-                    provenance.push("depth: given disparity".to_string());
-                    disp
-                }
-                None => match &self.depth {
-                    Some(est) => {
-                        let mut disp = est.estimate(&image)?;
-                        let bad = |message: String| SceneError::Model { kind: "depth", model: est.name(), message };
-                        if (disp.width, disp.height) != (w, h) {
-                            return Err(bad(format!(
-                                "source {id}: disparity of {} x {} for an image of {w} x {h}",
-                                disp.width, disp.height
-                            )));
-                        }
-                        scale::check_scene_scale(&disp).map_err(|m| bad(format!("source {id}: {m}")))?;
-                        scale::clamp_to_scale(&mut disp.data);
-                        provenance.push(format!("depth: {}", est.name()));
-                        disp
-                    }
-                    None => {
-                        return Err(SceneError::Data {
-                            kind: FailureKind::Depth,
-                            message: format!("source {id} has no depth and no depth model is configured"),
-                        })
-                    }
-                },
-            };
+            let disparity = self.disparity(&id, depth, &image, &mut provenance)?;
             let k = intrinsics.unwrap_or_else(|| Intrinsics::reference_default(w, h));
             let mpi = if build_mpi {
                 // a scene's masks follow its depth edges; parts without the MPI (what a bake
@@ -289,6 +225,97 @@ impl SceneStage {
 
         provenance.push(masks_note);
         Ok(SceneParts { id, image, disparity, mpi, masks, intrinsics, provenance })
+    }
+
+    /// The item's instance masks (given, resized to the image, or the segmenter's; none without
+    /// either) and the provenance line that says which.
+    fn masks(
+        &self,
+        id: &str,
+        masks: Option<InstanceMasks>,
+        image: &RgbImage,
+    ) -> Result<(InstanceMasks, String), SceneError> {
+        let (w, h) = (image.width, image.height);
+        let masks_note;
+        let masks = match masks {
+            Some(m) => {
+                let m = if (m.width, m.height) != (w, h) { m.resize_nearest(w, h) } else { m };
+                masks_note = format!("masks: given ({} instances)", m.masks.len());
+                m
+            }
+            None => match &self.segmenter {
+                Some(seg) => {
+                    let m = seg.segment(image)?;
+                    if (m.width, m.height) != (w, h) || m.masks.iter().any(|i| i.mask.len() != w * h) {
+                        return Err(SceneError::Model {
+                            kind: "segmentation",
+                            model: seg.name(),
+                            message: format!(
+                                "source {id}: masks of {} x {} for an image of {w} x {h}",
+                                m.width, m.height
+                            ),
+                        });
+                    }
+                    masks_note = match m.masks.len() {
+                        0 => format!("masks: {} (no object found: only the camera moves)", seg.name()),
+                        n => format!("masks: {} ({n} instances)", seg.name()),
+                    };
+                    m
+                }
+                None => {
+                    masks_note = "masks: none (no masks given and no segmenter configured)".to_string();
+                    InstanceMasks::new(w, h)
+                }
+            },
+        };
+        Ok((masks, masks_note))
+    }
+
+    /// The item's disparity when it carries no MPI: from its given depth or disparity, or the
+    /// depth model's (checked and clamped to the scene scale); its provenance line pushed.
+    fn disparity(
+        &self,
+        id: &str,
+        depth: Option<GivenDepth>,
+        image: &RgbImage,
+        provenance: &mut Vec<String>,
+    ) -> Result<Disparity, SceneError> {
+        let (w, h) = (image.width, image.height);
+        let disparity = match depth {
+            Some(GivenDepth::Depth(d)) => {
+                let (disp, d_min) = scale::disparity_from_depth(&d, w, h).map_err(|e| in_source(id, e))?;
+                provenance.push(format!("depth: given metric depth, nearest {d_min} -> disparity 1"));
+                disp
+            }
+            Some(GivenDepth::Disparity(d)) => {
+                let disp = scale::disparity_from_unit(&d, w, h).map_err(|e| in_source(id, e))?;
+                provenance.push("depth: given disparity".to_string());
+                disp
+            }
+            None => match &self.depth {
+                Some(est) => {
+                    let mut disp = est.estimate(image)?;
+                    let bad = |message: String| SceneError::Model { kind: "depth", model: est.name(), message };
+                    if (disp.width, disp.height) != (w, h) {
+                        return Err(bad(format!(
+                            "source {id}: disparity of {} x {} for an image of {w} x {h}",
+                            disp.width, disp.height
+                        )));
+                    }
+                    scale::check_scene_scale(&disp).map_err(|m| bad(format!("source {id}: {m}")))?;
+                    scale::clamp_to_scale(&mut disp.data);
+                    provenance.push(format!("depth: {}", est.name()));
+                    disp
+                }
+                None => {
+                    return Err(SceneError::Data {
+                        kind: FailureKind::Depth,
+                        message: format!("source {id} has no depth and no depth model is configured"),
+                    })
+                }
+            },
+        };
+        Ok(disparity)
     }
 }
 

@@ -257,6 +257,29 @@ fn field_is(m: &Member, name: &str) -> bool {
     m.field.eq_ignore_ascii_case(name)
 }
 
+/// The `.tar` shards of directory `dir` (regular files with UTF-8 names), sorted by name; none is
+/// an error.
+fn shard_paths(dir: &Path) -> Result<Vec<PathBuf>, SourceError> {
+    let file_err = |message: String| SourceError::file(dir.display().to_string(), FailureKind::Decode, message);
+    let mut v = Vec::new();
+    for ent in std::fs::read_dir(dir).map_err(|e| file_err(io_msg(&e)))? {
+        let ent = ent.map_err(|e| file_err(io_msg(&e)))?;
+        let p = ent.path();
+        let is_tar = p.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("tar"));
+        if is_tar
+            && std::fs::metadata(&p).is_ok_and(|m| m.is_file())
+            && p.file_name().and_then(|n| n.to_str()).is_some()
+        {
+            v.push(p);
+        }
+    }
+    v.sort();
+    if v.is_empty() {
+        return Err(file_err("no .tar shards in this directory".into()));
+    }
+    Ok(v)
+}
+
 impl ShardSource {
     /// Opens one `.tar` shard or a directory of them (its `*.tar` files, sorted by name; not
     /// recursive). Reads the headers only (and every member with
@@ -264,27 +287,8 @@ impl ShardSource {
     pub fn open(path: &Path, options: &SourceOptions) -> Result<Self, SourceError> {
         let file_err = |message: String| SourceError::file(path.display().to_string(), FailureKind::Decode, message);
         let meta = std::fs::metadata(path).map_err(|e| file_err(io_msg(&e)))?;
-        let (paths, prefixed) = if meta.is_dir() {
-            let mut v = Vec::new();
-            for ent in std::fs::read_dir(path).map_err(|e| file_err(io_msg(&e)))? {
-                let ent = ent.map_err(|e| file_err(io_msg(&e)))?;
-                let p = ent.path();
-                let is_tar = p.extension().and_then(|e| e.to_str()).is_some_and(|e| e.eq_ignore_ascii_case("tar"));
-                if is_tar
-                    && std::fs::metadata(&p).is_ok_and(|m| m.is_file())
-                    && p.file_name().and_then(|n| n.to_str()).is_some()
-                {
-                    v.push(p);
-                }
-            }
-            v.sort();
-            if v.is_empty() {
-                return Err(file_err("no .tar shards in this directory".into()));
-            }
-            (v, true)
-        } else {
-            (vec![path.to_path_buf()], false)
-        };
+        let (paths, prefixed) =
+            if meta.is_dir() { (shard_paths(path)?, true) } else { (vec![path.to_path_buf()], false) };
         let root =
             if meta.is_dir() { path.to_path_buf() } else { path.parent().map(Path::to_path_buf).unwrap_or_default() };
         let mut shards: Vec<ShardFile> = Vec::new();

@@ -578,51 +578,20 @@ impl UploadSession {
             store.lock().datasets.get(&dataset).map(|d| d.items.clone()).unwrap_or_default();
         let mut accepted_items: BTreeMap<String, Item> = BTreeMap::new();
         let mut accepted_files = 0u32;
-        for (name, mut parts) in by_name {
+        for (name, parts) in by_name {
             if rejected_names.contains(&name) {
                 let kinds: Vec<&str> = parts.keys().map(|k| k.as_str()).collect();
                 rejected.push(format!("{name}: not stored ({} dropped with the rejected part)", kinds.join(", ")));
                 continue;
             }
             let count = parts.len() as u32;
-            let base = match parts.remove(&Kind::Image) {
-                Some(bytes) => Item { image: Part::new(bytes), depth: None, mask: None },
-                None => match existing.get(&name) {
-                    Some(item) => item.clone(),
-                    None => {
-                        rejected.push(format!("{name}: depth or mask without an image (send the image too)"));
-                        continue;
-                    }
-                },
-            };
-            let mut item = base;
-            if let Some(bytes) = parts.remove(&Kind::Depth) {
-                match sniff_depth(&bytes) {
-                    Some(enc) => item.depth = Some((enc, Part::new(bytes))),
-                    None => {
-                        rejected.push(format!("{name}: depth is neither a .npy array nor a PNG"));
-                        continue;
-                    }
+            match checked_item(&store, &dataset, &name, parts, &existing) {
+                Ok(item) => {
+                    accepted_files += count;
+                    accepted_items.insert(name, item);
                 }
+                Err(reason) => rejected.push(reason),
             }
-            if let Some(bytes) = parts.remove(&Kind::Mask) {
-                item.mask = Some(Part::new(bytes));
-            }
-            // decode everything once, as a sample would, and check it can make a scene
-            match decode(&dataset, &name, &item, &options) {
-                Err(e) => {
-                    rejected.push(format!("{name}: {e}"));
-                    continue;
-                }
-                Ok(decoded) => {
-                    if let Some(Err(reason)) = store.check.as_ref().map(|c| c(&decoded)) {
-                        rejected.push(format!("{name}: {reason}"));
-                        continue;
-                    }
-                }
-            }
-            accepted_files += count;
-            accepted_items.insert(name, item);
         }
 
         // commit atomically under the limits
@@ -666,6 +635,45 @@ impl UploadSession {
         };
         Ok(UploadSummary { dataset, accepted: accepted_files, rejected, fingerprint, sources })
     }
+}
+
+/// The item one name's `parts` of an upload make (over the stored one in `existing` when no image
+/// is sent), decoded once as a sample would and checked that it can make a scene; `Err`: the
+/// report line of its rejection.
+fn checked_item(
+    store: &UploadStore,
+    dataset: &str,
+    name: &str,
+    mut parts: BTreeMap<Kind, Vec<u8>>,
+    existing: &BTreeMap<String, Item>,
+) -> Result<Item, String> {
+    let base = match parts.remove(&Kind::Image) {
+        Some(bytes) => Item { image: Part::new(bytes), depth: None, mask: None },
+        None => match existing.get(name) {
+            Some(item) => item.clone(),
+            None => return Err(format!("{name}: depth or mask without an image (send the image too)")),
+        },
+    };
+    let mut item = base;
+    if let Some(bytes) = parts.remove(&Kind::Depth) {
+        match sniff_depth(&bytes) {
+            Some(enc) => item.depth = Some((enc, Part::new(bytes))),
+            None => return Err(format!("{name}: depth is neither a .npy array nor a PNG")),
+        }
+    }
+    if let Some(bytes) = parts.remove(&Kind::Mask) {
+        item.mask = Some(Part::new(bytes));
+    }
+    // decode everything once, as a sample would, and check it can make a scene
+    match decode(dataset, name, &item, &store.options) {
+        Err(e) => return Err(format!("{name}: {e}")),
+        Ok(decoded) => {
+            if let Some(Err(reason)) = store.check.as_ref().map(|c| c(&decoded)) {
+                return Err(format!("{name}: {reason}"));
+            }
+        }
+    }
+    Ok(item)
 }
 
 /// A name as it may be shown in a report (control characters escaped, at most 64 characters).

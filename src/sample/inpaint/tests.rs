@@ -1,0 +1,104 @@
+//! The unit tests of the inpainting: the heap keys, the marching, the radius rules, the rounding.
+
+use super::front::{key, key_t, march, opencv_range, paper_radius, upwind};
+use super::opencv::Sample;
+use super::paper::disc;
+use super::*;
+use crate::raster::morph::dilate;
+
+#[test]
+fn key_orders_by_time_then_tie() {
+    let ks = [key(-3.5, 0), key(0.0, 0), key(-0.0, 1), key(0.0, 2), key(1.0, 0), key(1.0e6, 0)];
+    assert!(ks.windows(2).all(|p| p[0] < p[1]), "{ks:x?}");
+    for t in [-2.0f32, 0.0, 0.5, 1.0, 7.25, 1.0e6] {
+        assert_eq!(key_t(key(t, 9)), t);
+    }
+}
+
+#[test]
+fn upwind_matches_the_quadratic() {
+    assert_eq!(upwind(0.0, f32::INFINITY), 1.0);
+    assert_eq!(upwind(f32::INFINITY, 2.0), 3.0);
+    assert_eq!(upwind(0.0, 1.0), 1.0);
+    let v = upwind(0.0, 0.0);
+    assert!((v - std::f32::consts::FRAC_1_SQRT_2).abs() < 1e-6, "{v}");
+    // (T - a)^2 + (T - b)^2 = 1
+    let (a, b) = (0.3f32, 0.8f32);
+    let s = upwind(a, b);
+    assert!(((s - a).powi(2) + (s - b).powi(2) - 1.0).abs() < 1e-5);
+}
+
+#[test]
+fn marching_gives_distances_from_a_line() {
+    // band = column 0, region = the rest: T = x exactly
+    let (w, h) = (7, 3);
+    let mut t = vec![f32::INFINITY; w * h];
+    let seeds: Vec<u32> = (0..h).map(|y| (y * w) as u32).collect();
+    let mut order = Vec::new();
+    march(w, h, &mut t, |i| i % w != 0, &seeds, f32::INFINITY, Some(&mut order));
+    for (i, &ti) in t.iter().enumerate() {
+        assert_eq!(ti, (i % w) as f32, "pixel {i}");
+    }
+    // increasing T, ties by index
+    assert_eq!(order, vec![1, 8, 15, 2, 9, 16, 3, 10, 17, 4, 11, 18, 5, 12, 19, 6, 13, 20]);
+}
+
+#[test]
+fn march_stops_at_the_limit() {
+    let (w, h) = (10, 1);
+    let mut t = vec![f32::INFINITY; w];
+    march(w, h, &mut t, |_| true, &[0], 3.0, None);
+    assert_eq!(&t[..4], &[0.0, 1.0, 2.0, 3.0]);
+    assert!(t[5..].iter().all(|v| v.is_infinite()));
+}
+
+#[test]
+fn dilation_is_chebyshev() {
+    let (w, h) = (7, 6);
+    let mut set = vec![false; w * h];
+    set[2 * w + 3] = true;
+    let d = dilate(w, h, &set, 2);
+    for y in 0..h {
+        for x in 0..w {
+            let inside = (x as isize - 3).abs() <= 2 && (y as isize - 2).abs() <= 2;
+            assert_eq!(d[y * w + x], inside, "({x},{y})");
+        }
+    }
+}
+
+#[test]
+fn radius_rules() {
+    assert_eq!(paper_radius(0.2), 1.0);
+    assert_eq!(paper_radius(f32::NAN), 1.0);
+    assert_eq!(paper_radius(3.5), 3.5);
+    assert_eq!(paper_radius(1.0e9), MAX_RADIUS);
+    assert_eq!(opencv_range(2.5), 2);
+    assert_eq!(opencv_range(3.5), 4);
+    assert_eq!(opencv_range(0.4), 1);
+    assert_eq!(opencv_range(f32::NAN), 1);
+    assert_eq!(opencv_range(500.0), 100);
+    assert_eq!(disc(1.0).len(), 4);
+    assert_eq!(disc(1.5).len(), 8);
+}
+
+#[test]
+fn u8_put_rounds_like_opencv() {
+    assert_eq!(<u8 as Sample>::put(1.0), 2); // 1.5 -> 2 (half to even)
+    assert_eq!(<u8 as Sample>::put(2.0), 2); // 2.5 -> 2
+    assert_eq!(<u8 as Sample>::put(2.2), 3);
+    assert_eq!(<u8 as Sample>::put(-9.0), 0);
+    assert_eq!(<u8 as Sample>::put(300.0), 255);
+    assert_eq!(<u8 as Sample>::put(f32::NAN), 0);
+}
+
+#[test]
+fn single_pixel_hole_in_constant_image() {
+    let (w, h) = (5, 4);
+    let mut img = vec![0.25f32; w * h * 2];
+    let mut hole = vec![0u8; w * h];
+    hole[w + 2] = 1;
+    img[(w + 2) * 2] = 9.0;
+    let st = inpaint_telea(&mut img, w, h, 2, &hole, 3.0);
+    assert_eq!(st.filled, 1);
+    assert!(img.iter().all(|&v| (v - 0.25).abs() < 1e-6), "{img:?}");
+}
