@@ -33,7 +33,9 @@
 //! The band loops run on the vector path chosen at start-up ([`crate::isa`]): each band is a
 //! job ([`TargetBandJob`], [`SourceBandJob`]) whose loop is inlined into a function compiled for
 //! AVX-512, AVX2 or the SSE2 baseline; the source view then takes 16, 8 or 4 pixels per plane
-//! step ([`SourceLanes::wide`], [`SourceLanes::four`]), the same bits on every path.
+//! step ([`SourceLanes::wide`], [`SourceLanes::four`]), and on AVX-512 the target view takes a
+//! tile row of 16 pixels reading packed planes in registers ([`super::row16`]; four pixels at
+//! a time on the other paths and for the other samplers), the same bits on every path.
 //!
 //! Two things here stay large on purpose. The file (over 1,100 lines) keeps the scalar loops and
 //! their lane twins ([`TargetLanes`], [`SourceLanes`]) together with the per-plane constants

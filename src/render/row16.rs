@@ -370,6 +370,8 @@ fn bspline3(v4: pulp::x86::V4, coef: &Bricks, i: usize, px: &TapPixels, f: [&F; 
             *a = f16(|k| a[k] + wx[t][k] * col_tc[k]);
         }
     }
+    // max then min, as the scalar kernel: a NaN becomes 0 (`clamp` would keep it)
+    #[allow(clippy::manual_clamp)]
     let clamp = |a: &F| f16(|k| a[k].max(0.0).min(1.0));
     ([clamp(&acc[0]), clamp(&acc[1]), clamp(&acc[2])], found)
 }
