@@ -97,84 +97,94 @@ fn each(mut m: Lanes) -> impl Iterator<Item = usize> {
     })
 }
 
+// The lane operations on AVX-512 registers (`pulp`'s safe wrappers of the intrinsics): lane
+// sets as mask registers, blends, compares and the permutes that pick each lane's texel.
 #[cfg(target_arch = "x86_64")]
-use avx512::*;
-
-/// The lane operations on AVX-512 registers (`pulp`'s safe wrappers of the intrinsics): lane
-/// sets as mask registers, blends, compares and the permutes that pick each lane's texel.
+use core::arch::x86_64::{__m512, __m512i};
 #[cfg(target_arch = "x86_64")]
-mod avx512 {
-    use super::{Lanes, F, I, L};
-    use core::arch::x86_64::{__m512, __m512i};
-    use pulp::bytemuck::cast;
-    use pulp::x86::V4;
+use pulp::bytemuck::cast;
+#[cfg(target_arch = "x86_64")]
+use pulp::x86::V4;
 
-    pub(super) const LT: i32 = 0x11; // _CMP_LT_OQ
-    pub(super) const GE: i32 = 0x1D; // _CMP_GE_OQ
-    pub(super) const GT: i32 = 0x1E; // _CMP_GT_OQ
-    /// `!(a <= b)`: true where a NaN is involved, as the scalar loop's negated compares
-    pub(super) const NLE: i32 = 0x16; // _CMP_NLE_UQ
-    /// `!(a < b)`
-    pub(super) const NLT: i32 = 0x15; // _CMP_NLT_UQ
+#[cfg(target_arch = "x86_64")]
+const LT: i32 = 0x11; // _CMP_LT_OQ
+#[cfg(target_arch = "x86_64")]
+const GE: i32 = 0x1D; // _CMP_GE_OQ
+#[cfg(target_arch = "x86_64")]
+const GT: i32 = 0x1E; // _CMP_GT_OQ
+/// `!(a <= b)`: true where a NaN is involved, as the scalar loop's negated compares
+#[cfg(target_arch = "x86_64")]
+const NLE: i32 = 0x16; // _CMP_NLE_UQ
+/// `!(a < b)`
+#[cfg(target_arch = "x86_64")]
+const NLT: i32 = 0x15; // _CMP_NLT_UQ
 
-    /// Lane k: `a[idx[k]]` for idx[k] in 0..16, `b[idx[k] - 16]` for 16..32 (`vpermt2ps`).
-    #[inline(always)]
-    pub(super) fn two(v4: V4, a: &F, idx: &I, b: &F) -> F {
-        let (a, idx, b): (__m512, __m512i, __m512) = (cast(*a), cast(*idx), cast(*b));
-        cast(v4.avx512f._mm512_permutex2var_ps(a, idx, b))
-    }
+/// Lane k: `a[idx[k]]` for idx[k] in 0..16, `b[idx[k] - 16]` for 16..32 (`vpermt2ps`).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn two(v4: V4, a: &F, idx: &I, b: &F) -> F {
+    let (a, idx, b): (__m512, __m512i, __m512) = (cast(*a), cast(*idx), cast(*b));
+    cast(v4.avx512f._mm512_permutex2var_ps(a, idx, b))
+}
 
-    /// `a` in the lanes of `m`, else `b`.
-    #[inline(always)]
-    pub(super) fn pick(v4: V4, m: Lanes, a: &F, b: &F) -> F {
-        cast(v4.avx512f._mm512_mask_blend_ps(m, cast(*b), cast(*a)))
-    }
+/// `a` in the lanes of `m`, else `b`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn pick(v4: V4, m: Lanes, a: &F, b: &F) -> F {
+    cast(v4.avx512f._mm512_mask_blend_ps(m, cast(*b), cast(*a)))
+}
 
-    /// The lanes where `a P b` (`P` one of the predicates above).
-    #[inline(always)]
-    pub(super) fn cmp<const P: i32>(v4: V4, a: &F, b: &F) -> Lanes {
-        v4.avx512f._mm512_cmp_ps_mask::<P>(cast(*a), cast(*b))
-    }
+/// The lanes where `a P b` (`P` one of the predicates above).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn cmp<const P: i32>(v4: V4, a: &F, b: &F) -> Lanes {
+    v4.avx512f._mm512_cmp_ps_mask::<P>(cast(*a), cast(*b))
+}
 
-    /// The lanes where `a P s`.
-    #[inline(always)]
-    pub(super) fn cmp1<const P: i32>(v4: V4, a: &F, s: f32) -> Lanes {
-        cmp::<P>(v4, a, &[s; L])
-    }
+/// The lanes where `a P s`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn cmp1<const P: i32>(v4: V4, a: &F, s: f32) -> Lanes {
+    cmp::<P>(v4, a, &[s; L])
+}
 
-    /// The lanes where `a == s`.
-    #[inline(always)]
-    pub(super) fn eq(v4: V4, a: &I, s: i32) -> Lanes {
-        v4.avx512f._mm512_cmpeq_epi32_mask(cast(*a), cast([s; L]))
-    }
+/// The lanes where `a == s`.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn eq(v4: V4, a: &I, s: i32) -> Lanes {
+    v4.avx512f._mm512_cmpeq_epi32_mask(cast(*a), cast([s; L]))
+}
 
-    /// `a[k] as i32` for values inside i32's range (`vcvttps2dq`; Rust's saturating `as`
-    /// goes lane by lane).
-    #[inline(always)]
-    pub(super) fn trunc(v4: V4, a: &F) -> I {
-        cast(v4.avx512f._mm512_cvttps_epi32(cast(*a)))
-    }
+/// `a[k] as i32` for values inside i32's range (`vcvttps2dq`; Rust's saturating `as`
+/// goes lane by lane).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn trunc(v4: V4, a: &F) -> I {
+    cast(v4.avx512f._mm512_cvttps_epi32(cast(*a)))
+}
 
-    /// `acc + a b` in the lanes of `m` (the product rounded, then the sum), `acc` elsewhere.
-    #[inline(always)]
-    pub(super) fn add_mul(v4: V4, m: Lanes, acc: &F, a: &F, b: &F) -> F {
-        let acc: __m512 = cast(*acc);
-        let prod = v4.avx512f._mm512_mul_ps(cast(*a), cast(*b));
-        cast(v4.avx512f._mm512_mask_add_ps(acc, m, acc, prod))
-    }
+/// `acc + a b` in the lanes of `m` (the product rounded, then the sum), `acc` elsewhere.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn add_mul(v4: V4, m: Lanes, acc: &F, a: &F, b: &F) -> F {
+    let acc: __m512 = cast(*acc);
+    let prod = v4.avx512f._mm512_mul_ps(cast(*a), cast(*b));
+    cast(v4.avx512f._mm512_mask_add_ps(acc, m, acc, prod))
+}
 
-    /// The least and the greatest of `a` over the lanes of `m` (not empty).
-    #[inline(always)]
-    pub(super) fn min_max(v4: V4, m: Lanes, a: &I) -> (i32, i32) {
-        let a: __m512i = cast(*a);
-        (v4.avx512f._mm512_mask_reduce_min_epi32(m, a), v4.avx512f._mm512_mask_reduce_max_epi32(m, a))
-    }
+/// The least and the greatest of `a` over the lanes of `m` (not empty).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn min_max(v4: V4, m: Lanes, a: &I) -> (i32, i32) {
+    let a: __m512i = cast(*a);
+    (v4.avx512f._mm512_mask_reduce_min_epi32(m, a), v4.avx512f._mm512_mask_reduce_max_epi32(m, a))
+}
 
-    /// The lanes where `0 <= a < n` (unsigned compare).
-    #[inline(always)]
-    pub(super) fn below(v4: V4, a: &I, n: i32) -> Lanes {
-        v4.avx512f._mm512_cmplt_epu32_mask(cast(*a), cast([n; L]))
-    }
+/// The lanes where `0 <= a < n` (unsigned compare).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn below(v4: V4, a: &I, n: i32) -> Lanes {
+    v4.avx512f._mm512_cmplt_epu32_mask(cast(*a), cast([n; L]))
 }
 
 /// One block row split by channel: `main[c][p]` the value of channel c at pixel p (0..16) of
@@ -512,16 +522,7 @@ pub(super) fn row16(
         let e = exp_neg16(v4, &f16(|k| sig[k] * delta[k]));
         let wgt = f16(|k| tr[k] * (1.0 - e[k]));
         tr = pick(v4, lit, &f16(|k| tr[k] * e[k]), &tr);
-        let mut colour = [texel[0], texel[1], texel[2]];
-        if let Some(coef) = src.bspline3 {
-            let want = lit & cmp1::<NLT>(v4, &wgt, KERNEL_MIN_WEIGHT);
-            if want != 0 {
-                let (kc, found) = bspline3(v4, coef, i, &px, [&fx, &fy], want);
-                for (col, kc) in colour.iter_mut().zip(&kc) {
-                    *col = pick(v4, found, kc, col);
-                }
-            }
-        }
+        let colour = colours(v4, src, i, &px, [&fx, &fy], &texel, lit & cmp1::<NLT>(v4, &wgt, KERNEL_MIN_WEIGHT));
         for (acc, col) in rgb.iter_mut().zip(&colour) {
             *acc = add_mul(v4, lit, acc, &wgt, col);
         }
@@ -534,17 +535,39 @@ pub(super) fn row16(
         sum_w = pick(v4, lit, &f16(|k| sum_w[k] + wgt[k]), &sum_w);
         sum_z = add_mul(v4, lit, &sum_z, &wgt, &lambda);
     }
+    write(out.b, o, &rgb, [&sum_w, &sum_z], ex.map(|_| &acc1));
+    true
+}
+
+/// The colour of the lanes' samples of plane `i`: the bilinear colour of `texel`, or in the
+/// lanes of `want` the cubic B-spline's where the sampler has its coefficients and they are
+/// stored (`HighOrder::colour4`'s choice per lane).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn colours(v4: V4, src: Blocks16<'_>, i: usize, px: &TapPixels, f: [&F; 2], texel: &[F; 4], want: Lanes) -> [F; 3] {
+    let mut colour = [texel[0], texel[1], texel[2]];
+    if let Some(coef) = src.bspline3.filter(|_| want != 0) {
+        let (kc, found) = bspline3(v4, coef, i, px, f, want);
+        for (col, kc) in colour.iter_mut().zip(&kc) {
+            *col = pick(v4, found, kc, col);
+        }
+    }
+    colour
+}
+
+/// Pixels `o .. o + 16` of the band's image, depth (the weight-normalised `sum_z`, 0 where the
+/// weight `sum_w` is at most the scalar loop's 1e-6), coverage and, when given, extra channel.
+#[inline(always)]
+fn write(b: &mut [&mut [f32]; 10], o: usize, rgb: &[F; 3], [sum_w, sum_z]: [&F; 2], extra: Option<&F>) {
     // the scalar loop's T::of(1e-6)
     const EPS: f32 = 1e-6_f64 as f32;
-    let b = out.b;
     for k in 0..L {
         let o = o + k;
         b[0][3 * o..3 * o + 3].copy_from_slice(&[rgb[0][k], rgb[1][k], rgb[2][k]]);
         b[1][o] = if sum_w[k] > EPS { sum_z[k] / sum_w[k] } else { 0.0 };
         b[2][o] = sum_w[k];
-        if ex.is_some() {
-            b[3][o] = acc1[k];
+        if let Some(e) = extra {
+            b[3][o] = e[k];
         }
     }
-    true
 }
