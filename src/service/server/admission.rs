@@ -18,6 +18,7 @@ use crate::service::pool::{Client, SampleStream};
 use crate::service::reply::conn_of;
 
 impl State {
+    /// Counts a new call against its limit: `max_streams` for StreamSamples over all clients
     /// and half of it per peer (so one client, one connection included, cannot keep every other
     /// out), `max_random_access_calls` for the GetSample and GetSamples calls of one peer (undone
     /// when the returned slot is dropped, with the call's reply).

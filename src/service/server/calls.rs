@@ -56,8 +56,6 @@ impl State {
         Ok(CountedStream { inner, _admitted: admitted })
     }
 
-    /// Counts a new call against its limit: `max_streams` for StreamSamples over all clients
-
     /// The samples of an explicit index list, in its order (GetSamples): a stream of the pool
     /// with the list as its positions, counted against `max_streams`, one sample per message.
     pub(super) fn open_samples(
@@ -94,7 +92,7 @@ impl State {
 
     /// One sample through the worker pool (GetSample and the warm-up), with its place in the
     /// byte budget: the sample's bytes stay counted until the returned stream is dropped (with
-    /// the reply, once sent: [`ReplyHold`]).
+    /// the reply, once sent: [`ReplyHold`](crate::service::reply::ReplyHold)).
     pub async fn one_sample(
         self: &Arc<Self>,
         r: &pb::SampleRequest,

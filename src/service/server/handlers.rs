@@ -69,9 +69,10 @@ impl MpiFlow for Service {
     }
 }
 
-/// The answer of the generated handlers of the calls [`SampleRoutes`](super::routes::SampleRoutes) serves: a request for
-/// `path` reaches `SampleRoutes` first and never the generated service, so this is an internal
-/// error if it is ever sent.
+/// The answer of the generated handlers of the calls
+/// [`SampleRoutes`](super::routes::SampleRoutes) serves: a request for `path` reaches
+/// `SampleRoutes` first and never the generated service, so this is an internal error if it is
+/// ever sent.
 fn served_by_sample_routes(path: &str) -> Status {
     Status::internal(format!("{path} is served by the sample routes, not the generated service"))
 }

@@ -3,10 +3,10 @@
 //! validate, call the domain (dataset, pool), convert back. The sample streams' replies are
 //! written by [`super::frames`] through `SampleRoutes`, in front of the generated service.
 //!
-//! The rooms, from the ground up: [`state`] (what the handlers share), [`admission`] (the
-//! per-call limits, a call's client and its refusal), [`job`] (a request's spec made ready, the
-//! job that makes its samples), [`calls`] (the calls' work on the state), [`routes`] (the sample
-//! streams' route), [`handlers`] (the generated service's handlers), [`lifecycle`] (start-up,
+//! The rooms, from the ground up: `state` (what the handlers share), `admission` (the
+//! per-call limits, a call's client and its refusal), `job` (a request's spec made ready, the
+//! job that makes its samples), `calls` (the calls' work on the state), `routes` (the sample
+//! streams' route), `handlers` (the generated service's handlers), `lifecycle` (start-up,
 //! warm-up, drain).
 
 mod admission;

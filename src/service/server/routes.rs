@@ -20,11 +20,11 @@ pub(super) const STREAM_SAMPLES_PATH: &str = "/mpiflow.v1.MpiFlow/StreamSamples"
 pub(super) const GET_SAMPLES_PATH: &str = "/mpiflow.v1.MpiFlow/GetSamples";
 
 /// The `mpiflow.v1.MpiFlow` service as served: the sample streams (StreamSamples, GetSamples)
-/// answered here with the reply body of [`crate::service::frames`] (the tensors handed to HTTP/2 without a
-/// copy), every other call by tonic's generated service. The request is decoded by tonic's own
-/// decoder, with the same size limit and errors, and opened by the same [`State`] methods as the
-/// generated service's handlers; the token check, the reply layer and the connection limits wrap
-/// both alike.
+/// answered here with the reply body of [`crate::service::frames`] (the tensors handed to HTTP/2
+/// without a copy), every other call by tonic's generated service. The request is decoded by
+/// tonic's own decoder, with the same size limit and errors, and opened by the same [`State`]
+/// methods as the generated service's handlers; the token check, the reply layer and the
+/// connection limits wrap both alike.
 #[derive(Clone)]
 pub(super) struct SampleRoutes<S> {
     pub(super) inner: S,
