@@ -351,10 +351,8 @@ fn opt3(v: Option<f64>) -> String {
 }
 
 fn quality(q: QualityBench) -> Result<(), CliError> {
-    use mpiflow::bench::quality::{quality, quality_same_motions, QualityReport};
-    use mpiflow::sample::background::Background;
+    use mpiflow::bench::quality::{quality, quality_same_motions};
     use mpiflow::sample::config::{MotionSpec, SampleConfig};
-    use mpiflow::sample::merge::{LabelRule, MergeRule};
     use mpiflow::sample::pipeline::{open_source, OpenOptions, Pipeline, SourceSpec};
     use mpiflow::scene::cache::SceneCache;
     use std::sync::Arc;
@@ -413,12 +411,24 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     if q.realism {
         return realism_table(&run, &base);
     }
+    rules_table(&run, &base, &kernels)
+}
+
+/// The table of the merge and label rules (`bench quality`'s default): a row per kernel, merge
+/// rule, fill and objects.
+fn rules_table(
+    run: &RunQuality<'_>,
+    base: &mpiflow::sample::config::SampleConfig,
+    kernels: &[Resample],
+) -> Result<(), CliError> {
+    use mpiflow::sample::background::Background;
+    use mpiflow::sample::config::SampleConfig;
+    use mpiflow::sample::merge::{LabelRule, MergeRule};
     println!(
         "| resample | merge | fill | objects | labels | photometric | background | holes law | label law | depth law | hole fraction | lines img2 / img1 | sharpness | valid | occluded | flow p5 / p50 / p95 / p99 / max px | < 1 px |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-    let pct = |r: &QualityReport, n: u64| format!("{:.3}%", 100.0 * r.laws.rate(n));
-    for &resample in &kernels {
+    for &resample in kernels {
         let rules = [
             (MergeRule::DepthAware, Background::Planes),
             (MergeRule::DepthAware, Background::Inpaint),
@@ -435,40 +445,50 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
                     ..base.clone()
                 };
                 let r = run(&c)?;
-                println!(
-                    "| {resample} | {} | {background} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} / {:.1} / {:.1} | {:.2}% |",
-                    match merge {
-                        MergeRule::DepthAware => "depth-aware",
-                        MergeRule::Reference => "reference",
-                    },
-                    objects,
-                    r.with_objects,
-                    match labels {
-                        LabelRule::Honest => "honest",
-                        LabelRule::DepthOnly => "depth-only",
-                    },
-                    r.photometric,
-                    r.photometric_background,
-                    pct(&r, r.laws.holes),
-                    pct(&r, r.laws.label),
-                    pct(&r, r.laws.depth),
-                    r.hole_fraction,
-                    r.lines2,
-                    r.lines1,
-                    r.sharpness,
-                    r.valid_fraction,
-                    r.occluded_fraction,
-                    r.flow_p5,
-                    r.flow_p50,
-                    r.flow_p95,
-                    r.flow_p99,
-                    r.flow_max,
-                    100.0 * r.below_1px
-                );
+                rule_row(&c, &r);
             }
         }
     }
     Ok(())
+}
+
+/// One row of [`rules_table`]: the report `r` of the configuration `c`.
+fn rule_row(c: &mpiflow::sample::config::SampleConfig, r: &mpiflow::bench::quality::QualityReport) {
+    use mpiflow::bench::quality::QualityReport;
+    use mpiflow::sample::merge::{LabelRule, MergeRule};
+    let (resample, merge, background, objects, labels) =
+        (c.resample, c.merge, c.background, c.max_objects, c.label_rule);
+    let pct = |r: &QualityReport, n: u64| format!("{:.3}%", 100.0 * r.laws.rate(n));
+    println!(
+        "| {resample} | {} | {background} | {} ({} moved) | {} | {:.4} | {:.4} | {} | {} | {} | {:.4} | {} / {} | {:.3} | {:.3} | {:.3} | {:.2} / {:.2} / {:.2} / {:.1} / {:.1} | {:.2}% |",
+        match merge {
+            MergeRule::DepthAware => "depth-aware",
+            MergeRule::Reference => "reference",
+        },
+        objects,
+        r.with_objects,
+        match labels {
+            LabelRule::Honest => "honest",
+            LabelRule::DepthOnly => "depth-only",
+        },
+        r.photometric,
+        r.photometric_background,
+        pct(r, r.laws.holes),
+        pct(r, r.laws.label),
+        pct(r, r.laws.depth),
+        r.hole_fraction,
+        r.lines2,
+        r.lines1,
+        r.sharpness,
+        r.valid_fraction,
+        r.occluded_fraction,
+        r.flow_p5,
+        r.flow_p50,
+        r.flow_p95,
+        r.flow_p99,
+        r.flow_max,
+        100.0 * r.below_1px
+    );
 }
 
 fn accuracy(a: AccuracyBench) -> Result<(), CliError> {

@@ -63,9 +63,36 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
         config.datasets = vec![DatasetConfig::parse(s).map_err(CliError)?];
     }
     config.validate()?;
+    let local = run_in_process(&b, &config, workers)?;
 
-    // ---- in process: the generator on `workers` threads
-    let datasets = Datasets::open(&config)?;
+    // ---- served: a child server process, pulled over loopback
+    let args = server_args(&b, workers);
+    let exe = std::env::current_exe().map_err(|e| CliError(format!("cannot find the mpiflow binary: {e}")))?;
+    let server = ServerProcess::start(&exe, &args).map_err(|e| CliError(e.0))?;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .map_err(|e| CliError(format!("async runtime: {e}")))?;
+    let result = rt.block_on(served(&b, &server, &local, workers));
+    server.terminate(Duration::from_secs(30));
+    result
+}
+
+/// The in-process run's figures, the served run's yardstick.
+struct InProcess {
+    /// The samples of the warm-up (one per source).
+    warm: u64,
+    /// Samples per second.
+    rate: f64,
+    /// The CPU seconds of this process over the run, where the platform tells them.
+    cpu_s: Option<f64>,
+}
+
+/// In process: the generator on `workers` threads, warmed on every source, then `b.count` samples
+/// timed; prints its line.
+fn run_in_process(b: &ServeBench, config: &ServiceConfig, workers: usize) -> Result<InProcess, CliError> {
+    let datasets = Datasets::open(config)?;
     let ds = datasets.default_dataset().clone();
     let generator = ds.generator.clone();
     let pool = rayon::ThreadPoolBuilder::new().num_threads(workers).build()?;
@@ -74,18 +101,22 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
     let me = std::process::id();
     let (t, cpu0) = (Instant::now(), cpu_s(me));
     pool.install(|| (0..b.count).into_par_iter().try_for_each(|i| generator.sample(1, i).map(drop)))?;
-    let in_process = b.count as f64 / t.elapsed().as_secs_f64();
-    let in_process_cpu = cpu0.zip(cpu_s(me)).map(|(a, z)| z - a);
+    let rate = b.count as f64 / t.elapsed().as_secs_f64();
+    let cpu = cpu0.zip(cpu_s(me)).map(|(a, z)| z - a);
     drop(datasets);
     println!(
-        "in process: {in_process:.2} samples/s ({} samples of {}, {workers} workers, dataset {} with {} sources)",
+        "in process: {rate:.2} samples/s ({} samples of {}, {workers} workers, dataset {} with {} sources)",
         b.count,
         b.size,
         ds.name,
         ds.sources()
     );
+    Ok(InProcess { warm, rate, cpu_s: cpu })
+}
 
-    // ---- served: a child server process, pulled over loopback
+/// The flags of the child server: loopback, `workers` workers, the bench's size and source, its
+/// metrics on.
+fn server_args(b: &ServeBench, workers: usize) -> Vec<String> {
     let mut args: Vec<String> = vec![
         "--addr".into(),
         "127.0.0.1:0".into(),
@@ -101,69 +132,63 @@ pub fn run(b: ServeBench) -> Result<(), CliError> {
     if let Some(s) = &b.source {
         args.extend(["--source".into(), s.clone()]);
     }
-    let exe = std::env::current_exe().map_err(|e| CliError(format!("cannot find the mpiflow binary: {e}")))?;
-    let server = ServerProcess::start(&exe, &args).map_err(|e| CliError(e.0))?;
-    let pid = server.pid();
-    let addr = server.addr.clone();
-    let rt = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()
-        .map_err(|e| CliError(format!("async runtime: {e}")))?;
-    let result = rt.block_on(async {
-        let mut client = connect(&addr).await.map_err(|e| CliError(format!("{addr}: {e}")))?;
-        // warm the server's scene cache like the in-process run
-        let w = pull(&mut client, request(&b, 0, warm), |_| {}).await.map_err(|s| CliError(s.to_string()))?;
-        if let Some(e) = w.error {
-            return Err(CliError(format!("warm-up pull: {e}")));
-        }
-        let usage = || async {
-            let busy = match &server.metrics_addr {
-                Some(m) => scrape(m).await.map(|t| {
-                    ["total", "encode"]
-                        .iter()
-                        .filter_map(|k| metric_value(&t, &format!("mpiflow_stage_seconds_sum{{stage=\"{k}\"}}")))
-                        .sum::<f64>()
-                }),
-                None => None,
-            };
-            (busy, cpu_s(pid), cpu_s(me))
+    args
+}
+
+/// Served: the child `server` pulled over loopback (its scene cache warmed like the in-process
+/// run), its rate against `local`'s and where the CPU went; then the memory phase.
+async fn served(b: &ServeBench, server: &ServerProcess, local: &InProcess, workers: usize) -> Result<(), CliError> {
+    let (me, pid, addr) = (std::process::id(), server.pid(), server.addr.clone());
+    let mut client = connect(&addr).await.map_err(|e| CliError(format!("{addr}: {e}")))?;
+    // warm the server's scene cache like the in-process run
+    let w = pull(&mut client, request(b, 0, local.warm), |_| {}).await.map_err(|s| CliError(s.to_string()))?;
+    if let Some(e) = w.error {
+        return Err(CliError(format!("warm-up pull: {e}")));
+    }
+    let usage = || async {
+        let busy = match &server.metrics_addr {
+            Some(m) => scrape(m).await.map(|t| {
+                ["total", "encode"]
+                    .iter()
+                    .filter_map(|k| metric_value(&t, &format!("mpiflow_stage_seconds_sum{{stage=\"{k}\"}}")))
+                    .sum::<f64>()
+            }),
+            None => None,
         };
-        let before = usage().await;
-        let r = pull(&mut client, request(&b, 1, b.count), |_| {}).await.map_err(|s| CliError(s.to_string()))?;
-        let after = usage().await;
-        if let Some(e) = &r.error {
-            return Err(CliError(format!("pull: {e}")));
-        }
-        println!("served:     {}", r.summary());
-        println!(
-            "served / in process = {:.1}% (time to first sample {:.1} ms, p99 gap {:.1} ms, batch {}, lz4 {})",
-            100.0 * r.samples_per_s() / in_process,
-            r.first_sample_ms.unwrap_or(0.0),
-            r.gap_quantile_ms(0.99).unwrap_or(0.0),
-            b.batch_size,
-            b.lz4
-        );
-        let per = |a: Option<f64>, z: Option<f64>| a.zip(z).map(|(a, z)| 1e3 * (z - a) / b.count as f64);
-        let ms = |v: Option<f64>| v.map_or_else(|| "?".into(), |v| format!("{v:.1} ms"));
-        let run_s = r.seconds;
-        println!(
-            "where the CPU went (per sample): in process {}; served: server {}, client {}; the workers were busy {} of the run",
-            ms(in_process_cpu.map(|c| 1e3 * c / b.count as f64)),
-            ms(per(before.1, after.1)),
-            ms(per(before.2, after.2)),
-            before.0.zip(after.0).map_or_else(
-                || "?".into(),
-                |(a, z)| format!("{:.1}%", 100.0 * (z - a) / (run_s * workers as f64))
-            )
-        );
-        if b.clients == 0 {
-            return Ok(());
-        }
-        memory_phase(&b, &addr, pid).await
-    });
-    server.terminate(Duration::from_secs(30));
-    result
+        (busy, cpu_s(pid), cpu_s(me))
+    };
+    let before = usage().await;
+    let r = pull(&mut client, request(b, 1, b.count), |_| {}).await.map_err(|s| CliError(s.to_string()))?;
+    let after = usage().await;
+    if let Some(e) = &r.error {
+        return Err(CliError(format!("pull: {e}")));
+    }
+    println!("served:     {}", r.summary());
+    println!(
+        "served / in process = {:.1}% (time to first sample {:.1} ms, p99 gap {:.1} ms, batch {}, lz4 {})",
+        100.0 * r.samples_per_s() / local.rate,
+        r.first_sample_ms.unwrap_or(0.0),
+        r.gap_quantile_ms(0.99).unwrap_or(0.0),
+        b.batch_size,
+        b.lz4
+    );
+    let per = |a: Option<f64>, z: Option<f64>| a.zip(z).map(|(a, z)| 1e3 * (z - a) / b.count as f64);
+    let ms = |v: Option<f64>| v.map_or_else(|| "?".into(), |v| format!("{v:.1} ms"));
+    let run_s = r.seconds;
+    println!(
+        "where the CPU went (per sample): in process {}; served: server {}, client {}; the workers were busy {} of the run",
+        ms(local.cpu_s.map(|c| 1e3 * c / b.count as f64)),
+        ms(per(before.1, after.1)),
+        ms(per(before.2, after.2)),
+        before.0.zip(after.0).map_or_else(
+            || "?".into(),
+            |(a, z)| format!("{:.1}%", 100.0 * (z - a) / (run_s * workers as f64))
+        )
+    );
+    if b.clients == 0 {
+        return Ok(());
+    }
+    memory_phase(b, &addr, pid).await
 }
 
 /// The memory phase: the server's RSS idle, with `b.clients` streams opened and never read, and

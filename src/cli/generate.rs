@@ -9,8 +9,9 @@
 //! cannot be made is skipped with a one-line warning; the run goes on.
 
 use std::path::PathBuf;
-use std::sync::mpsc::sync_channel;
+use std::sync::mpsc::{sync_channel, Receiver};
 use std::sync::Arc;
+use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use clap::Args;
@@ -24,10 +25,11 @@ use mpiflow::sample::config::{SampleConfig, MAX_MOTIONS_PER_IMAGE, MAX_SCENE_WIN
 use mpiflow::sample::error::SampleError;
 use mpiflow::sample::merge::{LabelRule, MergeRule};
 use mpiflow::sample::motion::MotionPreset;
-use mpiflow::sample::pipeline::{open_source, parse_size, OpenOptions, Pipeline, SourceSpec};
+use mpiflow::sample::pipeline::{open_source, parse_size, Generator, OpenOptions, Pipeline, SourceSpec};
 use mpiflow::sample::Sample;
 use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::models::ModelConfig;
+use mpiflow::scene::stage::SourceScenes;
 use mpiflow::scene::SceneLoader;
 use mpiflow::source::dir::IntrinsicsSpec;
 use mpiflow::source::Source;
@@ -217,7 +219,54 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         return Err(CliError(format!("--planes {planes}: expected 1 to {MAX_PLANES}")));
     }
     let stage = Arc::new(model_config(&a).build_stage().map_err(CliError)?);
-    let config = SampleConfig {
+    let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));
+    let pipeline = Pipeline::new(source.clone(), stage, cache, sample_config(&a))?;
+    let generator = pipeline.generator().clone();
+    let loader = pipeline.loader().clone();
+    let (threads, pool) = worker_pool(&a)?;
+    let exporter = exporter(&a)?;
+
+    eprintln!(
+        "generate: {} samples (indices {}..{end}) from {} into {} ({}), {threads} threads, dataset fingerprint {:016x}",
+        a.count,
+        a.start,
+        loader.describe(),
+        a.out.display(),
+        a.format,
+        pipeline.fingerprint()
+    );
+    let started = Instant::now();
+    let pb = progress_bar(a.count, a.quiet);
+    let (tx, rx) = sync_channel::<Vec<(u64, Outcome)>>(2);
+    let writer = spawn_writer(exporter, rx, pb.clone())?;
+    let make = |index: u64| make_one(&generator, &loader, a.seed, a.format, index);
+    let chunk = (threads * 2).max(2) as u64;
+    let mut next = a.start;
+    pool.install(|| {
+        while next < end {
+            let stop = end.min(next + chunk);
+            let outcomes: Vec<(u64, Outcome)> = (next..stop).into_par_iter().map(|i| (i, make(i))).collect();
+            if tx.send(outcomes).is_err() {
+                break; // the writer stopped on an error; it is reported below
+            }
+            next = stop;
+        }
+    });
+    drop(tx);
+    let joined = writer.join();
+    pb.finish_and_clear();
+    let (summary, skipped) = match joined {
+        Ok(r) => r?,
+        Err(_) => return Err(CliError("the writer thread panicked".into())),
+    };
+    let secs = started.elapsed().as_secs_f64();
+    let bad = warn_bad_sources(source.as_ref(), &generator);
+    report(&summary, skipped, bad, secs, &a)
+}
+
+/// The sample options of the flags, over the preset's.
+fn sample_config(a: &GenerateArgs) -> SampleConfig {
+    SampleConfig {
         max_objects: usize::from(a.objects),
         merge: a.merge,
         label_rule: a.label_rule,
@@ -231,12 +280,11 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         resample: a.resample,
         inpaint_method: a.inpaint,
         ..SampleConfig::with_preset(a.preset)
-    };
-    let cache = Arc::new(SceneCache::new(usize::try_from(a.cache_mb.saturating_mul(1 << 20)).unwrap_or(usize::MAX)));
-    let pipeline = Pipeline::new(source.clone(), stage, cache, config)?;
-    let generator = pipeline.generator().clone();
-    let loader = pipeline.loader().clone();
+    }
+}
 
+/// The worker threads (`--threads`, or one per core) and their pool.
+fn worker_pool(a: &GenerateArgs) -> Result<(usize, rayon::ThreadPool), CliError> {
     let threads = match a.threads {
         Some(n) => n as usize,
         None => std::thread::available_parallelism().map(std::num::NonZero::get).unwrap_or(1),
@@ -246,29 +294,28 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         .thread_name(|i| format!("mpiflow-generate-{i}"))
         .build()
         .map_err(|e| CliError(format!("cannot start {threads} worker threads: {e}")))?;
+    Ok((threads, pool))
+}
 
+/// The exporter of `--out` in `--format`, with its shard size and preview sheets.
+fn exporter(a: &GenerateArgs) -> Result<Exporter, CliError> {
     let mut options = ExportOptions::new(a.format, &a.out);
     options.shard_size = a.shard_size;
     options.preview =
         PreviewOptions { every: a.preview_every, rows: a.preview_rows as usize, panel_width: a.preview_width as usize };
-    let exporter = Exporter::create(options)?;
+    Ok(Exporter::create(options)?)
+}
 
-    eprintln!(
-        "generate: {} samples (indices {}..{end}) from {} into {} ({}), {threads} threads, dataset fingerprint {:016x}",
-        a.count,
-        a.start,
-        loader.describe(),
-        a.out.display(),
-        a.format,
-        pipeline.fingerprint()
-    );
-    let started = Instant::now();
-    let pb = progress_bar(a.count, a.quiet);
+/// What the writer thread gives back: the export's summary and the samples skipped.
+type Written = Result<(ExportSummary, u64), mpiflow::export::ExportError>;
 
-    // the writer: takes chunks in index order, writes them, reports skips
-    let (tx, rx) = sync_channel::<Vec<(u64, Outcome)>>(2);
-    let writer_pb = pb.clone();
-    let writer = std::thread::Builder::new()
+/// The writer: takes chunks in index order, writes them, reports skips.
+fn spawn_writer(
+    exporter: Exporter,
+    rx: Receiver<Vec<(u64, Outcome)>>,
+    writer_pb: ProgressBar,
+) -> Result<JoinHandle<Written>, CliError> {
+    std::thread::Builder::new()
         .name("mpiflow-generate-writer".into())
         .spawn(move || {
             let mut exporter = exporter;
@@ -291,45 +338,29 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
             let summary = exporter.finish()?;
             Ok::<_, mpiflow::export::ExportError>((summary, skipped))
         })
-        .map_err(|e| CliError(format!("cannot start the writer thread: {e}")))?;
+        .map_err(|e| CliError(format!("cannot start the writer thread: {e}")))
+}
 
-    let format = a.format;
-    let make = |index: u64| -> Outcome {
-        let describe_source = || match generator.source_item(index) {
-            Some(item) => format!("source item {item} ({})", loader.id(item)),
-            None => "no source".into(),
-        };
-        match generator.sample(a.seed, index) {
-            Ok(sample) => match mpiflow::export::encode_for(format, index, &sample) {
-                Ok(encoded) => Outcome::Done(Box::new((sample, encoded))),
-                Err(e) => Outcome::Skipped(format!("{}: cannot encode: {e}", describe_source())),
-            },
-            // a scene error already names the source item
-            Err(e @ SampleError::Scene { .. }) => Outcome::Skipped(e.to_string()),
-            Err(e) => Outcome::Skipped(format!("{}: {e}", describe_source())),
-        }
+/// Sample `index` made and encoded (on a worker), or the warning that skips it.
+fn make_one(generator: &Generator, loader: &SourceScenes, seed: u64, format: ExportFormat, index: u64) -> Outcome {
+    let describe_source = || match generator.source_item(index) {
+        Some(item) => format!("source item {item} ({})", loader.id(item)),
+        None => "no source".into(),
     };
-    let chunk = (threads * 2).max(2) as u64;
-    let mut next = a.start;
-    pool.install(|| {
-        while next < end {
-            let stop = end.min(next + chunk);
-            let outcomes: Vec<(u64, Outcome)> = (next..stop).into_par_iter().map(|i| (i, make(i))).collect();
-            if tx.send(outcomes).is_err() {
-                break; // the writer stopped on an error; it is reported below
-            }
-            next = stop;
-        }
-    });
-    drop(tx);
-    let joined = writer.join();
-    pb.finish_and_clear();
-    let (summary, skipped) = match joined {
-        Ok(r) => r?,
-        Err(_) => return Err(CliError("the writer thread panicked".into())),
-    };
-    let secs = started.elapsed().as_secs_f64();
-    // bad sources passed over (their samples came from the next good source), once each
+    match generator.sample(seed, index) {
+        Ok(sample) => match mpiflow::export::encode_for(format, index, &sample) {
+            Ok(encoded) => Outcome::Done(Box::new((sample, encoded))),
+            Err(e) => Outcome::Skipped(format!("{}: cannot encode: {e}", describe_source())),
+        },
+        // a scene error already names the source item
+        Err(e @ SampleError::Scene { .. }) => Outcome::Skipped(e.to_string()),
+        Err(e) => Outcome::Skipped(format!("{}: {e}", describe_source())),
+    }
+}
+
+/// Bad sources passed over (their samples came from the next good source), once each; the number
+/// of source items the generator skipped.
+fn warn_bad_sources(source: &dyn Source, generator: &Generator) -> usize {
     for skipped in source.skipped() {
         eprintln!("warning: {} left out of the source: {}", skipped.item, skipped.reason);
     }
@@ -337,7 +368,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     for (item, id, reason) in &bad {
         eprintln!("warning: source item {item} ({id}) skipped, its samples use the next good source: {reason}");
     }
-    report(&summary, skipped, bad.len(), secs, &a)
+    bad.len()
 }
 
 /// The closing line of a run (what was written, how fast), and the error when nothing was.

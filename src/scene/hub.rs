@@ -310,7 +310,6 @@ impl Hub {
     fn download(&self, e: &HubFile, progress: bool) -> Result<PathBuf, HubError> {
         let url = self.url(e);
         let repo_name = Self::repo_name(e);
-        let limit = e.size.unwrap_or(MAX_MODEL_BYTES);
         let locks = self.make_dirs(&[".locks", &repo_name])?;
         let lock_path = locks.join(format!("{}.lock", e.sha256));
         let lock = open_nofollow(&lock_path, OpenOptions::new().read(true).write(true).create(true))?;
@@ -322,82 +321,7 @@ impl Hub {
         let blobs = self.make_dirs(&[&repo_name, "blobs"])?;
         let blob = blobs.join(&e.sha256);
         let partial_path = blobs.join(format!("{}.incomplete", e.sha256));
-        // the bytes an interrupted download kept, resumed unless over the bound
-        let kept = if is_regular(&partial_path)? {
-            std::fs::symlink_metadata(&partial_path).map_err(io(&partial_path))?.len()
-        } else {
-            0
-        };
-        let (response, commit, resumed) = self.request(&url, e, if kept > limit { 0 } else { kept })?;
-        let mut got = if resumed { kept } else { 0 };
-        let mut partial =
-            open_nofollow(&partial_path, OpenOptions::new().read(true).write(true).create(true).truncate(false))?;
-        partial.set_len(got).map_err(io(&partial_path))?;
-        // the bytes kept from before go into the hash first
-        let mut hasher = Sha256::new();
-        partial.seek(SeekFrom::Start(0)).map_err(io(&partial_path))?;
-        let copied =
-            std::io::copy(&mut (&mut partial).take(got), &mut HashWriter(&mut hasher)).map_err(io(&partial_path))?;
-        if copied != got {
-            return Err(io(&partial_path)(std::io::Error::other("the partial file changed while it was read")));
-        }
-        let remaining =
-            response.headers().get("content-length").and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
-        let too_large = |what| HubError::TooLarge { url: url.clone(), limit, what };
-        let what = if e.size.is_some() { "the registry pins" } else { "a model file may have" };
-        if remaining.is_some_and(|r| got.saturating_add(r) > limit) {
-            drop(partial);
-            let _ = std::fs::remove_file(&partial_path);
-            return Err(too_large(what));
-        }
-        let expected = remaining.map(|r| got + r).or(e.size);
-        let bar = progress.then(|| progress_bar(expected, &e.name, got));
-        let mut reader = response.into_body().into_reader();
-        let mut buf = vec![0u8; 1 << 16];
-        let read_result = loop {
-            let n = match reader.read(&mut buf) {
-                Ok(0) => break Ok(()),
-                Ok(n) => n,
-                Err(err) if err.kind() == std::io::ErrorKind::Interrupted => continue,
-                Err(err) => break Err(err),
-            };
-            if got + n as u64 > limit {
-                drop(partial);
-                let _ = std::fs::remove_file(&partial_path);
-                return Err(too_large(what));
-            }
-            hasher.update(&buf[..n]);
-            partial.write_all(&buf[..n]).map_err(io(&partial_path))?;
-            got += n as u64;
-            if let Some(b) = &bar {
-                b.set_position(got);
-            }
-        };
-        if let Some(b) = bar {
-            b.finish_and_clear();
-        }
-        partial.sync_all().map_err(io(&partial_path))?;
-        drop(partial);
-        // an interrupted download keeps what it received, to be resumed; an empty file is not kept
-        let stop = |err: HubError| {
-            if got == 0 {
-                let _ = std::fs::remove_file(&partial_path);
-            }
-            Err(err)
-        };
-        if let Err(err) = read_result {
-            if is_timeout(&err) {
-                return stop(HubError::TimedOut { url, seconds: self.timeout.as_secs_f64() });
-            }
-            return stop(match expected {
-                Some(expected) => HubError::Interrupted { url, got, expected },
-                None => HubError::Http { url, message: format!("reading the body: {err}") },
-            });
-        }
-        if let Some(expected) = expected.filter(|&x| x != got) {
-            return stop(HubError::Interrupted { url, got, expected });
-        }
-        let actual = hex(&hasher.finalize());
+        let (actual, commit) = self.receive(&url, e, &partial_path, progress)?;
         if actual != e.sha256 {
             let _ = std::fs::remove_file(&partial_path);
             return Err(HubError::Checksum {
@@ -413,15 +337,103 @@ impl Hub {
             let _ = std::fs::remove_file(&blob);
             return Err(err);
         }
+        let link = self.link_snapshot(e, &repo_name, &blob, commit)?;
+        drop(lock);
+        Ok(link)
+    }
 
-        // the snapshot link, and the ref of a revision that is not a commit
+    /// Receives `e` from `url` into `partial_path`, resuming what an interrupted download kept
+    /// there: the SHA-256 of the whole file (hex) and the commit the hub named. A download cut
+    /// short keeps what it received, to be resumed; one over the bound keeps nothing.
+    fn receive(
+        &self,
+        url: &str,
+        e: &HubFile,
+        partial_path: &Path,
+        progress: bool,
+    ) -> Result<(String, Option<String>), HubError> {
+        let limit = e.size.unwrap_or(MAX_MODEL_BYTES);
+        // the bytes an interrupted download kept, resumed unless over the bound
+        let kept = if is_regular(partial_path)? {
+            std::fs::symlink_metadata(partial_path).map_err(io(partial_path))?.len()
+        } else {
+            0
+        };
+        let (response, commit, resumed) = self.request(url, e, if kept > limit { 0 } else { kept })?;
+        let mut got = if resumed { kept } else { 0 };
+        let mut partial =
+            open_nofollow(partial_path, OpenOptions::new().read(true).write(true).create(true).truncate(false))?;
+        partial.set_len(got).map_err(io(partial_path))?;
+        // the bytes kept from before go into the hash first
+        let mut hasher = Sha256::new();
+        partial.seek(SeekFrom::Start(0)).map_err(io(partial_path))?;
+        let copied =
+            std::io::copy(&mut (&mut partial).take(got), &mut HashWriter(&mut hasher)).map_err(io(partial_path))?;
+        if copied != got {
+            return Err(io(partial_path)(std::io::Error::other("the partial file changed while it was read")));
+        }
+        let remaining =
+            response.headers().get("content-length").and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
+        let what = if e.size.is_some() { "the registry pins" } else { "a model file may have" };
+        let too_large = HubError::TooLarge { url: url.to_string(), limit, what };
+        if remaining.is_some_and(|r| got.saturating_add(r) > limit) {
+            drop(partial);
+            let _ = std::fs::remove_file(partial_path);
+            return Err(too_large);
+        }
+        let expected = remaining.map(|r| got + r).or(e.size);
+        let bar = progress.then(|| progress_bar(expected, &e.name, got));
+        let mut reader = response.into_body().into_reader();
+        let read = read_body(&mut reader, &mut partial, partial_path, &mut hasher, &mut got, limit, bar.as_ref())?;
+        let Some(read_result) = read else {
+            drop(partial);
+            let _ = std::fs::remove_file(partial_path);
+            return Err(too_large);
+        };
+        if let Some(b) = bar {
+            b.finish_and_clear();
+        }
+        partial.sync_all().map_err(io(partial_path))?;
+        drop(partial);
+        // an interrupted download keeps what it received, to be resumed; an empty file is not kept
+        let stop = |err: HubError| {
+            if got == 0 {
+                let _ = std::fs::remove_file(partial_path);
+            }
+            Err(err)
+        };
+        let url = url.to_string();
+        if let Err(err) = read_result {
+            if is_timeout(&err) {
+                return stop(HubError::TimedOut { url, seconds: self.timeout.as_secs_f64() });
+            }
+            return stop(match expected {
+                Some(expected) => HubError::Interrupted { url, got, expected },
+                None => HubError::Http { url, message: format!("reading the body: {err}") },
+            });
+        }
+        if let Some(expected) = expected.filter(|&x| x != got) {
+            return stop(HubError::Interrupted { url, got, expected });
+        }
+        Ok((hex(&hasher.finalize()), commit))
+    }
+
+    /// The snapshot link of `e` to its `blob` (under the commit the hub named, or the entry's
+    /// revision when that is a commit), and the ref of a revision that is not a commit.
+    fn link_snapshot(
+        &self,
+        e: &HubFile,
+        repo_name: &str,
+        blob: &Path,
+        commit: Option<String>,
+    ) -> Result<PathBuf, HubError> {
         let commit = match commit {
             Some(c) if is_commit(&c) => c,
             _ => e.revision.clone(),
         };
         if !is_commit(&e.revision) {
             let rev: Vec<&str> = e.revision.split('/').collect();
-            let mut dirs = vec![repo_name.as_str(), "refs"];
+            let mut dirs = vec![repo_name, "refs"];
             dirs.extend(&rev[..rev.len() - 1]);
             let refs = self.make_dirs(&dirs)?;
             let r = refs.join(rev[rev.len() - 1]);
@@ -429,13 +441,12 @@ impl Hub {
             f.write_all(commit.as_bytes()).map_err(io(&r))?;
         }
         let parts: Vec<&str> = e.file.split('/').collect();
-        let mut dirs = vec![repo_name.as_str(), "snapshots", commit.as_str()];
+        let mut dirs = vec![repo_name, "snapshots", commit.as_str()];
         dirs.extend(&parts[..parts.len() - 1]);
         let dir = self.make_dirs(&dirs)?;
         let link = dir.join(parts[parts.len() - 1]);
         let _ = std::fs::remove_file(&link);
-        place(&blob, &link, e)?;
-        drop(lock);
+        place(blob, &link, e)?;
         Ok(link)
     }
 
@@ -524,6 +535,38 @@ fn is_timeout(err: &std::io::Error) -> bool {
         .and_then(|e| e.downcast_ref::<ureq::Error>())
         .is_some_and(|e| matches!(e, ureq::Error::Timeout(_)));
     ureq_timeout || matches!(err.kind(), std::io::ErrorKind::TimedOut | std::io::ErrorKind::WouldBlock)
+}
+
+/// Reads the body from `reader` into `partial` (at `partial_path`) and `hasher`, `got` counting
+/// the file's bytes and `bar` showing them: the read's own result (an error cuts the download
+/// short), or `None` when the file would grow over `limit`.
+fn read_body(
+    reader: &mut impl Read,
+    partial: &mut File,
+    partial_path: &Path,
+    hasher: &mut Sha256,
+    got: &mut u64,
+    limit: u64,
+    bar: Option<&indicatif::ProgressBar>,
+) -> Result<Option<std::io::Result<()>>, HubError> {
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = match reader.read(&mut buf) {
+            Ok(0) => return Ok(Some(Ok(()))),
+            Ok(n) => n,
+            Err(err) if err.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(err) => return Ok(Some(Err(err))),
+        };
+        if *got + n as u64 > limit {
+            return Ok(None);
+        }
+        hasher.update(&buf[..n]);
+        partial.write_all(&buf[..n]).map_err(io(partial_path))?;
+        *got += n as u64;
+        if let Some(b) = bar {
+            b.set_position(*got);
+        }
+    }
 }
 
 /// Feeds what is written into a SHA-256.

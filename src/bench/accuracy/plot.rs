@@ -29,7 +29,6 @@ const SCENE_COLOURS: [(u8, u8, u8); 6] =
 pub fn plot_rgb(report: &AccuracyReport, width: u32, height: u32) -> Result<Vec<u8>, AccuracyError> {
     use plotters::prelude::*;
     ensure_font()?;
-    let perr = |e: &dyn std::fmt::Display| AccuracyError::Plot(e.to_string());
     let mut buf = vec![255u8; width as usize * height as usize * 3];
     {
         let root = BitMapBackend::with_buffer(&mut buf, (width, height)).into_drawing_area();
@@ -44,100 +43,124 @@ pub fn plot_rgb(report: &AccuracyReport, width: u32, height: u32) -> Result<Vec<
         let metrics: [(&str, Metric); 2] =
             [("flow EPE, edge-free (px)", |m| m.epe_edge_free), ("image MAE against the reference", |m| m.image.mae)];
         let xs: Vec<f64> = report.rows.iter().map(|r| r.m.time.median).filter(|v| v.is_finite() && *v > 0.0).collect();
-        let (xmin, xmax) = bounds(&xs);
+        let x_range = bounds(&xs);
         for (panel, (label, metric)) in panels.iter().zip(metrics) {
-            let ys: Vec<f64> = report.rows.iter().map(|r| metric(&r.m)).filter(|v| v.is_finite() && *v > 0.0).collect();
-            let (ymin, ymax) = bounds(&ys);
-            let mut chart = ChartBuilder::on(panel)
-                .margin(12)
-                .x_label_area_size(48)
-                .y_label_area_size(72)
-                .build_cartesian_2d(
-                    (xmin..xmax)
-                        .log_scale()
-                        .with_key_points(log_ticks(xmin, xmax).0)
-                        .with_light_points(log_ticks(xmin, xmax).1),
-                    (ymin..ymax)
-                        .log_scale()
-                        .with_key_points(log_ticks(ymin, ymax).0)
-                        .with_light_points(log_ticks(ymin, ymax).1),
-                )
-                .map_err(|e| perr(&e))?;
-            chart
-                .configure_mesh()
-                .x_desc("render time, image + flow + depth (ms, median)")
-                .y_desc(label)
-                .label_style(("sans-serif", 14))
-                .axis_desc_style(("sans-serif", 16))
-                .x_label_formatter(&|v| fmt_tick(*v))
-                .y_label_formatter(&|v| fmt_tick(*v))
-                .draw()
-                .map_err(|e| perr(&e))?;
-            for (si, sc) in report.scenes.iter().enumerate() {
-                let (r, g, b) = SCENE_COLOURS[si % SCENE_COLOURS.len()];
-                let colour = RGBColor(r, g, b);
-                for layering in [Layering::Soft, Layering::Hard] {
-                    let pts: Vec<(f64, f64, usize)> = report
-                        .rows
-                        .iter()
-                        .filter(|q| q.scene == sc.name && q.layering == layering)
-                        .map(|q| (q.m.time.median, metric(&q.m), q.planes))
-                        .filter(|(x, y, _)| x.is_finite() && y.is_finite() && *x > 0.0 && *y > 0.0)
-                        .collect();
-                    let name = format!("{}, {}", sc.name, layering_name(layering));
-                    let line: Vec<(f64, f64)> = pts.iter().map(|p| (p.0, p.1)).collect();
-                    let soft = layering == Layering::Soft;
-                    let style = colour.stroke_width(if soft { 2 } else { 1 });
-                    if soft {
-                        chart
-                            .draw_series(LineSeries::new(line.clone(), style))
-                            .map_err(|e| perr(&e))?
-                            .label(name)
-                            .legend(move |(x, y)| {
-                                EmptyElement::at((x, y))
-                                    + PathElement::new(vec![(0, 0), (22, 0)], colour.stroke_width(2))
-                                    + Circle::new((11, 0), 4, colour.filled())
-                            });
-                        chart
-                            .draw_series(line.iter().map(|&p| Circle::new(p, 4, colour.filled())))
-                            .map_err(|e| perr(&e))?;
-                    } else {
-                        chart
-                            .draw_series(DashedLineSeries::new(line.clone(), 6, 4, style))
-                            .map_err(|e| perr(&e))?
-                            .label(name)
-                            .legend(move |(x, y)| {
-                                EmptyElement::at((x, y))
-                                    + PathElement::new(vec![(0, 0), (22, 0)], colour.stroke_width(1))
-                                    + TriangleMarker::new((11, 0), 5, colour.filled())
-                            });
-                        chart
-                            .draw_series(line.iter().map(|&p| TriangleMarker::new(p, 5, colour.filled())))
-                            .map_err(|e| perr(&e))?;
-                    }
-                    if soft {
-                        // N next to each soft point (hard points share the abscissa)
-                        chart
-                            .draw_series(pts.iter().map(|&(x, y, n)| {
-                                EmptyElement::at((x, y))
-                                    + Text::new(format!("{n}"), (6, -16), ("sans-serif", 12).into_font().color(&colour))
-                            }))
-                            .map_err(|e| perr(&e))?;
-                    }
-                }
-            }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::UpperRight)
-                .background_style(WHITE.mix(0.85))
-                .border_style(BLACK)
-                .label_font(("sans-serif", 13))
-                .draw()
-                .map_err(|e| perr(&e))?;
+            draw_panel(panel, report, label, metric, x_range)?;
         }
         root.present().map_err(|e| perr(&e))?;
     }
     Ok(buf)
+}
+
+/// A plotting error as the bench's error.
+fn perr(e: &dyn std::fmt::Display) -> AccuracyError {
+    AccuracyError::Plot(e.to_string())
+}
+
+/// One panel: `metric` (its axis named `label`) against the median render time over
+/// `xmin..xmax`, a line per scene and layering, and the legend.
+fn draw_panel(
+    panel: &plotters::drawing::DrawingArea<plotters::prelude::BitMapBackend<'_>, plotters::coord::Shift>,
+    report: &AccuracyReport,
+    label: &str,
+    metric: Metric,
+    (xmin, xmax): (f64, f64),
+) -> Result<(), AccuracyError> {
+    use plotters::prelude::*;
+    let ys: Vec<f64> = report.rows.iter().map(|r| metric(&r.m)).filter(|v| v.is_finite() && *v > 0.0).collect();
+    let (ymin, ymax) = bounds(&ys);
+    let mut chart = ChartBuilder::on(panel)
+        .margin(12)
+        .x_label_area_size(48)
+        .y_label_area_size(72)
+        .build_cartesian_2d(
+            (xmin..xmax)
+                .log_scale()
+                .with_key_points(log_ticks(xmin, xmax).0)
+                .with_light_points(log_ticks(xmin, xmax).1),
+            (ymin..ymax)
+                .log_scale()
+                .with_key_points(log_ticks(ymin, ymax).0)
+                .with_light_points(log_ticks(ymin, ymax).1),
+        )
+        .map_err(|e| perr(&e))?;
+    chart
+        .configure_mesh()
+        .x_desc("render time, image + flow + depth (ms, median)")
+        .y_desc(label)
+        .label_style(("sans-serif", 14))
+        .axis_desc_style(("sans-serif", 16))
+        .x_label_formatter(&|v| fmt_tick(*v))
+        .y_label_formatter(&|v| fmt_tick(*v))
+        .draw()
+        .map_err(|e| perr(&e))?;
+    for (si, sc) in report.scenes.iter().enumerate() {
+        let (r, g, b) = SCENE_COLOURS[si % SCENE_COLOURS.len()];
+        let colour = RGBColor(r, g, b);
+        for layering in [Layering::Soft, Layering::Hard] {
+            let pts: Vec<(f64, f64, usize)> = report
+                .rows
+                .iter()
+                .filter(|q| q.scene == sc.name && q.layering == layering)
+                .map(|q| (q.m.time.median, metric(&q.m), q.planes))
+                .filter(|(x, y, _)| x.is_finite() && y.is_finite() && *x > 0.0 && *y > 0.0)
+                .collect();
+            let name = format!("{}, {}", sc.name, layering_name(layering));
+            draw_line(&mut chart, &pts, name, colour, layering == Layering::Soft)?;
+        }
+    }
+    chart
+        .configure_series_labels()
+        .position(SeriesLabelPosition::UpperRight)
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .label_font(("sans-serif", 13))
+        .draw()
+        .map_err(|e| perr(&e))?;
+    Ok(())
+}
+
+/// The line of one scene and layering through `pts` (time, error, N), with its legend entry `name`:
+/// soft layering solid with circles and N next to each point, hard dashed with triangles.
+fn draw_line<'a, CT: plotters::coord::CoordTranslate<From = (f64, f64)>>(
+    chart: &mut plotters::chart::ChartContext<'a, plotters::prelude::BitMapBackend<'a>, CT>,
+    pts: &[(f64, f64, usize)],
+    name: String,
+    colour: plotters::style::RGBColor,
+    soft: bool,
+) -> Result<(), AccuracyError> {
+    use plotters::prelude::*;
+    let line: Vec<(f64, f64)> = pts.iter().map(|p| (p.0, p.1)).collect();
+    let style = colour.stroke_width(if soft { 2 } else { 1 });
+    if soft {
+        chart.draw_series(LineSeries::new(line.clone(), style)).map_err(|e| perr(&e))?.label(name).legend(
+            move |(x, y)| {
+                EmptyElement::at((x, y))
+                    + PathElement::new(vec![(0, 0), (22, 0)], colour.stroke_width(2))
+                    + Circle::new((11, 0), 4, colour.filled())
+            },
+        );
+        chart.draw_series(line.iter().map(|&p| Circle::new(p, 4, colour.filled()))).map_err(|e| perr(&e))?;
+    } else {
+        chart.draw_series(DashedLineSeries::new(line.clone(), 6, 4, style)).map_err(|e| perr(&e))?.label(name).legend(
+            move |(x, y)| {
+                EmptyElement::at((x, y))
+                    + PathElement::new(vec![(0, 0), (22, 0)], colour.stroke_width(1))
+                    + TriangleMarker::new((11, 0), 5, colour.filled())
+            },
+        );
+        chart.draw_series(line.iter().map(|&p| TriangleMarker::new(p, 5, colour.filled()))).map_err(|e| perr(&e))?;
+    }
+    if soft {
+        // N next to each soft point (hard points share the abscissa)
+        chart
+            .draw_series(pts.iter().map(|&(x, y, n)| {
+                EmptyElement::at((x, y))
+                    + Text::new(format!("{n}"), (6, -16), ("sans-serif", 12).into_font().color(&colour))
+            }))
+            .map_err(|e| perr(&e))?;
+    }
+    Ok(())
 }
 
 fn n_list(report: &AccuracyReport) -> String {
