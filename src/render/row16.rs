@@ -18,6 +18,9 @@
 //! The loop is taken for the packed planes (`render::store`) with the bilinear kernel or the
 //! cubic B-spline and no minified planes; the four-lane loop takes the rest.
 
+// the lane helpers serve the AVX-512 loop only
+#![cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+
 use super::types::RenderStats;
 use crate::mpi::bricks::Bricks;
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
