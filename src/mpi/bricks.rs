@@ -100,6 +100,11 @@ impl Bricks {
     /// Pixels per block side.
     pub const SIZE: usize = 16;
 
+    /// Zero values stored after the last block, so that a reader may load this many values
+    /// from the start of any stored row (`render::row16` loads a block row in five 512-bit
+    /// registers) without a bounds branch.
+    pub const TAIL: usize = 80;
+
     /// Builds the store of `planes` planes of `width` x `height` pixels, `stride` values each,
     /// for neighbourhoods reaching `lo` pixels before and `hi` after their anchor.
     /// `plane(i)` gives plane `i` densely (row-major, interleaved, `width height stride` values;
@@ -177,7 +182,7 @@ impl Bricks {
                 EMPTY
             });
         }
-        let mut data: Vec<f32> = crate::buf::zeros(stored * block_len);
+        let mut data: Vec<f32> = crate::buf::zeros(stored * block_len + Self::TAIL);
         let mut parts: Vec<(usize, &mut [f32])> = Vec::with_capacity(planes);
         let mut rest: &mut [f32] = &mut data;
         for (i, &c) in counts.iter().enumerate() {

@@ -186,7 +186,7 @@ impl<T: Real> PlaneSampler<T> for Bilinear<'_> {
 
     fn blocks16(&self) -> Option<Blocks16<'_>> {
         match &self.rgba {
-            Rgba::Blocks(b) if self.mip.iter().all(Option::is_none) => Some(Blocks16 { rgba: b, bspline3: None }),
+            Rgba::Blocks(b) if self.mip.iter().all(Option::is_none) => Blocks16::new(b, None),
             _ => None,
         }
     }
@@ -271,7 +271,7 @@ impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for
     fn blocks16(&self) -> Option<Blocks16<'_>> {
         match (&self.rgba, self.src.as_bricks()) {
             (Rgba::Blocks(b), Some(c)) if K::BSPLINE3 && self.mip.iter().all(Option::is_none) => {
-                Some(Blocks16 { rgba: b, bspline3: Some(c) })
+                Blocks16::new(b, Some(c))
             }
             _ => None,
         }
@@ -605,13 +605,7 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
         let mut acc_ex = vec![T::zero(); c];
         let mut ex = vec![T::zero(); c];
         // sixteen pixels at a time on AVX-512 where the planes are blocks it reads
-        let blocks16 = v4.zip(lanes).and_then(|_| sampler.blocks16()).filter(|s| {
-            let (r, k) = (s.rgba, s.bspline3);
-            r.stride() == 4
-                && r.lo() == 0
-                && r.side() == 17
-                && k.is_none_or(|k| k.stride() == 3 && k.lo() == 1 && k.side() == 19)
-        });
+        let blocks16 = v4.zip(lanes).and_then(|_| sampler.blocks16());
         for tx0 in (win.x0..win.x1).step_by(TILE) {
             let tx1 = (tx0 + TILE).min(win.x1) - 1;
             let ty1 = fy0 + rows - 1;
@@ -627,17 +621,17 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
             // the extra channel in this tile: everywhere, or where the tile meets `ex_rect`
             let ex_here = ex_rect.is_none_or(|[x0, y0, x1, y1]| tx0 < x1 && tx1 >= x0 && fy0 < y1 && fy0 + rows > y0);
             let ex_lanes = (c == 1 && ex_here).then_some(ex_planes);
-            for ry in 0..rows {
+            // the rows the sixteen-lane loop renders (bit r: row r of the band)
+            #[allow(unused_mut)]
+            let mut rows16 = 0u32;
+            #[cfg(target_arch = "x86_64")]
+            if let (Some(v4), Some(l), Some(src)) = (v4, lanes, blocks16.filter(|_| tx1 + 1 - tx0 == TILE)) {
+                let out = super::row16::TileOut { b: &mut *b, stats: &mut stats, o: tx0 - win.x0, row_len: ww };
+                rows16 = super::row16::rows16(v4, l, src, ex_lanes, [tx0 - win.x0, y0], rows, [&fwd, &rev], out);
+            }
+            for ry in (0..rows).filter(|ry| rows16 >> ry & 1 == 0) {
                 let uy_y = uy[y0 + ry];
                 let mut x = tx0;
-                #[cfg(target_arch = "x86_64")]
-                if let (Some(v4), Some(l), Some(src)) = (v4, lanes, blocks16.filter(|_| tx1 + 1 - tx0 == TILE)) {
-                    let o = ry * ww + (x - win.x0);
-                    let out = super::row16::RowOut { b: &mut *b, stats: &mut stats };
-                    if super::row16::row16(v4, l, src, ex_lanes, [x - win.x0, y0 + ry], [&fwd, &rev], o, out) {
-                        continue;
-                    }
-                }
                 while x <= tx1 {
                     if let Some(l) = lanes.filter(|_| x + 3 <= tx1) {
                         let o = ry * ww + (x - win.x0);

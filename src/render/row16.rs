@@ -58,8 +58,20 @@ pub(super) struct TargetLanes {
 /// its coefficients (`None`: the bilinear colour).
 #[derive(Clone, Copy)]
 pub(super) struct Blocks16<'a> {
-    pub(super) rgba: &'a Bricks,
-    pub(super) bspline3: Option<&'a Bricks>,
+    rgba: &'a Bricks,
+    bspline3: Option<&'a Bricks>,
+}
+
+impl<'a> Blocks16<'a> {
+    /// The stores in the shapes the loop reads (the packed planes: 4 values, no apron before
+    /// a block, one after; the coefficients: 3 values, one before, two after), else `None`.
+    pub(super) fn new(rgba: &'a Bricks, bspline3: Option<&'a Bricks>) -> Option<Self> {
+        let fits = |b: &Bricks, stride: usize, lo: usize, side: usize| {
+            b.stride() == stride && b.lo() == lo && b.side() == side
+        };
+        (fits(rgba, 4, 0, Bricks::SIZE + 1) && bspline3.is_none_or(|k| fits(k, 3, 1, Bricks::SIZE + 3)))
+            .then_some(Blocks16 { rgba, bspline3 })
+    }
 }
 
 /// Sixteen lanes.
@@ -198,22 +210,14 @@ struct RowChannels<const S: usize> {
 }
 
 /// Pixels 0 .. 16 + `after` of a block row of `S` values per pixel from `data[at..]`, split by
-/// channel (S <= 4, (16 + after) S <= 80; values past `data`'s end read as 0: no lane reads
-/// them).
+/// channel (S <= 4, (16 + after) S <= 80: five registers, which [`Bricks::TAIL`] keeps inside
+/// `data` from any row's start).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn split_row<const S: usize>(v4: pulp::x86::V4, data: &[f32], at: usize) -> RowChannels<S> {
     const N: usize = 5 * L;
-    let mut t = [[0.0f32; L]; 5];
-    if at + N <= data.len() {
-        for (r, reg) in t.iter_mut().enumerate() {
-            *reg = data[at + r * L..at + r * L + L].try_into().expect("16 values");
-        }
-    } else {
-        for (j, v) in data[at.min(data.len())..].iter().take(N).enumerate() {
-            t[j / L][j % L] = *v;
-        }
-    }
+    let row: &[f32; N] = data[at..at + N].try_into().expect("Bricks::TAIL values after every row");
+    let t: [F; 5] = std::array::from_fn(|r| row[r * L..r * L + L].try_into().expect("16 values"));
     let [t0, t1, t2, t3, t4] = t;
     // pixels 16 + q: values 16 S + S q + c, from register S
     let tail = if S == 3 { t3 } else { t4 };
@@ -242,13 +246,25 @@ struct TapPixels {
 }
 
 impl TapPixels {
+    /// The tap pixels (x0, y0) >= 0: a shift and a mask are the division and remainder by the
+    /// block size (in registers: values written lane by lane and read back whole would stall
+    /// the store forwarding).
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    fn of(x0: &I, y0: &I) -> Self {
-        // x0, y0 >= 0: a shift and a mask are the division and remainder by the block size
+    fn of(v4: pulp::x86::V4, x0: &I, y0: &I) -> Self {
         const SHIFT: u32 = Bricks::SIZE.trailing_zeros();
-        const MASK: i32 = Bricks::SIZE as i32 - 1;
-        let (bx, by) = (i16(|k| x0[k] >> SHIFT), i16(|k| y0[k] >> SHIFT));
-        TapPixels { block: i16(|k| by[k] << 16 | bx[k]), bx, by, u: i16(|k| x0[k] & MASK), v: i16(|k| y0[k] & MASK) }
+        let f = v4.avx512f;
+        let (x0, y0): (__m512i, __m512i) = (cast(*x0), cast(*y0));
+        let mask = f._mm512_set1_epi32(Bricks::SIZE as i32 - 1);
+        let (bx, by) = (f._mm512_srai_epi32::<SHIFT>(x0), f._mm512_srai_epi32::<SHIFT>(y0));
+        let block = f._mm512_or_si512(f._mm512_slli_epi32::<16>(by), bx);
+        TapPixels {
+            block: cast(block),
+            bx: cast(bx),
+            by: cast(by),
+            u: cast(f._mm512_and_si512(x0, mask)),
+            v: cast(f._mm512_and_si512(y0, mask)),
+        }
     }
 
     /// The lanes of `todo` in the block of its first lane, and that block.
@@ -288,11 +304,15 @@ fn texels(v4: pulp::x86::V4, rgba: &Bricks, i: usize, px: &TapPixels, f: [&F; 2]
             let top = g & eq(v4, &px.v, r);
             let bottom = g & eq(v4, &px.v, r - 1);
             let row = split_row::<4>(v4, data, start + r as usize * row_len);
-            if top != 0 {
-                pixel_pair(v4, &row, [&px.u, &u1], top, [&mut p00, &mut p10]);
-            }
-            if bottom != 0 {
-                pixel_pair(v4, &row, [&px.u, &u1], bottom, [&mut p01, &mut p11]);
+            // this row's pixels x0 and x0 + 1: the top pixels of the lanes of `top`, the
+            // bottom ones of the lanes of `bottom`
+            for c in 0..4 {
+                let a = two(v4, &row.main[c], &px.u, &row.rest[c]);
+                let b = two(v4, &row.main[c], &u1, &row.rest[c]);
+                p00[c] = pick(v4, top, &a, &p00[c]);
+                p10[c] = pick(v4, top, &b, &p10[c]);
+                p01[c] = pick(v4, bottom, &a, &p01[c]);
+                p11[c] = pick(v4, bottom, &b, &p11[c]);
             }
         }
     }
@@ -303,20 +323,6 @@ fn texels(v4: pulp::x86::V4, rgba: &Bricks, i: usize, px: &TapPixels, f: [&F; 2]
         lerp([&p00[2], &p10[2], &p01[2], &p11[2]], wx, wy),
         lerp([&p00[3], &p10[3], &p01[3], &p11[3]], wx, wy),
     ]
-}
-
-/// The values of a block row at pixels `x[0]` and `x[1]` (block columns) into the lanes `m` of
-/// `out[0]` and `out[1]`, channel by channel.
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-fn pixel_pair(v4: pulp::x86::V4, row: &RowChannels<4>, x: [&I; 2], m: Lanes, out: [&mut [F; 4]; 2]) {
-    let [left, right] = out;
-    for c in 0..4 {
-        let a = two(v4, &row.main[c], x[0], &row.rest[c]);
-        let b = two(v4, &row.main[c], x[1], &row.rest[c]);
-        left[c] = pick(v4, m, &a, &left[c]);
-        right[c] = pick(v4, m, &b, &right[c]);
-    }
 }
 
 /// Bilinear interpolation per lane: top = a + wx (b - a), bot = c + wx (d - c),
@@ -428,117 +434,222 @@ fn weights(t: &F) -> [F; 4] {
     ]
 }
 
-/// What [`row16`] writes to and counts in.
-pub(super) struct RowOut<'a, 'b> {
-    /// the band's buffers (image, depth, coverage, the extra channel, ...)
-    pub(super) b: &'a mut [&'b mut [f32]; 10],
-    pub(super) stats: &'a mut RenderStats,
+/// One tile row's sixteen rays in the plane loop: their constants (1 / s, the source focal
+/// lengths times the ray, |u|) and what they have gathered (transmittance, colour, weight,
+/// weighted depth, the extra channel) and which of them have stopped.
+#[derive(Clone, Copy)]
+struct Rays {
+    inv_s: F,
+    fv0: F,
+    fv1: F,
+    norm_u: F,
+    tr: F,
+    rgb: [F; 3],
+    sum_w: F,
+    sum_z: F,
+    acc1: F,
+    done: Lanes,
 }
 
-/// Pixels `o .. o + 16` of the band's buffers (image, depth, coverage, the extra channel when
-/// `ex` is given), the window's columns `at[0] .. at[0] + 16` of its row `at[1]`, the planes of
-/// `fwd` (or `rev` when the rays look back): false, with nothing written, when the sixteen
-/// rays do not all meet the planes in the same order (a narrower loop then takes them).
+impl Rays {
+    const NONE: Rays = Rays {
+        inv_s: [0.0; L],
+        fv0: [0.0; L],
+        fv1: [0.0; L],
+        norm_u: [0.0; L],
+        tr: [1.0; L],
+        rgb: [[0.0; L]; 3],
+        sum_w: [0.0; L],
+        sum_z: [0.0; L],
+        acc1: [0.0; L],
+        done: 0,
+    };
+
+    /// The rays of the window's columns `at[0] .. at[0] + 16` of its row `at[1]`, and whether
+    /// they look forward (s > 0); `None` unless all sixteen meet the planes in one order.
+    #[inline(always)]
+    fn new(c: &TargetLanes, at: [usize; 2]) -> Option<(Self, bool)> {
+        let ux: &F = c.ux[at[0]..at[0] + L].try_into().expect("sixteen columns");
+        let uy = c.uy[at[1]];
+        let rt = &c.rt;
+        let ray = |r: usize| f16(|k| rt[r][0] * ux[k] + rt[r][1] * uy + rt[r][2]);
+        let (v0, v1, v2) = (ray(0), ray(1), ray(2));
+        let forward = v2[0] > 0.0;
+        if !v2.iter().all(|&s| s.abs() > 1e-12_f64 as f32 && (s > 0.0) == forward) {
+            return None;
+        }
+        let rays = Rays {
+            inv_s: f16(|k| 1.0 / v2[k]),
+            fv0: f16(|k| c.fxs * v0[k]),
+            fv1: f16(|k| c.fys * v1[k]),
+            norm_u: f16(|k| (ux[k] * ux[k] + uy * uy + 1.0).sqrt()),
+            ..Rays::NONE
+        };
+        Some((rays, forward))
+    }
+}
+
+/// Rows a tile holds at most: a band's.
+const ROWS: usize = super::band::BAND_ROWS;
+
+/// Where [`rows16`] writes and counts: the band's buffers (image, depth, coverage, the extra
+/// channel, ...), the index in them of the tile's first pixel and the length of a band row.
+pub(super) struct TileOut<'a, 'b> {
+    pub(super) b: &'a mut [&'b mut [f32]; 10],
+    pub(super) stats: &'a mut RenderStats,
+    pub(super) o: usize,
+    pub(super) row_len: usize,
+}
+
+/// The tile of the window's columns `at[0] .. at[0] + 16` and rows `at[1] .. at[1] + rows`
+/// (`rows` at most a band's), the planes of `fwd` (or `rev` when the rays look back), plane by
+/// plane: each plane's blocks are read by every row of the tile while they are in the cache.
+/// Writes the tile's image, depth, coverage and, when `ex` is given, extra channel, and returns
+/// the rows it rendered (bit r: row `at[1] + r`); a row whose sixteen rays do not meet the
+/// planes in the tile's order is left to a narrower loop, with nothing written.
 #[cfg(target_arch = "x86_64")]
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub(super) fn row16(
+pub(super) fn rows16(
     v4: pulp::x86::V4,
     c: &TargetLanes,
     src: Blocks16<'_>,
     ex: Option<&[&[f32]]>,
     at: [usize; 2],
+    rows: usize,
     [fwd, rev]: [&[usize]; 2],
-    o: usize,
-    out: RowOut<'_, '_>,
-) -> bool {
-    let ux: &F = c.ux[at[0]..at[0] + L].try_into().expect("sixteen columns");
-    let uy = c.uy[at[1]];
-    let rt = &c.rt;
-    let ray = |r: usize| f16(|k| rt[r][0] * ux[k] + rt[r][1] * uy + rt[r][2]);
-    let (v0, v1, v2) = (ray(0), ray(1), ray(2));
-    let norm_u = f16(|k| (ux[k] * ux[k] + uy * uy + 1.0).sqrt());
-    let forward = v2[0] > 0.0;
-    if !v2.iter().all(|&s| s.abs() > 1e-12_f64 as f32 && (s > 0.0) == forward) {
-        return false;
+    out: TileOut<'_, '_>,
+) -> u32 {
+    let mut tile = [Rays::NONE; ROWS];
+    let (mut members, mut forward) = (0u32, None);
+    for (r, rays) in tile.iter_mut().enumerate().take(rows) {
+        if let Some((new, f)) = Rays::new(c, [at[0], at[1] + r]) {
+            if *forward.get_or_insert(f) == f {
+                *rays = new;
+                members |= 1 << r;
+            }
+        }
     }
-    let inv_s = f16(|k| 1.0 / v2[k]);
-    let (fv0, fv1) = (f16(|k| c.fxs * v0[k]), f16(|k| c.fys * v1[k]));
+    let Some(forward) = forward else { return 0 };
+    let order = if forward { fwd } else { rev };
+    let mut live = members;
+    for (j, &i) in order.iter().enumerate() {
+        if live == 0 {
+            break;
+        }
+        let next = if forward { i + 1 } else { i.wrapping_sub(1) };
+        let plane = Plane { i, next, left: order.len() - j };
+        for r in each32(live) {
+            if !step(v4, c, src, ex, &plane, &mut tile[r], out.stats) {
+                live &= !(1 << r);
+            }
+        }
+    }
+    for r in each32(members) {
+        let rays = &tile[r];
+        write(out.b, out.o + r * out.row_len, &rays.rgb, [&rays.sum_w, &rays.sum_z], ex.map(|_| &rays.acc1));
+    }
+    members
+}
+
+/// The rows of `m`, in order.
+#[inline(always)]
+fn each32(mut m: u32) -> impl Iterator<Item = usize> {
+    std::iter::from_fn(move || {
+        (m != 0).then(|| {
+            let k = m.trailing_zeros() as usize;
+            m &= m - 1;
+            k
+        })
+    })
+}
+
+/// A plane of the loop: its index, the next one along the rays (`c.a.get(next)` is `None`
+/// past the last) and how many planes are left in the order with it.
+struct Plane {
+    i: usize,
+    next: usize,
+    left: usize,
+}
+
+/// Plane `p.i` for the sixteen rays of `r` (the scalar loop's body in lanes): false when every
+/// ray has stopped (nothing more to gather).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn step(
+    v4: pulp::x86::V4,
+    c: &TargetLanes,
+    src: Blocks16<'_>,
+    ex: Option<&[&[f32]]>,
+    p: &Plane,
+    r: &mut Rays,
+    stats: &mut RenderStats,
+) -> bool {
     let (depth_max, delta_last) = (DEPTH_MAX as f32, DELTA_LAST as f32);
     let cap = |v: f32, max: f32| if v > max { max } else { v };
-    let order = if forward { fwd } else { rev };
-    let (mut tr, mut sum_w, mut sum_z) = ([1.0f32; L], [0.0f32; L], [0.0f32; L]);
-    let mut rgb = [[0.0f32; L]; 3];
-    let mut acc1 = [0.0f32; L];
-    let mut done: Lanes = 0;
     let (w, h) = (c.w as i32, c.h as i32);
-    for (j, &i) in order.iter().enumerate() {
-        let g = f16(|k| c.a[i] * inv_s[k]);
-        let front = cmp1::<NLE>(v4, &g, 0.0);
-        // a lane in front of the plane with its transmittance below t_eps stops here
-        let stop = front & cmp1::<LT>(v4, &tr, c.t_eps) & !done;
-        if stop != 0 {
-            out.stats.skipped_early += u64::from(stop.count_ones()) * (order.len() - j) as u64;
-            done |= stop;
-            if done == ALL {
-                break;
-            }
+    let i = p.i;
+    let g = f16(|k| c.a[i] * r.inv_s[k]);
+    let front = cmp1::<NLE>(v4, &g, 0.0);
+    // a lane in front of the plane with its transmittance below t_eps stops here
+    let stop = front & cmp1::<LT>(v4, &r.tr, c.t_eps) & !r.done;
+    if stop != 0 {
+        stats.skipped_early += u64::from(stop.count_ones()) * p.left as u64;
+        r.done |= stop;
+        if r.done == ALL {
+            return false;
         }
-        let (ox, oy) = (c.ox[i], c.oy[i]);
-        let qx = f16(|k| ox + fv0[k] * g[k]);
-        let qy = f16(|k| oy + fv1[k] * g[k]);
-        let inside = cmp1::<GE>(v4, &qx, c.lo)
-            & cmp1::<LT>(v4, &qx, c.hix)
-            & cmp1::<GE>(v4, &qy, c.lo)
-            & cmp1::<LT>(v4, &qy, c.hiy);
-        let take = front & inside & !done;
-        if take == 0 {
-            continue;
-        }
-        let (qx, qy) = (clamp_to(v4, &qx, c.wm), clamp_to(v4, &qy, c.hm));
-        // `Tap::new` in lanes: q >= 0, so truncation is floor; at most the last pixel
-        let (x0, y0) = (trunc(v4, &qx), trunc(v4, &qy));
-        let x0 = i16(|k| x0[k].min(w - 1));
-        let y0 = i16(|k| y0[k].min(h - 1));
-        let fx = f16(|k| qx[k] - x0[k] as f32);
-        let fy = f16(|k| qy[k] - y0[k] as f32);
-        let px = TapPixels::of(&x0, &y0);
-        let texel = texels(v4, src.rgba, i, &px, [&fx, &fy], take);
-        out.stats.samples += u64::from(take.count_ones());
-        // the scalar loop goes on with this plane unless sigma <= 0
-        let lit = take & cmp1::<NLE>(v4, &texel[3], 0.0);
-        if lit == 0 {
-            continue;
-        }
-        let sig = pick(v4, lit, &texel[3], &[0.0; L]);
-        let lambda = f16(|k| cap(g[k] * c.depth[i], depth_max));
-        let next = if forward { i + 1 } else { i.wrapping_sub(1) };
-        let delta = match c.a.get(next) {
-            Some(&an) => {
-                let dn = c.depth[next];
-                let an = f16(|k| an * inv_s[k]);
-                let d = f16(|k| cap((cap(an[k] * dn, depth_max) - lambda[k]) * norm_u[k], delta_last));
-                pick(v4, cmp1::<GT>(v4, &an, 0.0), &d, &[delta_last; L])
-            }
-            None => [delta_last; L],
-        };
-        let e = exp_neg16(v4, &f16(|k| sig[k] * delta[k]));
-        let wgt = f16(|k| tr[k] * (1.0 - e[k]));
-        tr = pick(v4, lit, &f16(|k| tr[k] * e[k]), &tr);
-        let colour = colours(v4, src, i, &px, [&fx, &fy], &texel, lit & cmp1::<NLT>(v4, &wgt, KERNEL_MIN_WEIGHT));
-        for (acc, col) in rgb.iter_mut().zip(&colour) {
-            *acc = add_mul(v4, lit, acc, &wgt, col);
-        }
-        if let Some(ex) = ex {
-            for k in each(lit) {
-                let tap = super::tap::Tap::from_parts(x0[k] as usize, y0[k] as usize, c.w, c.h, fx[k], fy[k]);
-                acc1[k] += wgt[k] * tap.sample1(ex[i]);
-            }
-        }
-        sum_w = pick(v4, lit, &f16(|k| sum_w[k] + wgt[k]), &sum_w);
-        sum_z = add_mul(v4, lit, &sum_z, &wgt, &lambda);
     }
-    write(out.b, o, &rgb, [&sum_w, &sum_z], ex.map(|_| &acc1));
+    let (ox, oy) = (c.ox[i], c.oy[i]);
+    let qx = f16(|k| ox + r.fv0[k] * g[k]);
+    let qy = f16(|k| oy + r.fv1[k] * g[k]);
+    let inside =
+        cmp1::<GE>(v4, &qx, c.lo) & cmp1::<LT>(v4, &qx, c.hix) & cmp1::<GE>(v4, &qy, c.lo) & cmp1::<LT>(v4, &qy, c.hiy);
+    let take = front & inside & !r.done;
+    if take == 0 {
+        return true;
+    }
+    let (qx, qy) = (clamp_to(v4, &qx, c.wm), clamp_to(v4, &qy, c.hm));
+    // `Tap::new` in lanes: q >= 0, so truncation is floor; at most the last pixel
+    let (x0, y0) = (trunc(v4, &qx), trunc(v4, &qy));
+    let x0 = i16(|k| x0[k].min(w - 1));
+    let y0 = i16(|k| y0[k].min(h - 1));
+    let fx = f16(|k| qx[k] - x0[k] as f32);
+    let fy = f16(|k| qy[k] - y0[k] as f32);
+    let px = TapPixels::of(v4, &x0, &y0);
+    let texel = texels(v4, src.rgba, i, &px, [&fx, &fy], take);
+    stats.samples += u64::from(take.count_ones());
+    // the scalar loop goes on with this plane unless sigma <= 0
+    let lit = take & cmp1::<NLE>(v4, &texel[3], 0.0);
+    if lit == 0 {
+        return true;
+    }
+    let sig = pick(v4, lit, &texel[3], &[0.0; L]);
+    let lambda = f16(|k| cap(g[k] * c.depth[i], depth_max));
+    let delta = match c.a.get(p.next) {
+        Some(&an) => {
+            let dn = c.depth[p.next];
+            let an = f16(|k| an * r.inv_s[k]);
+            let d = f16(|k| cap((cap(an[k] * dn, depth_max) - lambda[k]) * r.norm_u[k], delta_last));
+            pick(v4, cmp1::<GT>(v4, &an, 0.0), &d, &[delta_last; L])
+        }
+        None => [delta_last; L],
+    };
+    let e = exp_neg16(v4, &f16(|k| sig[k] * delta[k]));
+    let wgt = f16(|k| r.tr[k] * (1.0 - e[k]));
+    r.tr = pick(v4, lit, &f16(|k| r.tr[k] * e[k]), &r.tr);
+    let colour = colours(v4, src, i, &px, [&fx, &fy], &texel, lit & cmp1::<NLT>(v4, &wgt, KERNEL_MIN_WEIGHT));
+    for (acc, col) in r.rgb.iter_mut().zip(&colour) {
+        *acc = add_mul(v4, lit, acc, &wgt, col);
+    }
+    if let Some(ex) = ex {
+        for k in each(lit) {
+            let tap = super::tap::Tap::from_parts(x0[k] as usize, y0[k] as usize, c.w, c.h, fx[k], fy[k]);
+            r.acc1[k] += wgt[k] * tap.sample1(ex[i]);
+        }
+    }
+    r.sum_w = pick(v4, lit, &f16(|k| r.sum_w[k] + wgt[k]), &r.sum_w);
+    r.sum_z = add_mul(v4, lit, &r.sum_z, &wgt, &lambda);
     true
 }
 
