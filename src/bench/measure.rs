@@ -2,6 +2,7 @@
 //! Laplacian (the focus measure of the sharpness figures) and image1 warped ideally by a
 //! sample's geometry.
 
+use crate::raster::Grid;
 use crate::sample::Sample;
 
 /// Rec. 601 luminance (0..255) of pixel `i` of an interleaved u8 RGB image.
@@ -15,10 +16,11 @@ pub(crate) fn luminance(img: &[u8], i: usize) -> f64 {
 /// weighs the highest frequencies, which a resampling kernel loses first.
 pub fn laplacian_variance(img: &[u8], w: usize, h: usize, inside: impl Fn(usize) -> bool) -> Option<f64> {
     let lum = |i: usize| luminance(img, i);
+    let g = Grid::new(w, h);
     let (mut n, mut sum, mut sq) = (0u64, 0.0f64, 0.0f64);
     for y in 1..h.saturating_sub(1) {
         for x in 1..w - 1 {
-            let i = y * w + x;
+            let i = g.index(x, y);
             if ![i, i - 1, i + 1, i - w, i + w].into_iter().all(&inside) {
                 continue;
             }

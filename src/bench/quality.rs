@@ -22,6 +22,7 @@
 
 use super::measure::{ideal_warp, laplacian_variance};
 use super::realism::{RealismAccumulator, RealismReport};
+use crate::raster::Grid;
 use crate::render::OCCLUSION_TOLERANCE;
 use crate::sample::config::SampleConfig;
 use crate::sample::error::SampleError;
@@ -113,7 +114,8 @@ fn bilinear(img: &[u8], w: usize, h: usize, x: f32, y: f32, ch: usize) -> f32 {
     let (x0, y0) = (x.floor() as usize, y.floor() as usize);
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
     let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-    let v = |xx: usize, yy: usize| f32::from(img[3 * (yy * w + xx) + ch]) / 255.0;
+    let g = Grid::new(w, h);
+    let v = |xx: usize, yy: usize| f32::from(img[3 * g.index(xx, yy) + ch]) / 255.0;
     let top = v(x0, y0) * (1.0 - fx) + v(x1, y0) * fx;
     let bottom = v(x0, y1) * (1.0 - fx) + v(x1, y1) * fx;
     top * (1.0 - fy) + bottom * fy
@@ -150,8 +152,9 @@ pub const THIN_LINE_MIN_RUN: usize = 6;
 /// row above and the row below by more than [`THIN_LINE_STEP`] in the same direction, while
 /// those two rows agree within half that step (a one-pixel-high line across a surface).
 pub fn thin_line_runs(img: &[u8], w: usize, h: usize) -> usize {
+    let g = Grid::new(w, h);
     let lum = |x: usize, y: usize| {
-        let o = 3 * (y * w + x);
+        let o = 3 * g.index(x, y);
         0.299 * f32::from(img[o]) + 0.587 * f32::from(img[o + 1]) + 0.114 * f32::from(img[o + 2])
     };
     let mut runs = 0;

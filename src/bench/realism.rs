@@ -27,6 +27,7 @@
 //! there is no figure (`None`).
 
 use super::measure::{ideal_warp, laplacian_variance, luminance};
+use crate::raster::Grid;
 use crate::rng::mix64;
 use crate::sample::noise::noise_sigma;
 use crate::sample::Sample;
@@ -185,23 +186,23 @@ pub fn auc(scored: &mut [(f64, bool)]) -> f64 {
 /// pixel). What image2 shows there was hidden or out of view in image1: the disocclusions of the
 /// camera and of the moved objects, whatever filled them.
 pub fn revealed(s: &Sample) -> Vec<bool> {
-    let (w, h) = (s.width, s.height);
-    let mut reached = vec![false; w * h];
-    for i in 0..w * h {
+    let g = Grid::new(s.width, s.height);
+    let mut reached = vec![false; g.len()];
+    for i in 0..g.len() {
         if s.valid[i] == 0 || s.occlusion[i] != 0 {
             continue;
         }
-        let tx = (i % w) as f32 + s.flow[2 * i];
-        let ty = (i / w) as f32 + s.flow[2 * i + 1];
+        let (x, y) = g.xy(i);
+        let tx = x as f32 + s.flow[2 * i];
+        let ty = y as f32 + s.flow[2 * i + 1];
         if !(tx.is_finite() && ty.is_finite()) {
             continue;
         }
         let (cx, cy) = (tx.round() as i64, ty.round() as i64);
         for dy in -1..=1 {
             for dx in -1..=1 {
-                let (x, y) = (cx + dx, cy + dy);
-                if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < h {
-                    reached[y as usize * w + x as usize] = true;
+                if let Some(j) = g.at((cx + dx) as isize, (cy + dy) as isize) {
+                    reached[j] = true;
                 }
             }
         }

@@ -9,6 +9,8 @@
 //! translation `t = (-fb / (fx d_min), 0, 0)` in scene units, and the exact flow is `(-d, 0)`.
 
 use crate::geometry::Intrinsics;
+use crate::raster::grid::pixel_values;
+use crate::raster::Grid;
 use crate::sample::motion::{Component, MotionPreset, MotionRanges};
 use crate::sample::Sample;
 
@@ -94,12 +96,17 @@ impl RealView {
         if s.width != w || s.height != h {
             return None;
         }
+        let g = Grid::new(w, h);
         let keep = w.saturating_sub(self.border);
         let (mut err, mut n) = (0.0f64, 0u64);
         for y in 0..h {
             for x in 0..keep {
-                let i = 3 * (y * w + x);
-                err += (0..3).map(|c| f64::from(s.image2[i + c].abs_diff(self.right[i + c]))).sum::<f64>();
+                let i = pixel_values(g.index(x, y), 3);
+                err += s.image2[i.clone()]
+                    .iter()
+                    .zip(&self.right[i])
+                    .map(|(&a, &b)| f64::from(a.abs_diff(b)))
+                    .sum::<f64>();
                 n += 3;
             }
         }
@@ -112,7 +119,7 @@ impl RealView {
         let (mut floor, mut k) = (0.0f64, 0u64);
         for y in 0..h {
             for x in 0..w {
-                let i = y * w + x;
+                let i = g.index(x, y);
                 let d = self.disparity[i];
                 if !d.is_finite() {
                     continue;
@@ -123,7 +130,7 @@ impl RealView {
                 }
                 let xr = (x as f64 - f64::from(d)).round();
                 if xr >= 0.0 && (xr as usize) < w {
-                    let j = 3 * (y * w + xr as usize);
+                    let j = 3 * g.index(xr as usize, y);
                     floor += (0..3).map(|c| f64::from(s.image1[3 * i + c].abs_diff(self.right[j + c]))).sum::<f64>();
                     k += 3;
                 }

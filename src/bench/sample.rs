@@ -9,7 +9,7 @@ use super::Timing;
 use crate::geometry::Intrinsics;
 use crate::io::image::RgbImage;
 use crate::mpi::layering::{build_mpi_for_scene, LayeringOptions};
-use crate::raster::{Instance, InstanceMasks};
+use crate::raster::{Grid, Instance, InstanceMasks};
 use crate::sample::augment::Augment;
 use crate::sample::config::SampleConfig;
 use crate::sample::error::SampleError;
@@ -30,9 +30,10 @@ pub fn synthetic_scene(width: usize, height: usize, opts: &LayeringOptions, obje
     let mut mask = vec![0.0f32; w * h];
     // the object: a box of 0.2 W x 0.45 H with rounded corners, centre (0.42 W, 0.55 H)
     let (ox, oy, hw, hh, r) = (0.42 * w as f32, 0.55 * h as f32, 0.1 * w as f32, 0.225 * h as f32, 0.05 * w as f32);
+    let g = Grid::new(w, h);
     for y in 0..h {
         for x in 0..w {
-            let i = y * w + x;
+            let i = g.index(x, y);
             let (s, t) = (x as f32 / w as f32, y as f32 / h as f32);
             // ground from depth 1.2 at the bottom to a wall at depth 6 above the horizon
             let d_ground = if t > 0.35 { 1.2 / ((t - 0.35) / 0.65).max(0.2) } else { 6.0 };

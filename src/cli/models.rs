@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use clap::{Args, Subcommand};
 use mpiflow::io::image::{load_rgb, ImageLimits, RgbImage};
-use mpiflow::raster::InstanceMasks;
+use mpiflow::raster::{Grid, InstanceMasks};
 use mpiflow::scene::hub::{sha256_file, Hub};
 use mpiflow::scene::registry::{self, Contract, Role};
 
@@ -187,8 +187,9 @@ fn check_segmenter(a: &CheckArgs, r: &registry::Resolved) -> Result<(), CliError
 fn mask_preview(image: &RgbImage, masks: &InstanceMasks) -> image::RgbImage {
     const COLOURS: [[f32; 3]; 6] =
         [[1.0, 0.2, 0.2], [0.2, 1.0, 0.2], [0.2, 0.4, 1.0], [1.0, 1.0, 0.2], [1.0, 0.2, 1.0], [0.2, 1.0, 1.0]];
+    let g = Grid::new(image.width, image.height);
     image::RgbImage::from_fn(image.width as u32, image.height as u32, |x, y| {
-        let i = y as usize * image.width + x as usize;
+        let i = g.index(x as usize, y as usize);
         let mut px = [0.0f32; 3];
         for (c, v) in px.iter_mut().enumerate() {
             *v = image.data[i * 3 + c] * 0.5;

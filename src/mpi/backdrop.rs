@@ -45,6 +45,7 @@
 use crate::raster::exemplar::{peel_order, synthesise as synthesise_exemplar, Draw, Layout, Sources};
 use crate::raster::morph::dilate;
 use crate::raster::pushpull::push_pull;
+use crate::raster::Grid;
 
 /// Mask pixels are grown by this many pixels (chessboard) before completion.
 pub const MASK_GROW: usize = 3;
@@ -81,19 +82,16 @@ impl Backdrop {
 
 /// Chessboard minimum filter of radius `r` (separable; O(w h r)).
 fn min_filter(v: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
-    let mut tmp = vec![0.0; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let (a, b) = (x.saturating_sub(r), (x + r).min(w - 1));
-            tmp[y * w + x] = v[y * w + a..=y * w + b].iter().copied().fold(f64::INFINITY, f64::min);
-        }
+    let g = Grid::new(w, h);
+    let mut tmp = vec![0.0; g.len()];
+    for (x, y) in g.pixels() {
+        let row = g.span(y, g.window(x, y, r).xs);
+        tmp[g.index(x, y)] = v[row].iter().copied().fold(f64::INFINITY, f64::min);
     }
-    let mut out = vec![0.0; w * h];
-    for y in 0..h {
-        let (a, b) = (y.saturating_sub(r), (y + r).min(h - 1));
-        for x in 0..w {
-            out[y * w + x] = (a..=b).map(|yy| tmp[yy * w + x]).fold(f64::INFINITY, f64::min);
-        }
+    let mut out = vec![0.0; g.len()];
+    for (x, y) in g.pixels() {
+        let column = g.window(x, y, r).ys;
+        out[g.index(x, y)] = column.map(|yy| tmp[g.index(x, yy)]).fold(f64::INFINITY, f64::min);
     }
     out
 }
@@ -174,10 +172,8 @@ fn synthesise(r: &Region<'_>, out_rgb: &mut [f32]) {
     let order = peel_order(behind, w, h);
     let mut filled: Vec<bool> = behind.iter().map(|&b| !b).collect();
     let lay = Layout {
-        source_width: w,
-        source_height: h,
-        target_width: w,
-        target_height: h,
+        source: Grid::new(w, h),
+        target: Grid::new(w, h),
         target_left: 0,
         target_top: 0,
         half: WINDOW / 2,
@@ -212,9 +208,10 @@ mod tests {
         let mut rgb = vec![0.0f32; 3 * w * h];
         let mut disp = vec![0.2f64; w * h];
         let mut mask = vec![false; w * h];
+        let g = Grid::new(w, h);
         for y in 0..h {
             for x in 0..w {
-                let p = y * w + x;
+                let p = g.index(x, y);
                 let stripe = if (x / 3) % 2 == 0 { 0.9 } else { 0.1 };
                 rgb[3 * p..3 * p + 3].copy_from_slice(&[0.2, stripe, 0.5]);
                 if (20..44).contains(&x) && (16..40).contains(&y) {

@@ -91,6 +91,7 @@ use super::{Mpi, MpiError, SIGMA_MAX};
 use crate::geometry::Intrinsics;
 use crate::mpi::planes::{plane_gaps, DELTA_LAST};
 use crate::raster::pushpull::Pyramid;
+use crate::raster::Grid;
 use rayon::prelude::*;
 use std::collections::VecDeque;
 
@@ -477,9 +478,10 @@ fn build(
     if n > 1 {
         let (front, back) = mpi.rgba.split_at_mut((n - 1) * plane_len);
         let front: &[f32] = front;
+        let g = Grid::new(width, height);
         back.par_chunks_mut(4 * width).enumerate().for_each(|(y, row)| {
             for (x, px) in row.chunks_exact_mut(4).enumerate() {
-                let p = y * width + x;
+                let p = g.index(x, y);
                 let behind = hidden.get(p).map_or(0, |&hb| if hb == NO_HIDDEN { 0 } else { hb as usize });
                 let j = (lim[p] as usize).max(behind) + 1;
                 if j < n - 1 {
@@ -587,17 +589,16 @@ fn hidden_planes(b: &super::backdrop::Backdrop, disp: &[f64], planes: &[f64]) ->
 /// plane's fill at the pixel being the pixel's own), so the two planes overlap and no crack opens
 /// between them when they part under motion by up to [`SEAM_REACH`] pixels.
 fn seams(slots: &[Slot], width: usize, height: usize) -> Vec<bool> {
-    (0..width * height)
+    let g = Grid::new(width, height);
+    (0..g.len())
         .into_par_iter()
         .map(|p| {
             let f = slots[p].far;
             if f == 0 {
                 return false;
             }
-            let (x, y) = (p % width, p / width);
-            let (x0, x1) = (x.saturating_sub(SEAM_REACH), (x + SEAM_REACH).min(width - 1));
-            let (y0, y1) = (y.saturating_sub(SEAM_REACH), (y + SEAM_REACH).min(height - 1));
-            (y0..=y1).any(|yy| (x0..=x1).any(|xx| slots[yy * width + xx].far == f - 1))
+            let (x, y) = g.xy(p);
+            g.window(x, y, SEAM_REACH).pixels().any(|(xx, yy)| slots[g.index(xx, yy)].far == f - 1)
         })
         .collect()
 }
@@ -616,22 +617,17 @@ fn density(alpha: f64, delta: f64) -> f32 {
 
 /// Copies each unknown value from its nearest known pixel (multi-source BFS, 8-neighbourhood).
 fn fill_nearest(v: &mut [f64], known: &[bool], w: usize, h: usize) {
+    let g = Grid::new(w, h);
     let mut done = known.to_vec();
     let mut queue: VecDeque<usize> = (0..v.len()).filter(|&p| known[p]).collect();
     while let Some(p) = queue.pop_front() {
-        let (x, y) = ((p % w) as isize, (p / w) as isize);
-        for dy in -1..=1isize {
-            for dx in -1..=1isize {
-                let (nx, ny) = (x + dx, y + dy);
-                if nx < 0 || ny < 0 || nx >= w as isize || ny >= h as isize {
-                    continue;
-                }
-                let q = ny as usize * w + nx as usize;
-                if !done[q] {
-                    done[q] = true;
-                    v[q] = v[p];
-                    queue.push_back(q);
-                }
+        let (x, y) = g.xy(p);
+        for (nx, ny) in g.neighbours8(x, y) {
+            let q = g.index(nx, ny);
+            if !done[q] {
+                done[q] = true;
+                v[q] = v[p];
+                queue.push_back(q);
             }
         }
     }

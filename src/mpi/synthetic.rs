@@ -2,6 +2,7 @@
 //! smooth depth surface, the way a trained MPI network's output looks.
 
 use super::Mpi;
+use crate::raster::Grid;
 
 /// Disparity of the smooth benchmark surface at normalised coordinates (s, t) in [0, 1]^2:
 /// a slanted ground with two bumps, within [0.08, 0.95].
@@ -21,7 +22,8 @@ pub fn bench_mpi(width: usize, height: usize, planes: usize) -> Mpi {
     let n = disp.len();
     let gap = if n > 1 { (disp[0] - disp[n - 1]) / (n - 1) as f64 } else { 1.0 };
     let mut mpi = Mpi::new(width, height, disp.clone(), 0);
-    let plane_len = width * height;
+    let grid = Grid::new(width, height);
+    let plane_len = grid.len();
     for (i, &d) in disp.iter().enumerate() {
         let plane = &mut mpi.rgba[i * plane_len * 4..(i + 1) * plane_len * 4];
         for y in 0..height {
@@ -35,7 +37,7 @@ pub fn bench_mpi(width: usize, height: usize, planes: usize) -> Mpi {
                 if i + 1 == n {
                     sigma = sigma.max(5.0);
                 }
-                let o = 4 * (y * width + x);
+                let o = 4 * grid.index(x, y);
                 plane[o] = (0.5 + 0.45 * (12.0 * s + 3.0 * i as f64 / n as f64).sin()) as f32;
                 plane[o + 1] = (0.5 + 0.45 * (9.0 * t + 7.0 * s).cos()) as f32;
                 plane[o + 2] = (0.5 + 0.4 * ((20.0 * s * t) + d * 4.0).sin()) as f32;

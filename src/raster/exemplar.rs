@@ -23,17 +23,16 @@
 //! target that no candidate could be compared for takes the caller's `fallback`, or keeps its
 //! value (counted as completed for the pixels after it, or not: `keep_unmatched`).
 
+use super::grid::Grid;
 use crate::rng::mix64;
 
 /// Where the target grid lies in the source frame, and the synthesis' parameters.
 #[derive(Clone, Copy, Debug)]
 pub struct Layout {
-    /// Size of the source frame (the image copied from), in pixels.
-    pub source_width: usize,
-    pub source_height: usize,
-    /// Size of the target grid (the image completed), in pixels.
-    pub target_width: usize,
-    pub target_height: usize,
+    /// The source frame (the image copied from).
+    pub source: Grid,
+    /// The target grid (the image completed).
+    pub target: Grid,
     /// Where the target grid's top-left pixel lies in the source frame (column, row).
     pub target_left: usize,
     pub target_top: usize,
@@ -53,8 +52,9 @@ pub struct Layout {
 
 impl Layout {
     /// The source-frame index of target pixel `t`.
-    fn place(&self, t: usize) -> usize {
-        (self.target_top + t / self.target_width) * self.source_width + self.target_left + t % self.target_width
+    pub fn place(&self, t: usize) -> usize {
+        let (x, y) = self.target.xy(t);
+        self.source.index(self.target_left + x, self.target_top + y)
     }
 }
 
@@ -110,9 +110,9 @@ impl Draw {
 
 /// The source image and the rules of one synthesis.
 pub struct Sources<'a, T, E, S, F> {
-    /// Source colours, `sw x sh x 3`.
+    /// Source colours, `source.w x source.h x 3`.
     pub rgb: &'a [T],
-    /// Source pixels left out of the patch distance (`sw x sh`).
+    /// Source pixels left out of the patch distance (`source.w x source.h`).
     pub masked: &'a [bool],
     /// Whether source pixel `s` may be copied into target pixel `t` (target-grid index).
     pub eligible: E,
@@ -137,17 +137,16 @@ impl<T: Texel> Patch<'_, T> {
     /// or completed pixels) and the window around source pixel `s` (its pixels not masked), over
     /// the offsets inside both frames in row-major order; infinite where no pixel pairs up.
     fn cost(&self, t: usize, s: usize, target: &[T], filled: &[bool]) -> f64 {
-        let (tw, th, sw, sh) =
-            (self.lay.target_width, self.lay.target_height, self.lay.source_width, self.lay.source_height);
+        let (tg, sg) = (self.lay.target, self.lay.source);
         let half = self.lay.half;
-        let (tx, ty, sx, sy) = (t % tw, t / tw, s % sw, s / sw);
+        let ((tx, ty), (sx, sy)) = (tg.xy(t), sg.xy(s));
         // the window's reach left, right, up and down that stays inside both frames
-        let (left, right) = (half.min(tx).min(sx), half.min(tw - 1 - tx).min(sw - 1 - sx));
-        let (up, down) = (half.min(ty).min(sy), half.min(th - 1 - ty).min(sh - 1 - sy));
+        let (left, right) = (half.min(tx).min(sx), half.min(tg.w - 1 - tx).min(sg.w - 1 - sx));
+        let (up, down) = (half.min(ty).min(sy), half.min(tg.h - 1 - ty).min(sg.h - 1 - sy));
         let (mut sum, mut m) = (T::Acc::default(), 0u32);
         for r in 0..=up + down {
-            let a0 = (ty - up + r) * tw + tx - left;
-            let b0 = (sy - up + r) * sw + sx - left;
+            let a0 = tg.index(tx - left, ty - up + r);
+            let b0 = sg.index(sx - left, sy - up + r);
             for k in 0..=left + right {
                 let (a, b) = (a0 + k, b0 + k);
                 if filled[a] && !self.masked[b] {
@@ -195,27 +194,21 @@ impl Choice {
 /// Candidates 1 (coherence): the sources of target `t`'s eight neighbours shifted by the step to
 /// `t`, where inside the source frame, into `out`.
 fn coherent_candidates(lay: &Layout, src_of: &[u32], t: usize, out: &mut Vec<usize>) {
-    let (tw, th, sw, sh) = (lay.target_width, lay.target_height, lay.source_width, lay.source_height);
-    let (tx, ty) = ((t % tw) as isize, (t / tw) as isize);
-    for dy in -1..=1isize {
-        for dx in -1..=1isize {
-            let (nx, ny) = (tx + dx, ty + dy);
-            if (dx, dy) == (0, 0) || nx < 0 || ny < 0 || nx as usize >= tw || ny as usize >= th {
-                continue;
-            }
-            let s = src_of[ny as usize * tw + nx as usize];
-            if s == u32::MAX {
-                continue;
-            }
-            let (sx, sy) = ((s as usize % sw) as isize - dx, (s as usize / sw) as isize - dy);
-            if sx >= 0 && sy >= 0 && (sx as usize) < sw && (sy as usize) < sh {
-                out.push(sy as usize * sw + sx as usize);
-            }
+    let (tg, sg) = (lay.target, lay.source);
+    let (tx, ty) = tg.xy(t);
+    for (nx, ny) in tg.neighbours8(tx, ty) {
+        let s = src_of[tg.index(nx, ny)];
+        if s == u32::MAX {
+            continue;
         }
+        // the neighbour's source moved by the step from the neighbour to `t`
+        let (sx, sy) = sg.xy(s as usize);
+        let (x, y) = (sx as isize + tx as isize - nx as isize, sy as isize + ty as isize - ny as isize);
+        out.extend(sg.at(x, y));
     }
 }
 
-/// Completes the target pixels of `order` (target-grid indices) in `target` (`tw x th x 3`,
+/// Completes the target pixels of `order` (target-grid indices) in `target` (`lay.target` x 3,
 /// known pixels where `filled`), see the module documentation. Returns, per target pixel, the
 /// source it copied (`u32::MAX` where none).
 pub fn synthesise<T, E, S, F>(
@@ -231,10 +224,10 @@ where
     S: FnMut(usize, &mut Draw, &mut Vec<usize>),
     F: Fn(usize) -> Option<usize>,
 {
-    let (sw, sh) = (lay.source_width, lay.source_height);
+    let sg = lay.source;
     let known = if lay.known_weight == 1 { Vec::new() } else { filled.to_vec() };
     let patch = Patch { lay, rgb: src.rgb, masked: src.masked, known };
-    let mut src_of: Vec<u32> = vec![u32::MAX; lay.target_width * lay.target_height];
+    let mut src_of: Vec<u32> = vec![u32::MAX; lay.target.len()];
     let mut choice = Choice::default();
     let mut candidates: Vec<usize> = Vec::new();
     for &t in order {
@@ -254,11 +247,11 @@ where
         // 3. the random search around the best so far (or the target's place), halving radii
         let mut r = lay.search_radius;
         while r >= 1 {
-            let centre = choice.best.map_or(place, |b| b.1);
-            let x = (centre % sw) as isize + draw.below(2 * r + 1) as isize - r as isize;
-            let y = (centre / sw) as isize + draw.below(2 * r + 1) as isize - r as isize;
-            if x >= 0 && y >= 0 && (x as usize) < sw && (y as usize) < sh {
-                choice.consider(y as usize * sw + x as usize, eligible, cost);
+            let (cx, cy) = sg.xy(choice.best.map_or(place, |b| b.1));
+            let x = cx as isize + draw.below(2 * r + 1) as isize - r as isize;
+            let y = cy as isize + draw.below(2 * r + 1) as isize - r as isize;
+            if let Some(s) = sg.at(x, y) {
+                choice.consider(s, eligible, cost);
             }
             r /= 2;
         }
@@ -277,14 +270,14 @@ where
 /// The pixels of `todo` by chessboard distance from the pixels not in it (breadth-first, ties in
 /// row-major order of discovery).
 pub fn peel_order(todo: &[bool], w: usize, h: usize) -> Vec<usize> {
-    let n = w * h;
+    let g = Grid::new(w, h);
+    let n = g.len();
     let mut seen: Vec<bool> = todo.iter().map(|&t| !t).collect();
     let mut frontier: Vec<usize> = (0..n)
         .filter(|&p| {
             todo[p] && {
-                let (x, y) = (p % w, p / w);
-                (y.saturating_sub(1)..=(y + 1).min(h - 1))
-                    .any(|yy| (x.saturating_sub(1)..=(x + 1).min(w - 1)).any(|xx| !todo[yy * w + xx]))
+                let (x, y) = g.xy(p);
+                g.window(x, y, 1).pixels().any(|(xx, yy)| !todo[g.index(xx, yy)])
             }
         })
         .collect();
@@ -301,14 +294,12 @@ pub fn peel_order(todo: &[bool], w: usize, h: usize) -> Vec<usize> {
         order.extend_from_slice(&frontier);
         let mut next = Vec::new();
         for &p in &frontier {
-            let (x, y) = (p % w, p / w);
-            for yy in y.saturating_sub(1)..=(y + 1).min(h - 1) {
-                for xx in x.saturating_sub(1)..=(x + 1).min(w - 1) {
-                    let q = yy * w + xx;
-                    if !seen[q] {
-                        seen[q] = true;
-                        next.push(q);
-                    }
+            let (x, y) = g.xy(p);
+            for (xx, yy) in g.window(x, y, 1).pixels() {
+                let q = g.index(xx, yy);
+                if !seen[q] {
+                    seen[q] = true;
+                    next.push(q);
                 }
             }
         }
@@ -352,10 +343,8 @@ mod tests {
         let masked = todo.clone();
         let order = peel_order(&todo, w, h);
         let lay = Layout {
-            source_width: w,
-            source_height: h,
-            target_width: w,
-            target_height: h,
+            source: Grid::new(w, h),
+            target: Grid::new(w, h),
             target_left: 0,
             target_top: 0,
             half: 2,

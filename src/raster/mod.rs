@@ -1,14 +1,15 @@
 //! Rasters of a source image (a leaf: it imports only `io`, `failure` and `rng`): object instance
 //! masks ([`instances`]: the [`InstanceMasks`] type, instance-index PNGs, COCO annotation JSON,
 //! the choice of the objects to move), COCO run-length encodings ([`rle`]) and polygons
-//! ([`polygon`]), bit-compatible with pycocotools' `maskApi.c`, and resizing ([`resize`]); and
-//! the fills the stages above share: dilation ([`morph`]), the push-pull pyramid ([`pushpull`])
-//! and exemplar synthesis ([`exemplar`]).
+//! ([`polygon`]), bit-compatible with pycocotools' `maskApi.c`, and resizing ([`resize`]); the
+//! [`Grid`] that row-major rasters are indexed through ([`grid`]); and the fills the stages above
+//! share: dilation ([`morph`]), the push-pull pyramid ([`pushpull`]) and exemplar synthesis
+//! ([`exemplar`]).
 //!
 //! # Conventions
 //!
-//! Masks are row-major `H x W` (`mask[y * W + x]`). COCO RLE counts are runs over the
-//! **column-major** (Fortran) order of the mask, the first run counting zeros (it may be 0).
+//! Masks are row-major `H x W` (`mask[y * W + x]`, [`Grid::index`]). COCO RLE counts are runs
+//! over the **column-major** (Fortran) order of the mask, the first run counting zeros (it may be 0).
 //! The compressed string form is pycocotools' `rleToString`: each count (from the fourth on, as
 //! the difference to the count two before) in 5-bit groups, least significant first, the 0x20 bit
 //! marking "more", the last group sign-extended from its 0x10 bit, each group + 48 as an ASCII
@@ -36,6 +37,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 
 pub mod exemplar;
+pub mod grid;
 pub mod instances;
 pub mod morph;
 pub mod polygon;
@@ -43,6 +45,7 @@ pub mod pushpull;
 pub mod resize;
 pub mod rle;
 
+pub use grid::{Grid, Window};
 pub use instances::*;
 pub use polygon::*;
 pub use resize::*;

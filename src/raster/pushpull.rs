@@ -12,6 +12,8 @@
 //! known pixels keep their value. The arithmetic is the value type's own ([`Cell`]), in the
 //! order written there, so each caller's bytes are a function of its inputs only.
 
+use super::grid::Grid;
+
 /// A value the pyramid averages and interpolates.
 pub trait Cell: Copy + Default {
     /// `self + v`, channel by channel.
@@ -59,43 +61,39 @@ impl Cell for [f32; 3] {
 /// One level of the pyramid: values and which of them are known.
 #[derive(Default)]
 struct Level<T> {
-    w: usize,
-    h: usize,
+    grid: Grid,
     v: Vec<T>,
     known: Vec<bool>,
 }
 
 impl<T: Cell> Level<T> {
-    fn reset(&mut self, w: usize, h: usize) {
-        self.w = w;
-        self.h = h;
+    fn reset(&mut self, grid: Grid) {
+        self.grid = grid;
         self.v.clear();
-        self.v.resize(w * h, T::default());
+        self.v.resize(grid.len(), T::default());
         self.known.clear();
-        self.known.resize(w * h, false);
+        self.known.resize(grid.len(), false);
     }
 }
 
-/// Halves a `w x h` level into `out`: each cell the mean of its known children (known if any is).
-fn pull<T: Cell>(w: usize, h: usize, at: impl Fn(usize) -> Option<T>, out: &mut Level<T>) {
-    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
-    out.reset(cw, ch);
-    for cy in 0..ch {
-        let rows = 2 * cy..(2 * cy + 2).min(h);
-        for cx in 0..cw {
-            let (mut s, mut m) = (T::default(), 0u32);
-            for y in rows.clone() {
-                for x in 2 * cx..(2 * cx + 2).min(w) {
-                    if let Some(v) = at(y * w + x) {
-                        s = s.add(v);
-                        m += 1;
-                    }
+/// Halves a level of `grid` into `out`: each cell the mean of its known children (known if any is).
+fn pull<T: Cell>(grid: Grid, at: impl Fn(usize) -> Option<T>, out: &mut Level<T>) {
+    let coarse = Grid::new(grid.w.div_ceil(2), grid.h.div_ceil(2));
+    out.reset(coarse);
+    for (cx, cy) in coarse.pixels() {
+        let (mut s, mut m) = (T::default(), 0u32);
+        for y in 2 * cy..(2 * cy + 2).min(grid.h) {
+            for x in 2 * cx..(2 * cx + 2).min(grid.w) {
+                if let Some(v) = at(grid.index(x, y)) {
+                    s = s.add(v);
+                    m += 1;
                 }
             }
-            if m > 0 {
-                out.v[cy * cw + cx] = T::mean(s, m);
-                out.known[cy * cw + cx] = true;
-            }
+        }
+        if m > 0 {
+            let c = coarse.index(cx, cy);
+            out.v[c] = T::mean(s, m);
+            out.known[c] = true;
         }
     }
 }
@@ -113,20 +111,21 @@ fn taps(n: usize, cn: usize) -> Vec<(usize, usize, f64)> {
 }
 
 #[inline(always)]
-fn bilinear<T: Cell>(c: &[T], cw: usize, (x0, x1, wx): (usize, usize, f64), (y0, y1, wy): (usize, usize, f64)) -> T {
-    let top = T::lerp(c[y0 * cw + x0], c[y0 * cw + x1], wx);
-    let bot = T::lerp(c[y1 * cw + x0], c[y1 * cw + x1], wx);
+fn bilinear<T: Cell>(c: &Level<T>, (x0, x1, wx): (usize, usize, f64), (y0, y1, wy): (usize, usize, f64)) -> T {
+    let at = |x: usize, y: usize| c.v[c.grid.index(x, y)];
+    let top = T::lerp(at(x0, y0), at(x1, y0), wx);
+    let bot = T::lerp(at(x0, y1), at(x1, y1), wx);
     T::lerp(top, bot, wy)
 }
 
 /// Fills the unknown cells of `fine` by bilinear up-sampling of the (fully known) `coarse`.
 fn push<T: Cell>(fine: &mut Level<T>, coarse: &Level<T>) {
-    let (xs, ys) = (taps(fine.w, coarse.w), taps(fine.h, coarse.h));
+    let (xs, ys) = (taps(fine.grid.w, coarse.grid.w), taps(fine.grid.h, coarse.grid.h));
     for (y, &ty) in ys.iter().enumerate() {
         for (x, &tx) in xs.iter().enumerate() {
-            let p = y * fine.w + x;
+            let p = fine.grid.index(x, y);
             if !fine.known[p] {
-                fine.v[p] = bilinear(&coarse.v, coarse.w, tx, ty);
+                fine.v[p] = bilinear(coarse, tx, ty);
             }
         }
     }
@@ -162,13 +161,13 @@ impl<T: Cell> Pyramid<T> {
                 levels.push(Level::default());
             }
             if depth == 0 {
-                pull(w, h, &at, &mut levels[0]);
+                pull(Grid::new(w, h), &at, &mut levels[0]);
             } else {
                 let (prev, next) = levels.split_at_mut(depth);
                 let l = &prev[depth - 1];
-                pull(l.w, l.h, |p| l.known[p].then_some(l.v[p]), &mut next[0]);
+                pull(l.grid, |p| l.known[p].then_some(l.v[p]), &mut next[0]);
             }
-            (lw, lh) = (levels[depth].w, levels[depth].h);
+            (lw, lh) = (levels[depth].grid.w, levels[depth].grid.h);
             depth += 1;
         }
         if depth == 0 {
@@ -188,11 +187,12 @@ impl<T: Cell> Pyramid<T> {
             push(&mut fine[li], &coarse[0]);
         }
         let top = &levels[0];
-        let (xs, ys) = (taps(w, top.w), taps(h, top.h));
+        let grid = Grid::new(w, h);
+        let (xs, ys) = (taps(w, top.grid.w), taps(h, top.grid.h));
         for (y, &ty) in ys.iter().enumerate() {
             for (x, &tx) in xs.iter().enumerate() {
-                let p = y * w + x;
-                write(p, at(p).unwrap_or_else(|| bilinear(&top.v, top.w, tx, ty)));
+                let p = grid.index(x, y);
+                write(p, at(p).unwrap_or_else(|| bilinear(top, tx, ty)));
             }
         }
         true

@@ -133,10 +133,11 @@ pub fn rle_encode(mask: &[u8], h: usize, w: usize) -> Vec<u32> {
     );
     assert!(u32::try_from(mask.len()).is_ok(), "rle_encode: {h} x {w} does not fit in 32-bit counts");
     let mut counts = Vec::new();
+    let g = Grid::new(w, h);
     let (mut prev, mut run) = (false, 0u32);
     for x in 0..w {
         for y in 0..h {
-            let v = mask[y * w + x] != 0;
+            let v = mask[g.index(x, y)] != 0;
             if v != prev {
                 counts.push(run);
                 run = 0;

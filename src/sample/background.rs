@@ -38,7 +38,9 @@ use serde::{Deserialize, Serialize};
 
 use super::merge::unit_to_u8;
 use super::object::{scene_mask_window, support_rect};
-use crate::geometry::{Intrinsics, Pose};
+use crate::geometry::Pose;
+use crate::raster::grid::pixel_values;
+use crate::raster::Grid;
 use crate::render::cut::render_cut;
 use crate::render::{DensityCut, Occupancy, Rect, RenderError, RenderParams, Skip};
 use crate::scene::Scene;
@@ -105,49 +107,54 @@ pub struct Frame<'a> {
     pub depth: &'a mut [f32],
 }
 
-/// Fills the holes of `frame` that the MPI's planes behind `union` cover (coverage at least
-/// `threshold`), returning how many it filled.
-#[allow(clippy::too_many_arguments)]
-pub fn fill_from_planes(
-    scene: &Scene,
-    k: &Intrinsics,
-    occupancy: Option<&Occupancy>,
-    skip: Skip,
-    union: &[f32],
-    last: &[u8],
-    threshold: f32,
-    frame: Frame<'_>,
-) -> Result<u64, RenderError> {
-    let mpi = &*scene.mpi;
-    let (w, h) = (mpi.width, mpi.height);
+/// The planes behind the moved objects that fill holes: the scene (its MPI and intrinsics)
+/// with its tile occupancy and work skipping, the moved objects' union mask and the farthest
+/// plane cut at each source pixel ([`cut_planes`]), and the coverage a filled pixel needs.
+pub struct PlanesBehind<'a> {
+    pub scene: &'a Scene,
+    pub occupancy: Option<&'a Occupancy>,
+    pub skip: Skip,
+    /// H x W, the moved objects' union mask.
+    pub union: &'a [f32],
+    /// H x W, [`cut_planes`] of `union`.
+    pub last: &'a [u8],
+    /// The render's coverage at a filled pixel: at least this (the merge's mask threshold).
+    pub threshold: f32,
+}
+
+/// Fills the holes of `frame` that the MPI's planes behind the moved objects cover, returning
+/// how many it filled.
+pub fn fill_from_planes(planes: &PlanesBehind<'_>, frame: Frame<'_>) -> Result<u64, RenderError> {
+    let PlanesBehind { scene, occupancy, skip, union, last, threshold } = *planes;
+    let (mpi, k) = (&*scene.mpi, &scene.intrinsics);
+    let g = Grid::new(mpi.width, mpi.height);
     // only holes where the objects' places land can show what lies behind them
-    let Some(support) = support_rect(union, w, h) else { return Ok(0) };
+    let Some(support) = support_rect(union, g.w, g.h) else { return Ok(0) };
     let reach = scene_mask_window(mpi, k, &frame.pose, &support);
-    let Some(win) = hole_rect(frame.hole, w, &reach) else { return Ok(0) };
+    let Some(win) = hole_rect(frame.hole, g, &reach) else { return Ok(0) };
     let mut params = RenderParams::new(*k, frame.pose);
     params.skip = skip;
     let r = render_cut::<f32>(mpi, &params, occupancy, &win, &DensityCut { mask: union, last })?;
-    let ww = win.width();
-    let wh = win.y1 - win.y0;
+    let local = Grid::new(win.width(), win.y1 - win.y0);
     // the holes the planes cover, then only their column runs of at least three pixels (an
     // opening): a sliver one or two rows tall between rows that show the scene is left to
     // Telea, which blends it with those rows, where the planes' background would draw a line
-    let candidate: Vec<bool> = (0..ww * wh)
+    let candidate: Vec<bool> = (0..local.len())
         .map(|o| {
-            let (x, y) = (win.x0 + o % ww, win.y0 + o / ww);
-            frame.hole[y * w + x] != 0 && r.out.coverage[o] >= threshold
+            let (lx, ly) = local.xy(o);
+            frame.hole[g.index(win.x0 + lx, win.y0 + ly)] != 0 && r.out.coverage[o] >= threshold
         })
         .collect();
-    let fill = opening_v3(&candidate, ww, wh);
+    let fill = opening_v3(&candidate, local);
     let mut filled = 0u64;
     for y in win.y0..win.y1 {
         for x in win.x0..win.x1 {
-            let (p, o) = (y * w + x, (y - win.y0) * ww + (x - win.x0));
+            let (p, o) = (g.index(x, y), local.index(x - win.x0, y - win.y0));
             if !fill[o] {
                 continue;
             }
-            for c in 0..3 {
-                frame.image[3 * p + c] = unit_to_u8(r.out.image[3 * o + c]);
+            for (d, &v) in frame.image[pixel_values(p, 3)].iter_mut().zip(&r.out.image[pixel_values(o, 3)]) {
+                *d = unit_to_u8(v);
             }
             let d = r.out.depth[o];
             frame.depth[p] = if d.is_finite() && d > 0.0 { d } else { 0.0 };
@@ -158,34 +165,34 @@ pub fn fill_from_planes(
     Ok(filled)
 }
 
-/// The opening of `m` (w x h) by a vertical 1 x 3 segment: the pixels of `m` in a column run of
-/// at least three (outside the grid counts as not in `m`).
-fn opening_v3(m: &[bool], w: usize, h: usize) -> Vec<bool> {
-    let mut out = vec![false; w * h];
-    for x in 0..w {
+/// The opening of `m` (of grid `g`) by a vertical 1 x 3 segment: the pixels of `m` in a column
+/// run of at least three (outside the grid counts as not in `m`).
+fn opening_v3(m: &[bool], g: Grid) -> Vec<bool> {
+    let mut out = vec![false; g.len()];
+    for x in 0..g.w {
         let mut y = 0;
-        while y < h {
-            if !m[y * w + x] {
+        while y < g.h {
+            if !m[g.index(x, y)] {
                 y += 1;
                 continue;
             }
             let start = y;
-            while y < h && m[y * w + x] {
+            while y < g.h && m[g.index(x, y)] {
                 y += 1;
             }
             if y - start >= 3 {
-                (start..y).for_each(|r| out[r * w + x] = true);
+                (start..y).for_each(|r| out[g.index(x, r)] = true);
             }
         }
     }
     out
 }
 
-/// The bounding box of the hole pixels inside `within`, if any.
-fn hole_rect(hole: &[u8], w: usize, within: &Rect) -> Option<Rect> {
+/// The bounding box of the hole pixels (of grid `g`) inside `within`, if any.
+fn hole_rect(hole: &[u8], g: Grid, within: &Rect) -> Option<Rect> {
     let (mut x0, mut y0, mut x1, mut y1) = (usize::MAX, usize::MAX, 0, 0);
     for y in within.y0..within.y1 {
-        let row = &hole[y * w + within.x0..y * w + within.x1];
+        let row = &hole[g.span(y, within.x0..within.x1)];
         let Some(first) = row.iter().position(|&v| v != 0) else { continue };
         let last = row.iter().rposition(|&v| v != 0).unwrap_or(first);
         x0 = x0.min(within.x0 + first);

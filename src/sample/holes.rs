@@ -37,7 +37,9 @@
 use super::config::InpaintMethod;
 use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};
 use crate::raster::exemplar::{peel_order, synthesise, Draw, Layout, Sources};
+use crate::raster::grid::{interleaved, pixel_values};
 use crate::raster::morph::dilate;
+use crate::raster::Grid;
 use crate::render::Rect;
 
 /// How far around a hole the texture fill looks for the background's depth (pixels, chessboard).
@@ -133,26 +135,15 @@ pub fn label_continued(mask: &mut [u8], continued: &[u8]) {
 /// (the far side of the hole, robust to a few stray far values at a render's edge), less the
 /// frame's `z_shift` (in image1's camera), brought nearer by [`TEXTURE_DEPTH_TOLERANCE`] in
 /// disparity; 0 (no limit) where none is known.
-fn nearest_source_depth(
-    tex: &TextureSource<'_>,
-    hole: &[u8],
-    w: usize,
-    h: usize,
-    x: usize,
-    y: usize,
-    buf: &mut Vec<f32>,
-) -> f32 {
-    let depth = tex.depth;
-    let r = TEXTURE_REACH;
+fn nearest_source_depth(tex: &TextureSource<'_>, hole: &[u8], g: Grid, x: usize, y: usize, buf: &mut Vec<f32>) -> f32 {
+    let reach = g.window(x, y, TEXTURE_REACH);
     buf.clear();
-    for yy in (y.saturating_sub(r)..=(y + r).min(h - 1)).step_by(2) {
-        for xx in (x.saturating_sub(r)..=(x + r).min(w - 1)).step_by(2) {
-            let (p, d) = (yy * w + xx, depth[yy * w + xx]);
+    for yy in reach.ys.step_by(2) {
+        for xx in reach.xs.clone().step_by(2) {
+            let p = g.index(xx, yy);
+            let d = tex.depth[p];
             // a pixel beside a hole is often a render's frayed edge (a stray far depth): left out
-            let beside = (xx > 0 && hole[p - 1] != 0)
-                || (xx + 1 < w && hole[p + 1] != 0)
-                || (yy > 0 && hole[p - w] != 0)
-                || (yy + 1 < h && hole[p + w] != 0);
+            let beside = g.neighbours4(p).any(|q| hole[q] != 0);
             if hole[p] == 0 && tex.mask[p] == 0 && !beside && d > 0.0 && d.is_finite() {
                 buf.push(d);
             }
@@ -167,16 +158,12 @@ fn nearest_source_depth(
 }
 
 /// The hole pixels 4-connected to a hole pixel on the frame's border: what enters the frame.
-fn entering(hole: &[u8], w: usize, h: usize) -> Vec<bool> {
-    let mut seen = vec![false; w * h];
-    let border = (0..w).flat_map(|x| [x, (h - 1) * w + x]).chain((0..h).flat_map(|y| [y * w, y * w + w - 1]));
-    let mut stack: Vec<usize> = border.filter(|&p| hole[p] != 0).collect();
+fn entering(hole: &[u8], g: Grid) -> Vec<bool> {
+    let mut seen = vec![false; g.len()];
+    let mut stack: Vec<usize> = g.border().filter(|&p| hole[p] != 0).collect();
     stack.iter().for_each(|&p| seen[p] = true);
     while let Some(p) = stack.pop() {
-        let (x, y) = (p % w, p / w);
-        let next =
-            [(x > 0).then(|| p - 1), (x + 1 < w).then(|| p + 1), (y > 0).then(|| p - w), (y + 1 < h).then(|| p + w)];
-        for q in next.into_iter().flatten() {
+        for q in g.neighbours4(p) {
             if hole[q] != 0 && !seen[q] {
                 seen[q] = true;
                 stack.push(q);
@@ -188,10 +175,9 @@ fn entering(hole: &[u8], w: usize, h: usize) -> Vec<bool> {
 
 /// The moved objects that continue beyond image1's frame: `reaches[k]` when label `k` of
 /// `labels1` has a pixel on the frame's border.
-fn reaching_border(labels1: &[u8], w: usize, h: usize) -> [bool; 256] {
+fn reaching_border(labels1: &[u8], g: Grid) -> [bool; 256] {
     let mut reaches = [false; 256];
-    let border = (0..w).flat_map(|x| [x, (h - 1) * w + x]).chain((0..h).flat_map(|y| [y * w, y * w + w - 1]));
-    for p in border {
+    for p in g.border() {
         reaches[usize::from(labels1[p])] = true;
     }
     reaches[0] = false;
@@ -201,26 +187,13 @@ fn reaching_border(labels1: &[u8], w: usize, h: usize) -> [bool; 256] {
 /// The object each entering hole pixel continues (0 = background): the frame's label of the
 /// nearest known pixel (4-connected breadth-first search over the entering hole pixels from the
 /// known pixels beside them, in index order), kept where that object reaches image1's border.
-fn continued_objects(
-    hole: &[u8],
-    entering: &[bool],
-    mask: &[u8],
-    reaches: &[bool; 256],
-    w: usize,
-    h: usize,
-) -> Vec<u8> {
-    let n = w * h;
+fn continued_objects(hole: &[u8], entering: &[bool], mask: &[u8], reaches: &[bool; 256], g: Grid) -> Vec<u8> {
+    let n = g.len();
     let mut owner = vec![0u8; n];
     let mut seen = vec![false; n];
-    let neighbours = |p: usize| {
-        let (x, y) = (p % w, p / w);
-        [(x > 0).then(|| p - 1), (x + 1 < w).then(|| p + 1), (y > 0).then(|| p - w), (y + 1 < h).then(|| p + w)]
-    };
     // the known pixels beside what enters, in index order
-    let mut seeds: Vec<usize> = (0..n)
-        .filter(|&p| entering[p])
-        .flat_map(|p| neighbours(p).into_iter().flatten().filter(|&q| hole[q] == 0))
-        .collect();
+    let mut seeds: Vec<usize> =
+        (0..n).filter(|&p| entering[p]).flat_map(|p| g.neighbours4(p).filter(|&q| hole[q] == 0)).collect();
     seeds.sort_unstable();
     seeds.dedup();
     let mut queue = std::collections::VecDeque::with_capacity(seeds.len());
@@ -230,7 +203,7 @@ fn continued_objects(
         queue.push_back(p);
     }
     while let Some(p) = queue.pop_front() {
-        for q in neighbours(p).into_iter().flatten() {
+        for q in g.neighbours4(p) {
             if entering[q] && !seen[q] {
                 seen[q] = true;
                 owner[q] = owner[p];
@@ -263,13 +236,14 @@ const CONTINUED_DRAW_TRIES: usize = 8;
 /// The texture fill of the module documentation.
 pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &TextureSource<'_>) -> TextureFill {
     use rayon::prelude::*;
-    let n = w * h;
+    let g = Grid::new(w, h);
+    let n = g.len();
     assert!(image.len() == 3 * n && hole.len() == n && tex.image1.len() == 3 * n, "texture fill: sizes");
     assert!(tex.depth1.len() == n && tex.objects.len() == n && tex.depth.len() == n, "texture fill: sizes");
     assert!(tex.mask.len() == n && tex.labels1.len() == n, "texture fill: sizes");
-    let plan = FillPlan::new(w, h, hole, tex);
+    let plan = FillPlan::new(g, hole, tex);
     let frame: &[u8] = image;
-    let results: Vec<(Rect, Rect, Vec<u8>, Vec<u32>)> = hole_tiles(hole, w, h)
+    let results: Vec<(Rect, Rect, Vec<u8>, Vec<u32>)> = hole_tiles(hole, g)
         .par_iter()
         .map(|&(tile, win)| {
             let (img, src_of) = plan.fill_tile(frame, tile, win);
@@ -278,15 +252,15 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
         .collect();
     let mut left = vec![0u8; n];
     for (tile, win, img, src_of) in results {
-        let cw = win.width();
+        let local = Grid::new(win.width(), win.height());
         for y in tile.y0..tile.y1 {
             for x in tile.x0..tile.x1 {
-                let (p, l) = (y * w + x, (y - win.y0) * cw + (x - win.x0));
+                let (p, l) = (g.index(x, y), local.index(x - win.x0, y - win.y0));
                 if hole[p] != 0 {
                     if src_of[l] == u32::MAX {
                         left[p] = 1;
                     } else {
-                        image[3 * p..3 * p + 3].copy_from_slice(&img[3 * l..3 * l + 3]);
+                        image[pixel_values(p, 3)].copy_from_slice(&img[pixel_values(l, 3)]);
                     }
                 }
             }
@@ -297,14 +271,15 @@ pub fn texture_fill(image: &mut [u8], w: usize, h: usize, hole: &[u8], tex: &Tex
 
 /// The frame's [`TEXTURE_TILE`] tiles that hold a hole pixel, each with its window: the tile grown
 /// by the matching window's reach.
-fn hole_tiles(hole: &[u8], w: usize, h: usize) -> Vec<(Rect, Rect)> {
+fn hole_tiles(hole: &[u8], g: Grid) -> Vec<(Rect, Rect)> {
+    let Grid { w, h } = g;
     let (tx, ty) = (w.div_ceil(TEXTURE_TILE), h.div_ceil(TEXTURE_TILE));
     (0..tx * ty)
         .map(|k| {
             let (x0, y0) = ((k % tx) * TEXTURE_TILE, (k / tx) * TEXTURE_TILE);
             Rect { x0, y0, x1: (x0 + TEXTURE_TILE).min(w), y1: (y0 + TEXTURE_TILE).min(h) }
         })
-        .filter(|t| (t.y0..t.y1).any(|y| hole[y * w + t.x0..y * w + t.x1].iter().any(|&o| o != 0)))
+        .filter(|t| (t.y0..t.y1).any(|y| hole[g.span(y, t.x0..t.x1)].iter().any(|&o| o != 0)))
         .map(|t| (t, t.grow(TEXTURE_HALF, w, h)))
         .collect()
 }
@@ -312,8 +287,7 @@ fn hole_tiles(hole: &[u8], w: usize, h: usize) -> Vec<(Rect, Rect)> {
 /// What every tile of one texture fill reads: the frame's holes, what enters the frame, the
 /// continued objects and where sources may not lie.
 struct FillPlan<'a> {
-    w: usize,
-    h: usize,
+    grid: Grid,
     hole: &'a [u8],
     tex: &'a TextureSource<'a>,
     /// H x W, the hole pixels connected to the frame's border.
@@ -343,16 +317,17 @@ struct Part<'a, E, D> {
 }
 
 impl<'a> FillPlan<'a> {
-    fn new(w: usize, h: usize, hole: &'a [u8], tex: &'a TextureSource<'a>) -> Self {
+    fn new(grid: Grid, hole: &'a [u8], tex: &'a TextureSource<'a>) -> Self {
+        let Grid { w, h } = grid;
         let masked = tex.objects;
         // sources keep their distance from every object: the objects grown once
         let near_object =
             if masked.contains(&true) { dilate(w, h, masked, TEXTURE_MASK_GROW) } else { vec![false; w * h] };
-        let entering = entering(hole, w, h);
+        let entering = entering(hole, grid);
         // what a moved object reaching image1's border brings into the frame is more of that object
-        let reaches = reaching_border(tex.labels1, w, h);
+        let reaches = reaching_border(tex.labels1, grid);
         let owner = if reaches.contains(&true) {
-            continued_objects(hole, &entering, tex.mask, &reaches, w, h)
+            continued_objects(hole, &entering, tex.mask, &reaches, grid)
         } else {
             Vec::new()
         };
@@ -364,28 +339,30 @@ impl<'a> FillPlan<'a> {
                 Continued { label, outside, near_outside }
             })
             .collect();
-        Self { w, h, hole, tex, entering, owner, continued, near_object }
+        Self { grid, hole, tex, entering, owner, continued, near_object }
     }
 
     /// Fills the hole pixels of `tile` in a copy of `frame`'s window `win`: the background, then
     /// each continued object. Returns the window's colours and, per window pixel, the source it
     /// copied (`u32::MAX` where none).
     fn fill_tile(&self, frame: &[u8], tile: Rect, win: Rect) -> (Vec<u8>, Vec<u32>) {
-        let (w, h, n, hole, tex) = (self.w, self.h, self.w * self.h, self.hole, self.tex);
-        let (cw, ch) = (win.width(), win.height());
+        let (g, hole, tex) = (self.grid, self.hole, self.tex);
+        let n = g.len();
+        let local = Grid::new(win.width(), win.height());
         let owned = |p: usize| !self.owner.is_empty() && self.owner[p] != 0;
-        let mut img = Vec::with_capacity(cw * ch * 3);
-        let mut todo = Vec::with_capacity(cw * ch);
+        let mut img = Vec::with_capacity(local.len() * 3);
+        let mut todo = Vec::with_capacity(local.len());
         for y in win.y0..win.y1 {
-            img.extend_from_slice(&frame[3 * (y * w + win.x0)..3 * (y * w + win.x1)]);
-            todo.extend((win.x0..win.x1).map(|x| tile.contains(x, y) && hole[y * w + x] != 0 && !owned(y * w + x)));
+            img.extend_from_slice(&frame[interleaved(g.span(y, win.x0..win.x1), 3)]);
+            todo.extend((win.x0..win.x1).map(|x| {
+                let p = g.index(x, y);
+                tile.contains(x, y) && hole[p] != 0 && !owned(p)
+            }));
         }
         let nearest = self.depth_limits(&todo, win);
         let lay = Layout {
-            source_width: w,
-            source_height: h,
-            target_width: cw,
-            target_height: ch,
+            source: g,
+            target: local,
             target_left: win.x0,
             target_top: win.y0,
             half: TEXTURE_HALF,
@@ -411,10 +388,11 @@ impl<'a> FillPlan<'a> {
         // the continued objects: their own pixels in image1 matched against what the frame shows
         // of them
         for c in &self.continued {
-            let todo: Vec<bool> = (0..cw * ch)
+            let todo: Vec<bool> = (0..local.len())
                 .map(|l| {
-                    let (x, y) = (win.x0 + l % cw, win.y0 + l / cw);
-                    tile.contains(x, y) && self.owner[y * w + x] == c.label
+                    let (lx, ly) = local.xy(l);
+                    let (x, y) = (win.x0 + lx, win.y0 + ly);
+                    tile.contains(x, y) && self.owner[g.index(x, y)] == c.label
                 })
                 .collect();
             if !todo.contains(&true) {
@@ -442,21 +420,25 @@ impl<'a> FillPlan<'a> {
     /// per [`TEXTURE_BLOCK`] block of the frame (it varies slowly), at the block's centre; none
     /// for what enters the frame.
     fn depth_limits(&self, todo: &[bool], win: Rect) -> Vec<f32> {
-        let (w, h) = (self.w, self.h);
-        let cw = win.width();
+        let g = self.grid;
+        let local = Grid::new(win.width(), win.height());
         let (bx0, by0) = (win.x0 / TEXTURE_BLOCK, win.y0 / TEXTURE_BLOCK);
-        let bw = (win.x1 - 1) / TEXTURE_BLOCK - bx0 + 1;
-        let bh = (win.y1 - 1) / TEXTURE_BLOCK - by0 + 1;
-        let mut blocks = vec![f32::NAN; bw * bh];
+        let blocks_grid = Grid::new((win.x1 - 1) / TEXTURE_BLOCK - bx0 + 1, (win.y1 - 1) / TEXTURE_BLOCK - by0 + 1);
+        let mut blocks = vec![f32::NAN; blocks_grid.len()];
         let mut buf = Vec::new();
         let mut nearest = vec![0.0f32; todo.len()];
-        for l in (0..todo.len()).filter(|&l| todo[l] && !self.entering[(win.y0 + l / cw) * w + win.x0 + l % cw]) {
-            let (bx, by) = ((win.x0 + l % cw) / TEXTURE_BLOCK, (win.y0 + l / cw) / TEXTURE_BLOCK);
-            let b = &mut blocks[(by - by0) * bw + bx - bx0];
+        for (l, &to_do) in todo.iter().enumerate() {
+            let (lx, ly) = local.xy(l);
+            let (x, y) = (win.x0 + lx, win.y0 + ly);
+            if !to_do || self.entering[g.index(x, y)] {
+                continue;
+            }
+            let (bx, by) = (x / TEXTURE_BLOCK, y / TEXTURE_BLOCK);
+            let b = &mut blocks[blocks_grid.index(bx - bx0, by - by0)];
             if b.is_nan() {
-                let cx = (bx * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(w - 1);
-                let cy = (by * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(h - 1);
-                *b = nearest_source_depth(self.tex, self.hole, w, h, cx, cy, &mut buf);
+                let cx = (bx * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(g.w - 1);
+                let cy = (by * TEXTURE_BLOCK + TEXTURE_BLOCK / 2).min(g.h - 1);
+                *b = nearest_source_depth(self.tex, self.hole, g, cx, cy, &mut buf);
             }
             nearest[l] = *b;
         }
@@ -473,11 +455,11 @@ impl<'a> FillPlan<'a> {
         E: Fn(usize, usize) -> bool,
         D: Fn(&mut Draw) -> Option<usize>,
     {
-        let (w, cw) = (self.w, win.width());
+        let g = self.grid;
         let (hole, mask) = (self.hole, self.tex.mask);
-        let order = peel_order(part.todo, cw, win.height());
+        let order = peel_order(part.todo, win.width(), win.height());
         let mut filled: Vec<bool> = (win.y0..win.y1)
-            .flat_map(|y| (y * w + win.x0..y * w + win.x1).map(|p| hole[p] == 0 && mask[p] == part.label))
+            .flat_map(|y| g.span(y, win.x0..win.x1).map(|p| hole[p] == 0 && mask[p] == part.label))
             .collect();
         let draw_one = &part.draw;
         let mut src = Sources {
@@ -485,7 +467,8 @@ impl<'a> FillPlan<'a> {
             masked: part.masked,
             eligible: part.eligible,
             seeds: |t: usize, draw: &mut Draw, out: &mut Vec<usize>| {
-                out.push((win.y0 + t / cw) * w + win.x0 + t % cw);
+                // the pixel's own place in image1
+                out.push(lay.place(t));
                 for _ in 0..TEXTURE_GLOBAL_DRAWS {
                     out.extend(draw_one(draw));
                 }
@@ -538,7 +521,8 @@ pub fn inpaint_holes(
     }
     let r = if radius >= 1.0 { radius.min(super::inpaint::MAX_RADIUS) } else { 1.0 };
     let margin = (1.5 * r.ceil() + 2.0).ceil() as usize + 2;
-    let groups = hole_groups(hole, w, h, margin);
+    let g = Grid::new(w, h);
+    let groups = hole_groups(hole, g, margin);
     let results: Vec<(Rect, Vec<u8>)> = groups
         .par_iter()
         .map(|win| {
@@ -546,20 +530,21 @@ pub fn inpaint_holes(
             let mut img = Vec::with_capacity(cw * ch * 3);
             let mut sub = Vec::with_capacity(cw * ch);
             for y in win.y0..win.y1 {
-                img.extend_from_slice(&image[3 * (y * w + win.x0)..3 * (y * w + win.x1)]);
-                sub.extend_from_slice(&hole[y * w + win.x0..y * w + win.x1]);
+                img.extend_from_slice(&image[interleaved(g.span(y, win.x0..win.x1), 3)]);
+                sub.extend_from_slice(&hole[g.span(y, win.x0..win.x1)]);
             }
             inpaint_telea_u8_with(&mut img, cw, ch, 3, &sub, &options);
             (*win, img)
         })
         .collect();
     for (win, img) in results {
-        let cw = win.width();
+        let local = Grid::new(win.width(), win.height());
         for y in win.y0..win.y1 {
             for x in win.x0..win.x1 {
-                if hole[y * w + x] != 0 {
-                    let o = 3 * ((y - win.y0) * cw + (x - win.x0));
-                    image[3 * (y * w + x)..3 * (y * w + x) + 3].copy_from_slice(&img[o..o + 3]);
+                let p = g.index(x, y);
+                if hole[p] != 0 {
+                    let o = local.index(x - win.x0, y - win.y0);
+                    image[pixel_values(p, 3)].copy_from_slice(&img[pixel_values(o, 3)]);
                 }
             }
         }
@@ -571,39 +556,29 @@ const MAX_HOLE_GROUPS: usize = 256;
 
 /// The crops of [`inpaint_holes`]: bounding boxes of the holes' 4-connected components, grown by
 /// `margin` and clipped to the frame, merged until no two overlap.
-fn hole_groups(hole: &[u8], w: usize, h: usize, margin: usize) -> Vec<Rect> {
-    let mut seen = vec![false; w * h];
+fn hole_groups(hole: &[u8], g: Grid, margin: usize) -> Vec<Rect> {
+    let Grid { w, h } = g;
+    let mut seen = vec![false; g.len()];
     let mut rects: Vec<Rect> = Vec::new();
     let mut stack: Vec<usize> = Vec::new();
     let mut too_many = false;
     let mut all = Rect { x0: w, y0: h, x1: 0, y1: 0 };
-    for start in 0..w * h {
+    for start in 0..g.len() {
         if hole[start] == 0 || seen[start] {
             continue;
         }
-        let mut r = Rect { x0: start % w, y0: start / w, x1: start % w + 1, y1: start / w + 1 };
+        let (x, y) = g.xy(start);
+        let mut r = Rect { x0: x, y0: y, x1: x + 1, y1: y + 1 };
         seen[start] = true;
         stack.push(start);
         while let Some(i) = stack.pop() {
-            let (x, y) = (i % w, i / w);
+            let (x, y) = g.xy(i);
             r = r.union(&Rect { x0: x, y0: y, x1: x + 1, y1: y + 1 });
-            let mut visit = |j: usize| {
+            for j in g.neighbours4(i) {
                 if hole[j] != 0 && !seen[j] {
                     seen[j] = true;
                     stack.push(j);
                 }
-            };
-            if x > 0 {
-                visit(i - 1);
-            }
-            if x + 1 < w {
-                visit(i + 1);
-            }
-            if y > 0 {
-                visit(i - w);
-            }
-            if y + 1 < h {
-                visit(i + w);
             }
         }
         all = all.union(&r);

@@ -104,6 +104,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::types::LinkFields;
+use crate::raster::grid::{interleaved, pixel_values};
+use crate::raster::Grid;
 use crate::render::{Link, Rect, WindowRender, OCCLUSION_TOLERANCE};
 
 /// How scene and object renders are merged.
@@ -287,9 +289,11 @@ pub fn merge(
         assert_eq!(o.render.out.extra_channels, 1);
     }
 
+    let g = Grid::new(w, h);
     let SceneView { image, depth, scene_mask, scene_mask_patch, flow, valid, source_depth, .. } = scene;
-    let TargetSide { image: image2, mask: mask2, shown_depth, hole, holes } =
-        merge_target(w, h, image, depth, scene_mask, scene_mask_patch, objects, rule, tau);
+    let target = SceneTarget { grid: g, image, depth, scene_mask, scene_mask_patch };
+    let TargetSide { image: image2, mask: mask2, shown_depth, hole, holes } = merge_target(target, objects, rule, tau);
+    let shown = OtherFrame { depth: &shown_depth, labels: &mask2 };
 
     // ---- source side: mask1, flow, valid, occlusion
     // the scene's flow and valid are read and then replaced, pixel by pixel
@@ -304,7 +308,7 @@ pub fn merge(
         .enumerate()
         .for_each(|(y, ((((fl, va), oc), m1), zs))| {
             for x in 0..w {
-                let i = y * w + x;
+                let i = g.index(x, y);
                 let (mut label_m, mut flow_m) = (0.5f32, tau);
                 let mut owner: Option<usize> = None;
                 for (slot, o) in objects.iter().enumerate() {
@@ -333,8 +337,8 @@ pub fn merge(
                 if v != 0 && with_occlusion {
                     let (tx, ty) = (x as f32 + f[0], y as f32 + f[1]);
                     oc[x] = u8::from(match labels {
-                        LabelRule::Honest => !shown_there(&shown_depth, &mask2, w, h, tx, ty, z, m1[x]),
-                        LabelRule::DepthOnly => hidden(&shown_depth, w, h, tx, ty, z),
+                        LabelRule::Honest => !shown_there(shown, g, (tx, ty), z, m1[x]),
+                        LabelRule::DepthOnly => hidden(shown.depth, g, (tx, ty), z),
                     });
                 }
             }
@@ -365,23 +369,25 @@ pub struct TargetSide {
     pub holes: u64,
 }
 
+/// What [`merge_target`] reads of the scene render: its target view (the fields of
+/// [`SceneView`] of the same names).
+pub struct SceneTarget<'a> {
+    pub grid: Grid,
+    /// H x W x 3, premultiplied by coverage.
+    pub image: &'a [f32],
+    /// `D_t`, H x W, taken by value and reused as the shown depth.
+    pub depth: Vec<f32>,
+    /// The scene mask channel `s` (H x W), except inside `scene_mask_patch`'s rectangle.
+    pub scene_mask: &'a [f32],
+    pub scene_mask_patch: Option<(Rect, &'a [f32])>,
+}
+
 /// The target side of [`merge`] for one frame (image, labels, shown depth, holes): the scene
-/// render's image (premultiplied), depth `D_t` (taken by value and reused), scene mask `s`
-/// (and its patch) and the objects' renders. [`merge`] is this followed by the source side;
+/// render's target view and the objects' renders. [`merge`] is this followed by the source side;
 /// the later frames of a clip are this alone.
-#[allow(clippy::too_many_arguments)]
-pub fn merge_target(
-    w: usize,
-    h: usize,
-    image: &[f32],
-    depth: Vec<f32>,
-    scene_mask: &[f32],
-    scene_mask_patch: Option<(Rect, &[f32])>,
-    objects: &[ObjectView<'_>],
-    rule: MergeRule,
-    tau: f32,
-) -> TargetSide {
-    let n = w * h;
+pub fn merge_target(scene: SceneTarget<'_>, objects: &[ObjectView<'_>], rule: MergeRule, tau: f32) -> TargetSide {
+    let SceneTarget { grid: g, image, depth, scene_mask, scene_mask_patch } = scene;
+    let (w, n) = (g.w, g.len());
     assert!(image.len() == 3 * n && depth.len() == n && scene_mask.len() == n);
     // ---- target side: image2, mask2, depth of what is shown (inf = hole), holes
     let mut image2 = crate::buf::zeros::<u8>(3 * n);
@@ -390,8 +396,8 @@ pub fn merge_target(
     let mut shown_depth = depth;
     let mut hole = crate::buf::zeros::<u8>(n);
     let scene_s = |x: usize, y: usize| match scene_mask_patch {
-        Some((r, patch)) if r.contains(x, y) => patch[(y - r.y0) * r.width() + x - r.x0],
-        _ => scene_mask[y * w + x],
+        Some((r, patch)) if r.contains(x, y) => patch[Grid::new(r.width(), r.height()).index(x - r.x0, y - r.y0)],
+        _ => scene_mask[g.index(x, y)],
     };
     // the occlusion test's view of the scene (depth-aware rule): scene mask and depth with
     // one-pixel dips filled, so a dip of either (where a soft layer's planes part under the
@@ -400,7 +406,7 @@ pub fn merge_target(
     // overwritten with what image2 shows as they are merged)
     let scene_depth =
         if rule == MergeRule::DepthAware && !objects.is_empty() { shown_depth.clone() } else { Vec::new() };
-    let near = |x: usize, y: usize| dip_filled(w, h, &scene_depth, &scene_s, x, y);
+    let near = |x: usize, y: usize| dip_filled(g, &scene_depth, &scene_s, x, y);
     let holes: u64 = image2
         .par_chunks_mut(3 * w)
         .zip(mask2.par_chunks_mut(w))
@@ -410,14 +416,14 @@ pub fn merge_target(
         .map(|(y, (((img, lab), dep), hol))| {
             let mut row_holes = 0u64;
             // the scene's colours, overwritten below where an object is drawn
-            units_to_u8(&image[3 * y * w..3 * (y + 1) * w], img);
+            units_to_u8(&image[interleaved(g.row(y), 3)], img);
             for x in 0..w {
                 let s = scene_s(x, y);
                 let (best, seam) = shown_object(objects, rule, tau, (x, y), s, dep[x], &near);
                 match best {
                     Some(b) => {
-                        let src = &objects[b.slot].render.out.image[3 * b.idx..3 * b.idx + 3];
-                        for (d, &v) in img[3 * x..3 * x + 3].iter_mut().zip(src) {
+                        let src = &objects[b.slot].render.out.image[pixel_values(b.idx, 3)];
+                        for (d, &v) in img[pixel_values(x, 3)].iter_mut().zip(src) {
                             *d = unit_to_u8(v);
                         }
                         lab[x] = objects[b.slot].label;
@@ -505,19 +511,19 @@ fn shown_object(
 /// (finite and positive). A dip one pixel wide between two higher neighbours is filled; an edge
 /// (a higher neighbour on one side only) is kept, so no occluder grows. Non-finite `s` reads 0,
 /// unknown `D_t` infinity.
-fn dip_filled(w: usize, h: usize, depth: &[f32], s: &impl Fn(usize, usize) -> f32, x: usize, y: usize) -> (f32, f32) {
+fn dip_filled(g: Grid, depth: &[f32], s: &impl Fn(usize, usize) -> f32, x: usize, y: usize) -> (f32, f32) {
     let known = |d: f32| d.is_finite() && d > 0.0;
-    let (mut sv, mut dv) = (s(x, y), depth[y * w + x]);
+    let (mut sv, mut dv) = (s(x, y), depth[g.index(x, y)]);
     let pairs = [
-        (y > 0 && y + 1 < h).then(|| ((x, y - 1), (x, y + 1))),
-        (x > 0 && x + 1 < w).then(|| ((x - 1, y), (x + 1, y))),
+        (y > 0 && y + 1 < g.h).then(|| ((x, y - 1), (x, y + 1))),
+        (x > 0 && x + 1 < g.w).then(|| ((x - 1, y), (x + 1, y))),
     ];
     for ((xa, ya), (xb, yb)) in pairs.into_iter().flatten() {
         let (sa, sb) = (s(xa, ya), s(xb, yb));
         if !sv.is_nan() && sa.min(sb) > sv {
             sv = sa.min(sb);
         }
-        let (da, db) = (depth[ya * w + xa], depth[yb * w + xb]);
+        let (da, db) = (depth[g.index(xa, ya)], depth[g.index(xb, yb)]);
         if known(da) && known(db) && known(dv) && da.max(db) < dv {
             dv = da.max(db);
         }
@@ -536,38 +542,38 @@ fn finite_or_zero(v: f32) -> f32 {
 
 /// The frame indices of the four bilinear neighbours of `(tx, ty)`, clamped to the frame.
 #[inline]
-fn neighbours(w: usize, h: usize, tx: f32, ty: f32) -> [usize; 4] {
-    let tx = tx.clamp(0.0, (w - 1) as f32);
-    let ty = ty.clamp(0.0, (h - 1) as f32);
+fn neighbours(g: Grid, (tx, ty): (f32, f32)) -> [usize; 4] {
+    let tx = tx.clamp(0.0, (g.w - 1) as f32);
+    let ty = ty.clamp(0.0, (g.h - 1) as f32);
     // in [0, w - 1] x [0, h - 1]: the i32 conversion is exact (and cheaper than usize's)
     let (x0, y0) = (tx as i32 as usize, ty as i32 as usize);
-    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-    [y0 * w + x0, y0 * w + x1, y1 * w + x0, y1 * w + x1]
+    let (x1, y1) = ((x0 + 1).min(g.w - 1), (y0 + 1).min(g.h - 1));
+    [g.index(x0, y0), g.index(x1, y0), g.index(x0, y1), g.index(x1, y1)]
 }
 
-/// The renderer's occlusion test against the merged frame's shown depth (inf = hole).
+/// The renderer's occlusion test against the merged frame's shown depth (inf = hole) at the
+/// point `t` a source point of expected depth `z` lands on.
 #[inline]
-fn hidden(shown: &[f32], w: usize, h: usize, tx: f32, ty: f32, z: f32) -> bool {
-    neighbours(w, h, tx, ty).iter().all(|&n| {
+fn hidden(shown: &[f32], g: Grid, t: (f32, f32), z: f32) -> bool {
+    neighbours(g, t).iter().all(|&n| {
         let d = shown[n];
         d.is_finite() && z > d * (1.0 + OCCLUSION_TOLERANCE)
     })
 }
 
-/// [`LabelRule::Honest`]: image2 shows the source point (expected target depth `z`, label
-/// `label`) at `(tx, ty)`: no bilinear neighbour is a hole (shown depth inf), and some neighbour
-/// shows `label` at a depth within the tolerance of `z`.
+/// [`LabelRule::Honest`]: `frame` (of size `g`) shows the source point (expected target depth
+/// `z`, label `label`) at `t`: no bilinear neighbour is a hole (shown depth inf), and some
+/// neighbour shows `label` at a depth within the tolerance of `z`.
 #[inline]
-#[allow(clippy::too_many_arguments)]
-fn shown_there(shown: &[f32], mask2: &[u8], w: usize, h: usize, tx: f32, ty: f32, z: f32, label: u8) -> bool {
-    let nb = neighbours(w, h, tx, ty);
-    if nb.iter().any(|&n| shown[n] == f32::INFINITY) {
+fn shown_there(frame: OtherFrame<'_>, g: Grid, t: (f32, f32), z: f32, label: u8) -> bool {
+    let nb = neighbours(g, t);
+    if nb.iter().any(|&n| frame.depth[n] == f32::INFINITY) {
         return false;
     }
     let tol = 1.0 + OCCLUSION_TOLERANCE;
     nb.iter().any(|&n| {
-        let d = shown[n];
-        mask2[n] == label && d.is_finite() && d > 0.0 && z <= d * tol && d <= z * tol
+        let d = frame.depth[n];
+        frame.labels[n] == label && d.is_finite() && d > 0.0 && z <= d * tol && d <= z * tol
     })
 }
 
@@ -580,25 +586,32 @@ pub struct OtherFrame<'a> {
     pub labels: &'a [u8],
 }
 
+/// The merged frame whose pixels a link follows: its size, object labels and holes (H x W each).
+#[derive(Clone, Copy, Debug)]
+pub struct TargetFrame<'a> {
+    pub grid: Grid,
+    /// Its object labels (0 = background; the frame's mask).
+    pub labels: &'a [u8],
+    /// 1 = hole.
+    pub hole: &'a [u8],
+}
+
 /// Merges link slot `slot` of the scene render (`scene`, full frame) and of the objects' renders
-/// into the target frame whose labels are `mask2` and holes `hole` (see the module
-/// documentation); the occlusion is tested against `other`.
+/// into the target frame `target` (see the module documentation); the occlusion is tested
+/// against `other`.
 ///
 /// # Panics
-/// If a buffer's size disagrees with `w` x `h`, or a render lacks the link.
-#[allow(clippy::too_many_arguments)]
+/// If a buffer's size disagrees with the target's grid, or a render lacks the link.
 pub fn merge_link(
     slot: usize,
     scene: &Link,
     objects: &[ObjectView<'_>],
-    mask2: &[u8],
-    hole: &[u8],
+    target: TargetFrame<'_>,
     other: OtherFrame<'_>,
-    w: usize,
-    h: usize,
     labels: LabelRule,
 ) -> LinkFields {
-    let n = w * h;
+    let TargetFrame { grid: g, labels: mask2, hole } = target;
+    let (w, n) = (g.w, g.len());
     assert!(scene.flow.len() == 2 * n && scene.depth.len() == n && scene.valid.len() == n);
     assert!(mask2.len() == n && hole.len() == n && other.depth.len() == n && other.labels.len() == n);
     let mut flow = crate::buf::zeros::<f32>(2 * n);
@@ -607,7 +620,7 @@ pub fn merge_link(
     flow.par_chunks_mut(2 * w).zip(valid.par_chunks_mut(w)).zip(occlusion.par_chunks_mut(w)).enumerate().for_each(
         |(y, ((fl, va), oc))| {
             for x in 0..w {
-                let i = y * w + x;
+                let i = g.index(x, y);
                 if hole[i] != 0 {
                     continue;
                 }
@@ -630,8 +643,8 @@ pub fn merge_link(
                 if v != 0 {
                     let (tx, ty) = (x as f32 + f[0], y as f32 + f[1]);
                     oc[x] = u8::from(match labels {
-                        LabelRule::Honest => !shown_there(other.depth, other.labels, w, h, tx, ty, z, label),
-                        LabelRule::DepthOnly => hidden(other.depth, w, h, tx, ty, z),
+                        LabelRule::Honest => !shown_there(other, g, (tx, ty), z, label),
+                        LabelRule::DepthOnly => hidden(other.depth, g, (tx, ty), z),
                     });
                 }
             }

@@ -56,8 +56,7 @@ use crate::geometry::{Intrinsics, Pose};
 use crate::mpi::Mpi;
 use crate::raster::InstanceMasks;
 use crate::render::{
-    render, render_window, Channels, Fields, Mode, Occupancy, Rect, RenderError, RenderParams, Resample, Skip, View,
-    WindowRender,
+    render, render_window, Channels, Fields, Mode, Occupancy, Rect, RenderError, RenderParams, WindowRender,
 };
 use crate::rng::SampleRng;
 
@@ -193,63 +192,37 @@ pub fn mpi_with_mask(mpi: &Mpi, mask: &[f32]) -> Mpi {
 }
 
 /// The full-frame render of `mpi` with `mask` as its one extra channel, through a full copy
-/// ([`mpi_with_mask`]) and [`render`]: the reference's way. `resample` is the colour kernel,
-/// `links` as [`RenderParams::links`].
-#[allow(clippy::too_many_arguments)]
-pub fn render_full_with_mask(
-    mpi: &Mpi,
-    k: &Intrinsics,
-    pose: &Pose,
-    mask: &[f32],
-    mode: Mode,
-    skip: Skip,
-    resample: Resample,
-    minify: bool,
-    fields: Fields,
-    links: [Option<View>; 2],
-) -> Result<WindowRender, RenderError> {
+/// ([`mpi_with_mask`]) and [`render`]: the reference's way. `params` gives the camera (one
+/// intrinsics for source and target), the motion, the mode, work skipping, colour kernel,
+/// minification, fields (no occlusion field) and links.
+pub fn render_full_with_mask(mpi: &Mpi, params: &RenderParams, mask: &[f32]) -> Result<WindowRender, RenderError> {
     let copy = mpi_with_mask(mpi, mask);
-    let mut p = RenderParams::new(*k, *pose);
-    p.mode = mode;
-    p.skip = skip;
-    p.resample = resample;
-    p.minify = minify;
-    p.fields = Fields { occlusion: false, ..fields };
-    p.links = links;
+    let p = RenderParams { fields: Fields { occlusion: false, ..params.fields }, ..*params };
     let out = render::<f32>(&copy, &p, None)?;
     Ok(WindowRender { win: Rect::full(mpi.width, mpi.height), out })
 }
 
 /// Renders, in exact mode and directly from the shared `mpi` (no copy), the target view over
 /// `win` (image, depth, coverage and the channel `mask` broadcast on every plane) and, with
-/// `source`, the source view (flow, expected target depth, `valid`) of the pixels of `win` where
+/// `params.fields.flow`, the source view (flow, expected target depth, `valid`) of the pixels of `win` where
 /// `mask > 0`: [`render_window`] with [`Channels::Broadcast`], so every value equals the
 /// full-frame render's at the same pixel (tested against [`render_full_with_mask`] in
 /// `tests/sample_merge.rs`, and the renderer's window laws in `tests/render_window.rs`); only
 /// the pixels outside `win` are not computed. `occupancy` (built with `skip.tile_sigma_eps`)
 /// serves tile skipping when `skip.tiles` is set (the renderer builds one when it is missing).
-/// `pose` is the motion, `k` the intrinsics of source and target, `resample` the colour kernel,
-/// `minify` the alias-free minification ([`crate::render::RenderParams::minify`]).
-/// No occlusion field.
-#[allow(clippy::too_many_arguments)]
+/// `params` gives the camera (one intrinsics for source and target), the motion, work skipping,
+/// colour kernel, alias-free minification ([`crate::render::RenderParams::minify`]) and links;
+/// its mode is taken as exact and its fields as the target view with the source view where
+/// `params.fields.flow`. No occlusion field.
 pub fn render_mask_window(
     mpi: &Mpi,
     occupancy: Option<&Occupancy>,
-    k: &Intrinsics,
-    pose: &Pose,
+    params: &RenderParams,
     win: &Rect,
     mask: &[f32],
-    skip: Skip,
-    resample: Resample,
-    minify: bool,
-    source: bool,
-    links: [Option<View>; 2],
 ) -> Result<WindowRender, RenderError> {
-    let mut p = RenderParams::new(*k, *pose);
-    p.skip = skip;
-    p.resample = resample;
-    p.minify = minify;
-    p.fields = Fields { target: true, flow: source, occlusion: false };
-    p.links = links;
+    let source = params.fields.flow;
+    let fields = Fields { target: true, flow: source, occlusion: false };
+    let p = RenderParams { mode: Mode::Exact, fields, ..*params };
     render_window::<f32>(mpi, &p, occupancy, win, Channels::Broadcast(mask), source.then_some(mask))
 }

@@ -26,6 +26,7 @@ use rayon::prelude::*;
 use crate::geometry::Intrinsics;
 use crate::mpi::planes;
 use crate::mpi::Mpi;
+use crate::raster::Grid;
 
 /// The reference's `+1e-6` in every transmittance factor.
 pub const TRANSMITTANCE_EPS: f32 = 1e-6;
@@ -104,19 +105,18 @@ pub fn preblend(mpi: &mut Mpi, image: &[f32], k: &Intrinsics) -> Result<(), Preb
 /// The source-view transmittance `T_src` in front of every plane (N x H x W, plane-major), as
 /// [`preblend`] uses it (for tests and diagnostics).
 pub fn source_transmittance(mpi: &Mpi, k: &Intrinsics) -> Vec<f32> {
-    let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
+    let (g, n) = (Grid::new(mpi.width, mpi.height), mpi.planes());
     let gaps: Vec<f32> = plane_gaps(mpi);
-    let mut out = vec![0.0f32; n * w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let u = k.unproject(x as f64, y as f64).length() as f32;
-            let mut t = 1.0f32;
-            for i in 0..n {
-                out[i * w * h + y * w + x] = t;
-                let delta = if i + 1 < n { gaps[i] * u } else { gaps[i] };
-                let sigma = mpi.plane_rgba(i)[4 * (y * w + x) + 3];
-                t *= (-sigma * delta).exp() + TRANSMITTANCE_EPS;
-            }
+    let mut out = vec![0.0f32; n * g.len()];
+    for (x, y) in g.pixels() {
+        let p = g.index(x, y);
+        let u = k.unproject(x as f64, y as f64).length() as f32;
+        let mut t = 1.0f32;
+        for (i, plane) in out.chunks_exact_mut(g.len().max(1)).enumerate() {
+            plane[p] = t;
+            let delta = if i + 1 < n { gaps[i] * u } else { gaps[i] };
+            let sigma = mpi.plane_rgba(i)[4 * p + 3];
+            t *= (-sigma * delta).exp() + TRANSMITTANCE_EPS;
         }
     }
     out

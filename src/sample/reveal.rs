@@ -31,6 +31,7 @@ use glam::{DMat3, DVec3};
 
 use super::motion::axis_angle_from_matrix;
 use crate::geometry::{rotation_from_axis_angle, Intrinsics, Pose};
+use crate::raster::Grid;
 
 /// Most mask samples carried: larger masks are sampled more sparsely.
 pub const MAX_SAMPLES: usize = 16_384;
@@ -63,10 +64,11 @@ impl MaskSamples {
     pub fn new(mask: &[f32], disparity: &[f32], width: usize, height: usize, k: Intrinsics) -> Self {
         let area = mask.iter().filter(|&&m| m >= 0.5).count();
         let step = ((area as f64 / MAX_SAMPLES as f64).sqrt().ceil() as usize).max(2);
+        let frame = Grid::new(width, height);
         let mut rays = Vec::new();
         for y in (0..height).step_by(step) {
             for x in (0..width).step_by(step) {
-                let i = y * width + x;
+                let i = frame.index(x, y);
                 if mask[i] >= 0.5 {
                     let d = f64::from(disparity[i]);
                     let d = if d.is_finite() && d > 0.0 { d } else { 0.0 };
@@ -77,15 +79,16 @@ impl MaskSamples {
         Self { rays, width, height, k, cell: 2 * step }
     }
 
-    fn grid(&self) -> (usize, usize) {
-        (self.width.div_ceil(self.cell), self.height.div_ceil(self.cell))
+    /// The grid of the frame's cells.
+    fn cells_grid(&self) -> Grid {
+        Grid::new(self.width.div_ceil(self.cell), self.height.div_ceil(self.cell))
     }
 
     /// The cells the samples land in under `pose` (`K R ray + K t disp`, homogeneous; points
     /// behind the camera mark nothing).
     fn cells(&self, pose: &Pose) -> Vec<bool> {
-        let (cw, ch) = self.grid();
-        let mut out = vec![false; cw * ch];
+        let cells = self.cells_grid();
+        let mut out = vec![false; cells.len()];
         let k: DMat3 = self.k.matrix();
         let (kr, kt) = (k * pose.rotation, k * pose.translation);
         let (w, h) = (self.width as f64, self.height as f64);
@@ -98,8 +101,8 @@ impl MaskSamples {
             let (x, y) = (p.x / p.z + 0.5, p.y / p.z + 0.5);
             if x >= 0.0 && y >= 0.0 && x < w && y < h {
                 let (cx, cy) = (x as usize / self.cell, y as usize / self.cell);
-                if cx < cw && cy < ch {
-                    out[cy * cw + cx] = true;
+                if cx < cells.w && cy < cells.h {
+                    out[cells.index(cx, cy)] = true;
                 }
             }
         }

@@ -35,6 +35,7 @@
 //! more than 1000 times the nearest depth are pulled in to that distance.
 
 use super::{Disparity, SceneError};
+use crate::raster::Grid;
 use crate::source::{FailureKind, GivenDepth};
 
 /// A depth problem of the item's data.
@@ -187,17 +188,14 @@ pub fn fill_nearest(values: &mut [f32], known: &[bool], width: usize, height: us
     if known.iter().all(|&k| k) || !known.iter().any(|&k| k) {
         return;
     }
+    let g = Grid::new(width, height);
     let mut done = known.to_vec();
     let mut queue: VecDeque<usize> = (0..n).filter(|&i| known[i]).collect();
     while let Some(i) = queue.pop_front() {
-        let (x, y) = ((i % width) as isize, (i / width) as isize);
+        let (x, y) = g.xy(i);
         let v = values[i];
-        for (dy, dx) in [(-1isize, -1isize), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)] {
-            let (nx, ny) = (x + dx, y + dy);
-            if nx < 0 || ny < 0 || nx >= width as isize || ny >= height as isize {
-                continue;
-            }
-            let j = ny as usize * width + nx as usize;
+        for (nx, ny) in g.neighbours8(x, y) {
+            let j = g.index(nx, ny);
             if !done[j] {
                 done[j] = true;
                 values[j] = v;

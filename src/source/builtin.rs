@@ -34,7 +34,8 @@ use super::dir::resize_rgb;
 use super::{FailureKind, Fnv64, GivenDepth, Source, SourceError, SourceItem};
 use crate::geometry::Intrinsics;
 use crate::io::image::{load_rgb, ImageLimits, RgbImage};
-use crate::raster::InstanceMasks;
+use crate::raster::grid::pixel_values;
+use crate::raster::{Grid, InstanceMasks};
 use crate::rng::{Purpose, SampleRng};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
@@ -347,6 +348,7 @@ impl BuiltinSource {
     /// canvas; each object's bounding box and visible pixels.
     fn paste_objects(&self, plans: &[Plan], canvas: &mut Canvas<'_>) -> Result<Vec<PlacedObject>, SourceError> {
         let (w, h) = (self.options.width, self.options.height);
+        let frame = Grid::new(w, h);
         let mut order: Vec<usize> = (0..plans.len()).collect();
         order.sort_by(|&a, &b| plans[b].z.total_cmp(&plans[a].z).then(a.cmp(&b)));
         let mut objects = Vec::with_capacity(plans.len());
@@ -374,11 +376,11 @@ impl BuiltinSource {
                     {
                         continue;
                     }
-                    let j = y as usize * w + x as usize;
+                    let j = frame.index(x as usize, y as usize);
                     canvas.depth[j] = p.z;
                     canvas.ids[j] = id;
-                    canvas.image.data[3 * j..3 * j + 3]
-                        .copy_from_slice(&tex.data[3 * (ty * pwi + tx)..3 * (ty * pwi + tx) + 3]);
+                    let t = Grid::new(pwi, phi).index(tx, ty);
+                    canvas.image.data[pixel_values(j, 3)].copy_from_slice(&tex.data[pixel_values(t, 3)]);
                     bbox = [
                         bbox[0].min(x as usize),
                         bbox[1].min(y as usize),
@@ -429,6 +431,7 @@ struct Canvas<'a> {
 /// Contact shadows of the planned objects on the background (colour only).
 fn contact_shadows(image: &mut RgbImage, plans: &[Plan]) {
     let (w, h) = (image.width, image.height);
+    let g = Grid::new(w, h);
     for p in plans {
         let (xc, yc) = (p.x0 + 0.5 * p.pw, p.y0 + p.ph);
         let (rx, ry) = (0.6 * p.pw, 0.06 * p.ph + 3.0);
@@ -442,7 +445,7 @@ fn contact_shadows(image: &mut RgbImage, plans: &[Plan]) {
                 let r2 = dx * dx + dy * dy;
                 if r2 < 1.0 {
                     let f = (1.0 - 0.35 * (1.0 - r2)) as f32;
-                    for c in &mut image.data[3 * (y * w + x)..3 * (y * w + x) + 3] {
+                    for c in &mut image.data[pixel_values(g.index(x, y), 3)] {
                         *c *= f;
                     }
                 }
@@ -472,12 +475,12 @@ fn inside(shape: Shape, u: f64, v: f64, w: f64, h: f64, r: f64) -> bool {
 
 /// A `cw x ch` crop at (x0, y0), optionally mirrored left-right.
 fn crop(img: &RgbImage, x0: usize, y0: usize, cw: usize, ch: usize, flip: bool) -> RgbImage {
+    let g = Grid::new(img.width, img.height);
     let mut data = Vec::with_capacity(cw * ch * 3);
     for y in y0..y0 + ch {
         for xi in 0..cw {
             let x = if flip { x0 + cw - 1 - xi } else { x0 + xi };
-            let j = 3 * (y * img.width + x);
-            data.extend_from_slice(&img.data[j..j + 3]);
+            data.extend_from_slice(&img.data[pixel_values(g.index(x, y), 3)]);
         }
     }
     RgbImage { width: cw, height: ch, data }

@@ -2,6 +2,8 @@
 
 #[allow(clippy::wildcard_imports)]
 use super::*;
+use crate::raster::morph::dilate;
+use crate::raster::Grid;
 
 // ---------------------------------------------------------------------------------------------
 // Scenes
@@ -196,7 +198,8 @@ pub fn resize_bilinear(img: &RgbImage, width: usize, height: usize) -> Vec<f32> 
     if img.data.len() < sw * sh * 3 {
         return out;
     }
-    let at = |x: usize, y: usize, c: usize| img.data[3 * (y * sw + x) + c];
+    let (src, dst) = (Grid::new(sw, sh), Grid::new(width, height));
+    let at = |x: usize, y: usize, c: usize| img.data[3 * src.index(x, y) + c];
     for y in 0..height {
         let fy = ((y as f64 + 0.5) * sh as f64 / height as f64 - 0.5).clamp(0.0, (sh - 1) as f64);
         let (y0, wy) = (fy.floor() as usize, (fy - fy.floor()) as f32);
@@ -208,7 +211,7 @@ pub fn resize_bilinear(img: &RgbImage, width: usize, height: usize) -> Vec<f32> 
             for c in 0..3 {
                 let top = at(x0, y0, c) + wx * (at(x1, y0, c) - at(x0, y0, c));
                 let bot = at(x0, y1, c) + wx * (at(x1, y1, c) - at(x0, y1, c));
-                out[3 * (y * width + x) + c] = top + wy * (bot - top);
+                out[3 * dst.index(x, y) + c] = top + wy * (bot - top);
             }
         }
     }
@@ -333,37 +336,22 @@ fn occluded_in_heightfield(scene: &Scene, p: DVec3, centre: DVec3, zmin: f64) ->
 
 /// Pixels within [`EDGE_RADIUS`] of a 4-neighbour depth jump larger than [`EDGE_JUMP`].
 pub fn discontinuity_band(depth: &[f32], w: usize, h: usize) -> Vec<bool> {
-    let mut jump = vec![false; w * h];
+    let g = Grid::new(w, h);
+    let mut jump = vec![false; g.len()];
     let big = |a: f32, b: f32| {
         let (a, b) = (a as f64, b as f64);
         !(a.is_finite() && b.is_finite()) || (a - b).abs() > EDGE_JUMP * a.min(b).abs()
     };
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            if x + 1 < w && big(depth[i], depth[i + 1]) {
-                jump[i] = true;
-                jump[i + 1] = true;
-            }
-            if y + 1 < h && big(depth[i], depth[i + w]) {
-                jump[i] = true;
-                jump[i + w] = true;
-            }
+    for (x, y) in g.pixels() {
+        let i = g.index(x, y);
+        if x + 1 < w && big(depth[i], depth[i + 1]) {
+            jump[i] = true;
+            jump[i + 1] = true;
+        }
+        if y + 1 < h && big(depth[i], depth[i + w]) {
+            jump[i] = true;
+            jump[i + w] = true;
         }
     }
-    let r = EDGE_RADIUS;
-    let mut band = vec![false; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            if !jump[y * w + x] {
-                continue;
-            }
-            for yy in y.saturating_sub(r)..=(y + r).min(h - 1) {
-                for xx in x.saturating_sub(r)..=(x + r).min(w - 1) {
-                    band[yy * w + xx] = true;
-                }
-            }
-        }
-    }
-    band
+    dilate(w, h, &jump, EDGE_RADIUS)
 }

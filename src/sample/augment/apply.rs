@@ -5,6 +5,8 @@
 
 #[allow(unused_imports)]
 use super::*;
+use crate::raster::grid::interleaved;
+use crate::raster::Grid;
 
 /// PIL's `L` of an RGB pixel.
 pub(super) fn luma(p: &[u8]) -> u8 {
@@ -128,10 +130,9 @@ pub(super) fn apply_eraser(img: &mut [u8], w: usize, h: usize, boxes: &[EraserBo
     for b in boxes {
         let (x0, y0) = (b.x as usize, b.y as usize);
         let (x1, y1) = ((x0 + b.w as usize).min(w), (y0 + b.h as usize).min(h));
-        for y in y0..y1 {
-            for x in x0..x1 {
-                img[3 * (y * w + x)..3 * (y * w + x) + 3].copy_from_slice(&mean);
-            }
+        let g = Grid::new(w, h);
+        for y in (y0..y1).filter(|_| x0 < x1) {
+            img[interleaved(g.span(y, x0..x1), 3)].chunks_exact_mut(3).for_each(|px| px.copy_from_slice(&mean));
         }
     }
 }
@@ -216,13 +217,14 @@ pub(super) fn sparse_flow(s: &Sample, plan: &Plan) -> (Vec<f32>, Vec<u8>) {
     let (kx, ky) = (plan.x.slope() as f32, plan.y.slope() as f32);
     let mut flow = crate::buf::zeros::<f32>(2 * ow * oh);
     let mut valid = crate::buf::zeros::<u8>(ow * oh);
+    let (src, out) = (Grid::new(s.width, s.height), Grid::new(ow, oh));
     let xs: Vec<Option<usize>> = (0..s.width).map(|x| plan.x.scatter(x)).collect();
     for y in 0..s.height {
         let Some(oy) = plan.y.scatter(y) else { continue };
         for (x, ox) in xs.iter().enumerate() {
-            let i = y * s.width + x;
+            let i = src.index(x, y);
             if let (Some(ox), true) = (ox, s.valid[i] != 0) {
-                let o = oy * ow + ox;
+                let o = out.index(*ox, oy);
                 flow[2 * o] = s.flow[2 * i] * kx;
                 flow[2 * o + 1] = s.flow[2 * i + 1] * ky;
                 valid[o] = 1;

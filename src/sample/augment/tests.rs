@@ -3,6 +3,7 @@
 use super::apply::*;
 use super::plan::*;
 use super::*;
+use crate::raster::Grid;
 use crate::sample::motion::{Motion, RotationKind};
 use crate::sample::StageTimings;
 use proptest::prelude::*;
@@ -24,9 +25,10 @@ fn sample(w: usize, h: usize, index: u64) -> Sample {
     let n = w * h;
     let mut flow = crate::buf::zeros::<f32>(2 * n);
     let mut valid = vec![1u8; n];
+    let g = Grid::new(w, h);
     for y in 0..h {
         for x in 0..w {
-            let i = y * w + x;
+            let i = g.index(x, y);
             flow[2 * i] = 0.05 * x as f32 - 1.5;
             flow[2 * i + 1] = -0.03 * y as f32 + 0.75;
             valid[i] = u8::from(x % 7 != 3);
@@ -183,9 +185,10 @@ proptest! {
         let (ow, oh) = (out.width, out.height);
         prop_assert_eq!((ow, oh), (cw as usize, ch as usize));
         let (kx, ky) = (plan.x.slope(), plan.y.slope());
+        let out_grid = Grid::new(ow, oh);
         for y in 0..oh {
             for x in 0..ow {
-                let o = y * ow + x;
+                let o = out_grid.index(x, y);
                 let (sx, sy) = (plan.x.source(x).clamp(0.0, 47.0), plan.y.source(y).clamp(0.0, 35.0));
                 let want = [(0.05 * sx - 1.5) * kx, (-0.03 * sy + 0.75) * ky];
                 prop_assert!((f64::from(out.flow[2 * o]) - want[0]).abs() < 1e-3, "{} {}", out.flow[2 * o], want[0]);

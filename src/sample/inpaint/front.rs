@@ -2,6 +2,7 @@
 //! heap keys, the band and the fast marching of the arrival times.
 
 use super::types::{InpaintStats, MAX_RADIUS};
+use crate::raster::Grid;
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
@@ -84,18 +85,11 @@ pub(super) fn key_t(k: u64) -> f32 {
 
 /// Known pixels 4-adjacent to a hole pixel, in row-major order.
 pub(super) fn band(w: usize, h: usize, is_hole: &[bool]) -> Vec<u32> {
+    let g = Grid::new(w, h);
     let mut out = Vec::new();
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            if !is_hole[i]
-                && ((x > 0 && is_hole[i - 1])
-                    || (x + 1 < w && is_hole[i + 1])
-                    || (y > 0 && is_hole[i - w])
-                    || (y + 1 < h && is_hole[i + w]))
-            {
-                out.push(i as u32);
-            }
+    for i in 0..g.len() {
+        if !is_hole[i] && g.neighbours4(i).any(|q| is_hole[q]) {
+            out.push(i as u32);
         }
     }
     out

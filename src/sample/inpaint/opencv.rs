@@ -4,6 +4,7 @@
 
 use super::front::{band, key};
 use crate::raster::morph::dilate;
+use crate::raster::Grid;
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
@@ -92,30 +93,45 @@ impl CvQueue {
     }
 }
 
-/// The padded grid: the image (`w` x `h` x `c`) inside a one-pixel frame (`ew` x `eh`), and
-/// the neighbourhood's radius `r`.
+/// The padded grid: the image (`c` channels) inside a one-pixel frame, and the
+/// neighbourhood's radius `r`. Padded row `i`, column `j` is the image's pixel
+/// `(j - 1, i - 1)`.
 #[derive(Clone, Copy)]
-struct Grid {
-    w: usize,
-    h: usize,
+struct Padded {
+    image: Grid,
+    padded: Grid,
     c: usize,
-    ew: usize,
-    eh: usize,
     r: isize,
 }
 
-impl Grid {
+impl Padded {
+    fn new(image: Grid, c: usize, r: isize) -> Self {
+        Self { image, padded: Grid::new(image.w + 2, image.h + 2), c, r }
+    }
+
     /// The padded index of the image's pixel `i`.
     fn ext(self, i: usize) -> usize {
-        (i / self.w + 1) * self.ew + i % self.w + 1
+        let (x, y) = self.image.xy(i);
+        self.padded.index(x + 1, y + 1)
+    }
+
+    /// The padded index of row `i`, column `j`.
+    fn at(self, i: isize, j: isize) -> usize {
+        self.padded.index(j as usize, i as usize)
+    }
+
+    /// The padded row and column of padded index `e`.
+    fn row_col(self, e: usize) -> (usize, usize) {
+        let (j, i) = self.padded.xy(e);
+        (i, j)
     }
 }
 
 /// OpenCV's Telea inpainting on an image with at least one known and one hole pixel; returns
 /// the largest arrival time.
 pub(super) fn opencv<S: Sample>(img: &mut [S], w: usize, h: usize, c: usize, is_hole: &[bool], range: usize) -> f32 {
-    let g = Grid { w, h, c, ew: w + 2, eh: h + 2, r: range as isize };
-    let en = g.ew * g.eh;
+    let g = Padded::new(Grid::new(w, h), c, range as isize);
+    let en = g.padded.len();
     // the hole (INSIDE) on the padded grid; the padding is KNOWN with T = 1e6
     let mut f = vec![KNOWN; en];
     for (i, _) in is_hole.iter().enumerate().filter(|(_, &v)| v) {
@@ -135,10 +151,10 @@ pub(super) fn opencv<S: Sample>(img: &mut [S], w: usize, h: usize, c: usize, is_
 
 /// T outside: the known pixels within Chebyshev distance `range` of the hole, band excluded,
 /// marched from the band and negated.
-fn outside_times(g: Grid, is_hole: &[bool], range: usize, band_px: &[u32], t: &mut [f32]) {
-    let Grid { w, h, ew, eh, .. } = g;
-    let en = ew * eh;
-    let ring = dilate(w, h, is_hole, range);
+fn outside_times(g: Padded, is_hole: &[bool], range: usize, band_px: &[u32], t: &mut [f32]) {
+    let ew = g.padded.w;
+    let en = g.padded.len();
+    let ring = dilate(g.image.w, g.image.h, is_hole, range);
     let mut fo = vec![KNOWN; en];
     for (i, _) in ring.iter().enumerate().filter(|(i, &r)| r && !is_hole[*i]) {
         fo[g.ext(i)] = INSIDE;
@@ -152,7 +168,7 @@ fn outside_times(g: Grid, is_hole: &[bool], range: usize, band_px: &[u32], t: &m
     while let Some(e) = out_q.pop() {
         fo[e] = CHANGE;
         for nb in [e - ew, e - 1, e + ew, e + 1] {
-            let (i, j) = (nb / ew, nb % ew);
+            let (i, j) = g.row_col(nb);
             if i == 0 || j == 0 || fo[nb] != INSIDE {
                 continue;
             }
@@ -178,15 +194,16 @@ struct Sums {
 
 /// Inside: the front marches from the band into the hole; each pixel it reaches gets its time
 /// and its value. Returns the largest arrival time.
-fn fill_inside<S: Sample>(img: &mut [S], g: Grid, f: &mut [u8], t: &mut [f32], mut heap: CvQueue) -> f32 {
-    let Grid { c, ew, eh, .. } = g;
-    let (ewi, ehi) = (ew as isize, eh as isize);
+fn fill_inside<S: Sample>(img: &mut [S], g: Padded, f: &mut [u8], t: &mut [f32], mut heap: CvQueue) -> f32 {
+    let (c, ew) = (g.c, g.padded.w);
+    let (ewi, ehi) = (g.padded.w as isize, g.padded.h as isize);
     let mut sums = Sums { ia: vec![0.0f32; c], jx: vec![0.0f32; c], jy: vec![0.0f32; c], s: vec![0.0f32; c] };
     let mut max_distance = 0.0f32;
     while let Some(e) = heap.pop() {
         f[e] = KNOWN;
         for nb in [e - ew, e - 1, e + ew, e + 1] {
-            let (i, j) = ((nb / ew) as isize, (nb % ew) as isize);
+            let (i, j) = g.row_col(nb);
+            let (i, j) = (i as isize, j as isize);
             if i <= 0 || j <= 0 || i > ehi - 1 || j > ewi - 1 || f[nb] != INSIDE {
                 continue;
             }
@@ -203,15 +220,14 @@ fn fill_inside<S: Sample>(img: &mut [S], g: Grid, f: &mut [u8], t: &mut [f32], m
 
 /// The value of the hole pixel at padded row `i`, column `j`: the weighted mean of its known
 /// neighbours within the radius plus OpenCV's gradient correction.
-fn fill_pixel<S: Sample>(img: &mut [S], g: Grid, f: &[u8], t: &[f32], (i, j): (isize, isize), sums: &mut Sums) {
-    let Grid { w, h, c, ew, eh, r } = g;
-    let (ewi, ehi) = (ew as isize, eh as isize);
-    let clamp_row = |v: isize| v.clamp(0, h as isize - 1) as usize;
-    let clamp_col = |v: isize| v.clamp(0, w as isize - 1) as usize;
+fn fill_pixel<S: Sample>(img: &mut [S], g: Padded, f: &[u8], t: &[f32], (i, j): (isize, isize), sums: &mut Sums) {
+    let Padded { image, c, r, .. } = g;
+    let (ewi, ehi) = (g.padded.w as isize, g.padded.h as isize);
+    let clamp_row = |v: isize| v.clamp(0, image.h as isize - 1) as usize;
+    let clamp_col = |v: isize| v.clamp(0, image.w as isize - 1) as usize;
     let Sums { ia, jx, jy, s } = sums;
-    let at = |ii: isize, jj: isize| (ii * ewi + jj) as usize;
-    let known = |ii: isize, jj: isize| f[at(ii, jj)] != INSIDE;
-    let tt = |ii: isize, jj: isize| t[at(ii, jj)];
+    let known = |ii: isize, jj: isize| f[g.at(ii, jj)] != INSIDE;
+    let tt = |ii: isize, jj: isize| t[g.at(ii, jj)];
     let gtx = match (known(i, j + 1), known(i, j - 1)) {
         (true, true) => (tt(i, j + 1) - tt(i, j - 1)) * 0.5,
         (true, false) => tt(i, j + 1) - tt(i, j),
@@ -253,7 +269,8 @@ fn fill_pixel<S: Sample>(img: &mut [S], g: Grid, f: &[u8], t: &[f32], (i, j): (i
             let wgt = (dst * lev * dir).abs();
             let (kl_r, kl_c) = (known(k, l + 1), known(k, l - 1));
             let (kd, ku) = (known(k + 1, l), known(k - 1, l));
-            let px = |row: isize, col: isize, ch: usize| img[(clamp_row(row) * w + clamp_col(col)) * c + ch].get();
+            let px =
+                |row: isize, col: isize, ch: usize| img[image.index(clamp_col(col), clamp_row(row)) * c + ch].get();
             for ch in 0..c {
                 let gix = match (kl_r, kl_c) {
                     (true, true) => (px(km, lp + 1, ch) - px(km, lm - 1, ch)) * 2.0,
@@ -274,7 +291,7 @@ fn fill_pixel<S: Sample>(img: &mut [S], g: Grid, f: &[u8], t: &[f32], (i, j): (i
             }
         }
     }
-    let o = ((i - 1) as usize * w + (j - 1) as usize) * c;
+    let o = image.index((j - 1) as usize, (i - 1) as usize) * c;
     for ch in 0..c {
         let corr = (jx[ch] + jy[ch]) / ((jx[ch] * jx[ch] + jy[ch] * jy[ch]).sqrt() + 1.0e-20);
         img[o + ch] = S::put(ia[ch] / s[ch] + corr);

@@ -3,6 +3,7 @@
 
 use super::front::{band, march};
 use super::types::{GradientTerm, DIR_FLOOR};
+use crate::raster::Grid;
 
 pub(super) struct Offset {
     dx: isize,
@@ -43,7 +44,7 @@ pub(super) fn paper(
     let mut avail = known.clone();
     let use_known_grad = mode != GradientTerm::Off;
     let propagate = mode == GradientTerm::Propagated;
-    let front = Front { w, h, c, t: &t, known: &known, offsets: &offsets, use_known_grad, propagate };
+    let front = Front { grid: Grid::new(w, h), c, t: &t, known: &known, offsets: &offsets, use_known_grad, propagate };
     // the gradient of a filled pixel (Propagated): the weighted mean of the gradients its value
     // was extrapolated with, per channel (x, y); indexed by fill rank
     let mut slot = vec![u32::MAX; if propagate { n } else { 0 }];
@@ -94,8 +95,7 @@ fn arrival_times(w: usize, h: usize, is_hole: &[bool], radius: f32) -> (Vec<f32>
 /// What every hole pixel's fill reads: the image's shape, the arrival times, the known pixels,
 /// the disc of neighbours and the gradient rule.
 struct Front<'a> {
-    w: usize,
-    h: usize,
+    grid: Grid,
     c: usize,
     t: &'a [f32],
     known: &'a [bool],
@@ -108,8 +108,9 @@ impl Front<'_> {
     /// The weighted sums over the available neighbours of the hole pixel `p`, per channel in
     /// `acc` (the extrapolated value, the gradient's x and y); returns the sum of the weights.
     fn accumulate(&self, img: &[f32], avail: &[bool], grads: &[f32], slot: &[u32], p: usize, acc: &mut [f64]) -> f64 {
-        let Front { w, h, c, t, known, offsets, use_known_grad, propagate } = *self;
-        let (px, py) = (p % w, p / w);
+        let Front { grid, c, t, known, offsets, use_known_grad, propagate } = *self;
+        let Grid { w, h } = grid;
+        let (px, py) = grid.xy(p);
         let tp = t[p];
         // grad T at p: every in-image 4-neighbour of a hole pixel has a finite T
         let gx = central(px > 0, px + 1 < w, || t[p - 1], || t[p + 1], tp);
@@ -121,13 +122,7 @@ impl Front<'_> {
         acc.fill(0.0);
         let mut wsum = 0.0f64;
         for o in offsets {
-            let qx = px as isize + o.dx;
-            let qy = py as isize + o.dy;
-            if qx < 0 || qy < 0 || qx >= w as isize || qy >= h as isize {
-                continue;
-            }
-            let (qx, qy) = (qx as usize, qy as usize);
-            let q = qy * w + qx;
+            let Some(q) = grid.at(px as isize + o.dx, py as isize + o.dy) else { continue };
             if !avail[q] {
                 continue;
             }
@@ -138,6 +133,7 @@ impl Front<'_> {
             let wd = f64::from(dir * o.inv_d2 * lev);
             wsum += wd;
             if known[q] && use_known_grad {
+                let (qx, qy) = grid.xy(q);
                 let xl = qx > 0 && known[q - 1];
                 let xr = qx + 1 < w && known[q + 1];
                 let yu = qy > 0 && known[q - w];

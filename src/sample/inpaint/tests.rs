@@ -5,6 +5,7 @@ use super::opencv::Sample;
 use super::paper::disc;
 use super::*;
 use crate::raster::morph::dilate;
+use crate::raster::Grid;
 
 #[test]
 fn key_orders_by_time_then_tie() {
@@ -54,15 +55,13 @@ fn march_stops_at_the_limit() {
 
 #[test]
 fn dilation_is_chebyshev() {
-    let (w, h) = (7, 6);
-    let mut set = vec![false; w * h];
-    set[2 * w + 3] = true;
-    let d = dilate(w, h, &set, 2);
-    for y in 0..h {
-        for x in 0..w {
-            let inside = (x as isize - 3).abs() <= 2 && (y as isize - 2).abs() <= 2;
-            assert_eq!(d[y * w + x], inside, "({x},{y})");
-        }
+    let g = Grid::new(7, 6);
+    let mut set = vec![false; g.len()];
+    set[g.index(3, 2)] = true;
+    let d = dilate(g.w, g.h, &set, 2);
+    for (x, y) in g.pixels() {
+        let inside = (x as isize - 3).abs() <= 2 && (y as isize - 2).abs() <= 2;
+        assert_eq!(d[g.index(x, y)], inside, "({x},{y})");
     }
 }
 

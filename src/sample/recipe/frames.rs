@@ -151,7 +151,7 @@ fn render_frame(
         let patch = window(&scene_out.coverage).iter().zip(window(&u_render)).map(|(c, m)| c - m).collect();
         mask_patch = Some((win, patch));
     }
-    let renders = render_objects(c, objects, params.fields, source_view)?;
+    let renders = render_objects(c, objects, &params)?;
     Ok(FrameRender { scene: scene_out, full_mask, mask_patch, objects: renders, render_ms, objects_ms: ms(t) })
 }
 
@@ -169,27 +169,14 @@ fn render_scene(
     params: &RenderParams,
     mask_win: Option<Rect>,
 ) -> Result<(RenderOutput, Option<Vec<f32>>), SampleError> {
-    let (scene, config) = (c.scene, c.config);
+    let scene = c.scene;
     let mpi = &*scene.mpi;
     let (w, h) = (mpi.width, mpi.height);
-    let k = scene.intrinsics;
     Ok(match (c.union, c.windowed, mask_win) {
         (Some(u), false, _) => {
             // the reference's scene render: a full copy with the channel 1 - U
             let inv: Vec<f32> = u.iter().map(|&v| 1.0 - v).collect();
-            let r = render_full_with_mask(
-                mpi,
-                &k,
-                &params.pose,
-                &inv,
-                config.mode,
-                config.skip,
-                config.resample,
-                config.minify,
-                params.fields,
-                params.links,
-            )
-            .map_err(render_err(scene, "scene"))?;
+            let r = render_full_with_mask(mpi, params, &inv).map_err(render_err(scene, "scene"))?;
             let mut out = r.out;
             let mask = std::mem::take(&mut out.extras);
             (out, Some(mask))
@@ -207,49 +194,27 @@ fn render_scene(
 }
 
 /// Each chosen object of one frame under its pose, with its links: over its window (windowed)
-/// or a full copy with its mask as the channel.
+/// or a full copy with its mask as the channel. `frame` holds what the objects' renders share
+/// with the frame's camera render (mode, skipping, colour kernel, minification, fields).
 fn render_objects(
     c: &FrameCtx<'_>,
     objects: &[(Pose, [Option<View>; 2])],
-    fields: Fields,
-    source_view: bool,
+    frame: &RenderParams,
 ) -> Result<Vec<WindowRender>, SampleError> {
-    let (scene, config) = (c.scene, c.config);
+    let scene = c.scene;
     let mpi = &*scene.mpi;
     let (w, h) = (mpi.width, mpi.height);
     let k = scene.intrinsics;
     let mut renders: Vec<WindowRender> = Vec::with_capacity(c.chosen.len());
     for (&idx, (pose, links)) in c.chosen.iter().zip(objects) {
         let mask = &scene.masks.masks[idx].mask;
+        let params = RenderParams { pose: *pose, links: *links, ..*frame };
         let r = match (c.windowed, support_rect(mask, w, h)) {
             (true, Some(support)) => {
                 let win = object_window(mpi, &k, pose, &support);
-                render_mask_window(
-                    mpi,
-                    c.occupancy,
-                    &k,
-                    pose,
-                    &win,
-                    mask,
-                    config.skip,
-                    config.resample,
-                    config.minify,
-                    source_view,
-                    *links,
-                )
+                render_mask_window(mpi, c.occupancy, &params, &win, mask)
             }
-            _ => render_full_with_mask(
-                mpi,
-                &k,
-                pose,
-                mask,
-                config.mode,
-                config.skip,
-                config.resample,
-                config.minify,
-                fields,
-                *links,
-            ),
+            _ => render_full_with_mask(mpi, &params, mask),
         }
         .map_err(render_err(scene, "object"))?;
         renders.push(r);

@@ -3,12 +3,14 @@
 //! clip's forward flows), image1 and depth1.
 
 use crate::geometry::Pose;
+use crate::raster::Grid;
 use crate::render::{Link, Mode, Occupancy, RenderOutput, WindowRender};
-use crate::sample::background::{cut_planes, fill_from_planes, Background, Frame};
+use crate::sample::background::{cut_planes, fill_from_planes, Background, Frame, PlanesBehind};
 use crate::sample::config::SampleConfig;
 use crate::sample::error::SampleError;
 use crate::sample::merge::{
-    merge, merge_link, merge_target, units_to_u8, MergeRule, Merged, OtherFrame, SceneView, TargetSide,
+    merge, merge_link, merge_target, units_to_u8, MergeRule, Merged, OtherFrame, SceneTarget, SceneView, TargetFrame,
+    TargetSide,
 };
 use crate::sample::types::{ClipFrame, LinkFields};
 use crate::scene::Scene;
@@ -51,17 +53,15 @@ impl<'a> BackgroundFill<'a> {
     fn fill(&self, pose: Pose, image: &mut [u8], hole: &mut [u8], depth: &mut [f32]) -> Result<u64, SampleError> {
         let Some((u, last)) = &self.cut else { return Ok(0) };
         let scene = self.scene;
-        fill_from_planes(
+        let planes = PlanesBehind {
             scene,
-            &scene.intrinsics,
-            self.occupancy,
-            self.config.skip,
-            u,
+            occupancy: self.occupancy,
+            skip: self.config.skip,
+            union: u,
             last,
-            self.config.mask_threshold,
-            Frame { pose, image, hole, depth },
-        )
-        .map_err(|source| SampleError::Render {
+            threshold: self.config.mask_threshold,
+        };
+        fill_from_planes(&planes, Frame { pose, image, hole, depth }).map_err(|source| SampleError::Render {
             id: scene.id.clone(),
             stage: "background",
             source: Box::new(source),
@@ -145,17 +145,14 @@ pub(super) fn merge_later_frames(
         let links = std::mem::take(&mut r.scene.links);
         let views = object_views(scene, c.chosen, &r.objects);
         let depth = std::mem::take(&mut r.scene.depth);
-        let target = merge_target(
-            w,
-            h,
-            &r.scene.image,
+        let scene_target = SceneTarget {
+            grid: Grid::new(w, h),
+            image: &r.scene.image,
             depth,
-            r.full_mask.as_deref().unwrap_or(&r.scene.coverage),
-            r.mask_patch.as_ref().map(|(rc, p)| (*rc, p.as_slice())),
-            &views,
-            config.merge,
-            config.mask_threshold,
-        );
+            scene_mask: r.full_mask.as_deref().unwrap_or(&r.scene.coverage),
+            scene_mask_patch: r.mask_patch.as_ref().map(|(rc, p)| (*rc, p.as_slice())),
+        };
+        let target = merge_target(scene_target, &views, config.merge, config.mask_threshold);
         let mut target = target;
         let rendered_hole = target.hole.clone();
         let n = fill.fill(cam_traj[j + 2], &mut target.image, &mut target.hole, &mut target.shown_depth)?;
@@ -175,7 +172,7 @@ pub(super) fn merge_links(
     later: Vec<LaterFrame>,
 ) -> (LinkFields, Vec<ClipFrame>) {
     let (scene, config, chosen) = (c.scene, c.config, c.chosen);
-    let (w, h) = (scene.mpi.width, scene.mpi.height);
+    let grid = Grid::new(scene.mpi.width, scene.mpi.height);
     let hole2_for_links: &[u8] = frame2.rendered_hole.as_deref().unwrap_or(&merged.hole);
     let image1_labels = &merged.mask1;
     // what frame f (>= 1) shows
@@ -189,7 +186,8 @@ pub(super) fn merge_links(
     let backward = if config.backward {
         let views1 = object_views(scene, chosen, &frame2.objects);
         let other = OtherFrame { depth: &frame2.source_depth, labels: image1_labels };
-        merge_link(0, &frame2.links[0], &views1, &merged.mask2, hole2_for_links, other, w, h, config.label_rule)
+        let frame = TargetFrame { grid, labels: &merged.mask2, hole: hole2_for_links };
+        merge_link(0, &frame2.links[0], &views1, frame, other, config.label_rule)
     } else {
         LinkFields::default()
     };
@@ -208,12 +206,13 @@ pub(super) fn merge_links(
                 object_views(scene, chosen, &renders[j - 1].objects),
             )
         };
-        let forward =
-            merge_link(1, &prev_links[1], &prev_views, prev_mask, prev_hole, frame_of(f), w, h, config.label_rule);
+        let prev = TargetFrame { grid, labels: prev_mask, hole: prev_hole };
+        let forward = merge_link(1, &prev_links[1], &prev_views, prev, frame_of(f), config.label_rule);
         let backward = if config.backward {
             let views = object_views(scene, chosen, &renders[j].objects);
             let (links, target) = (&lf.links, &lf.target);
-            merge_link(0, &links[0], &views, &target.mask, &lf.rendered_hole, frame_of(f - 1), w, h, config.label_rule)
+            let frame = TargetFrame { grid, labels: &target.mask, hole: &lf.rendered_hole };
+            merge_link(0, &links[0], &views, frame, frame_of(f - 1), config.label_rule)
         } else {
             LinkFields::default()
         };
