@@ -438,6 +438,7 @@ fn weights(t: &F) -> [F; 4] {
 /// lengths times the ray, |u|) and what they have gathered (transmittance, colour, weight,
 /// weighted depth, the extra channel) and which of them have stopped.
 #[derive(Clone, Copy)]
+#[repr(C, align(64))]
 struct Rays {
     inv_s: F,
     fv0: F,
