@@ -17,6 +17,16 @@ use crate::render::store::Rgba;
 use crate::render::types::{Channels, DensityCut, RenderOutput, RenderParams, RenderStats, Resample};
 use crate::render::window::Rect;
 
+/// What the target view renders: the MPI with the render's parameters, its tile occupancy
+/// (`None`: no tile skipping) and the window.
+#[derive(Clone, Copy)]
+struct Inputs<'a> {
+    mpi: &'a Mpi,
+    p: &'a RenderParams,
+    occ: Option<&'a Occupancy>,
+    win: &'a Rect,
+}
+
 /// The target view over the (non-empty) window `win`: image, depth, coverage, the extra
 /// channels given by `channels` and the links of `p.links` (`out`'s buffers are window-sized,
 /// allocated by the caller). The loop is specialised once, here, by the number of links (0, 1
@@ -29,6 +39,7 @@ pub(in crate::render) fn target_view<T: Real>(
     channels: Channels<'_>,
     out: &mut RenderOutput,
 ) -> RenderStats {
+    let inp = Inputs { mpi, p, occ, win };
     let slots: Vec<usize> = (0..2).filter(|&l| p.links[l].is_some()).collect();
     let consts: Vec<LinkConst<T>> = p.links.iter().flatten().map(|v| LinkConst::new(v, p)).collect();
     let mut links = std::mem::take(&mut out.links);
@@ -46,9 +57,9 @@ pub(in crate::render) fn target_view<T: Real>(
         }
         let mut it = bufs.into_iter();
         match (it.next(), it.next()) {
-            (None, _) => target_view_n::<T, 0>(mpi, p, occ, win, channels, out, &consts, [empty3(), empty3()]),
-            (Some(a), None) => target_view_n::<T, 1>(mpi, p, occ, win, channels, out, &consts, [a, empty3()]),
-            (Some(a), Some(b)) => target_view_n::<T, 2>(mpi, p, occ, win, channels, out, &consts, [a, b]),
+            (None, _) => target_view_n::<T, 0>(&inp, channels, out, &consts, [empty3(), empty3()]),
+            (Some(a), None) => target_view_n::<T, 1>(&inp, channels, out, &consts, [a, empty3()]),
+            (Some(a), Some(b)) => target_view_n::<T, 2>(&inp, channels, out, &consts, [a, b]),
         }
     };
     let (w, h) = (mpi.width, mpi.height);
@@ -71,17 +82,14 @@ fn empty3<'a>() -> (&'a mut [f32], &'a mut [f32], &'a mut [f32]) {
 
 /// [`target_view`] with `NL` links (`consts[..NL]`, their flow, depth and front-fraction buffers
 /// in `lb[..NL]`).
-#[allow(clippy::too_many_arguments)]
 fn target_view_n<T: Real, const NL: usize>(
-    mpi: &Mpi,
-    p: &RenderParams,
-    occ: Option<&Occupancy>,
-    win: &Rect,
+    inp: &Inputs<'_>,
     channels: Channels<'_>,
     out: &mut RenderOutput,
     consts: &[LinkConst<T>],
     lb: [(&mut [f32], &mut [f32], &mut [f32]); 2],
 ) -> RenderStats {
+    let Inputs { mpi, p, .. } = *inp;
     let rgba = Rgba::of(mpi);
     // the bicubic and Lanczos kernels read colour around the density too: dense planes
     let unpacked = matches!(p.resample, Resample::Bicubic | Resample::Lanczos3).then(|| mpi.unpacked());
@@ -94,14 +102,12 @@ fn target_view_n<T: Real, const NL: usize>(
     let mips = levels.map(|l| mip_planes(&lods, l)).unwrap_or_default();
     let mip = mips.as_slice();
     match p.resample {
-        Resample::Bilinear => {
-            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &Bilinear { rgba, mip })
-        }
+        Resample::Bilinear => target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &Bilinear { rgba, mip }),
         Resample::Bicubic => {
             let m = unpacked.as_deref().unwrap_or(mpi);
             let s =
                 HighOrder::<Keys, 4, _> { rgba: Rgba::of(m), src: &dense(m), kernel: std::marker::PhantomData, mip };
-            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+            target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
         }
         Resample::Lanczos3 => {
             let m = unpacked.as_deref().unwrap_or(mpi);
@@ -111,7 +117,7 @@ fn target_view_n<T: Real, const NL: usize>(
                 kernel: std::marker::PhantomData,
                 mip,
             };
-            target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+            target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
         }
         Resample::Bspline3 | Resample::Bspline5 => {
             let degree = if p.resample == Resample::Bspline3 { 3 } else { 5 };
@@ -125,10 +131,10 @@ fn target_view_n<T: Real, const NL: usize>(
             };
             if degree == 3 {
                 let s = HighOrder::<Bspline3, 4, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
-                target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+                target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
             } else {
                 let s = HighOrder::<Bspline5, 6, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
-                target_view_with::<T, _, NL>(mpi, p, occ, win, channels, out, consts, lb, &s)
+                target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
             }
         }
     }
@@ -136,18 +142,15 @@ fn target_view_n<T: Real, const NL: usize>(
 
 /// [`target_view_n`] with the plane sampler of the render's kernel: the set-up, then the band
 /// loop (`TargetBand::band`) on the dispatched instruction set ([`crate::isa`]).
-#[allow(clippy::too_many_arguments)]
 fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
-    mpi: &Mpi,
-    p: &RenderParams,
-    occ: Option<&Occupancy>,
-    win: &Rect,
+    inp: &Inputs<'_>,
     channels: Channels<'_>,
     out: &mut RenderOutput,
     consts: &[LinkConst<T>],
     lb: [(&mut [f32], &mut [f32], &mut [f32]); 2],
     sampler: &S,
 ) -> RenderStats {
+    let Inputs { mpi, p, occ, win } = *inp;
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let ww = win.width();
     // the extra channels' source on every plane: the MPI's own, or one mask for all (computed
@@ -197,15 +200,6 @@ pub(in crate::render) fn target_view_cut<T: Real>(
 ) -> RenderStats {
     let sampler = CutSampler { inner: Bilinear { rgba: Rgba::of(mpi), mip: &[] }, cut };
     let none: [LinkConst<T>; 0] = [];
-    target_view_with::<T, _, 0>(
-        mpi,
-        p,
-        occ,
-        win,
-        Channels::Broadcast(cut.mask),
-        out,
-        &none,
-        [empty3(), empty3()],
-        &sampler,
-    )
+    let inp = Inputs { mpi, p, occ, win };
+    target_view_with::<T, _, 0>(&inp, Channels::Broadcast(cut.mask), out, &none, [empty3(), empty3()], &sampler)
 }

@@ -4,6 +4,7 @@
 
 use super::activity::tile_activity;
 use super::geometry::TargetGeometry;
+use super::lanes::Quad;
 use super::plane::{cap, PlaneConst, TILE};
 use super::sampler::PlaneSampler;
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
@@ -141,7 +142,8 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                 while x <= tx1 {
                     if let Some(l) = lanes.filter(|_| x + 3 <= tx1) {
                         let o = ry * ww + (x - win.x0);
-                        if l.four(sampler, ex_lanes, [x - win.x0, y0 + ry], &fwd, &rev, o, b, &mut stats) {
+                        let px = Quad { at: [x - win.x0, y0 + ry], o };
+                        if l.four(sampler, ex_lanes, [&fwd, &rev], px, b, &mut stats) {
                             x += 4;
                             continue;
                         }
