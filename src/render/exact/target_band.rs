@@ -1,6 +1,8 @@
 //! The target view's band loop ([`TargetBand::band`]): tile by tile the planes that may
 //! contribute, then per pixel (sixteen or four at a time in lanes where they can) the plane
 //! loop; a band is a job for [`crate::isa::dispatch`] ([`TargetBandJob`]).
+//! `TargetBand::band` is about 180 lines on purpose: the compiler must see the band loop whole
+//! (the front door gives the measurement).
 
 use super::activity::tile_activity;
 use super::geometry::TargetGeometry;
