@@ -105,8 +105,9 @@ impl Bricks {
     /// registers) without a bounds branch.
     pub const TAIL: usize = 80;
 
-    /// Builds the store of `planes` planes of `width` x `height` pixels, `stride` values each,
-    /// for neighbourhoods reaching `lo` pixels before and `hi` after their anchor.
+    /// Builds the store of `planes` planes in the shape of `grid` (`width` x `height` pixels,
+    /// `stride` values each, for neighbourhoods reaching `lo` pixels before and `hi` after their
+    /// anchor).
     /// `plane(i)` gives plane `i` densely (row-major, interleaved, `width height stride` values;
     /// owned or borrowed);
     /// `keep(i)` which of its blocks to store (`bh x bw` flags, row-major; `None`: all);
@@ -117,19 +118,14 @@ impl Bricks {
     /// # Panics
     /// If a plane has the wrong length, a flag list the wrong count, or the store would hold
     /// more than `u32::MAX` blocks.
-    #[allow(clippy::too_many_arguments)]
     pub fn build<P: AsRef<[f32]>>(
-        width: usize,
-        height: usize,
+        grid: BlockGrid,
         planes: usize,
-        stride: usize,
-        lo: usize,
-        hi: usize,
         plane: impl Fn(usize) -> P + Sync,
         keep: impl Fn(usize) -> Option<Vec<bool>> + Sync,
         index: impl Fn(isize, usize) -> usize + Sync,
     ) -> Self {
-        let grid = BlockGrid { width, height, stride, lo, hi };
+        let BlockGrid { width, height, stride, .. } = grid;
         let fill = |_: &mut (), i: usize, kept: &[bool], out: &mut [f32]| {
             let dense = plane(i);
             let dense = dense.as_ref();
@@ -332,9 +328,15 @@ mod tests {
     fn neighbourhoods_read_the_dense_values() {
         let (w, h, s, n) = (37, 21, 3, 2);
         let keep = |i: usize| (i == 1).then(|| (0..3 * 2).map(|b| b % 2 == 0).collect::<Vec<_>>());
-        let b = Bricks::build(w, h, n, s, 1, 2, |i| dense(w, h, s, i), keep, clamp);
+        let b = Bricks::build(
+            BlockGrid { width: w, height: h, stride: s, lo: 1, hi: 2 },
+            n,
+            |i| dense(w, h, s, i),
+            keep,
+            clamp,
+        );
         assert_eq!(b.stored(), (6 + 3, 12));
-        assert_eq!(b.byte_size(), 9 * 19 * 19 * 3 * 4 + 12 * 4);
+        assert_eq!(b.byte_size(), (9 * 19 * 19 * 3 + Bricks::TAIL) * 4 + 12 * 4);
         for i in 0..n {
             let d = dense(w, h, s, i);
             for ay in 0..h {
@@ -363,11 +365,23 @@ mod tests {
     #[test]
     fn plane_dense_gives_back_what_the_blocks_hold() {
         let (w, h, s) = (37, 21, 4);
-        let all = Bricks::build(w, h, 1, s, 0, 1, |i| dense(w, h, s, i), |_| None, clamp);
+        let all = Bricks::build(
+            BlockGrid { width: w, height: h, stride: s, lo: 0, hi: 1 },
+            1,
+            |i| dense(w, h, s, i),
+            |_| None,
+            clamp,
+        );
         assert_eq!(all.plane_dense(0), dense(w, h, s, 0));
         // only block (1, 0): pixels 16..=32 x 0..=16 (its area and its apron's column and row)
         let keep = |_| Some(vec![false, true, false, false, false, false]);
-        let one = Bricks::build(w, h, 1, s, 0, 1, |i| dense(w, h, s, i), keep, clamp);
+        let one = Bricks::build(
+            BlockGrid { width: w, height: h, stride: s, lo: 0, hi: 1 },
+            1,
+            |i| dense(w, h, s, i),
+            keep,
+            clamp,
+        );
         let (d, got) = (dense(w, h, s, 0), one.plane_dense(0));
         for y in 0..h {
             for x in 0..w {
@@ -382,7 +396,13 @@ mod tests {
 
     #[test]
     fn a_plane_smaller_than_a_block_is_one_block() {
-        let b = Bricks::build(1, 1, 1, 3, 2, 3, |_| vec![0.25, 0.5, 0.75], |_| None, clamp);
+        let b = Bricks::build(
+            BlockGrid { width: 1, height: 1, stride: 3, lo: 2, hi: 3 },
+            1,
+            |_| vec![0.25, 0.5, 0.75],
+            |_| None,
+            clamp,
+        );
         assert_eq!(b.stored(), (1, 1));
         assert_eq!(b.get(0, 0, 0, -2, 3, 1), Some(0.5));
     }

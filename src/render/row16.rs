@@ -1,7 +1,7 @@
 //! The target view's plane loop for the sixteen pixels of a tile row at once on AVX-512
-//! ([`row16`]), reading the planes from their blocks ([`Bricks`]) in registers.
+//! ([`rows16`]), reading the planes from their blocks ([`Bricks`]) in registers.
 //!
-//! The four-lane loop (`exact.rs`, `TargetLanes::four`) does the geometry in vectors but reads
+//! The four-lane loop (`exact`, `TargetLanes::four`) does the geometry in vectors but reads
 //! every texel lane by lane: a block look-up, four 4-channel loads and a bilinear step per lane,
 //! and for the cubic B-spline a second look-up and twelve row loads; those per-lane reads were
 //! most of the target view's instructions. Here the sixteen lanes share each read: the lanes
@@ -54,7 +54,7 @@ pub(super) struct TargetLanes {
     pub(super) h: usize,
 }
 
-/// Where [`row16`] reads the planes: the packed (r, g, b, sigma) and, for the cubic B-spline,
+/// Where [`rows16`] reads the planes: the packed (r, g, b, sigma) and, for the cubic B-spline,
 /// its coefficients (`None`: the bilinear colour).
 #[derive(Clone, Copy)]
 pub(super) struct Blocks16<'a> {

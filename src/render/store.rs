@@ -7,7 +7,7 @@
 use super::real::Real;
 use super::tap::Tap;
 use super::types::{Mode, Resample};
-use crate::mpi::bricks::Bricks;
+use crate::mpi::bricks::{BlockGrid, Bricks};
 use crate::mpi::Mpi;
 use std::sync::Arc;
 
@@ -134,7 +134,8 @@ pub fn pack(mpi: &mut Mpi) {
     let (w, h, n) = (mpi.width, mpi.height, mpi.planes());
     let clamp = |c: isize, n: usize| c.clamp(0, n as isize - 1) as usize;
     let m: &Mpi = mpi;
-    let blocks = Bricks::build(w, h, n, 4, 0, 1, |i| m.plane_rgba(i), |i| Some(reachable_blocks(m, i)), clamp);
+    let grid = BlockGrid { width: w, height: h, stride: 4, lo: 0, hi: 1 };
+    let blocks = Bricks::build(grid, n, |i| m.plane_rgba(i), |i| Some(reachable_blocks(m, i)), clamp);
     mpi.rgba_blocks = Some(Arc::new(blocks));
     mpi.rgba = Vec::new();
 }

@@ -281,4 +281,16 @@ mod tests {
         }
         assert_eq!(Reason::of(&Status::internal("sample 3: no reason trailer")), None);
     }
+
+    /// The Python client retries exactly the reasons the server declares retryable.
+    #[test]
+    fn the_python_client_retries_the_retryable_reasons() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/clients/python/mpiflow/errors.py");
+        let text = std::fs::read_to_string(path).expect("the Python client's errors module");
+        let line = text.lines().find(|l| l.starts_with("RETRYABLE_REASONS")).expect("RETRYABLE_REASONS");
+        let python: std::collections::BTreeSet<&str> = line.split('"').skip(1).step_by(2).collect();
+        let rust: std::collections::BTreeSet<&str> =
+            Reason::ALL.into_iter().filter(|r| r.retryable()).map(Reason::as_str).collect();
+        assert_eq!(python, rust, "{path}: RETRYABLE_REASONS");
+    }
 }
