@@ -301,18 +301,31 @@ fn texels(v4: pulp::x86::V4, rgba: &Bricks, i: usize, px: &TapPixels, f: [&F; 2]
         let Some(start) = rgba.block_start(i, bx, by) else { continue };
         let (vmin, vmax) = px.rows(v4, g);
         for r in vmin..=vmax + 1 {
-            let top = g & eq(v4, &px.v, r);
-            let bottom = g & eq(v4, &px.v, r - 1);
+            let (top, bottom) = if vmin == vmax {
+                // the group's taps share their rows (the common case): the upper pixels in
+                // row vmin, the lower ones in the next
+                if r == vmin {
+                    (g, 0)
+                } else {
+                    (0, g)
+                }
+            } else {
+                (g & eq(v4, &px.v, r), g & eq(v4, &px.v, r - 1))
+            };
             let row = split_row::<4>(v4, data, start + r as usize * row_len);
             // this row's pixels x0 and x0 + 1: the top pixels of the lanes of `top`, the
             // bottom ones of the lanes of `bottom`
             for c in 0..4 {
                 let a = two(v4, &row.main[c], &px.u, &row.rest[c]);
                 let b = two(v4, &row.main[c], &u1, &row.rest[c]);
-                p00[c] = pick(v4, top, &a, &p00[c]);
-                p10[c] = pick(v4, top, &b, &p10[c]);
-                p01[c] = pick(v4, bottom, &a, &p01[c]);
-                p11[c] = pick(v4, bottom, &b, &p11[c]);
+                if top != 0 {
+                    p00[c] = pick(v4, top, &a, &p00[c]);
+                    p10[c] = pick(v4, top, &b, &p10[c]);
+                }
+                if bottom != 0 {
+                    p01[c] = pick(v4, bottom, &a, &p01[c]);
+                    p11[c] = pick(v4, bottom, &b, &p11[c]);
+                }
             }
         }
     }
@@ -366,14 +379,20 @@ fn bspline3(v4: pulp::x86::V4, coef: &Bricks, i: usize, px: &TapPixels, f: [&F; 
         let (vmin, vmax) = px.rows(v4, g);
         // row r of the block is row j = r - v of lane k's neighbourhood
         for r in vmin..=vmax + 3 {
-            let j = i16(|k| r - px.v[k]);
-            let m = g & below(v4, &j, 4);
-            if m == 0 {
-                continue;
-            }
-            let wr = pick(v4, eq(v4, &j, 0), &wy[0], &wy[1]);
-            let wr = pick(v4, eq(v4, &j, 2), &wy[2], &wr);
-            let wr = pick(v4, eq(v4, &j, 3), &wy[3], &wr);
+            let (m, wr) = if vmin == vmax {
+                // the group's taps share their rows (the common case): row j = r - vmin of
+                // every lane's neighbourhood
+                (g, wy[(r - vmin) as usize])
+            } else {
+                let j = i16(|k| r - px.v[k]);
+                let m = g & below(v4, &j, 4);
+                if m == 0 {
+                    continue;
+                }
+                let wr = pick(v4, eq(v4, &j, 0), &wy[0], &wy[1]);
+                let wr = pick(v4, eq(v4, &j, 2), &wy[2], &wr);
+                (m, pick(v4, eq(v4, &j, 3), &wy[3], &wr))
+            };
             let row = split_row::<3>(v4, data, start + r as usize * row_len);
             for (col_t, idx) in col.iter_mut().zip(&idx) {
                 for (c, col_tc) in col_t.iter_mut().enumerate() {
