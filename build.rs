@@ -16,6 +16,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .file_descriptor_set_path(out.join("mpiflow_descriptor.bin"))
         .bytes(".mpiflow.v1.Tensor.data")
         .codec_path("crate::service::codec::WireCodec")
+        // the sample streams (StreamSamples, GetSamples) are answered in front of the generated
+        // service (`service::server::routes`): its trait gets default methods, so no handler
+        // stands for them
+        .generate_default_stubs(true)
         .compile_protos(&["proto/mpiflow/v1/mpiflow.proto"], &["proto"])?;
     Ok(())
 }

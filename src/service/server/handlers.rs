@@ -1,5 +1,7 @@
 //! The generated service's handlers ([`Service`]): thin, each a call of [`State`] and its
-//! reply; the sample streams are answered in front of them, by the sample routes.
+//! reply. The sample streams (StreamSamples, GetSamples) are answered in front of the service,
+//! by the sample routes, so it has no handler for them (the generated trait's default methods,
+//! never reached, stand in their place).
 
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -7,7 +9,6 @@ use std::sync::Arc;
 use tonic::{Request, Response, Status, Streaming};
 
 use super::admission::{client_of, refused, CallKind};
-use super::routes::{GET_SAMPLES_PATH, STREAM_SAMPLES_PATH};
 use super::state::State;
 use crate::service::error::ServiceError;
 use crate::service::pb;
@@ -22,19 +23,6 @@ pub struct Service {
 
 #[tonic::async_trait]
 impl MpiFlow for Service {
-    // StreamSamples and GetSamples are answered by `SampleRoutes`, which takes their paths before
-    // this service sees a request; the generated trait still requires a handler for each, so
-    // both are one refusal that names the route serving them.
-    type StreamSamplesStream = tokio_stream::Empty<Result<pb::SampleBatch, Status>>;
-    type GetSamplesStream = tokio_stream::Empty<Result<pb::Sample, Status>>;
-
-    async fn stream_samples(
-        &self,
-        _request: Request<pb::StreamRequest>,
-    ) -> Result<Response<Self::StreamSamplesStream>, Status> {
-        Err(served_by_sample_routes(STREAM_SAMPLES_PATH))
-    }
-
     async fn get_sample(&self, request: Request<pb::SampleRequest>) -> Result<Response<pb::Sample>, Status> {
         if self.state.draining.load(Ordering::SeqCst) {
             return Err(refused::<()>(&self.state, Err(ServiceError::Draining)).unwrap_err());
@@ -49,13 +37,6 @@ impl MpiFlow for Service {
         Ok(response)
     }
 
-    async fn get_samples(
-        &self,
-        _request: Request<pb::SamplesRequest>,
-    ) -> Result<Response<Self::GetSamplesStream>, Status> {
-        Err(served_by_sample_routes(GET_SAMPLES_PATH))
-    }
-
     async fn upload_sources(
         &self,
         request: Request<Streaming<pb::SourceChunk>>,
@@ -67,12 +48,4 @@ impl MpiFlow for Service {
     async fn get_info(&self, _request: Request<pb::InfoRequest>) -> Result<Response<pb::InfoResponse>, Status> {
         Ok(Response::new(self.state.info()))
     }
-}
-
-/// The answer of the generated handlers of the calls
-/// [`SampleRoutes`](super::routes::SampleRoutes) serves: a request for `path` reaches
-/// `SampleRoutes` first and never the generated service, so this is an internal error if it is
-/// ever sent.
-fn served_by_sample_routes(path: &str) -> Status {
-    Status::internal(format!("{path} is served by the sample routes, not the generated service"))
 }
