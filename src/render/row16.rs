@@ -100,9 +100,9 @@ fn i16(f: impl Fn(usize) -> i32) -> I {
     o
 }
 
-/// The lanes of `m`, in order.
+/// The set bits of `m` (lanes, or a tile's rows), in order.
 #[inline(always)]
-fn each(mut m: Lanes) -> impl Iterator<Item = usize> {
+fn each(mut m: u32) -> impl Iterator<Item = usize> {
     std::iter::from_fn(move || {
         (m != 0).then(|| {
             let k = m.trailing_zeros() as usize;
@@ -559,29 +559,17 @@ pub(super) fn rows16(
         }
         let next = if forward { i + 1 } else { i.wrapping_sub(1) };
         let plane = Plane { i, next, left: order.len() - j };
-        for r in each32(live) {
+        for r in each(live) {
             if !step(v4, c, src, ex, &plane, &mut tile[r], out.stats) {
                 live &= !(1 << r);
             }
         }
     }
-    for r in each32(members) {
+    for r in each(members) {
         let rays = &tile[r];
         write(out.b, out.o + r * out.row_len, &rays.rgb, [&rays.sum_w, &rays.sum_z], ex.map(|_| &rays.acc1));
     }
     members
-}
-
-/// The rows of `m`, in order.
-#[inline(always)]
-fn each32(mut m: u32) -> impl Iterator<Item = usize> {
-    std::iter::from_fn(move || {
-        (m != 0).then(|| {
-            let k = m.trailing_zeros() as usize;
-            m &= m - 1;
-            k
-        })
-    })
 }
 
 /// A plane of the loop: its index, the next one along the rays (`c.a.get(next)` is `None`
@@ -663,7 +651,7 @@ fn step(
         *acc = add_mul(v4, lit, acc, &wgt, col);
     }
     if let Some(ex) = ex {
-        for k in each(lit) {
+        for k in each(lit.into()) {
             let tap = super::tap::Tap::from_parts(x0[k] as usize, y0[k] as usize, c.w, c.h, fx[k], fy[k]);
             r.acc1[k] += wgt[k] * tap.sample1(ex[i]);
         }
