@@ -73,7 +73,7 @@ fn photos(name: &str) -> PathBuf {
         ("rocket.jpg", "rocket.png", (80, 60)),
     ] {
         let img = load_rgb(&src.join(f), &ImageLimits::default()).unwrap();
-        save_rgb_png(&d.join(to), &resize_rgb(&img, w, h)).unwrap();
+        save_rgb_png(&d.join(to), &resize_rgb(img, w, h)).unwrap();
     }
     std::fs::write(d.join("broken.png"), b"\x89PNG\r\n\x1a\n not really a png").unwrap();
     d

@@ -305,6 +305,10 @@ pub fn jpeg_truncation(bytes: &[u8]) -> Option<String> {
 /// Converts interleaved samples with `channels` per pixel to RGB f32 (gray is replicated, alpha
 /// dropped), each value divided by `max`.
 fn to_rgb_f32<T: Copy + Into<f32>>(raw: &[T], channels: usize, max: f32) -> Vec<f32> {
+    if channels == 3 {
+        // one pass over the whole buffer (the compiler vectorises it)
+        return raw.iter().map(|&c| c.into() / max).collect();
+    }
     let mut out = Vec::with_capacity(raw.len() / channels * 3);
     for px in raw.chunks_exact(channels) {
         if channels < 3 {

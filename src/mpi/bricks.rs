@@ -232,6 +232,12 @@ impl Bricks {
         out
     }
 
+    /// Which blocks of plane `i` are stored (row-major over the blocks).
+    pub fn kept(&self, i: usize) -> Vec<bool> {
+        let n = self.bw * self.bh;
+        self.table[i * n..(i + 1) * n].iter().map(|&b| b != EMPTY).collect()
+    }
+
     /// Distance in values between two rows of a neighbourhood ([`Self::neighbourhood`]).
     #[inline(always)]
     pub fn row_len(&self) -> usize {

@@ -90,7 +90,7 @@
 use super::{Mpi, MpiError, SIGMA_MAX};
 use crate::geometry::Intrinsics;
 use crate::mpi::planes::{plane_gaps, DELTA_LAST};
-use crate::raster::pushpull::Pyramid;
+use crate::raster::pushpull::{Known, Pyramid};
 use crate::raster::Grid;
 use rayon::prelude::*;
 use std::collections::VecDeque;
@@ -652,23 +652,33 @@ struct PlaneCtx<'a> {
 /// unknown cells, level by level: [`Pyramid`]). Plane i always has a source: the farthest content.
 fn fill_plane(ctx: &PlaneCtx, i: usize, pyramid: &mut Pyramid<[f32; 3]>, out: &mut [f32]) {
     let (w, h, rgb, lim) = (ctx.w, ctx.h, ctx.rgb, ctx.lim);
-    let (hidden, back) = (ctx.hidden, ctx.back);
-    let source = |p: usize| -> Option<[f32; 3]> {
-        if lim[p] as usize >= i {
-            Some([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]])
-        } else if !hidden.is_empty() && usize::from(hidden[p]) == i {
-            Some([back[3 * p], back[3 * p + 1], back[3 * p + 2]])
-        } else {
-            None
-        }
-    };
     if lim.iter().all(|&l| l as usize >= i) {
         for (o, c) in out.chunks_exact_mut(4).zip(rgb.chunks_exact(3)) {
             o[..3].copy_from_slice(c);
         }
         return;
     }
-    pyramid.fill(w, h, source, |p, c| out[4 * p..4 * p + 3].copy_from_slice(&c));
+    pyramid.fill(w, h, &PlaneSources { ctx, i }, |p, c| out[4 * p..4 * p + 3].copy_from_slice(&c));
+}
+
+/// The colour sources of plane `i` ([`fill_plane`]).
+struct PlaneSources<'a, 'b> {
+    ctx: &'b PlaneCtx<'a>,
+    i: usize,
+}
+
+impl Known<[f32; 3]> for PlaneSources<'_, '_> {
+    #[inline(always)]
+    fn at(&self, p: usize) -> Option<[f32; 3]> {
+        let PlaneCtx { rgb, lim, hidden, back, .. } = *self.ctx;
+        if lim[p] as usize >= self.i {
+            Some([rgb[3 * p], rgb[3 * p + 1], rgb[3 * p + 2]])
+        } else if !hidden.is_empty() && usize::from(hidden[p]) == self.i {
+            Some([back[3 * p], back[3 * p + 1], back[3 * p + 2]])
+        } else {
+            None
+        }
+    }
 }
 
 #[cfg(test)]

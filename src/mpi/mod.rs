@@ -126,7 +126,7 @@ impl Mpi {
             width,
             height,
             disparity,
-            rgba: vec![0.0; n * width * height * 4],
+            rgba: crate::buf::reused_zeros(n * width * height * 4),
             rgba_blocks: None,
             extra_channels,
             extras: vec![0.0; n * width * height * extra_channels],

@@ -58,6 +58,27 @@ impl Cell for [f32; 3] {
     }
 }
 
+/// What a fill reads: pixel `p`'s value where it is known, `None` elsewhere. A type of its own
+/// rather than a closure so that its one method is inlined into the pyramid's loops
+/// (`#[inline(always)]` on the implementation): a closure called from two loops is not, and then
+/// returns its value through memory for every pixel.
+pub trait Known<T> {
+    fn at(&self, p: usize) -> Option<T>;
+}
+
+/// Values known where a flag says so.
+struct Flagged<'a, T> {
+    v: &'a [T],
+    known: &'a [bool],
+}
+
+impl<T: Copy> Known<T> for Flagged<'_, T> {
+    #[inline(always)]
+    fn at(&self, p: usize) -> Option<T> {
+        self.known[p].then_some(self.v[p])
+    }
+}
+
 /// One level of the pyramid: values and which of them are known.
 #[derive(Default)]
 struct Level<T> {
@@ -77,14 +98,14 @@ impl<T: Cell> Level<T> {
 }
 
 /// Halves a level of `grid` into `out`: each cell the mean of its known children (known if any is).
-fn pull<T: Cell>(grid: Grid, at: impl Fn(usize) -> Option<T>, out: &mut Level<T>) {
+fn pull<T: Cell>(grid: Grid, src: &impl Known<T>, out: &mut Level<T>) {
     let coarse = Grid::new(grid.w.div_ceil(2), grid.h.div_ceil(2));
     out.reset(coarse);
     for (cx, cy) in coarse.pixels() {
         let (mut s, mut m) = (T::default(), 0u32);
         for y in 2 * cy..(2 * cy + 2).min(grid.h) {
             for x in 2 * cx..(2 * cx + 2).min(grid.w) {
-                if let Some(v) = at(grid.index(x, y)) {
+                if let Some(v) = src.at(grid.index(x, y)) {
                     s = s.add(v);
                     m += 1;
                 }
@@ -139,16 +160,10 @@ pub struct Pyramid<T> {
 }
 
 impl<T: Cell> Pyramid<T> {
-    /// Fills a `w x h` grid whose pixel `p` is known as `at(p)` (`None`: unknown): calls
-    /// `write(p, value)` for every pixel in row-major order, `at(p)` where known, else the fill.
+    /// Fills a `w x h` grid whose pixel `p` is known as `src.at(p)` (`None`: unknown): calls
+    /// `write(p, value)` for every pixel in row-major order, `src.at(p)` where known, else the fill.
     /// Where no pixel is known there is nothing to fill from: returns false without a call.
-    pub fn fill(
-        &mut self,
-        w: usize,
-        h: usize,
-        at: impl Fn(usize) -> Option<T>,
-        mut write: impl FnMut(usize, T),
-    ) -> bool {
+    pub fn fill(&mut self, w: usize, h: usize, src: &impl Known<T>, mut write: impl FnMut(usize, T)) -> bool {
         if w * h == 0 {
             return false;
         }
@@ -161,18 +176,18 @@ impl<T: Cell> Pyramid<T> {
                 levels.push(Level::default());
             }
             if depth == 0 {
-                pull(Grid::new(w, h), &at, &mut levels[0]);
+                pull(Grid::new(w, h), src, &mut levels[0]);
             } else {
                 let (prev, next) = levels.split_at_mut(depth);
                 let l = &prev[depth - 1];
-                pull(l.grid, |p| l.known[p].then_some(l.v[p]), &mut next[0]);
+                pull(l.grid, &Flagged { v: &l.v, known: &l.known }, &mut next[0]);
             }
             (lw, lh) = (levels[depth].grid.w, levels[depth].grid.h);
             depth += 1;
         }
         if depth == 0 {
             // a 1 x 1 grid: known or nothing to fill from
-            let own = at(0);
+            let own = src.at(0);
             if let Some(v) = own {
                 write(0, v);
             }
@@ -192,7 +207,7 @@ impl<T: Cell> Pyramid<T> {
         for (y, &ty) in ys.iter().enumerate() {
             for (x, &tx) in xs.iter().enumerate() {
                 let p = grid.index(x, y);
-                write(p, at(p).unwrap_or_else(|| bilinear(top, tx, ty)));
+                write(p, src.at(p).unwrap_or_else(|| bilinear(top, tx, ty)));
             }
         }
         true
@@ -204,7 +219,7 @@ impl<T: Cell> Pyramid<T> {
 /// known.
 pub fn push_pull<T: Cell>(v: &[T], known: &[bool], w: usize, h: usize) -> Vec<T> {
     let mut out = v.to_vec();
-    Pyramid::default().fill(w, h, |p| known[p].then_some(v[p]), |p, c| out[p] = c);
+    Pyramid::default().fill(w, h, &Flagged { v, known }, |p, c| out[p] = c);
     out
 }
 
@@ -265,9 +280,10 @@ mod tests {
         let once = push_pull(&v, &known, w, h);
         let mut pyramid = Pyramid::default();
         let mut big = vec![0.0; 64 * 64];
-        pyramid.fill(64, 64, |p| (p % 3 == 0).then_some(1.0), |p, c| big[p] = c);
+        let (ones, thirds): (Vec<f64>, Vec<bool>) = (0..64 * 64).map(|p| (1.0, p % 3 == 0)).unzip();
+        pyramid.fill(64, 64, &Flagged { v: &ones, known: &thirds }, |p, c| big[p] = c);
         let mut again = vec![f64::NAN; w * h];
-        assert!(pyramid.fill(w, h, |p| known[p].then_some(v[p]), |p, c| again[p] = c));
+        assert!(pyramid.fill(w, h, &Flagged { v: &v, known: &known }, |p, c| again[p] = c));
         assert_eq!(once, again);
         // one known pixel fills the whole grid with its value
         let v: Vec<f64> = (0..35).map(|p| if p == 17 { 3.0 } else { 0.0 }).collect();

@@ -40,6 +40,10 @@ pub(crate) fn repair_nonfinite(out: &mut RenderOutput) -> u64 {
         n += buf
             .par_chunks_mut(1 << 16)
             .map(|chunk| {
+                // a branch-free scan first (vectorised): a repair is the rare case
+                if chunk.iter().fold(true, |all, v| all & v.is_finite()) {
+                    return 0;
+                }
                 let mut k = 0u64;
                 for v in chunk.iter_mut().filter(|v| !v.is_finite()) {
                     *v = 0.0;

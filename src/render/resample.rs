@@ -596,6 +596,32 @@ fn causal_init(c: &[f64], n: usize, m: usize, stride: usize, z: f64, out: &mut [
 mod tests {
     use super::*;
 
+    proptest::proptest! {
+        /// The coefficients store exactly the blocks a bilinear density tap can reach, and
+        /// `pack` (which reads their table) the same blocks of the planes.
+        #[test]
+        fn coefficients_and_packed_planes_keep_the_reachable_blocks(
+            w in 1usize..70,
+            h in 1usize..50,
+            dense in proptest::collection::vec(0usize..70 * 50, 0..12),
+            degree in proptest::prop_oneof![proptest::strategy::Just(3u32), proptest::strategy::Just(5)],
+        ) {
+            let mut mpi = Mpi::new(w, h, vec![0.5, 0.25], 0);
+            for (k, p) in dense.into_iter().enumerate() {
+                mpi.plane_rgba_mut(k % 2)[4 * (p % (w * h)) + 3] = 1.0;
+            }
+            let reach: Vec<Vec<bool>> = (0..2).map(|i| crate::render::store::reachable_blocks(&mpi, i)).collect();
+            let resample = if degree == 3 { Resample::Bspline3 } else { Resample::Bspline5 };
+            prefilter(&mut mpi, resample);
+            crate::render::store::pack(&mut mpi);
+            for (i, r) in reach.iter().enumerate() {
+                let coefficients = &mpi.bspline_rgb.as_ref().expect("a B-spline kernel").coefficients;
+                proptest::prop_assert_eq!(&coefficients.kept(i), r);
+                proptest::prop_assert_eq!(&mpi.rgba_blocks.as_ref().expect("packed").kept(i), r);
+            }
+        }
+    }
+
     fn eval_line(c: &[f64], x: f64, degree: u32) -> f64 {
         let x0 = x.floor();
         let at = |k: isize| c[mirror(x0 as isize + k, c.len())];

@@ -103,7 +103,8 @@ pub fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
                     keep[u * bw + bx] = true;
                 }
             };
-            if cols.chunks_exact(4).any(dense) {
+            // without an early exit: the compiler vectorises the scan
+            if cols.chunks_exact(4).fold(false, |a, px| a | dense(px)) {
                 mark(bx);
                 if bx > 0 && dense(&cols[..4]) {
                     mark(bx - 1);
@@ -135,9 +136,13 @@ pub fn pack(mpi: &mut Mpi) {
     let clamp = |c: isize, n: usize| c.clamp(0, n as isize - 1) as usize;
     let m: &Mpi = mpi;
     let grid = BlockGrid { width: w, height: h, stride: 4, lo: 0, hi: 1 };
-    let blocks = Bricks::build(grid, n, |i| m.plane_rgba(i), |i| Some(reachable_blocks(m, i)), clamp);
+    // the B-spline coefficients, where the scene has them, store exactly these blocks (the
+    // colour prefilter keeps the reachable ones): their table saves a scan of the dense planes
+    let keep =
+        |i: usize| Some(m.bspline_rgb.as_ref().map_or_else(|| reachable_blocks(m, i), |c| c.coefficients.kept(i)));
+    let blocks = Bricks::build(grid, n, |i| m.plane_rgba(i), keep, clamp);
     mpi.rgba_blocks = Some(Arc::new(blocks));
-    mpi.rgba = Vec::new();
+    crate::buf::give_back(std::mem::take(&mut mpi.rgba));
 }
 
 /// [`pack`] of a shared MPI (copied first only when others hold it).

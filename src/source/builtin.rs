@@ -297,7 +297,7 @@ impl BuiltinSource {
         let cx0 = rng.below((bg.width - cw + 1) as u64) as usize;
         let cy0 = rng.below((bg.height - ch + 1) as u64) as usize;
         let flip = rng.sign() < 0.0;
-        Ok(resize_rgb(&crop(&bg, cx0, cy0, cw, ch, flip), w, h))
+        Ok(resize_rgb(crop(&bg, cx0, cy0, cw, ch, flip), w, h))
     }
 
     /// The objects to paste, chosen all first (photo, shape, depth on the ground, size, crop of
@@ -359,7 +359,7 @@ impl BuiltinSource {
             let (sx0, sy0, sw, sh) = p.crop;
             let pwi = (p.pw.round() as usize).max(1);
             let phi = (p.ph.round() as usize).max(1);
-            let tex = resize_rgb(&crop(&src, sx0, sy0, sw, sh, p.flip), pwi, phi);
+            let tex = resize_rgb(crop(&src, sx0, sy0, sw, sh, p.flip), pwi, phi);
             let (bx0, by0) = (p.x0.round() as i64, p.y0.round() as i64);
             let r = 0.25 * pwi.min(phi) as f64;
             let mut bbox = [usize::MAX, usize::MAX, 0, 0];

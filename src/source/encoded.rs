@@ -90,7 +90,7 @@ pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<Sou
             if rw == 0 || rh == 0 {
                 return Err(SourceError::Invalid(format!("cannot resize to {rw} x {rh}")));
             }
-            image = resize_rgb(&image, rw, rh);
+            image = resize_rgb(image, rw, rh);
             depth = depth.map(|d| match d {
                 GivenDepth::Depth(v) => GivenDepth::Depth(resize_depth(&v, w0, h0, rw, rh)),
                 GivenDepth::Disparity(v) => GivenDepth::Disparity(resize_depth(&v, w0, h0, rw, rh)),

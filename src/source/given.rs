@@ -187,11 +187,11 @@ fn disparity_from_image(img: &DynamicImage) -> Result<(usize, usize, Vec<f32>), 
 
 /// Resizes an RGB image with the `image` crate's triangle filter (bilinear when enlarging,
 /// antialiased when shrinking).
-pub fn resize_rgb(img: &RgbImage, width: usize, height: usize) -> RgbImage {
+pub fn resize_rgb(img: RgbImage, width: usize, height: usize) -> RgbImage {
     if (img.width, img.height) == (width, height) {
-        return img.clone();
+        return img;
     }
-    let buf = ::image::Rgb32FImage::from_raw(img.width as u32, img.height as u32, img.data.clone())
+    let buf = ::image::Rgb32FImage::from_raw(img.width as u32, img.height as u32, img.data)
         .expect("RgbImage holds width * height * 3 values");
     let out = ::image::imageops::resize(&buf, width as u32, height as u32, ::image::imageops::FilterType::Triangle);
     RgbImage { width, height, data: out.into_raw().into_iter().map(|v| v.clamp(0.0, 1.0)).collect() }

@@ -227,7 +227,7 @@ impl DirSource {
                 if rw == 0 || rh == 0 {
                     return Err(SourceError::Invalid(format!("cannot resize to {rw} x {rh}")));
                 }
-                image = resize_rgb(&image, rw, rh);
+                image = resize_rgb(image, rw, rh);
                 depth = depth.map(|d| match d {
                     GivenDepth::Depth(v) => GivenDepth::Depth(resize_depth(&v, w0, h0, rw, rh)),
                     GivenDepth::Disparity(v) => GivenDepth::Disparity(resize_depth(&v, w0, h0, rw, rh)),
@@ -240,7 +240,7 @@ impl DirSource {
             // cover the frame with the aspect kept, then its centre
             let (w0, h0) = (image.width, image.height);
             let (rw, rh, x0, y0) = cover(w0, h0, fw, fh);
-            let resized = resize_rgb(&image, rw, rh);
+            let resized = resize_rgb(image, rw, rh);
             image = RgbImage { width: fw, height: fh, data: crop(&resized.data, rw, 3, x0, y0, fw, fh) };
             let fit_depth = |v: Vec<f32>| crop(&resize_depth(&v, w0, h0, rw, rh), rw, 1, x0, y0, fw, fh);
             depth = depth.map(|d| match d {
