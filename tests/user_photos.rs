@@ -1,7 +1,9 @@
 //! A new user's folder of photos through the real `mpiflow` binary and a real server on loopback:
 //! a dataset that cannot make scenes is refused at start-up with one line naming the fix (exit
 //! status 2) or, uploaded at run time, with FAILED_PRECONDITION and the same text; `pull` prints
-//! no "wrote 0 samples" line before an error.
+//! no "wrote 0 samples" line before an error; a mixed folder (one photo above the working size,
+//! one with an object) gives the same bytes from `generate` and from `serve` + `pull`, whatever
+//! the thread or worker count.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -276,4 +278,70 @@ fn generate_exports_photos_of_mixed_sizes_at_one_size() {
         let (w, h) = image::image_dimensions(out.join(format!("{i:08}_img1.png"))).unwrap();
         assert_eq!((w, h), (120, 72), "sample {i}");
     }
+}
+
+/// A mixed folder with a photo larger than the working size, at the defaults (working size,
+/// scene windows, one moving object): `generate` on one thread and on two, and a server with
+/// one worker and with two pulled into the same layout, write the same bytes for every sample.
+#[test]
+fn a_mixed_folder_gives_the_same_bytes_from_generate_and_pull_on_any_worker_count() {
+    let dir = mixed_folder("mixed-bytes");
+    std::fs::write(dir.join("images/large.png"), photo_png(1600, 1200, 9)).unwrap();
+    let depth: Vec<f32> =
+        (0..1600 * 1200).map(|k| 2.0 - ((k % 1600) as f32 / 1600.0) + (k / 1600) as f32 * 1e-4).collect();
+    mpiflow::io::npy::write_f32(&dir.join("depths/large.npy"), &[1200, 1600], &depth).unwrap();
+    // an object (instance 1) in the large photo
+    std::fs::create_dir_all(dir.join("masks")).unwrap();
+    let mask = image::GrayImage::from_fn(1600, 1200, |x, y| {
+        image::Luma([u8::from((500..1100).contains(&x) && (300..900).contains(&y))])
+    });
+    mask.save(dir.join("masks/large.png")).unwrap();
+    let source = dir.display().to_string();
+    let n = "6";
+    let files = ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png", "holes.png", "mask.png"];
+    let mut outs = Vec::new();
+    for threads in ["1", "2"] {
+        let out = dir.join(format!("generate-{threads}"));
+        let r = Command::new(BIN)
+            .args(["generate", "--source", &source, "--count", n, "--threads", threads, "--quiet"])
+            .args(["--preview-every", "0", "--out", &out.display().to_string()])
+            .output()
+            .unwrap();
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        outs.push(out);
+    }
+    for workers in ["1", "2"] {
+        let (mut child, line) = serve(&["--source", &source, "--workers", workers]);
+        let addr = line.trim().strip_prefix("mpiflow serving on ").unwrap_or_else(|| panic!("printed {line:?}"));
+        let addr = addr.split_whitespace().next().unwrap().to_string();
+        let out = dir.join(format!("pull-{workers}"));
+        let r = Command::new(BIN)
+            .args(["pull", "--addr", &addr, "--count", n, "--preview-every", "0", "--out", &out.display().to_string()])
+            .output()
+            .unwrap();
+        child.kill().unwrap();
+        child.wait().unwrap();
+        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        outs.push(out);
+    }
+    let mut sizes = std::collections::BTreeSet::new();
+    let mut with_masks = 0;
+    for i in 0..6 {
+        sizes.insert(image::image_dimensions(outs[0].join(format!("{i:08}_img1.png"))).unwrap());
+        for f in files {
+            let path = |o: &PathBuf| o.join(format!("{i:08}_{f}"));
+            let first = std::fs::read(path(&outs[0])).ok();
+            with_masks += usize::from(f == "mask.png" && first.is_some());
+            for o in &outs[1..] {
+                assert!(
+                    std::fs::read(path(o)).ok() == first,
+                    "{} differs from {}",
+                    path(o).display(),
+                    path(&outs[0]).display()
+                );
+            }
+        }
+    }
+    assert_eq!(sizes.into_iter().collect::<Vec<_>>(), [(640, 480)], "the working size of a 1600x1200 photo");
+    assert!(with_masks > 0, "objects moved in some samples");
 }
