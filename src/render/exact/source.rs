@@ -43,8 +43,9 @@ pub(in crate::render) fn source_view<T: Real>(
     // the source camera's own depth, only when a link needs it (allocated by the caller)
     let mut src_depth = std::mem::take(&mut out.source_depth);
     let want_sd = !src_depth.is_empty();
-    // four pixels at a time where T is f32 and every pixel is asked for (the same bits)
-    let lanes = (T::LANES && flow_where.is_none()).then(|| SourceLanes {
+    // four pixels at a time where T is f32 (the same bits); with `flow_where`, lanes that are
+    // not asked for are computed but not written, and groups with none asked for are skipped
+    let lanes = T::LANES.then(|| SourceLanes {
         m: std::array::from_fn(|r| [m.row(r).x as f32, m.row(r).y as f32, m.row(r).z as f32]),
         b: [bt.x as f32, bt.y as f32, bt.z as f32],
         disp: mpi.disparity.iter().map(|&d| d as f32).collect(),
@@ -147,12 +148,22 @@ impl<T: Real> SourceBand<'_, T> {
                 let uy = T::of((yy as f64 - ks.cy) / ks.fy);
                 let mut x0 = tx0;
                 if let Some(l) = &lanes {
+                    // the pixels of `x .. x + N` asked for (None: all), as the scalar loop asks
+                    fn wanted<const N: usize>(m: Option<&[f32]>, at: usize) -> Option<[bool; N]> {
+                        m.map(|m| std::array::from_fn(|k| m[at + k] > 0.0))
+                    }
                     while L > 4 && x0 + L - 1 <= tx1 {
-                        l.wide::<L>(x0, yy, &active, ry * ww + (x0 - win.x0), b);
+                        let want = wanted::<L>(flow_where, yy * w + x0);
+                        if want.is_none_or(|m| m.contains(&true)) {
+                            l.wide::<L>(x0, yy, &active, ry * ww + (x0 - win.x0), b, want.as_ref());
+                        }
                         x0 += L;
                     }
                     while x0 + 3 <= tx1 {
-                        l.four(x0, yy, &active, ry * ww + (x0 - win.x0), b);
+                        let want = wanted::<4>(flow_where, yy * w + x0);
+                        if want.is_none_or(|m| m.contains(&true)) {
+                            l.four(x0, yy, &active, ry * ww + (x0 - win.x0), b, want.as_ref());
+                        }
                         x0 += 4;
                     }
                 }

@@ -10,7 +10,7 @@ use crate::render::store::Rgba;
 /// operations in its order on its own pixel, planes a lane does not take (density 0, or the
 /// lane done because its transmittance fell below `t_eps`) are masked out instead of skipped,
 /// and the plane loop ends when every lane is done. So each pixel gets the scalar loop's bits
-/// (`tests/render_window.rs` compares the two: a `flow_where` mask makes the scalar loop run).
+/// (`tests/render_window.rs` compares the two: a window one pixel wide makes the scalar loop run).
 pub(super) struct SourceLanes<'a> {
     pub(super) m: [[f32; 3]; 3],
     pub(super) b: [f32; 3],
@@ -32,7 +32,15 @@ impl SourceLanes<'_> {
     /// Pixels `x .. x + 4` of row `yy`, written at `o .. o + 4` of the band's buffers `b`
     /// (flow, expected target depth, front fraction, source depth).
     #[inline(always)]
-    pub(super) fn four(&self, x: usize, yy: usize, active: &[usize], o: usize, b: &mut [&mut [f32]; 4]) {
+    pub(super) fn four(
+        &self,
+        x: usize,
+        yy: usize,
+        active: &[usize],
+        o: usize,
+        b: &mut [&mut [f32]; 4],
+        want: Option<&[bool; 4]>,
+    ) {
         use crate::render::simd::exp_neg4;
         use wide::f32x4;
         let sp = f32x4::splat;
@@ -79,19 +87,29 @@ impl SourceLanes<'_> {
             }
         }
         let [fu, fv, sw, sz, sall, sd] = [fu, fv, sw, sz, sall, sd].map(f32x4::to_array);
-        self.write(o, [fu, fv, sw, sz, sall, sd], b);
+        self.write(o, [fu, fv, sw, sz, sall, sd], b, want);
     }
 }
 
 impl SourceLanes<'_> {
     /// Writes the `L` pixels `o .. o + L` of the band from their sums `[fu, fv, sw, sz, sall,
     /// sd]`: flow and depth normalised by the weight in front, `valid` the share in front, the
-    /// expected depth (the scalar loop's divisions, pixel by pixel).
+    /// expected depth (the scalar loop's divisions, pixel by pixel); with `want`, only the
+    /// pixels asked for.
     #[inline(always)]
-    fn write<const L: usize>(&self, o: usize, [fu, fv, sw, sz, sall, sd]: [[f32; L]; 6], b: &mut [&mut [f32]; 4]) {
+    fn write<const L: usize>(
+        &self,
+        o: usize,
+        [fu, fv, sw, sz, sall, sd]: [[f32; L]; 6],
+        b: &mut [&mut [f32]; 4],
+        want: Option<&[bool; L]>,
+    ) {
         // the scalar loop's T::of(1e-6)
         const EPS: f32 = 1e-6_f64 as f32;
         for k in 0..L {
+            if want.is_some_and(|m| !m[k]) {
+                continue;
+            }
             let o = o + k;
             if sw[k] > EPS {
                 b[0][2 * o] = fu[k] / sw[k];
@@ -118,6 +136,7 @@ impl SourceLanes<'_> {
         active: &[usize],
         o: usize,
         b: &mut [&mut [f32]; 4],
+        want: Option<&[bool; L]>,
     ) {
         use std::array::from_fn;
         let ld = |v: &[f32]| -> [f32; L] { v[x..x + L].try_into().expect("L columns") };
@@ -165,6 +184,6 @@ impl SourceLanes<'_> {
                 });
             }
         }
-        self.write(o, [fu, fv, sw, sz, sall, sd], b);
+        self.write(o, [fu, fv, sw, sz, sall, sd], b, want);
     }
 }
