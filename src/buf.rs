@@ -25,7 +25,8 @@ fn pool() -> std::sync::MutexGuard<'static, Vec<Vec<f32>>> {
 }
 
 /// `n` zeros in a buffer handed back earlier when one is large enough (its pages stay mapped),
-/// else a new one ([`zeros`]).
+/// else a new one asked for zeroed (fresh pages are zero already: they fault in where they
+/// are first written, by the threads that fill them, rather than all in one `memset`).
 #[must_use]
 pub fn reused_zeros(n: usize) -> Vec<f32> {
     let found = {
@@ -38,7 +39,7 @@ pub fn reused_zeros(n: usize) -> Vec<f32> {
             v.resize(n, 0.0);
             v
         }
-        None => zeros(n),
+        None => vec![0.0; n],
     }
 }
 
