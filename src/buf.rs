@@ -7,10 +7,10 @@
 //! and writes the zeros itself.
 //!
 //! A scene build's dense planes (32 x 4 values per pixel: 157 MB at 640 x 480) live only until
-//! the planes are packed into blocks, and jemalloc hands freed pages back to the kernel within
-//! about a second, so every build faulted its planes in afresh (about 38,000 faults). They are
-//! handed back here instead ([`give_back`]) and the next build takes them ([`reused_zeros`]):
-//! at most [`POOL_BYTES`] in all are kept.
+//! the planes are packed into blocks, and jemalloc hands a freed block over 8 MiB back to the
+//! kernel at once, so every build faulted its planes in afresh (about 38,000 faults). They are
+//! handed back here instead ([`give_back`]) and the next build of the same size takes them
+//! ([`reused_zeros`]): at most [`POOL_BYTES`] in all are kept.
 
 use std::sync::Mutex;
 
@@ -24,14 +24,14 @@ fn pool() -> std::sync::MutexGuard<'static, Vec<Vec<f32>>> {
     POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
-/// `n` zeros in a buffer handed back earlier when one is large enough (its pages stay mapped),
-/// else a new one asked for zeroed (fresh pages are zero already: they fault in where they
+/// `n` zeros in a buffer handed back earlier when one fits (at least `n` and at most `2 n`
+/// values, so a small request does not hold a large buffer; its pages stay mapped), else a new one asked for zeroed (fresh pages are zero already: they fault in where they
 /// are first written, by the threads that fill them, rather than all in one `memset`).
 #[must_use]
 pub fn reused_zeros(n: usize) -> Vec<f32> {
     let found = {
         let mut pool = pool();
-        pool.iter().position(|v| v.capacity() >= n).map(|k| pool.swap_remove(k))
+        pool.iter().position(|v| (n..=2 * n).contains(&v.capacity())).map(|k| pool.swap_remove(k))
     };
     match found {
         Some(mut v) => {

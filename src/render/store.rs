@@ -103,8 +103,7 @@ pub fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
                     keep[u * bw + bx] = true;
                 }
             };
-            // without an early exit: the compiler vectorises the scan
-            if cols.chunks_exact(4).fold(false, |a, px| a | dense(px)) {
+            if cols.chunks_exact(4).any(dense) {
                 mark(bx);
                 if bx > 0 && dense(&cols[..4]) {
                     mark(bx - 1);
