@@ -56,6 +56,7 @@ const ROOMS: &[(&str, &[&[&str]])] = &[
             &["background"],
             &["config"],
             &["augment", "holes"],
+            &["crop"],
             &["recipe"],
             &["pipeline"],
         ],

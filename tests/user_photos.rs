@@ -282,7 +282,8 @@ fn generate_exports_photos_of_mixed_sizes_at_one_size() {
 
 /// A mixed folder with a photo larger than the working size, at the defaults (working size,
 /// scene windows, one moving object): `generate` on one thread and on two, and a server with
-/// one worker and with two pulled into the same layout, write the same bytes for every sample.
+/// one worker and with two pulled into the same layout, write the same bytes for every sample;
+/// so do `generate --crop 496x368 --random-crop` and `pull` with the same crop.
 #[test]
 fn a_mixed_folder_gives_the_same_bytes_from_generate_and_pull_on_any_worker_count() {
     let dir = mixed_folder("mixed-bytes");
@@ -300,6 +301,8 @@ fn a_mixed_folder_gives_the_same_bytes_from_generate_and_pull_on_any_worker_coun
     let n = "6";
     let files = ["img1.png", "img2.png", "flow.flo", "valid.png", "occ.png", "holes.png", "mask.png"];
     let mut outs = Vec::new();
+    let crop = ["--crop", "496x368", "--random-crop"];
+    let mut cropped = Vec::new();
     for threads in ["1", "2"] {
         let out = dir.join(format!("generate-{threads}"));
         let r = Command::new(BIN)
@@ -310,23 +313,49 @@ fn a_mixed_folder_gives_the_same_bytes_from_generate_and_pull_on_any_worker_coun
         assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
         outs.push(out);
     }
+    let out = dir.join("generate-crop");
+    let r = Command::new(BIN)
+        .args(["generate", "--source", &source, "--count", n, "--quiet", "--preview-every", "0"])
+        .args(crop)
+        .args(["--out", &out.display().to_string()])
+        .output()
+        .unwrap();
+    assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+    cropped.push(out);
     for workers in ["1", "2"] {
         let (mut child, line) = serve(&["--source", &source, "--workers", workers]);
         let addr = line.trim().strip_prefix("mpiflow serving on ").unwrap_or_else(|| panic!("printed {line:?}"));
         let addr = addr.split_whitespace().next().unwrap().to_string();
+        let pull = |out: &PathBuf, extra: &[&str]| {
+            let r = Command::new(BIN)
+                .args([
+                    "pull",
+                    "--addr",
+                    &addr,
+                    "--count",
+                    n,
+                    "--preview-every",
+                    "0",
+                    "--out",
+                    &out.display().to_string(),
+                ])
+                .args(extra)
+                .output()
+                .unwrap();
+            assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
+        };
         let out = dir.join(format!("pull-{workers}"));
-        let r = Command::new(BIN)
-            .args(["pull", "--addr", &addr, "--count", n, "--preview-every", "0", "--out", &out.display().to_string()])
-            .output()
-            .unwrap();
+        pull(&out, &[]);
+        outs.push(out);
+        let out = dir.join(format!("pull-crop-{workers}"));
+        pull(&out, &crop);
+        cropped.push(out);
         child.kill().unwrap();
         child.wait().unwrap();
-        assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
-        outs.push(out);
     }
     let mut sizes = std::collections::BTreeSet::new();
     let mut with_masks = 0;
-    for i in 0..6 {
+    for (i, outs) in (0..6).flat_map(|i| [(i, &outs), (i, &cropped)]) {
         sizes.insert(image::image_dimensions(outs[0].join(format!("{i:08}_img1.png"))).unwrap());
         for f in files {
             let path = |o: &PathBuf| o.join(format!("{i:08}_{f}"));
@@ -342,6 +371,10 @@ fn a_mixed_folder_gives_the_same_bytes_from_generate_and_pull_on_any_worker_coun
             }
         }
     }
-    assert_eq!(sizes.into_iter().collect::<Vec<_>>(), [(640, 480)], "the working size of a 1600x1200 photo");
+    assert_eq!(
+        sizes.into_iter().collect::<Vec<_>>(),
+        [(496, 368), (640, 480)],
+        "the working size of a 1600x1200 photo, and the crop"
+    );
     assert!(with_masks > 0, "objects moved in some samples");
 }

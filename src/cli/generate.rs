@@ -22,6 +22,7 @@ use mpiflow::export::{
 use mpiflow::geometry::Intrinsics;
 use mpiflow::mpi::layering::MAX_PLANES;
 use mpiflow::sample::config::{SampleConfig, MAX_MOTIONS_PER_IMAGE, MAX_SCENE_WINDOW};
+use mpiflow::sample::crop::CropSpec;
 use mpiflow::sample::error::SampleError;
 use mpiflow::sample::merge::{LabelRule, MergeRule};
 use mpiflow::sample::motion::MotionPreset;
@@ -111,6 +112,14 @@ pub struct GenerateArgs {
     /// Resize every source image to WxH (default: keep sizes; the bundled scenes are 640x480).
     #[arg(long, value_name = "WxH", value_parser = parse_size)]
     size: Option<(usize, usize)>,
+    /// Crop every sample to WxH (centre, or random with --random-crop), made over the crop only:
+    /// the bytes `mpiflow pull --crop WxH` receives.
+    #[arg(long, value_name = "WxH", value_parser = parse_size)]
+    crop: Option<(usize, usize)>,
+    /// With --crop: a random window of each sample (deterministic by address) instead of the
+    /// centre.
+    #[arg(long, requires = "crop")]
+    random_crop: bool,
     #[command(flatten)]
     scene: super::scene_flags::SceneFlags,
     /// Worker threads (default: all cores).
@@ -239,7 +248,8 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
     let pb = progress_bar(a.count, a.quiet);
     let (tx, rx) = sync_channel::<Vec<(u64, Outcome)>>(2);
     let writer = spawn_writer(exporter, rx, pb.clone())?;
-    let make = |index: u64| make_one(&generator, &loader, a.seed, a.format, index);
+    let crop = a.crop.map(|(w, h)| CropSpec { width: w as u32, height: h as u32, random: a.random_crop });
+    let make = |index: u64| make_one(&generator, &loader, (a.seed, crop.as_ref()), a.format, index);
     let chunk = (threads * 2).max(2) as u64;
     let mut next = a.start;
     pool.install(|| {
@@ -342,12 +352,22 @@ fn spawn_writer(
 }
 
 /// Sample `index` made and encoded (on a worker), or the warning that skips it.
-fn make_one(generator: &Generator, loader: &SourceScenes, seed: u64, format: ExportFormat, index: u64) -> Outcome {
+fn make_one(
+    generator: &Generator,
+    loader: &SourceScenes,
+    (seed, crop): (u64, Option<&CropSpec>),
+    format: ExportFormat,
+    index: u64,
+) -> Outcome {
     let describe_source = || match generator.source_item(index) {
         Some(item) => format!("source item {item} ({})", loader.id(item)),
         None => "no source".into(),
     };
-    match generator.sample(seed, index) {
+    let made = match crop {
+        Some(c) => generator.sample_cropped(seed, index, c).map(|(s, _)| s),
+        None => generator.sample(seed, index),
+    };
+    match made {
         Ok(sample) => match mpiflow::export::encode_for(format, index, &sample) {
             Ok(encoded) => Outcome::Done(Box::new((sample, encoded))),
             Err(e) => Outcome::Skipped(format!("{}: cannot encode: {e}", describe_source())),

@@ -58,6 +58,21 @@ impl Rect {
         Rect { x0: self.x0.min(o.x0), y0: self.y0.min(o.y0), x1: self.x1.max(o.x1), y1: self.y1.max(o.y1) }
     }
 
+    /// The pixels in both (empty when they do not meet).
+    pub fn intersect(&self, o: &Rect) -> Rect {
+        let r = Rect { x0: self.x0.max(o.x0), y0: self.y0.max(o.y0), x1: self.x1.min(o.x1), y1: self.y1.min(o.y1) };
+        if r.is_empty() {
+            Rect { x0: r.x0, y0: r.y0, x1: r.x0, y1: r.y0 }
+        } else {
+            r
+        }
+    }
+
+    /// This rectangle in the coordinates of `origin`'s corner (`self` lies inside `origin`).
+    pub fn local_to(&self, origin: &Rect) -> Rect {
+        Rect { x0: self.x0 - origin.x0, y0: self.y0 - origin.y0, x1: self.x1 - origin.x0, y1: self.y1 - origin.y0 }
+    }
+
     /// Grown by `m` pixels on every side, clipped to `width` x `height`.
     pub fn grow(&self, m: usize, width: usize, height: usize) -> Rect {
         if self.is_empty() {

@@ -99,6 +99,8 @@ pub fn cut_planes(scene: &Scene, union: &[f32]) -> Vec<u8> {
 /// One frame to fill: its camera pose and the merge's image2, hole mask and shown depth.
 pub struct Frame<'a> {
     pub pose: Pose,
+    /// The rectangle of the MPI's frame the buffers below cover (the whole frame, or a crop).
+    pub at: Rect,
     /// H x W x 3.
     pub image: &'a mut [u8],
     /// H x W, 1 = hole; cleared where the planes fill it.
@@ -127,11 +129,15 @@ pub struct PlanesBehind<'a> {
 pub fn fill_from_planes(planes: &PlanesBehind<'_>, frame: Frame<'_>) -> Result<u64, RenderError> {
     let PlanesBehind { scene, occupancy, skip, union, last, threshold } = *planes;
     let (mpi, k) = (&*scene.mpi, &scene.intrinsics);
-    let g = Grid::new(mpi.width, mpi.height);
+    let at = frame.at;
+    let g = Grid::new(at.width(), at.height());
     // only holes where the objects' places land can show what lies behind them
-    let Some(support) = support_rect(union, g.w, g.h) else { return Ok(0) };
-    let reach = scene_mask_window(mpi, k, &frame.pose, &support);
-    let Some(win) = hole_rect(frame.hole, g, &reach) else { return Ok(0) };
+    let Some(support) = support_rect(union, mpi.width, mpi.height) else { return Ok(0) };
+    let reach = scene_mask_window(mpi, k, &frame.pose, &support).intersect(&at);
+    let Some(local_win) = hole_rect(frame.hole, g, &reach.local_to(&at)) else { return Ok(0) };
+    // the render's window in the MPI's frame
+    let win =
+        Rect { x0: local_win.x0 + at.x0, y0: local_win.y0 + at.y0, x1: local_win.x1 + at.x0, y1: local_win.y1 + at.y0 };
     let mut params = RenderParams::new(*k, frame.pose);
     params.skip = skip;
     let r = render_cut::<f32>(mpi, &params, occupancy, &win, &DensityCut { mask: union, last })?;
@@ -142,14 +148,14 @@ pub fn fill_from_planes(planes: &PlanesBehind<'_>, frame: Frame<'_>) -> Result<u
     let candidate: Vec<bool> = (0..local.len())
         .map(|o| {
             let (lx, ly) = local.xy(o);
-            frame.hole[g.index(win.x0 + lx, win.y0 + ly)] != 0 && r.out.coverage[o] >= threshold
+            frame.hole[g.index(local_win.x0 + lx, local_win.y0 + ly)] != 0 && r.out.coverage[o] >= threshold
         })
         .collect();
     let fill = opening_v3(&candidate, local);
     let mut filled = 0u64;
-    for y in win.y0..win.y1 {
-        for x in win.x0..win.x1 {
-            let (p, o) = (g.index(x, y), local.index(x - win.x0, y - win.y0));
+    for y in local_win.y0..local_win.y1 {
+        for x in local_win.x0..local_win.x1 {
+            let (p, o) = (g.index(x, y), local.index(x - local_win.x0, y - local_win.y0));
             if !fill[o] {
                 continue;
             }

@@ -44,9 +44,22 @@ pub enum SampleError {
     /// configuration problem, found before any sample is made.
     #[error("{0}")]
     Unusable(SceneError),
+    /// A request's crop larger than the rendered frame (never shrunk to fit).
+    #[error("{0}")]
+    Crop(CropTooLarge),
     /// Every source item failed to load (see `Generator::sample`).
     #[error("all {items} source items failed to load (first: {first})")]
     NoGoodSource { items: usize, first: String },
+}
+
+/// A crop that does not fit the rendered frame (never shrunk to fit).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{want_w}x{want_h} is larger than the rendered frame {w}x{h}")]
+pub struct CropTooLarge {
+    pub want_w: usize,
+    pub want_h: usize,
+    pub w: usize,
+    pub h: usize,
 }
 
 impl SampleError {

@@ -8,12 +8,14 @@
 //! `inpaint` (Telea), `motion` (motion laws and draws), `object` (object choice and windowed
 //! renders), `preblend` < `types` (the sample's fields), `error` ([`error::SampleError`]) <
 //! `merge`, `noise` < `background` (the planes behind moved objects) < `config`
-//! ([`config::SampleConfig`]) < `holes` (inpainting over crops), `augment` < `recipe` (one
-//! address -> one sample) < `pipeline` (`Pipeline`, `Generator`, the dataset fingerprint).
+//! ([`config::SampleConfig`]) < `holes` (inpainting over crops), `augment` < `crop` (a request's
+//! crop: its window and cut) < `recipe` (one address -> one sample) < `pipeline` (`Pipeline`,
+//! `Generator`, the dataset fingerprint).
 
 pub mod augment;
 pub mod background;
 pub mod config;
+pub mod crop;
 pub mod error;
 pub mod holes;
 pub mod inpaint;

@@ -24,8 +24,9 @@ use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
 
 use super::config::SampleConfig;
+use super::crop::CropSpec;
 use super::error::SampleError;
-use super::recipe::{assemble_with_target_depth, check_scene, ms, prepare_scene};
+use super::recipe::{assemble_cropped, check_scene, ms, prepare_scene, Cropped};
 use super::types::{Sample, SampleAddress};
 use crate::io::image::ImageLimits;
 use crate::render::{Mode, Occupancy};
@@ -39,19 +40,21 @@ use crate::source::{FailureKind, Fnv64, Source, SourceError};
 /// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
 /// (sources + scene stage) and the configuration's JSON. Never change the formula without a
 /// reason: it is the dataset word of every address, so changing it changes every sample.
-/// The version word (`v5`) names the sample bytes' rules: v2 marks the depth-aware merge that
+/// The version word (`v6`) names the sample bytes' rules: v2 marks the depth-aware merge that
 /// fills one-pixel dips of the scene mask and depth before its occlusion test (`sample::merge`),
 /// v3 the higher-order colour kernels that sum each column of taps first, then the columns
 /// (`render::resample`, four values per vector operation), v4 the merge's seams (a pixel the
 /// scene and an object cover together shows the larger share instead of a hole), v5 the presets'
-/// object motion as drawn (no reveal budget unless a law asks for one). An opt-in rule
+/// object motion as drawn (no reveal budget unless a law asks for one), v6 a request's crop made
+/// over its window (its holes filled from the window alone; the occlusion cleared, like `valid`,
+/// where the flow leaves the crop). An opt-in rule
 /// whose bytes changed after it shipped adds its own revision word (`rule_revisions`), so only
 /// the configurations that use it get new fingerprints. CHANGELOG.md lists the changes.
 pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
     // serialising a plain struct of numbers and strings cannot fail
     let json = serde_json::to_string(config).unwrap_or_default();
     let mut f = Fnv64::new();
-    f.str("mpiflow dataset v5");
+    f.str("mpiflow dataset v6");
     for word in rule_revisions(config) {
         f.str(word);
     }
@@ -407,8 +410,23 @@ impl Generator {
     }
 
     /// [`sample`](Self::sample) with the expected target depth of every image1 pixel (see
-    /// [`assemble_with_target_depth`]), for checking the labels.
+    /// [`assemble_with_target_depth`](super::recipe::assemble_with_target_depth)), for checking the labels.
     pub fn sample_with_target_depth(&self, seed: u64, index: u64) -> Result<(Sample, Vec<f32>), SampleError> {
+        self.sample_within(seed, index, None).map(|(s, z, _)| (s, z))
+    }
+
+    /// [`sample_with_target_depth`](Self::sample_with_target_depth) cut to a request's crop and
+    /// made over its window only ([`assemble_cropped`]), with the window's corner in the frame.
+    pub fn sample_cropped(
+        &self,
+        seed: u64,
+        index: u64,
+        crop: &CropSpec,
+    ) -> Result<(Sample, (usize, usize)), SampleError> {
+        self.sample_within(seed, index, Some(crop)).map(|(s, _, corner)| (s, corner))
+    }
+
+    fn sample_within(&self, seed: u64, index: u64, crop: Option<&CropSpec>) -> Result<Cropped, SampleError> {
         let start = Instant::now();
         let first = self.source_item(index).ok_or(SampleError::EmptySource)?;
         let len = self.loader.len();
@@ -433,7 +451,7 @@ impl Generator {
             let occ = self.occupancy(self.key(item), &scene);
             let scene_ms = ms(start);
             let address = SampleAddress { dataset: self.fingerprint, seed, index };
-            let (mut s, z) = assemble_with_target_depth(&scene, address, &self.config, occ.as_deref())?;
+            let (mut s, z, corner) = assemble_cropped(&scene, address, &self.config, occ.as_deref(), crop)?;
             s.skipped_sources = passed;
             if passed > 0 {
                 // the record says whose slot this sample fills, and why
@@ -446,7 +464,7 @@ impl Generator {
             }
             s.timings.scene_ms = scene_ms;
             s.timings.total_ms += scene_ms;
-            return Ok((s, z));
+            return Ok((s, z, corner));
         }
         let bad = self.bad_items();
         let first_reason = bad.values().next().map(|b| b.reason.clone()).unwrap_or_default();
@@ -478,7 +496,7 @@ mod tests {
     /// The fingerprint without any revision word.
     fn unrevised(loader: u64, config: &SampleConfig) -> u64 {
         let json = serde_json::to_string(config).unwrap();
-        Fnv64::new().str("mpiflow dataset v5").u64(loader).str(&json).finish()
+        Fnv64::new().str("mpiflow dataset v6").u64(loader).str(&json).finish()
     }
 
     #[test]

@@ -264,6 +264,7 @@ impl Metrics {
             SampleError::Render { .. } => "render",
             SampleError::Preblend { .. } => "preblend",
             SampleError::EmptySource => "empty",
+            SampleError::Crop(_) => "crop",
             SampleError::Config { .. } | SampleError::Motion(_) | SampleError::Unusable(_) => "config",
         };
         self.generation_errors.get_or_create(&label("reason", reason)).inc();

@@ -41,9 +41,11 @@ import mpiflow
 from mpiflow.dataset import consumer_indices
 
 WORLD = 2
-N = 40  # samples per rank
+N = 60  # samples per rank
 KILL_AT = 8  # samples per rank before the first kill
-HOLD_AT = N - 14  # a rank that gets here before B is back waits (so some of its share is left)
+# A rank that gets here before B is back waits, so that some of its share is left: more samples
+# than the stream can hold on its way (the gRPC windows grow with the rate; 34 crops are 10 MB).
+HOLD_AT = N - 34
 FOLLOW = 5  # samples after a kill in which its stall is looked for
 SEED = 11
 FIELDS = ["image1", "image2", "flow", "valid", "occlusion"]

@@ -85,6 +85,17 @@ pub(super) struct FrameCtx<'a> {
     pub(super) occupancy: Option<&'a Occupancy>,
     pub(super) union: Option<&'a [f32]>,
     pub(super) chosen: &'a [usize],
+    /// The crop the sample is made for: the renders cover only it (windowed renders of frame 2
+    /// without links; None = the whole frame).
+    pub(super) window: Option<Rect>,
+}
+
+impl FrameCtx<'_> {
+    /// The frame's rectangle the renders cover: the crop, or the whole frame.
+    pub(super) fn covered(&self) -> Rect {
+        let mpi = &*self.scene.mpi;
+        self.window.unwrap_or(Rect::full(mpi.width, mpi.height))
+    }
 }
 
 /// One frame's renders: the scene (whole frame), its scene mask (a full channel, or the
@@ -142,12 +153,13 @@ fn render_frame(
     let render_ms = ms(t);
 
     // render(1 - U) = coverage - render(U), and render(U) is 0 outside U's footprint: the scene
-    // mask is the coverage except over that window
+    // mask is the coverage except over that window (in the coordinates of the frame rendered)
     let t = Instant::now();
+    let at = c.covered();
     let mut mask_patch: Option<(Rect, Vec<f32>)> = None;
-    if let Some(win) = mask_win {
+    if let Some(win) = mask_win.map(|m| m.intersect(&at)).filter(|m| !m.is_empty()).map(|m| m.local_to(&at)) {
         let u_render = std::mem::take(&mut scene_out.extras);
-        let window = |v: &[f32]| crop(v, w, 1, win.x0, win.y0, win.width(), win.height());
+        let window = |v: &[f32]| crop(v, at.width(), 1, win.x0, win.y0, win.width(), win.height());
         let patch = window(&scene_out.coverage).iter().zip(window(&u_render)).map(|(c, m)| c - m).collect();
         mask_patch = Some((win, patch));
     }
@@ -171,7 +183,6 @@ fn render_scene(
 ) -> Result<(RenderOutput, Option<Vec<f32>>), SampleError> {
     let scene = c.scene;
     let mpi = &*scene.mpi;
-    let (w, h) = (mpi.width, mpi.height);
     Ok(match (c.union, c.windowed, mask_win) {
         (Some(u), false, _) => {
             // the reference's scene render: a full copy with the channel 1 - U
@@ -186,7 +197,11 @@ fn render_scene(
         // density's, whatever the colour kernel)
         (Some(u), true, Some(win)) => {
             let within = Channels::BroadcastWithin(u, [win.x0, win.y0, win.x1, win.y1]);
-            let r = render_window::<f32>(mpi, params, c.occupancy, &Rect::full(w, h), within, None);
+            let r = render_window::<f32>(mpi, params, c.occupancy, &c.covered(), within, None);
+            (r.map_err(render_err(scene, "scene"))?.out, None)
+        }
+        (_, true, _) if c.window.is_some() => {
+            let r = render_window::<f32>(mpi, params, c.occupancy, &c.covered(), Channels::PerPlane, None);
             (r.map_err(render_err(scene, "scene"))?.out, None)
         }
         _ => (render::<f32>(mpi, params, c.occupancy).map_err(render_err(scene, "scene"))?, None),
@@ -211,8 +226,11 @@ fn render_objects(
         let params = RenderParams { pose: *pose, links: *links, ..*frame };
         let r = match (c.windowed, support_rect(mask, w, h)) {
             (true, Some(support)) => {
-                let win = object_window(mpi, &k, pose, &support);
+                let at = c.covered();
+                let win = object_window(mpi, &k, pose, &support).intersect(&at);
+                // the window in the coordinates of the frame rendered (the crop's)
                 render_mask_window(mpi, c.occupancy, &params, &win, mask)
+                    .map(|r| WindowRender { win: r.win.local_to(&at), out: r.out })
             }
             _ => render_full_with_mask(mpi, &params, mask),
         }

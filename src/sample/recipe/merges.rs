@@ -4,7 +4,10 @@
 
 use crate::geometry::Pose;
 use crate::raster::Grid;
-use crate::render::{Link, Mode, Occupancy, RenderOutput, WindowRender};
+use std::borrow::Cow;
+
+use crate::raster::resize::crop;
+use crate::render::{Link, Mode, Occupancy, Rect, RenderOutput, WindowRender};
 use crate::sample::background::{cut_planes, fill_from_planes, Background, Frame, PlanesBehind};
 use crate::sample::config::SampleConfig;
 use crate::sample::error::SampleError;
@@ -16,6 +19,7 @@ use crate::sample::types::{ClipFrame, LinkFields};
 use crate::scene::Scene;
 
 use super::frames::{object_views, FrameCtx, FrameRender};
+use crate::sample::merge::ObjectView;
 
 /// The MPI's planes behind the moved objects, which fill what they can of a frame's holes
 /// ([`crate::sample::background`]); nothing unless the configuration asks for it and the scene allows.
@@ -50,7 +54,14 @@ impl<'a> BackgroundFill<'a> {
     }
 
     /// Fills the holes of the frame at camera `pose`; returns how many it filled.
-    fn fill(&self, pose: Pose, image: &mut [u8], hole: &mut [u8], depth: &mut [f32]) -> Result<u64, SampleError> {
+    fn fill(
+        &self,
+        pose: Pose,
+        at: Rect,
+        image: &mut [u8],
+        hole: &mut [u8],
+        depth: &mut [f32],
+    ) -> Result<u64, SampleError> {
         let Some((u, last)) = &self.cut else { return Ok(0) };
         let scene = self.scene;
         let planes = PlanesBehind {
@@ -61,7 +72,7 @@ impl<'a> BackgroundFill<'a> {
             last,
             threshold: self.config.mask_threshold,
         };
-        fill_from_planes(&planes, Frame { pose, image, hole, depth }).map_err(|source| SampleError::Render {
+        fill_from_planes(&planes, Frame { pose, at, image, hole, depth }).map_err(|source| SampleError::Render {
             id: scene.id.clone(),
             stage: "background",
             source: Box::new(source),
@@ -84,15 +95,18 @@ pub(super) struct Frame2 {
 
 /// Frame 2 merged on both sides (image2 and the forward flow) and filled from the planes;
 /// returns the merge, the scene render's coverage (the buffer depth1 reuses) and what the
-/// links read.
+/// links read. With a `window` (the crop the sample is cut to), only its holes are holes.
 pub(super) fn merge_frame2(
     c: &FrameCtx<'_>,
     mut first: FrameRender,
     fill: &BackgroundFill<'_>,
     cam_traj: &[Pose],
-) -> Result<(Merged, Vec<f32>, Frame2), SampleError> {
+    window: Option<Rect>,
+) -> Result<(Merged, Frame2), SampleError> {
     let (scene, config) = (c.scene, c.config);
-    let (w, h) = (scene.mpi.width, scene.mpi.height);
+    // the frame the renders cover: the crop (windowed) or the whole frame
+    let at = c.covered();
+    let (w, h) = (at.width(), at.height());
     let scene_links = std::mem::take(&mut first.scene.links);
     let source_depth = std::mem::take(&mut first.scene.source_depth);
     let RenderOutput { image, depth, coverage, flow, source_depth_in_target, valid, .. } = first.scene;
@@ -107,12 +121,43 @@ pub(super) fn merge_frame2(
         valid,
         source_depth: source_depth_in_target,
     };
-    let views1 = object_views(scene, c.chosen, &first.objects);
+    // the objects' source masks over the frame the renders cover
+    let fw = scene.mpi.width;
+    let masks: Vec<Cow<'_, [f32]>> = c
+        .chosen
+        .iter()
+        .map(|&idx| {
+            let m = &scene.masks.masks[idx].mask;
+            if at.is_full(fw, scene.mpi.height) {
+                Cow::Borrowed(m.as_slice())
+            } else {
+                Cow::Owned(crop(m, fw, 1, at.x0, at.y0, w, h))
+            }
+        })
+        .collect();
+    let views1: Vec<ObjectView<'_>> = masks
+        .iter()
+        .zip(&first.objects)
+        .enumerate()
+        .map(|(slot, (m, r))| ObjectView { label: (slot + 1) as u8, source_mask: m, render: r })
+        .collect();
     let mut merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold, config.occlusion);
     drop(views1);
     drop(image);
+    drop(coverage);
+    if let Some(r) = window.filter(|_| c.window.is_none()) {
+        // whole-frame renders for a crop: only the crop's holes are the sample's
+        for (y, row) in merged.hole.chunks_mut(w).enumerate() {
+            for (x, o) in row.iter_mut().enumerate() {
+                if !r.contains(x, y) {
+                    *o = 0;
+                }
+            }
+        }
+        merged.holes = merged.hole.iter().map(|&o| u64::from(o != 0)).sum();
+    }
     let rendered_hole = fill.cut.as_ref().map(|_| merged.hole.clone());
-    let filled = fill.fill(cam_traj[1], &mut merged.image2, &mut merged.hole, &mut merged.depth2)?;
+    let filled = fill.fill(cam_traj[1], at, &mut merged.image2, &mut merged.hole, &mut merged.depth2)?;
     merged.holes -= filled;
     let shown: Vec<f32> = if config.frames > 2 {
         merged.depth2.iter().zip(&merged.hole).map(|(&d, &o)| if o != 0 { f32::INFINITY } else { d }).collect()
@@ -120,7 +165,7 @@ pub(super) fn merge_frame2(
         Vec::new()
     };
     let frame2 = Frame2 { links: scene_links, source_depth, rendered_hole, shown, objects: first.objects };
-    Ok((merged, coverage, frame2))
+    Ok((merged, frame2))
 }
 
 /// A later frame (3, 4, ...) merged on its target side and filled from the planes, with its
@@ -155,7 +200,8 @@ pub(super) fn merge_later_frames(
         let target = merge_target(scene_target, &views, config.merge, config.mask_threshold);
         let mut target = target;
         let rendered_hole = target.hole.clone();
-        let n = fill.fill(cam_traj[j + 2], &mut target.image, &mut target.hole, &mut target.shown_depth)?;
+        let full = Rect::full(c.scene.mpi.width, c.scene.mpi.height);
+        let n = fill.fill(cam_traj[j + 2], full, &mut target.image, &mut target.hole, &mut target.shown_depth)?;
         target.holes -= n;
         later.push(LaterFrame { target, links, rendered_hole });
     }
@@ -235,19 +281,19 @@ pub(super) fn merge_links(
 
 /// image1 (the photo in u8) and depth1 = 1 / disparity, written over `coverage` (the scene
 /// render's, no longer needed; a buffer already in memory costs no page faults).
-pub(super) fn image1_depth1(scene: &Scene, coverage: Vec<f32>) -> (Vec<u8>, Vec<f32>) {
-    let (w, h) = (scene.mpi.width, scene.mpi.height);
-    let mut image1 = crate::buf::zeros::<u8>(scene.image.data.len());
-    units_to_u8(&scene.image.data, &mut image1);
-    let mut depth1 = coverage;
-    if depth1.len() != w * h {
-        depth1 = crate::buf::zeros(w * h);
-    }
+pub(super) fn image1_depth1(scene: &Scene, at: Rect) -> (Vec<u8>, Vec<f32>) {
+    let (fw, w, h) = (scene.mpi.width, at.width(), at.height());
+    let mut image1 = crate::buf::zeros::<u8>(3 * w * h);
+    let mut depth1 = crate::buf::zeros::<f32>(w * h);
     {
         use rayon::prelude::*;
-        depth1.par_chunks_mut(w).zip(scene.disparity.data.par_chunks(w)).for_each(|(out, disp)| {
-            for (o, &d) in out.iter_mut().zip(disp) {
-                *o = crate::scene::scale::depth_of_disparity(d);
+        image1.par_chunks_mut(3 * w).zip(depth1.par_chunks_mut(w)).enumerate().for_each(|(y, (img, dep))| {
+            let row = (at.y0 + y) * fw + at.x0;
+            units_to_u8(&scene.image.data[3 * row..3 * (row + w)], img);
+            if let Some(disp) = scene.disparity.data.get(row..row + w) {
+                for (o, &d) in dep.iter_mut().zip(disp) {
+                    *o = crate::scene::scale::depth_of_disparity(d);
+                }
             }
         });
     }

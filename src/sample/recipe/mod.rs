@@ -28,6 +28,14 @@
 //!    Telea's method in u8 ([`InpaintMethod`](super::config::InpaintMethod), radius 3 by default, as the reference's radius),
 //!    on crops around the holes ([`fill_holes`]: the whole-frame result, bit for bit).
 //!
+//! **A cropped sample** ([`assemble_cropped`], a request's [`CropSpec`]) is made over its window
+//! only: the renders of a pair without backward fields cover the window (each pixel the
+//! whole frame's, bit for bit), the holes are those inside it, and the merged sample is cut to
+//! the window before the hole filling and the noise, which see only the window (pixels near the
+//! window's edge are filled from the window alone). Image1, the flow, `valid`, the masks and
+//! the depths are the whole frame's cut to the window, and so is image2 wherever it is rendered;
+//! a clip, the backward fields and the reference mode render whole frames and are cut alike.
+//!
 //! Per-pixel work runs on the current rayon pool; every output is independent of the pool's size
 //! (the renderer is bit-identical to a serial run, merging is per pixel, each inpainting crop is
 //! sequential and independent of the others). [`StageTimings`] are measurements and not part of
@@ -88,11 +96,12 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::config::{InpaintMethod, SampleConfig};
+use super::crop::{clear_outside, crop_plane, crop_sample, crop_window, window_intrinsics, CropSpec};
 use super::error::SampleError;
 use super::holes::{fill_holes, label_continued, TextureSource};
 use super::preblend::preblend;
 use super::types::{Sample, SampleAddress, StageTimings};
-use crate::render::{Mode, Occupancy};
+use crate::render::{Mode, Occupancy, Rect};
 use crate::scene::Scene;
 
 use draws::draw_motions;
@@ -175,15 +184,51 @@ pub fn assemble_with_target_depth(
     config: &SampleConfig,
     occupancy: Option<&Occupancy>,
 ) -> Result<(Sample, Vec<f32>), SampleError> {
+    assemble_cropped(scene, address, config, occupancy, None).map(|(s, z, _)| (s, z))
+}
+
+/// A sample, its target depth and its window's corner in the frame ([`assemble_cropped`]).
+pub type Cropped = (Sample, Vec<f32>, (usize, usize));
+
+/// [`assemble_with_target_depth`] cut to `crop`'s window (see "A cropped sample" above), with the
+/// window's corner in the frame ((0, 0) without a crop): the sample's intrinsics are the
+/// window's, its target depth is cut alike. A crop larger than the frame is
+/// [`SampleError::Crop`].
+pub fn assemble_cropped(
+    scene: &Scene,
+    address: SampleAddress,
+    config: &SampleConfig,
+    occupancy: Option<&Occupancy>,
+    crop: Option<&CropSpec>,
+) -> Result<Cropped, SampleError> {
     let start = Instant::now();
-    let (mut sample, target_depth) = assemble_merged_sample(scene, address, config, occupancy)?;
+    let (fw, fh) = (scene.mpi.width, scene.mpi.height);
+    let window = match crop {
+        Some(c) => {
+            let (x0, y0, cw, ch) = crop_window(c, fw, fh, address).map_err(SampleError::Crop)?;
+            let r = Rect { x0, y0, x1: x0 + cw, y1: y0 + ch };
+            (!r.is_full(fw, fh)).then_some(r)
+        }
+        None => None,
+    };
+    let (merged, target_depth) = assemble_merged_sample(scene, address, config, occupancy, window)?;
+    let (mut sample, target_depth, corner) = match window {
+        // made over the window
+        Some(r) if merged.width == r.width() && merged.height == r.height() => (merged, target_depth, (r.x0, r.y0)),
+        Some(r) => {
+            let (cw, ch) = (r.width(), r.height());
+            let z = crop_plane(&target_depth, fw, 1, r.x0, r.y0, cw, ch);
+            (crop_sample(&merged, r.x0, r.y0, cw, ch), z, (r.x0, r.y0))
+        }
+        None => (merged, target_depth, (0, 0)),
+    };
     let t = Instant::now();
     let (w, h) = (sample.width, sample.height);
     let (method, radius) = (config.inpaint_method, config.inpaint_radius);
     let texture_fill = method == InpaintMethod::Exemplar
         && (sample.inpainted_pixels > 0 || sample.clip.iter().any(|f| f.holes.contains(&1)));
     // every object of image1, moved or not (the texture fill's sources are background)
-    let objects: Vec<bool> = if texture_fill { objects_of(scene, &sample.mask1) } else { Vec::new() };
+    let objects: Vec<bool> = if texture_fill { objects_of(scene, &sample.mask1, w, corner) } else { Vec::new() };
     if sample.inpainted_pixels > 0 {
         let texture = TextureSource {
             image1: &sample.image1,
@@ -227,7 +272,7 @@ pub fn assemble_with_target_depth(
     }
     sample.timings.inpaint_ms = ms(t);
     sample.timings.total_ms = ms(start);
-    Ok((sample, target_depth))
+    Ok((sample, target_depth, corner))
 }
 
 /// [`assemble_with_occupancy`] up to the merge: the sample with `image2` as merged, its holes not
@@ -240,7 +285,7 @@ pub fn assemble_merged(
     config: &SampleConfig,
     occupancy: Option<&Occupancy>,
 ) -> Result<(Sample, Vec<u8>), SampleError> {
-    let (sample, _) = assemble_merged_sample(scene, address, config, occupancy)?;
+    let (sample, _) = assemble_merged_sample(scene, address, config, occupancy, None)?;
     let hole = sample.holes.clone();
     Ok((sample, hole))
 }
@@ -250,11 +295,15 @@ pub fn assemble_merged(
 /// ([`draw_motions`]), the scene's tile occupancy, the union mask ([`union_mask`]), every
 /// frame's renders ([`render_frames`]), the merges with the background fill ([`merge_frame2`],
 /// [`merge_later_frames`]), the links ([`merge_links`]), image1 and depth1 ([`image1_depth1`]).
+///
+/// With a `window` (a crop of the frame), the holes are those inside it; a pair without
+/// backward fields in the windowed exact mode renders only the window.
 fn assemble_merged_sample(
     scene: &Scene,
     address: SampleAddress,
     config: &SampleConfig,
     occupancy: Option<&Occupancy>,
+    window: Option<Rect>,
 ) -> Result<(Sample, Vec<f32>), SampleError> {
     let start = Instant::now();
     config.validate()?;
@@ -285,7 +334,9 @@ fn assemble_merged_sample(
     let chosen = draws.chosen.as_slice();
 
     let cam_traj = trajectory(&draws.cam_pose, config.frames);
-    let ctx = FrameCtx { scene, config, windowed, occupancy, union: union.as_deref(), chosen };
+    // the renders cover only the window where nothing reads outside it: frame 2 with no links
+    let render_window = window.filter(|_| windowed && config.frames == 2 && !config.backward);
+    let ctx = FrameCtx { scene, config, windowed, occupancy, union: union.as_deref(), chosen, window: render_window };
     let mut renders = render_frames(&ctx, &cam_traj, &draws.poses)?;
     let (mut render_ms, mut objects_extra_ms) = (occupancy_ms, 0.0);
     for r in &renders {
@@ -299,15 +350,25 @@ fn assemble_merged_sample(
     // merge: frame 2 both sides (image2 and the forward flow), later frames their target side
     let t = Instant::now();
     let fill = BackgroundFill::new(scene, config, occupancy, union.as_deref());
-    let (merged, coverage, frame2) = merge_frame2(&ctx, renders.remove(0), &fill, &cam_traj)?;
+    let (merged, frame2) = merge_frame2(&ctx, renders.remove(0), &fill, &cam_traj, window)?;
     let later = merge_later_frames(&ctx, &mut renders, &fill, &cam_traj)?;
     let (backward, clip) = merge_links(&ctx, &merged, &frame2, &renders, later);
     drop(frame2);
-    let (image1, depth1) = image1_depth1(scene, coverage);
+    let at = ctx.covered();
+    let (image1, depth1) = image1_depth1(scene, at);
     timings.merge_ms = ms(t);
 
     timings.total_ms = ms(start);
 
+    // a windowed render is the crop's sample already: its own size, camera and crop rule
+    let (mut valid, mut occlusion) = (merged.valid, merged.occlusion);
+    let (w, h, intrinsics) = match ctx.window {
+        Some(r) => {
+            clear_outside(&merged.flow, &mut valid, &mut occlusion, r.width(), r.height());
+            (r.width(), r.height(), window_intrinsics(scene.intrinsics, r.x0, r.y0))
+        }
+        None => (w, h, scene.intrinsics),
+    };
     let sample = Sample {
         address,
         source_id: scene.id.clone(),
@@ -316,8 +377,8 @@ fn assemble_merged_sample(
         image1,
         image2: merged.image2,
         flow: merged.flow,
-        valid: merged.valid,
-        occlusion: merged.occlusion,
+        valid,
+        occlusion,
         mask1: merged.mask1,
         mask2: merged.mask2,
         camera: draws.camera,
@@ -330,18 +391,24 @@ fn assemble_merged_sample(
         clip,
         skipped_sources: 0,
         provenance: scene.provenance.clone(),
-        intrinsics: scene.intrinsics,
+        intrinsics,
         timings,
     };
     Ok((sample, merged.target_depth))
 }
 
-/// Where image1 shows an object: a moved one (`mask1`) or any instance of the scene (>= 0.5).
-fn objects_of(scene: &Scene, mask1: &[u8]) -> Vec<bool> {
+/// Where image1 shows an object: a moved one (`mask1`, a window of the frame at `corner`) or any
+/// instance of the scene (>= 0.5).
+fn objects_of(scene: &Scene, mask1: &[u8], width: usize, corner: (usize, usize)) -> Vec<bool> {
+    let fw = scene.mpi.width;
     let mut out: Vec<bool> = mask1.iter().map(|&m| m != 0).collect();
     for inst in &scene.masks.masks {
-        for (o, &m) in out.iter_mut().zip(&inst.mask) {
-            *o |= m >= 0.5;
+        for (y, row) in out.chunks_mut(width.max(1)).enumerate() {
+            let at = (corner.1 + y) * fw + corner.0;
+            let n = row.len();
+            for (o, &m) in row.iter_mut().zip(&inst.mask[at..at + n]) {
+                *o |= m >= 0.5;
+            }
         }
     }
     out

@@ -2,20 +2,11 @@
 //! the output spec (f16 flow, lz4, the crop, the augmentation).
 
 use crate::sample::augment::Augment;
+use crate::sample::crop::CropSpec;
 use crate::service::pb;
 
 /// The default fields of a request that names none.
 pub const DEFAULT_FIELDS: [pb::Field; 4] = [pb::Field::Image1, pb::Field::Image2, pb::Field::Flow, pb::Field::Valid];
-
-/// How to cut samples.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct CropSpec {
-    /// 0 = the rendered width.
-    pub width: u32,
-    /// 0 = the rendered height.
-    pub height: u32,
-    pub random: bool,
-}
 
 /// What a request wants of each sample.
 #[derive(Clone, Debug, PartialEq)]

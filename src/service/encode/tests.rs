@@ -98,7 +98,7 @@ proptest::proptest! {
         let s = random_sample(w, h, frames, seed);
         let fields: Vec<pb::Field> = ALL_FIELDS.iter().copied().filter(|&f| f != pb::Field::Disparity).collect();
         let spec = OutputSpec { fields, flow_f16, lz4, crop: None, augment: None };
-        let p = to_proto(s.clone(), "d", s.intrinsics, (0, 0), &spec);
+        let p = to_proto(s.clone(), "d", (0, 0), &spec);
         if !flow_f16 && frames == 2 {
             let flow = p.tensors.iter().find(|t| t.name == "flow").unwrap();
             let plain: Vec<u8> = s.flow.iter().flat_map(|x| x.to_le_bytes()).collect();

@@ -2,7 +2,6 @@
 //! moving the sample's buffers.
 
 use super::fields::{clip_field_name, field_name, OutputSpec};
-use crate::geometry::Intrinsics;
 use crate::sample::motion::{Motion, RotationKind};
 use crate::sample::Sample;
 use crate::service::pb;
@@ -91,14 +90,8 @@ fn motion_pb(m: &Motion) -> pb::Motion {
 }
 
 /// Encodes a (cropped) sample for the wire, moving its buffers. `crop` is the window's corner in
-/// the rendered frame; `intrinsics` are the rendered frame's (shifted here).
-pub fn to_proto(
-    mut s: Sample,
-    dataset: &str,
-    intrinsics: Intrinsics,
-    crop: (usize, usize),
-    out: &OutputSpec,
-) -> pb::Sample {
+/// the rendered frame (the sample's intrinsics are already the window's).
+pub fn to_proto(mut s: Sample, dataset: &str, crop: (usize, usize), out: &OutputSpec) -> pb::Sample {
     let t = std::time::Instant::now();
     let (w, h) = (s.width, s.height);
     let frames = s.clip.len() + 2;
@@ -129,7 +122,7 @@ pub fn to_proto(
         };
         tensors.push(t);
     }
-    let k = Intrinsics::new(intrinsics.fx, intrinsics.fy, intrinsics.cx - crop.0 as f64, intrinsics.cy - crop.1 as f64);
+    let k = s.intrinsics;
     let tm = &s.timings;
     pb::Sample {
         index: s.address.index,

@@ -4,9 +4,10 @@
 use std::sync::Arc;
 
 use super::state::State;
+use crate::sample::error::SampleError;
 use crate::sample::pipeline::Generator;
 use crate::service::dataset::Dataset;
-use crate::service::encode::{crop_sample, crop_window, to_proto, OutputSpec};
+use crate::service::encode::{to_proto, OutputSpec};
 use crate::service::error::ServiceError;
 use crate::service::pb;
 use crate::service::pool::{Make, Prepare, Produce};
@@ -30,7 +31,17 @@ impl State {
             Arc::new(move |index: u64, done: Box<dyn FnOnce() + Send>| g.prepare(index, done)) as Prepare
         });
         let make: Make = Arc::new(move |index| {
-            let s = generator.sample(seed, index).map_err(|source| {
+            // a plain crop is made over its window only; an augmentation crops what it resizes
+            let crop = out.crop.filter(|_| out.augment.is_none());
+            let made = match &crop {
+                Some(c) => generator.sample_cropped(seed, index, c),
+                None => generator.sample(seed, index).map(|s| (s, (0, 0))),
+            };
+            let (s, mut corner) = made.map_err(|source| {
+                if let SampleError::Crop(e) = &source {
+                    // a crop larger than the frame is the request's fault, never shrunk
+                    return ServiceError::invalid("crop", e.to_string());
+                }
                 metrics.observe_error(&source);
                 tracing::warn!(dataset = %dataset.name, index, error = %source, "sample failed");
                 ServiceError::Generation { index, source }
@@ -47,31 +58,19 @@ impl State {
                     }
                 }
             }
-            // the camera of the scene the sample was made from (before any crop)
-            let mut k = s.intrinsics;
             let timings = s.timings;
             let mut record = String::new();
-            let (corner, s) = match (&out.augment, &out.crop) {
-                (Some(a), _) => {
+            let s = match &out.augment {
+                Some(a) => {
                     // the augmentation makes its own crop (the frame resized to fit it)
                     let (s, r) = a.apply(s);
                     record = r.to_json();
-                    k = s.intrinsics;
-                    ((0, 0), s)
+                    corner = (0, 0);
+                    s
                 }
-                (None, Some(c)) => {
-                    // a crop larger than the frame is the request's fault, never shrunk
-                    let (x0, y0, cw, ch) = crop_window(c, s.width, s.height, s.address)
-                        .map_err(|e| ServiceError::invalid("crop", e.to_string()))?;
-                    if (cw, ch) == (s.width, s.height) {
-                        ((0, 0), s)
-                    } else {
-                        ((x0, y0), crop_sample(&s, x0, y0, cw, ch))
-                    }
-                }
-                (None, None) => ((0, 0), s),
+                None => s,
             };
-            let mut p = to_proto(s, &dataset.name, k, corner, &out);
+            let mut p = to_proto(s, &dataset.name, corner, &out);
             p.augment = record;
             metrics.observe_sample(&timings, p.timings.as_ref().map_or(0.0, |t| t.encode_ms));
             Ok(p)

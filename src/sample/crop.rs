@@ -1,23 +1,24 @@
-//! The crop: its window (centre, or a position from the sample's own random stream) and the cut
-//! of every field of a sample.
+//! The crop: what a request asks ([`CropSpec`]), its window (centre, or a position from the
+//! sample's own random stream) and the cut of every field of a sample.
 
-use super::fields::CropSpec;
+use crate::geometry::Intrinsics;
 use crate::rng::{Purpose, SampleRng};
 use crate::sample::augment::clear_valid_outside;
-use crate::sample::{ClipFrame, LinkFields, Sample, SampleAddress};
+pub use crate::sample::error::CropTooLarge;
+use crate::sample::types::{ClipFrame, LinkFields, Sample, SampleAddress};
+
+/// How to cut samples.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CropSpec {
+    /// 0 = the rendered width.
+    pub width: u32,
+    /// 0 = the rendered height.
+    pub height: u32,
+    pub random: bool,
+}
 
 /// The random stream of a sample's crop position: `Purpose::Other(CROP_PURPOSE)` of its address.
 pub const CROP_PURPOSE: u32 = 0x6372_6f70; // "crop"
-
-/// A crop that does not fit the rendered frame (never shrunk to fit).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("{want_w}x{want_h} is larger than the rendered frame {w}x{h}")]
-pub struct CropTooLarge {
-    pub want_w: usize,
-    pub want_h: usize,
-    pub w: usize,
-    pub h: usize,
-}
 
 /// The crop window `(x0, y0, width, height)` of a `w` x `h` frame; a crop larger than the frame
 /// in either side is an error (0 = the rendered side).
@@ -44,7 +45,32 @@ pub fn crop_window(
     }
 }
 
-fn crop_plane<T: Copy>(data: &[T], w: usize, channels: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> Vec<T> {
+/// The intrinsics of the window at (x0, y0) of a frame with intrinsics `k`.
+pub fn window_intrinsics(k: Intrinsics, x0: usize, y0: usize) -> Intrinsics {
+    Intrinsics::new(k.fx, k.fy, k.cx - x0 as f64, k.cy - y0 as f64)
+}
+
+/// Clears `valid` and `occlusion` (either may be empty) where the flow target leaves the `w` x
+/// `h` window: what lies outside it is not the sample's, so a pixel that moves there is neither
+/// valid nor called occluded.
+pub fn clear_outside(flow: &[f32], valid: &mut [u8], occlusion: &mut [u8], w: usize, h: usize) {
+    for m in [valid, occlusion] {
+        if !m.is_empty() {
+            clear_valid_outside(flow, m, w, h);
+        }
+    }
+}
+
+/// The `cw` x `ch` window at (x0, y0) of a `w`-wide plane of `channels` values per pixel (empty stays empty).
+pub(crate) fn crop_plane<T: Copy>(
+    data: &[T],
+    w: usize,
+    channels: usize,
+    x0: usize,
+    y0: usize,
+    cw: usize,
+    ch: usize,
+) -> Vec<T> {
     if data.is_empty() {
         return Vec::new();
     }
@@ -55,24 +81,25 @@ fn crop_plane<T: Copy>(data: &[T], w: usize, channels: usize, x0: usize, y0: usi
     out
 }
 
-/// A flow with its masks cut to the window (`valid` cleared where the target leaves it).
+/// A flow with its masks cut to the window (`valid` and the occlusion cleared where the target leaves it).
 fn crop_link(l: &LinkFields, w: usize, x0: usize, y0: usize, cw: usize, ch: usize) -> LinkFields {
     let flow = crop_plane(&l.flow, w, 2, x0, y0, cw, ch);
     let mut valid = crop_plane(&l.valid, w, 1, x0, y0, cw, ch);
-    if !valid.is_empty() {
-        clear_valid_outside(&flow, &mut valid, cw, ch);
-    }
-    LinkFields { flow, valid, occlusion: crop_plane(&l.occlusion, w, 1, x0, y0, cw, ch) }
+    let mut occlusion = crop_plane(&l.occlusion, w, 1, x0, y0, cw, ch);
+    clear_outside(&flow, &mut valid, &mut occlusion, cw, ch);
+    LinkFields { flow, valid, occlusion }
 }
 
 /// Cuts every field of `s` to the window; the flow values stay (a displacement does not change
-/// when both images are cut alike), and `valid` is cleared where the flow target leaves the crop
-/// (the renderer's rule: target inside `[0, cw - 1] x [0, ch - 1]`).
+/// when both images are cut alike), and `valid` and the occlusion are cleared where the flow
+/// target leaves the crop (the renderer's rule: target inside `[0, cw - 1] x [0, ch - 1]`;
+/// [`clear_outside`]).
 pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sample {
     let w = s.width;
     let flow = crop_plane(&s.flow, w, 2, x0, y0, cw, ch);
     let mut valid = crop_plane(&s.valid, w, 1, x0, y0, cw, ch);
-    clear_valid_outside(&flow, &mut valid, cw, ch);
+    let mut occlusion = crop_plane(&s.occlusion, w, 1, x0, y0, cw, ch);
+    clear_outside(&flow, &mut valid, &mut occlusion, cw, ch);
     Sample {
         address: s.address,
         source_id: s.source_id.clone(),
@@ -82,7 +109,7 @@ pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sa
         image2: crop_plane(&s.image2, w, 3, x0, y0, cw, ch),
         flow,
         valid,
-        occlusion: crop_plane(&s.occlusion, w, 1, x0, y0, cw, ch),
+        occlusion,
         mask1: crop_plane(&s.mask1, w, 1, x0, y0, cw, ch),
         mask2: crop_plane(&s.mask2, w, 1, x0, y0, cw, ch),
         camera: s.camera.clone(),
@@ -106,12 +133,7 @@ pub fn crop_sample(s: &Sample, x0: usize, y0: usize, cw: usize, ch: usize) -> Sa
             .collect(),
         skipped_sources: s.skipped_sources,
         provenance: s.provenance.clone(),
-        intrinsics: crate::geometry::Intrinsics::new(
-            s.intrinsics.fx,
-            s.intrinsics.fy,
-            s.intrinsics.cx - x0 as f64,
-            s.intrinsics.cy - y0 as f64,
-        ),
+        intrinsics: window_intrinsics(s.intrinsics, x0, y0),
         timings: s.timings,
     }
 }
