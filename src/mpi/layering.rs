@@ -441,7 +441,8 @@ fn build(
         None => vec![density(1.0, DELTA_LAST)],
     };
 
-    let mut mpi = Mpi::new(width, height, planes, 0);
+    // every value of the planes is written below (colour by `fill_plane`, density by the loop)
+    let mut mpi = Mpi::to_write(width, height, planes);
     let plane_len = len * 4;
     // 6. colours of plane i: own colour where alpha > 0, background fill elsewhere; densities
     let ctx = PlaneCtx { rgb, w: width, h: height, lim: &lim, hidden: &hidden, back: back_rgb };
@@ -658,7 +659,13 @@ fn fill_plane(ctx: &PlaneCtx, i: usize, pyramid: &mut Pyramid<[f32; 3]>, out: &m
         }
         return;
     }
-    pyramid.fill(w, h, &PlaneSources { ctx, i }, |p, c| out[4 * p..4 * p + 3].copy_from_slice(&c));
+    let filled = pyramid.fill(w, h, &PlaneSources { ctx, i }, |p, c| out[4 * p..4 * p + 3].copy_from_slice(&c));
+    if !filled {
+        // no source at all: black (the plane's buffer may hold an earlier build's values)
+        for o in out.chunks_exact_mut(4) {
+            o[..3].fill(0.0);
+        }
+    }
 }
 
 /// The colour sources of plane `i` ([`fill_plane`]).

@@ -137,6 +137,13 @@ impl Mpi {
         }
     }
 
+    /// [`Mpi::new`] without extra channels for a caller that writes every value of `rgba`
+    /// (the layering): the planes' buffer is a reused one as it is ([`crate::buf::reused_to_write`]).
+    pub fn to_write(width: usize, height: usize, disparity: Vec<f64>) -> Self {
+        let rgba = crate::buf::reused_to_write(disparity.len() * width * height * 4);
+        Self { width, height, rgba, ..Self::new(0, 0, disparity, 0) }
+    }
+
     pub fn planes(&self) -> usize {
         self.disparity.len()
     }

@@ -131,3 +131,32 @@ fn plane_fill_keeps_sources_and_fills_from_sources_only() {
         assert_eq!(&o[..3], c);
     }
 }
+
+#[test]
+fn a_plane_with_no_colour_source_is_black_whatever_its_buffer_held() {
+    let (w, h) = (6, 5);
+    let rgb = vec![0.5f32; w * h * 3];
+    let lim = vec![0u8; w * h];
+    let ctx = PlaneCtx { rgb: &rgb, w, h, lim: &lim, hidden: &[], back: &[] };
+    let mut out = vec![f32::NAN; w * h * 4];
+    fill_plane(&ctx, 2, &mut Pyramid::default(), &mut out);
+    assert!(out.chunks_exact(4).all(|px| px[..3] == [0.0, 0.0, 0.0]));
+}
+
+/// The layering writes every value of its planes: a reused buffer full of NaN (handed back for
+/// the next build of this size) gives the planes of a fresh one, bit for bit.
+#[test]
+fn the_layering_writes_every_value_of_a_reused_buffer() {
+    let (w, h) = (23, 17);
+    let rgb: Vec<f32> = (0..w * h * 3).map(|k| (k % 7) as f32 / 7.0).collect();
+    let depth: Vec<f32> = (0..w * h).map(|p| if p % w < 9 { 1.5 } else { 4.0 + (p / w) as f32 * 0.1 }).collect();
+    for layering in [Layering::Soft, Layering::Hard] {
+        let o = opts(8, layering);
+        let fresh = build_mpi(&rgb, &depth, w, h, &o).unwrap();
+        crate::buf::give_back(vec![f32::NAN; fresh.rgba.len()]);
+        let again = build_mpi(&rgb, &depth, w, h, &o).unwrap();
+        assert!(again.rgba.iter().all(|v| v.is_finite()), "{layering:?}: a value was not written");
+        let bits = |m: &Mpi| m.rgba.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&fresh), bits(&again), "{layering:?}");
+    }
+}
