@@ -3,7 +3,8 @@
 //! A request's sample options ([`spec`]: one message for all three calls) are validated once
 //! ([`validate`]), resolved to a dataset and a generator ([`dataset`]), and served through the
 //! worker pool ([`pool`]: rayon workers, a bounded queue per stream, a global in-flight bound,
-//! round-robin between streams); samples are cropped and encoded on the workers ([`encode`], a
+//! round-robin between streams); samples are made (a request's crop over its window only:
+//! [`crate::sample::crop`]) and encoded on the workers ([`encode`], a
 //! tensor's bytes made from the sample's buffers without copies: [`tensor`]); [`codec`] puts the
 //! messages on the wire, and [`frames`] the sample streams', their tensors uncopied.
 //! Errors map to gRPC codes in one place ([`error`]). The server ([`server`]) adds health,
