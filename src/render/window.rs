@@ -126,3 +126,32 @@ impl WindowRender {
         self.win.contains(x, y).then(|| (y - self.win.y0) * self.win.width() + (x - self.win.x0))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn rect() -> impl Strategy<Value = Rect> {
+        (0usize..40, 0usize..40, 0usize..40, 0usize..40).prop_map(|(x0, y0, x1, y1)| Rect { x0, y0, x1, y1 })
+    }
+
+    proptest! {
+        /// A pixel is in the intersection exactly when it is in both; the intersection is the
+        /// same either way round, and a rectangle in the coordinates of one holding it keeps its
+        /// size and its pixels, shifted by the corner.
+        #[test]
+        fn the_intersection_holds_the_pixels_of_both(a in rect(), b in rect(), x in 0usize..40, y in 0usize..40) {
+            let i = a.intersect(&b);
+            prop_assert_eq!(i.contains(x, y), a.contains(x, y) && b.contains(x, y));
+            prop_assert_eq!(i.area(), b.intersect(&a).area());
+            if !i.is_empty() {
+                let l = i.local_to(&a);
+                prop_assert_eq!((l.width(), l.height()), (i.width(), i.height()));
+                if i.contains(x, y) {
+                    prop_assert!(l.contains(x - a.x0, y - a.y0));
+                }
+            }
+        }
+    }
+}
