@@ -25,16 +25,19 @@ fn pool() -> std::sync::MutexGuard<'static, Vec<Vec<f32>>> {
     POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
+/// A buffer handed back earlier that fits `n` values (at least `n` and at most `2 n`), taken out
+/// of the pool.
+fn fitting(n: usize) -> Option<Vec<f32>> {
+    let mut pool = pool();
+    pool.iter().position(|v| (n..=2 * n).contains(&v.capacity())).map(|k| pool.swap_remove(k))
+}
+
 /// `n` zeros in a buffer handed back earlier when one fits (at least `n` and at most `2 n`
 /// values, so a small request does not hold a large buffer; its pages stay mapped), else a new one asked for zeroed (fresh pages are zero already: they fault in where they
 /// are first written, by the threads that fill them, rather than all in one `memset`).
 #[must_use]
 pub fn reused_zeros(n: usize) -> Vec<f32> {
-    let found = {
-        let mut pool = pool();
-        pool.iter().position(|v| (n..=2 * n).contains(&v.capacity())).map(|k| pool.swap_remove(k))
-    };
-    match found {
+    match fitting(n) {
         Some(mut v) => {
             v.clear();
             v.resize(n, 0.0);
@@ -49,11 +52,7 @@ pub fn reused_zeros(n: usize) -> Vec<f32> {
 /// of the size before skips the 157 MB `memset` of [`reused_zeros`].
 #[must_use]
 pub fn reused_to_write(n: usize) -> Vec<f32> {
-    let found = {
-        let mut pool = pool();
-        pool.iter().position(|v| (n..=2 * n).contains(&v.capacity())).map(|k| pool.swap_remove(k))
-    };
-    match found {
+    match fitting(n) {
         Some(mut v) => {
             v.truncate(n);
             v.resize(n, 0.0);

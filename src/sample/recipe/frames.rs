@@ -110,15 +110,15 @@ pub(super) struct FrameRender {
 }
 
 pub(super) fn object_views<'a>(scene: &'a Scene, chosen: &[usize], renders: &'a [WindowRender]) -> Vec<ObjectView<'a>> {
-    chosen
-        .iter()
+    views_of(chosen.iter().map(|&idx| scene.masks.masks[idx].mask.as_slice()), renders)
+}
+
+/// The moved objects' views from their source masks (in order, slot 0 first) and renders.
+pub(super) fn views_of<'a>(masks: impl Iterator<Item = &'a [f32]>, renders: &'a [WindowRender]) -> Vec<ObjectView<'a>> {
+    masks
         .zip(renders)
         .enumerate()
-        .map(|(slot, (&idx, r))| ObjectView {
-            label: (slot + 1) as u8,
-            source_mask: &scene.masks.masks[idx].mask,
-            render: r,
-        })
+        .map(|(slot, (source_mask, render))| ObjectView { label: (slot + 1) as u8, source_mask, render })
         .collect()
 }
 

@@ -18,8 +18,7 @@ use crate::sample::merge::{
 use crate::sample::types::{ClipFrame, LinkFields};
 use crate::scene::Scene;
 
-use super::frames::{object_views, FrameCtx, FrameRender};
-use crate::sample::merge::ObjectView;
+use super::frames::{object_views, views_of, FrameCtx, FrameRender};
 
 /// The MPI's planes behind the moved objects, which fill what they can of a frame's holes
 /// ([`crate::sample::background`]); nothing unless the configuration asks for it and the scene allows.
@@ -135,12 +134,7 @@ pub(super) fn merge_frame2(
             }
         })
         .collect();
-    let views1: Vec<ObjectView<'_>> = masks
-        .iter()
-        .zip(&first.objects)
-        .enumerate()
-        .map(|(slot, (m, r))| ObjectView { label: (slot + 1) as u8, source_mask: m, render: r })
-        .collect();
+    let views1 = views_of(masks.iter().map(|m| &**m), &first.objects);
     let mut merged = merge(view, &views1, config.merge, config.label_rule, config.mask_threshold, config.occlusion);
     drop(views1);
     drop(image);
