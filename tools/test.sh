@@ -13,5 +13,8 @@ MPIFLOW_SIMD=sse2 cargo test --release --all-features --test reference_vectors -
     --test simd_paths --test pipeline --test laws
 # The Python client against the real `mpiflow serve` (built by cargo test above).
 MPIFLOW_BIN="${CARGO_TARGET_DIR:-$PWD/target}/release/mpiflow" "$MPIFLOW_PYTHON" -m pytest -q clients/python/tests
+# The target view's instructions per plane sample against their recorded figures (counted by
+# cachegrind, not timed: tools/instructions.sh).
+bash tools/instructions.sh "${CARGO_TARGET_DIR:-$PWD/target}/release/mpiflow"
 # The Kubernetes manifests against the Kubernetes JSON schemas, offline (deploy/validate.sh).
 bash deploy/validate.sh

@@ -13,7 +13,7 @@ pub mod soak;
 
 use crate::geometry::{Intrinsics, Pose};
 use crate::mpi::synthetic::bench_mpi;
-use crate::render::{render, Fields, Mode, Occupancy, RenderParams, Resample, Skip};
+use crate::render::{render, Fields, Mode, Occupancy, RenderParams, RenderStats, Resample, Skip};
 use std::time::Instant;
 
 /// Summary of repeated timings, in milliseconds.
@@ -73,9 +73,10 @@ pub struct RenderBenchConfig {
 }
 
 /// Renders the synthetic benchmark MPI (image + flow + depth; the occlusion pass is left out)
-/// `runs` times in the current rayon pool. A kernel's prefilter is computed once before the
-/// timed runs (as the scene cache keeps it).
-pub fn bench_render(cfg: &RenderBenchConfig) -> Timing {
+/// `runs` times in the current rayon pool, and returns the timings and one render's counts
+/// (the target view's plane samples, what skipping avoided). A kernel's prefilter is computed
+/// once before the timed runs (as the scene cache keeps it).
+pub fn bench_render(cfg: &RenderBenchConfig) -> (Timing, RenderStats) {
     let mut mpi = bench_mpi(cfg.width, cfg.height, cfg.planes);
     crate::render::resample::prefilter(&mut mpi, cfg.resample);
     if crate::render::store::packs(cfg.mode, cfg.resample, false) {
@@ -89,8 +90,11 @@ pub fn bench_render(cfg: &RenderBenchConfig) -> Timing {
     p.fields = cfg.fields;
     // the occupancy belongs to the MPI (built once per cached MPI in the service)
     let occ = Occupancy::build(&mpi, cfg.skip.tile_sigma_eps);
-    time_runs(cfg.runs, || {
+    let mut stats = RenderStats::default();
+    let t = time_runs(cfg.runs, || {
         let out = render::<f32>(&mpi, &p, Some(&occ)).expect("benchmark render");
+        stats = out.stats;
         std::hint::black_box(out);
-    })
+    });
+    (t, stats)
 }

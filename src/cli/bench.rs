@@ -562,18 +562,19 @@ fn render(b: RenderBench) -> Result<(), CliError> {
                     occlusion: false,
                 },
             };
-            let t = pool.install(|| bench_render(&cfg));
+            let (t, stats) = pool.install(|| bench_render(&cfg));
             if b.variants {
                 print!("{name:>20}: ");
             }
             println!(
-                "{resample:>9}: median {:.1} ms (min {:.1}, max {:.1}) over {} runs, {threads} threads, {} pass{}",
+                "{resample:>9}: median {:.1} ms (min {:.1}, max {:.1}) over {} runs, {threads} threads, {} pass{}; {} target-view plane samples per render",
                 t.median,
                 t.min,
                 t.max,
                 t.runs,
                 b.pass,
-                if b.pass == "both" { "es" } else { "" }
+                if b.pass == "both" { "es" } else { "" },
+                stats.samples
             );
         }
     }
