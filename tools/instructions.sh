@@ -40,12 +40,19 @@ count() {
 status=0
 while read -r path recorded; do
     case "$path" in ''|'#'*) continue ;; esac
-    read -r one samples < <(count "$path" 1)
-    read -r five _ < <(count "$path" 5)
-    per=$(python3 -c "print(f'{($five - $one) / 4 / $samples:.1f}')")
-    limit=$(python3 -c "print(f'{$recorded * 1.2:.1f}')")
-    verdict=$(python3 -c "print('ok' if $per <= $recorded * 1.2 else 'FAIL')")
-    echo "instructions per plane sample, $path path: $per ($(( (five - one) / 4 )) per render, $samples plane samples); recorded $recorded, limit $limit: $verdict"
-    [ "$verdict" = ok ] || status=1
+    # a failed count stops the script here (set -e), with the bench's output on stderr
+    one=$(count "$path" 1)
+    five=$(count "$path" 5)
+    line=$(python3 - "$path" "$recorded" $one $five <<'PY'
+import sys
+path, recorded, one, samples, five, _ = sys.argv[1], float(sys.argv[2]), *map(int, sys.argv[3:])
+per, limit = (five - one) / 4 / samples, recorded * 1.2
+verdict = "ok" if per <= limit else "FAIL"
+print(f"{verdict} instructions per plane sample, {path} path: {per:.1f} ({(five - one) // 4} per render, "
+      f"{samples} plane samples); recorded {recorded}, limit {limit:.1f}: {verdict}")
+PY
+)
+    echo "${line#* }"
+    [ "${line%% *}" = ok ] || status=1
 done <"$BUDGET"
 exit $status
