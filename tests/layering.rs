@@ -411,3 +411,76 @@ fn full_size_depth(w: usize, h: usize) -> Vec<f32> {
         })
         .collect()
 }
+
+/// Image1 (H x W x 3) sampled bilinearly at (x, y) inside the frame.
+fn bilinear_rgb(rgb: &[f32], w: usize, x: f64, y: f64) -> [f64; 3] {
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+    let at = |xx: usize, yy: usize, c: usize| rgb[3 * (yy * w + xx) + c] as f64;
+    std::array::from_fn(|c| {
+        let top = at(x0, y0, c) * (1.0 - fx) + at(x0 + 1, y0, c) * fx;
+        let bottom = at(x0, y0 + 1, c) * (1.0 - fx) + at(x0 + 1, y0 + 1, c) * fx;
+        top * (1.0 - fy) + bottom * fy
+    })
+}
+
+/// The errors of a render of a tilted plane against its closed form: the largest forward-flow
+/// error over valid pixels (px) and the mean image2 error (0..1) over the target pixels whose
+/// source point lies inside the photo, one pixel from its border.
+fn tilted_plane_errors(layering: Layering, planes: usize) -> (f64, f64) {
+    use glam::{DMat3, DVec3};
+    let (w, h) = (96, 72);
+    let k = Intrinsics::reference_default(w, h);
+    // disparity affine in the pixel coordinates, d = d0 + dx x + dy y: the 3-D plane n . X = 1
+    let (d0, dx, dy) = (0.3, 0.1 / (w - 1) as f64, 0.5 / (h - 1) as f64);
+    let depth: Vec<f32> = (0..w * h).map(|p| (1.0 / (d0 + dx * (p % w) as f64 + dy * (p / w) as f64)) as f32).collect();
+    let n = DVec3::new(dx * k.fx, dy * k.fy, d0 + dx * k.cx + dy * k.cy);
+    let pose = Pose::from_axis_angle([0.01, -0.02, 0.005], [0.06, -0.03, -0.05]);
+    let t = pose.translation;
+    let homography = k.matrix() * (pose.rotation + DMat3::from_cols(t * n.x, t * n.y, t * n.z)) * k.inverse_matrix();
+    let inverse = homography.inverse();
+    let project = |m: &DMat3, x: f64, y: f64| {
+        let v = *m * DVec3::new(x, y, 1.0);
+        (v.x / v.z, v.y / v.z)
+    };
+    let rgb = texture(w, h);
+    let mpi = build_mpi_for_camera(&rgb, &depth, w, h, &opts(planes, layering), &k).unwrap();
+    check_structure(&mpi);
+    let out = render_with(&mpi, pose);
+    let mut flow_err: f64 = 0.0;
+    for p in (0..w * h).filter(|&p| out.valid[p] != 0) {
+        let (x, y) = ((p % w) as f64, (p / w) as f64);
+        let (qx, qy) = project(&homography, x, y);
+        let (fu, fv) = (out.flow[2 * p] as f64, out.flow[2 * p + 1] as f64);
+        flow_err = flow_err.max((x + fu - qx).hypot(y + fv - qy));
+    }
+    let (mut sum, mut count) = (0.0, 0usize);
+    for q in 0..w * h {
+        let (sx, sy) = project(&inverse, (q % w) as f64, (q / w) as f64);
+        if !(sx >= 1.0 && sx <= (w - 2) as f64 && sy >= 1.0 && sy <= (h - 2) as f64) || out.coverage[q] < 0.999 {
+            continue;
+        }
+        let want = bilinear_rgb(&rgb, w, sx, sy);
+        sum += (0..3).map(|c| (out.image[3 * q + c] as f64 - want[c]).abs()).sum::<f64>() / 3.0;
+        count += 1;
+    }
+    assert!(count > w * h / 2, "{count} target pixels see the plane's interior");
+    (flow_err, sum / count as f64)
+}
+
+#[test]
+fn true_depth_layers_move_every_pixel_by_its_own_depth() {
+    let (flow_td, image_td) = tilted_plane_errors(Layering::TrueDepth, 8);
+    let (flow_soft, image_soft) = tilted_plane_errors(Layering::Soft, 8);
+    println!("tilted plane, 8 planes: flow error {flow_td:.2e} px (soft {flow_soft:.2e}), image2 error {image_td:.2e} (soft {image_soft:.2e})");
+    // the flow of a true-depth texel is its pixel's own (f32 rounding); a soft pixel's is the
+    // mean of its two planes' flows
+    assert!(flow_td < 1e-4, "true-depth flow error {flow_td} px");
+    assert!(flow_soft > 10.0 * flow_td, "soft flow error {flow_soft} px vs true-depth {flow_td}");
+    // image2 shows image1 where the plane's exact inverse puts it; a soft pixel's two copies part
+    assert!(image_td < 1e-4, "true-depth image2 error {image_td}");
+    assert!(image_soft > 100.0 * image_td, "soft image2 error {image_soft} vs true-depth {image_td}");
+    // the plane count does not change a true-depth render's geometry
+    let (flow_32, image_32) = tilted_plane_errors(Layering::TrueDepth, 32);
+    assert!(flow_32 < 1e-4 && image_32 < 1e-4, "32 planes: flow {flow_32}, image {image_32}");
+}

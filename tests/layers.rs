@@ -40,7 +40,8 @@ const ROOMS: &[(&str, &[&[&str]])] = &[
     (
         "render/exact",
         &[
-            &["plane", "source_lanes"],
+            &["plane"],
+            &["source_lanes"],
             &["activity", "geometry", "sampler", "source"],
             &["kernel", "lanes"],
             &["target_band"],

@@ -4,6 +4,7 @@
 //! broadcast mask U; a broadcast channel is the same as per-plane extras holding the mask on
 //! every plane, and the same inside a rectangle when it is needed only there, whatever the
 //! colour kernel; no NaN or Inf leaves a window, whatever the pose; bad requests are errors.
+//! Each law holds for true-depth MPIs too (texels at their own disparity, `Mpi::surface`).
 
 use mpiflow::geometry::{Intrinsics, Pose};
 use mpiflow::mpi::Mpi;
@@ -46,6 +47,21 @@ fn random_mpi(w: usize, h: usize, planes: usize, seed: u64, far_zero: bool) -> M
     }
     m.extras.iter_mut().for_each(|v| *v = r.unit_f32());
     m
+}
+
+/// Gives `mpi` a true-depth surface ([`Mpi::surface`]): a random slope in disparity with a
+/// step (a depth edge), over the planes' range and beyond it on both sides (so the slabs clamp).
+fn with_surface(mpi: &mut Mpi, seed: u64) {
+    let mut r = Stream(seed ^ 0x5eed);
+    let (a, b, c) = (r.unit_f32(), r.unit_f32(), r.unit_f32());
+    let (w, h) = (mpi.width, mpi.height);
+    let disparity = (0..w * h)
+        .map(|p| {
+            let (x, y) = ((p % w) as f32 / w as f32, (p / w) as f32 / h as f32);
+            0.05 + 0.5 * (a * x + b * y) + if x > c { 0.3 } else { 0.0 }
+        })
+        .collect();
+    mpi.surface = Some(std::sync::Arc::new(mpiflow::mpi::Surface { disparity }));
 }
 
 /// A soft disc of radius `rad` at (`cx`, `cy`), 0 outside: a mask with an exact-zero region.
@@ -151,8 +167,12 @@ proptest! {
         corners in prop::array::uniform4(0.0f64..1.0),
         skip_on in any::<bool>(),
         centre in prop::array::uniform2(0.0f32..1.0),
+        true_depth in any::<bool>(),
     ) {
-        let mpi = random_mpi(W, H, planes, seed, seed.is_multiple_of(3));
+        let mut mpi = random_mpi(W, H, planes, seed, seed.is_multiple_of(3));
+        if true_depth {
+            with_surface(&mut mpi, seed);
+        }
         let skip = if skip_on { Skip::DEFAULT } else { Skip::NONE };
         let p = params(&mpi, pose, skip);
         let win = window(W, H, corners);
@@ -202,8 +222,12 @@ proptest! {
         skip_on in any::<bool>(),
         link in any::<bool>(),
         centre in prop::array::uniform2(0.0f32..1.0),
+        true_depth in any::<bool>(),
     ) {
-        let mpi = random_mpi(W, H, planes, seed, seed.is_multiple_of(3));
+        let mut mpi = random_mpi(W, H, planes, seed, seed.is_multiple_of(3));
+        if true_depth {
+            with_surface(&mut mpi, seed);
+        }
         let skip = if skip_on { Skip::DEFAULT } else { Skip::NONE };
         let mut p = params(&mpi, Pose::from_axis_angle(r, t), skip);
         if link {
@@ -241,8 +265,12 @@ proptest! {
         broadcast in any::<bool>(),
         centre in prop::array::uniform2(0.0f32..1.0),
         packed in any::<bool>(),
+        true_depth in any::<bool>(),
     ) {
         let mut mpi = random_mpi(W, H, planes, seed, seed.is_multiple_of(3));
+        if true_depth {
+            with_surface(&mut mpi, seed);
+        }
         mpi.extras.clear();
         mpi.extra_channels = 0;
         let skip = if skip_on { Skip::DEFAULT } else { Skip::NONE };

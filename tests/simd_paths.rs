@@ -61,7 +61,13 @@ fn every_vector_path_makes_the_baselines_bytes() {
     let stage = Arc::new(ModelConfig::default().build_stage().unwrap());
     let source = open_source(&SourceSpec::Builtin, &open).unwrap();
     let config = SampleConfig { occlusion: true, ..SampleConfig::default() };
-    let pipeline = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), config).unwrap();
+    let pipeline = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), config.clone()).unwrap();
+    // the same with true-depth layers (each texel at its own disparity)
+    let models = ModelConfig { layering: mpiflow::mpi::layering::Layering::TrueDepth, ..ModelConfig::default() };
+    let source = open_source(&SourceSpec::Builtin, &open).unwrap();
+    let true_depth =
+        Pipeline::new(source, Arc::new(models.build_stage().unwrap()), Arc::new(SceneCache::new(1 << 30)), config)
+            .unwrap();
     let kernels = [Resample::Bilinear, Resample::Bspline3, Resample::Bicubic];
     let mut baseline: Option<(Vec<Vec<u8>>, Vec<u8>)> = None;
     for &isa in &paths {
@@ -69,7 +75,8 @@ fn every_vector_path_makes_the_baselines_bytes() {
         assert_eq!(isa::current(), isa);
         let renders: Vec<Vec<u8>> =
             kernels.iter().flat_map(|&k| [render_bytes(k, Mode::Exact), render_bytes(k, Mode::Reference)]).collect();
-        let samples = sample_bytes(&pipeline);
+        let mut samples = sample_bytes(&pipeline);
+        samples.extend(sample_bytes(&true_depth));
         match &baseline {
             None => baseline = Some((renders, samples)),
             Some((r0, s0)) => {

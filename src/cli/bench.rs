@@ -110,6 +110,10 @@ pub struct SampleBench {
     /// Where the planes go: content or uniform (default: the scene models' default).
     #[arg(long, value_name = "KIND")]
     placement: Option<mpiflow::mpi::layering::Placement>,
+    /// Layering of the built-in MPI: soft, hard or true-depth (default: the scene models'
+    /// default).
+    #[arg(long, value_name = "KIND")]
+    layering: Option<mpiflow::mpi::layering::Layering>,
     /// Complete the background behind the object and depth edges (default: the scene models'
     /// default, off).
     #[arg(long, value_name = "BOOL", num_args = 0..=1, default_missing_value = "true")]
@@ -598,6 +602,7 @@ fn sample(b: SampleBench) -> Result<(), CliError> {
     let models = mpiflow::scene::models::ModelConfig {
         planes: b.planes.unwrap_or(d.planes),
         placement: b.placement.unwrap_or(d.placement),
+        layering: b.layering.unwrap_or(d.layering),
         backdrop: b.backdrop.unwrap_or(d.backdrop),
         ..d
     };

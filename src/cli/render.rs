@@ -16,6 +16,7 @@ use std::path::{Path, PathBuf};
 pub enum LayeringArg {
     Hard,
     Soft,
+    TrueDepth,
 }
 
 #[derive(Args, Debug)]
@@ -110,6 +111,7 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
             let layering = match a.layering {
                 LayeringArg::Hard => Layering::Hard,
                 LayeringArg::Soft => Layering::Soft,
+                LayeringArg::TrueDepth => Layering::TrueDepth,
             };
             let d = mpiflow::scene::models::ModelConfig::default().layering_options();
             let opts = LayeringOptions {

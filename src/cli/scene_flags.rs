@@ -24,7 +24,8 @@ pub struct SceneFlags {
     #[arg(long, value_name = "N")]
     pub planes: Option<usize>,
     /// Layering of the built-in MPI: soft (the default: each pixel split between the two planes
-    /// around its depth) or hard (each pixel on its nearest plane; docs/quality.md).
+    /// around its depth), hard (each pixel on its nearest plane) or true-depth (soft, every
+    /// texel at the pixel's own depth; docs/quality.md).
     #[arg(long, value_name = "KIND")]
     pub layering: Option<Layering>,
     /// Where the built-in layering puts its planes in disparity: uniform (the default) or content

@@ -30,6 +30,9 @@
 //!      with the far plane opaque (`a_{k+1} = 1`) this is `w_{k+1} = 1 - a_k`, so the per-plane
 //!      alphas that produce the split are simply `a_k = t`, `a_{k+1} = 1`. Both planes carry the
 //!      pixel's colour, so the composite `t c + (1 - t) c = c` reproduces it for any `t`.
+//!    - [`Layering::TrueDepth`]: as `Soft`, and the MPI keeps every pixel's disparity
+//!      ([`super::Surface`]) so that the renderer puts both of the pixel's texels at it: they
+//!      move as one under any motion instead of parting by the parallax of the plane spacing.
 //!
 //!    Every plane in front of a pixel's planes has alpha exactly 0 there, and the farthest plane
 //!    is opaque everywhere.
@@ -117,6 +120,10 @@ pub enum Layering {
     /// Each pixel is split between the two neighbouring planes, linearly in disparity.
     #[default]
     Soft,
+    /// As `Soft`, and every texel keeps the pixel's own disparity ([`super::Surface`]): the
+    /// renderer follows it within the plane's slab, so a split pixel's two copies move as one and
+    /// the flow is the pixel's own (docs/quality.md, "True-depth layers").
+    TrueDepth,
 }
 
 impl std::fmt::Display for Layering {
@@ -124,6 +131,7 @@ impl std::fmt::Display for Layering {
         f.write_str(match self {
             Layering::Hard => "hard",
             Layering::Soft => "soft",
+            Layering::TrueDepth => "true-depth",
         })
     }
 }
@@ -134,7 +142,8 @@ impl std::str::FromStr for Layering {
         match s {
             "hard" => Ok(Layering::Hard),
             "soft" => Ok(Layering::Soft),
-            _ => Err(format!("unknown layering `{s}` (expected hard or soft)")),
+            "true-depth" => Ok(Layering::TrueDepth),
+            _ => Err(format!("unknown layering `{s}` (expected hard, soft or true-depth)")),
         }
     }
 }
@@ -393,8 +402,8 @@ fn assign(d: f64, disp: &[f64], layering: Layering) -> Slot {
     match layering {
         Layering::Hard if t >= 0.5 => whole(k),
         Layering::Hard => whole(k + 1),
-        Layering::Soft if t >= 1.0 => whole(k),
-        Layering::Soft => Slot { near: k as u8, far: (k + 1) as u8, a_near: t as f32 },
+        Layering::Soft | Layering::TrueDepth if t >= 1.0 => whole(k),
+        Layering::Soft | Layering::TrueDepth => Slot { near: k as u8, far: (k + 1) as u8, a_near: t as f32 },
     }
 }
 
@@ -430,6 +439,8 @@ fn build(
     });
     let hidden = back.as_ref().map_or_else(Vec::new, |b| hidden_planes(b, &disp, &planes));
     let back_rgb: &[f32] = back.as_ref().map_or(&[], |b| &b.rgb);
+    let surface = (opts.layering == Layering::TrueDepth)
+        .then(|| std::sync::Arc::new(super::Surface { disparity: disp.iter().map(|&d| d as f32).collect() }));
     drop(disp);
     let seam = if opts.layering == Layering::Hard { seams(&slots, width, height) } else { Vec::new() };
 
@@ -443,6 +454,7 @@ fn build(
 
     // every value of the planes is written below (colour by `fill_plane`, density by the loop)
     let mut mpi = Mpi::to_write(width, height, planes);
+    mpi.surface = surface;
     let plane_len = len * 4;
     // 6. colours of plane i: own colour where alpha > 0, background fill elsewhere; densities
     let ctx = PlaneCtx { rgb, w: width, h: height, lim: &lim, hidden: &hidden, back: back_rgb };

@@ -78,6 +78,30 @@ pub struct Mpi {
     /// (`render::mip`); None until a scene is prepared for it. Like [`Self::bspline_rgb`], they
     /// describe `rgba` as it was when they were computed.
     pub mip: Option<std::sync::Arc<MipLevels>>,
+    /// The true-depth surface ([`Surface`]): every texel's own disparity, for layers whose
+    /// texels keep their depth ([`layering::Layering::TrueDepth`]); None: every texel lies on
+    /// its plane.
+    pub surface: Option<std::sync::Arc<Surface>>,
+}
+
+/// The disparity of the photo's surface at every pixel (H x W, row-major, finite and >= 0) that
+/// the texels of a true-depth MPI follow: the texel of plane `i` at pixel `p` lies at disparity
+/// `disp_i + clamp(s(p) - disp_i, lo_i, hi_i)`, `[lo_i, hi_i]` its slab ([`Surface::slab`]: from
+/// the plane behind to the plane in front), so a pixel split between two planes keeps one
+/// depth on both and its two copies move as one.
+#[derive(Clone, Debug)]
+pub struct Surface {
+    pub disparity: Vec<f32>,
+}
+
+impl Surface {
+    /// The slab `[lo, hi]` of plane `i`'s offsets (`lo <= 0 <= hi`): down to the plane behind,
+    /// up to the plane in front (0 beyond the farthest and the nearest plane).
+    pub fn slab(disparity: &[f64], i: usize) -> (f64, f64) {
+        let lo = disparity.get(i + 1).map_or(0.0, |&b| b - disparity[i]);
+        let hi = if i == 0 { 0.0 } else { disparity[i - 1] - disparity[i] };
+        (lo, hi)
+    }
 }
 
 /// One prefiltered level of a plane ([`MipLevels`]): colour (interleaved RGB) and density,
@@ -134,6 +158,7 @@ impl Mpi {
             pose: None,
             bspline_rgb: None,
             mip: None,
+            surface: None,
         }
     }
 
@@ -179,6 +204,7 @@ impl Mpi {
             pose: self.pose,
             bspline_rgb: self.bspline_rgb.clone(),
             mip: self.mip.clone(),
+            surface: self.surface.clone(),
         }
     }
 
@@ -220,6 +246,7 @@ impl Mpi {
         (self.rgba.len() + self.extras.len() + self.mip.as_ref().map_or(0, |m| m.len())) * 4
             + self.rgba_blocks.as_ref().map_or(0, |b| b.byte_size())
             + self.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.byte_size())
+            + self.surface.as_ref().map_or(0, |s| s.disparity.len() * 4)
     }
 
     /// Structural checks: sizes agree, at least one plane, disparities finite, >= 0 and
@@ -247,6 +274,11 @@ impl Mpi {
             })
         {
             return Err(MpiError::Invalid("MPI plane data does not match its size".into()));
+        }
+        if let Some(s) = &self.surface {
+            if s.disparity.len() != self.plane_len() || s.disparity.iter().any(|d| !(d.is_finite() && *d >= 0.0)) {
+                return Err(MpiError::Invalid("MPI surface must hold one finite disparity >= 0 per pixel".into()));
+            }
         }
         for (i, &d) in self.disparity.iter().enumerate() {
             if !d.is_finite() || d < 0.0 {

@@ -93,6 +93,17 @@ impl<T: Real> Tap<T> {
         top + self.wy * (bot - top)
     }
 
+    /// Samples a single-channel plane through `f` (each of the four pixels' values mapped by
+    /// `f` before the arithmetic of [`Self::sample1`]).
+    #[inline(always)]
+    pub(crate) fn sample_map(&self, plane: &[f32], f: impl Fn(T) -> T) -> T {
+        let [i00, i10, i01, i11] = self.corners();
+        let at = |i: usize| f(T::of32(plane[i]));
+        let top = at(i00) + self.wx * (at(i10) - at(i00));
+        let bot = at(i01) + self.wx * (at(i11) - at(i01));
+        top + self.wy * (bot - top)
+    }
+
     /// Samples `c` interleaved channels into `out`.
     #[inline(always)]
     pub(crate) fn sample_c(&self, plane: &[f32], c: usize, out: &mut [T]) {

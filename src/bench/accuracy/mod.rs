@@ -502,6 +502,7 @@ pub fn layering_name(l: Layering) -> &'static str {
     match l {
         Layering::Hard => "hard",
         Layering::Soft => "soft",
+        Layering::TrueDepth => "true-depth",
     }
 }
 

@@ -1,7 +1,7 @@
 //! The target view's per-render constants ([`TargetGeometry`]): what every ray of the view
 //! shares, computed once before the band loop.
 
-use super::plane::PlaneConst;
+use super::plane::{PlaneConst, SurfaceRay};
 use crate::mpi::planes::{plane_depth, DELTA_LAST};
 use crate::mpi::Mpi;
 use crate::render::real::Real;
@@ -27,6 +27,11 @@ pub(super) struct TargetGeometry<T> {
     pub(super) delta_last: T,
     pub(super) ux: Vec<T>,
     pub(super) uy: Vec<T>,
+    /// The target centre in source coordinates (x, y), k = -C_z and the source principal
+    /// point: a true-depth texel's search ([`Self::surface_ray`]).
+    pub(super) centre: [T; 2],
+    pub(super) k: T,
+    pub(super) cs: [T; 2],
 }
 
 impl<T: Real> TargetGeometry<T> {
@@ -39,12 +44,16 @@ impl<T: Real> TargetGeometry<T> {
         let planes: Vec<PlaneConst<T>> = mpi
             .disparity
             .iter()
-            .map(|&disp| PlaneConst {
+            .enumerate()
+            .map(|(i, &disp)| (crate::mpi::Surface::slab(&mpi.disparity, i), disp))
+            .map(|((lo, hi), disp)| PlaneConst {
                 a: T::of(1.0 + k * disp),
                 depth: T::of(plane_depth(disp)),
                 disp: T::of(disp),
                 ox: T::of(ks.fx * centre.x * disp + ks.cx),
                 oy: T::of(ks.fy * centre.y * disp + ks.cy),
+                lo: T::of(lo),
+                hi: T::of(hi),
             })
             .collect();
         let r = |i: usize| [T::of(rt.row(i).x), T::of(rt.row(i).y), T::of(rt.row(i).z)];
@@ -63,6 +72,24 @@ impl<T: Real> TargetGeometry<T> {
             delta_last: T::of(DELTA_LAST),
             ux: (win.x0..win.x1).map(|x| T::of((x as f64 - kt.cx) / kt.fx)).collect(),
             uy: (win.y0..win.y1).map(|y| T::of((y as f64 - kt.cy) / kt.fy)).collect(),
+            centre: [T::of(centre.x), T::of(centre.y)],
+            k: T::of(k),
+            cs: [T::of(ks.cx), T::of(ks.cy)],
+        }
+    }
+
+    /// The search of a true-depth texel over `surface` ([`SurfaceRay`]).
+    pub(super) fn surface_ray<'a>(&self, surface: &'a [f32], w: usize, h: usize) -> SurfaceRay<'a, T> {
+        SurfaceRay {
+            surface,
+            fs: [self.fxs, self.fys],
+            cs: self.cs,
+            centre: self.centre,
+            k: self.k,
+            wm: self.wm,
+            hm: self.hm,
+            w,
+            h,
         }
     }
 }

@@ -3,6 +3,7 @@
 //! operations in its order).
 
 use super::geometry::TargetGeometry;
+use super::plane::{cap, PlaneConst, SurfaceRay};
 use super::sampler::{lanes_of, LaneTaps, PlaneSampler};
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::render::real::Real;
@@ -58,7 +59,8 @@ impl TargetLanes {
 
     /// Pixels `o .. o + 4` of the band's buffers `b` (image, depth, coverage, the extra channel
     /// when `ex` is given), the window's columns `at[0] .. at[0] + 4` of its row `at[1]` (`px`),
-    /// the planes of `fwd` (or `rev` when the rays look back): false, with nothing written, when
+    /// the planes of `fwd` (or `rev` when the rays look back), searched for a true-depth MPI's
+    /// texels with `srf` ([`surface4`]): false, with nothing written, when
     /// the four rays do not all meet the planes in the same order (the scalar loop then takes
     /// them). Per plane: the rays' lanes that stop ([`Self::rays`] set them up), the source
     /// pixels and the "leaves the source image" test, the taps and densities
@@ -69,7 +71,7 @@ impl TargetLanes {
         &self,
         sampler: &S,
         ex: Option<&[&[f32]]>,
-        [fwd, rev]: [&[usize]; 2],
+        ([fwd, rev], srf): ([&[usize]; 2], Surfaced<'_, T>),
         px: Quad,
         b: &mut [&mut [f32]; 10],
         stats: &mut RenderStats,
@@ -99,8 +101,14 @@ impl TargetLanes {
             }
             let qx = sp(self.ox[i]) + sp(self.fxs) * rays.v[0] * g;
             let qy = sp(self.oy[i]) + sp(self.fys) * rays.v[1] * g;
+            let lambda = cap4(g * sp(self.depth[i]), sp(DEPTH_MAX as f32));
+            // a true-depth MPI: each lane's texel searched as the scalar loop searches it
+            let (qx, qy, lambda_z, in_front) = match srf {
+                None => (qx, qy, lambda, 0b1111),
+                Some((sr, pls)) => surface4(sr, &pls[i], &rays, [qx, qy], front.to_bitmask() & !done),
+            };
             let inside = qx.simd_ge(lo) & qx.simd_lt(hix) & qy.simd_ge(lo) & qy.simd_lt(hiy);
-            let take = (front & inside).to_bitmask() & !done;
+            let take = (front & inside).to_bitmask() & in_front & !done;
             if take == 0 {
                 continue;
             }
@@ -108,9 +116,8 @@ impl TargetLanes {
             if smp.lt.on == 0 {
                 continue;
             }
-            let lambda = cap4(g * sp(self.depth[i]), sp(DEPTH_MAX as f32));
             let delta = self.gap(i, &rays, lambda);
-            sums.add(sampler, ex, i, &smp, [lambda, delta]);
+            sums.add(sampler, ex, i, &smp, [lambda_z, delta]);
         }
         sums.write(px.o, ex.is_some(), b);
         true
@@ -290,6 +297,39 @@ impl Sums4 {
             }
         }
     }
+}
+
+/// A true-depth MPI's search and the planes' constants ([`TargetLanes::four`]; `None`: texels on
+/// their planes).
+pub(super) type Surfaced<'a, T> = Option<(&'a SurfaceRay<'a, T>, &'a [PlaneConst<T>])>;
+
+/// The texels of a true-depth MPI's plane `pl` that the lanes of `lanes` meet, from the plane's
+/// points `q`, by [`SurfaceRay::search`] lane by lane (the scalar loop's function, so its
+/// bits): the points, their depths along the rays (the depth sums' `lambda`) and the lanes whose
+/// texel is in front of the camera (bit k: lane k; the other lanes keep `q` and are not taken).
+#[inline(always)]
+fn surface4<T: Real>(
+    sr: &SurfaceRay<'_, T>,
+    pl: &PlaneConst<T>,
+    rays: &Rays4,
+    q: [f32x4; 2],
+    lanes: u32,
+) -> (f32x4, f32x4, f32x4, u32) {
+    let [mut qx, mut qy] = q.map(f32x4::to_array);
+    let [v0, v1] = rays.v.map(f32x4::to_array);
+    let inv_s = rays.inv_s.to_array();
+    let mut lambda = [0.0f32; 4];
+    let mut in_front = 0u32;
+    for k in lanes_of(lanes) {
+        let of = T::of32;
+        let ([x, y], _, depth, g) = sr.search(pl, [of(v0[k]), of(v1[k])], of(inv_s[k]), (of(qx[k]), of(qy[k])));
+        (qx[k], qy[k]) = (x.f32(), y.f32());
+        if g > T::zero() {
+            in_front |= 1 << k;
+            lambda[k] = cap(g * depth, DEPTH_MAX).f32();
+        }
+    }
+    (f32x4::from(qx), f32x4::from(qy), f32x4::from(lambda), in_front)
 }
 
 /// `v`, at most `max` (lane by lane, the scalar loop's `cap`).

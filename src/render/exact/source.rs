@@ -2,7 +2,7 @@
 //! ([`source_view`]), band by band on the dispatched instruction set ([`SourceBandJob`]).
 
 use super::plane::{cap, TILE};
-use super::source_lanes::SourceLanes;
+use super::source_lanes::{texel_disparity, SourceLanes};
 use crate::mpi::planes::{plane_depth, plane_gaps, DEPTH_MAX};
 use crate::mpi::Mpi;
 use crate::render::band::{for_each_band, mark_valid};
@@ -45,6 +45,12 @@ pub(in crate::render) fn source_view<T: Real>(
     let want_sd = !src_depth.is_empty();
     // four pixels at a time where T is f32 (the same bits); with `flow_where`, lanes that are
     // not asked for are computed but not written, and groups with none asked for are skipped
+    // a true-depth surface: each texel at its own disparity within its plane's slab
+    let surface = mpi.surface.as_deref().map(|s| s.disparity.as_slice());
+    let slab: Vec<(T, T)> = (0..mpi.planes())
+        .map(|i| crate::mpi::Surface::slab(&mpi.disparity, i))
+        .map(|(lo, hi)| (T::of(lo), T::of(hi)))
+        .collect();
     let lanes = T::LANES.then(|| SourceLanes {
         m: std::array::from_fn(|r| [m.row(r).x as f32, m.row(r).y as f32, m.row(r).z as f32]),
         b: [bt.x as f32, bt.y as f32, bt.z as f32],
@@ -58,6 +64,9 @@ pub(in crate::render) fn source_view<T: Real>(
         ux: (0..w).map(|x| ((x as f64 - ks.cx) / ks.fx) as f32).collect(),
         uy: (0..h).map(|y| ((y as f64 - ks.cy) / ks.fy) as f32).collect(),
         want_sd,
+        surface,
+        slab: slab.iter().map(|&(lo, hi)| (lo.f32(), hi.f32())).collect(),
+        w,
     });
     let band = SourceBand {
         win,
@@ -68,6 +77,8 @@ pub(in crate::render) fn source_view<T: Real>(
         b_t,
         disp: &disp,
         depth_t: &depth_t,
+        surface,
+        slab: &slab,
         gap: &gap,
         t_eps,
         rgba: &rgba,
@@ -96,6 +107,8 @@ struct SourceBand<'a, T> {
     b_t: [T; 3],
     disp: &'a [T],
     depth_t: &'a [T],
+    surface: Option<&'a [f32]>,
+    slab: &'a [(T, T)],
     gap: &'a [T],
     t_eps: T,
     rgba: &'a Rgba<'a>,
@@ -126,8 +139,24 @@ impl<T: Real> SourceBand<'_, T> {
     /// path's vector width, [`crate::isa`]), then four.
     #[inline(always)]
     fn band<const L: usize>(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 4]) {
-        let SourceBand { win, occ, flow_where, lanes, m_t, b_t, disp, depth_t, gap, t_eps, rgba, ks, w, want_sd } =
-            *self;
+        let SourceBand {
+            win,
+            occ,
+            flow_where,
+            lanes,
+            m_t,
+            b_t,
+            disp,
+            depth_t,
+            surface,
+            slab,
+            gap,
+            t_eps,
+            rgba,
+            ks,
+            w,
+            want_sd,
+        } = *self;
         let n = disp.len();
         let ww = win.width();
         let z_min = T::of(1e-9);
@@ -193,17 +222,22 @@ impl<T: Real> SourceBand<'_, T> {
                         let wgt = tr * (T::one() - e);
                         tr *= e;
                         sall += wgt;
+                        // the texel's own disparity and depth (the plane's without a surface)
+                        let (di, zi) = match surface {
+                            None => (disp[i], depth_t[i]),
+                            Some(srf) => texel_disparity(srf, yy * w + x, disp[i], slab[i]),
+                        };
                         if want_sd {
-                            sd += wgt * depth_t[i];
+                            sd += wgt * zi;
                         }
-                        let hz = a[2] + b_t[2] * disp[i];
+                        let hz = a[2] + b_t[2] * di;
                         if hz > z_min * (a[2].abs() + T::one()) {
-                            let hx = a[0] + b_t[0] * disp[i];
-                            let hy = a[1] + b_t[1] * disp[i];
+                            let hx = a[0] + b_t[0] * di;
+                            let hy = a[1] + b_t[1] * di;
                             fu += wgt * (hx / hz - xf);
                             fv += wgt * (hy / hz - y);
                             sw += wgt;
-                            sz += wgt * cap(hz * depth_t[i], DEPTH_MAX);
+                            sz += wgt * cap(hz * zi, DEPTH_MAX);
                         }
                     }
                     let o = ry * ww + (x - win.x0);

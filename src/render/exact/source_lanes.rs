@@ -1,6 +1,7 @@
 //! The source view's lane loops ([`SourceLanes`]): four pixels at a time in `f32x4`, or the
 //! path's 8 or 16 in plain arrays, each the scalar loop's operations in its order.
 
+use super::plane::slab_offset;
 use crate::mpi::planes::DEPTH_MAX;
 use crate::render::real::Real;
 use crate::render::store::Rgba;
@@ -26,6 +27,39 @@ pub(super) struct SourceLanes<'a> {
     pub(super) ux: Vec<f32>,
     pub(super) uy: Vec<f32>,
     pub(super) want_sd: bool,
+    /// a true-depth MPI's surface ([`crate::mpi::Surface`], H x W) and the planes' slabs: each
+    /// texel at its own disparity ([`texel_disparity`])
+    pub(super) surface: Option<&'a [f32]>,
+    pub(super) slab: Vec<(f32, f32)>,
+    pub(super) w: usize,
+}
+
+/// The disparity and depth of plane `i`'s texel at pixel `p` of a true-depth MPI (`d`: the
+/// plane's; `slab`: its offsets' bounds): `d` plus the texel's [`slab_offset`], and its depth,
+/// capped at [`DEPTH_MAX`]. The scalar loop and the lanes call this one function, so their bits
+/// agree.
+#[inline(always)]
+pub(super) fn texel_disparity<T: Real>(surface: &[f32], p: usize, d: T, (lo, hi): (T, T)) -> (T, T) {
+    let d = d + slab_offset(T::of32(surface[p]), d, lo, hi);
+    let z = if d > T::zero() { (T::one() / d).min(T::of(DEPTH_MAX)) } else { T::of(DEPTH_MAX) };
+    (d, z)
+}
+
+impl SourceLanes<'_> {
+    /// Plane `i`'s disparity and depth at the `L` pixels `x .. x + L` of row `yy`: the plane's,
+    /// or a true-depth MPI's texels' ([`texel_disparity`]).
+    #[inline(always)]
+    fn texels<const L: usize>(&self, i: usize, x: usize, yy: usize) -> ([f32; L], [f32; L]) {
+        let (d, z) = (self.disp[i], self.depth[i]);
+        match self.surface {
+            None => ([d; L], [z; L]),
+            Some(srf) => {
+                let at: [(f32, f32); L] =
+                    std::array::from_fn(|k| texel_disparity(srf, yy * self.w + x + k, d, self.slab[i]));
+                (at.map(|t| t.0), at.map(|t| t.1))
+            }
+        }
+    }
 }
 
 impl SourceLanes<'_> {
@@ -69,10 +103,11 @@ impl SourceLanes<'_> {
             let wgt = tr * (one - e);
             tr = take.select(tr * e, tr);
             sall = take.select(sall + wgt, sall);
+            let (dl, zl) = self.texels::<4>(i, x, yy);
+            let (d, depth) = (f32x4::from(dl), f32x4::from(zl));
             if self.want_sd {
-                sd = take.select(sd + wgt * sp(self.depth[i]), sd);
+                sd = take.select(sd + wgt * depth, sd);
             }
-            let d = sp(self.disp[i]);
             let hz = a[2] + sp(self.b[2]) * d;
             let front = take & hz.simd_gt(z_lim);
             if front.any() {
@@ -81,7 +116,7 @@ impl SourceLanes<'_> {
                 fu = front.select(fu + wgt * (hx / hz - xf), fu);
                 fv = front.select(fv + wgt * (hy / hz - sp(y)), fv);
                 sw = front.select(sw + wgt, sw);
-                let z = hz * sp(self.depth[i]);
+                let z = hz * depth;
                 let z = z.simd_gt(depth_max).select(depth_max, z);
                 sz = front.select(sz + wgt * z, sz);
             }
@@ -162,23 +197,24 @@ impl SourceLanes<'_> {
             if !take.iter().any(|&t| t) {
                 continue;
             }
-            let (gap, depth, d) = (self.gap[i], self.depth[i], self.disp[i]);
+            let gap = self.gap[i];
+            let (d, depth) = self.texels::<L>(i, x, yy);
             let e: [f32; L] = from_fn(|k| f32::exp_neg(sigma[k] * gap * norm_u[k]));
             let wgt: [f32; L] = from_fn(|k| tr[k] * (1.0 - e[k]));
             tr = from_fn(|k| sel(take[k], tr[k] * e[k], tr[k]));
             sall = from_fn(|k| sel(take[k], sall[k] + wgt[k], sall[k]));
             if self.want_sd {
-                sd = from_fn(|k| sel(take[k], sd[k] + wgt[k] * depth, sd[k]));
+                sd = from_fn(|k| sel(take[k], sd[k] + wgt[k] * depth[k], sd[k]));
             }
-            let hz: [f32; L] = from_fn(|k| a[2][k] + self.b[2] * d);
+            let hz: [f32; L] = from_fn(|k| a[2][k] + self.b[2] * d[k]);
             let front: [bool; L] = from_fn(|k| take[k] & (hz[k] > z_lim[k]));
             if front.iter().any(|&f| f) {
-                let (bx, by) = (self.b[0] * d, self.b[1] * d);
-                fu = from_fn(|k| sel(front[k], fu[k] + wgt[k] * ((a[0][k] + bx) / hz[k] - xf[k]), fu[k]));
-                fv = from_fn(|k| sel(front[k], fv[k] + wgt[k] * ((a[1][k] + by) / hz[k] - y), fv[k]));
+                let (bx, by): ([f32; L], [f32; L]) = (from_fn(|k| self.b[0] * d[k]), from_fn(|k| self.b[1] * d[k]));
+                fu = from_fn(|k| sel(front[k], fu[k] + wgt[k] * ((a[0][k] + bx[k]) / hz[k] - xf[k]), fu[k]));
+                fv = from_fn(|k| sel(front[k], fv[k] + wgt[k] * ((a[1][k] + by[k]) / hz[k] - y), fv[k]));
                 sw = from_fn(|k| sel(front[k], sw[k] + wgt[k], sw[k]));
                 sz = from_fn(|k| {
-                    let z = hz[k] * depth;
+                    let z = hz[k] * depth[k];
                     let z = if z > depth_max { depth_max } else { z };
                     sel(front[k], sz[k] + wgt[k] * z, sz[k])
                 });

@@ -163,6 +163,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
     let geo = TargetGeometry::new(mpi, p, win);
     let g = &geo;
     // four pixels at a time where T is f32, without links and with at most one extra channel
+    let surface = mpi.surface.as_deref().map(|s| geo.surface_ray(&s.disparity, w, h));
     let lanes = (T::LANES && NL == 0 && c <= 1).then(|| TargetLanes::new(g, w, h));
     let band = TargetBand::<T, S, NL> {
         geo: &geo,
@@ -172,6 +173,7 @@ fn target_view_with<T: Real, S: PlaneSampler<T>, const NL: usize>(
         consts,
         lanes: lanes.as_ref(),
         ex_planes: &ex_planes,
+        surface,
         ex_rect,
         c,
         w,

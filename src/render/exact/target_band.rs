@@ -7,7 +7,7 @@
 use super::activity::tile_activity;
 use super::geometry::TargetGeometry;
 use super::lanes::Quad;
-use super::plane::{cap, PlaneConst, TILE};
+use super::plane::{cap, PlaneConst, SurfaceRay, TILE};
 use super::sampler::PlaneSampler;
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::render::occupancy::Occupancy;
@@ -51,6 +51,9 @@ pub(super) struct TargetBand<'a, T, S, const NL: usize> {
     pub(super) consts: &'a [LinkConst<T>],
     pub(super) lanes: Option<&'a TargetLanes>,
     pub(super) ex_planes: &'a [&'a [f32]],
+    /// the search of a true-depth MPI's texels ([`crate::mpi::Surface`]): each plane's texels
+    /// at their own disparity
+    pub(super) surface: Option<SurfaceRay<'a, T>>,
     /// where the extra channel is needed (`None`: everywhere); tiles that do not meet it leave 0
     pub(super) ex_rect: Option<[usize; 4]>,
     /// extra channels per pixel
@@ -91,8 +94,8 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
     /// contribute, then per pixel (four at a time in lanes where they can) the plane loop.
     #[inline(always)]
     fn band(&self, y0: usize, rows: usize, b: &mut [&mut [f32]; 10], v4: Option<Token>) -> RenderStats {
-        let TargetBand { geo, sampler, occ, win, consts, lanes, ex_planes, ex_rect, c, w, h } = *self;
-        let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy } = geo;
+        let TargetBand { geo, sampler, occ, win, consts, lanes, ex_planes, surface, ex_rect, c, w, h } = *self;
+        let TargetGeometry { kt, planes, rt_t, fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last, ux, uy, .. } = geo;
         let (fxs, fys, lo, hix, hiy, wm, hm, t_eps, delta_last) =
             (*fxs, *fys, *lo, *hix, *hiy, *wm, *hm, *t_eps, *delta_last);
         let (n, ww) = (planes.len(), win.width());
@@ -113,12 +116,15 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
         let mut acc_ex = vec![T::zero(); c];
         let mut ex = vec![T::zero(); c];
         // sixteen pixels at a time on AVX-512 where the planes are blocks it reads
-        let blocks16 = v4.zip(lanes).and_then(|_| sampler.blocks16());
+        // (not for a true-depth MPI, whose texels the sixteen-lane loop does not search)
+        let blocks16 = v4.zip(lanes).and_then(|_| sampler.blocks16()).filter(|_| surface.is_none());
         for tx0 in (win.x0..win.x1).step_by(TILE) {
             let tx1 = (tx0 + TILE).min(win.x1) - 1;
             let ty1 = fy0 + rows - 1;
             match occ {
-                Some(o) => tile_activity(o, planes, &ray, &source_px, [tx0, fy0, tx1, ty1], &mut active),
+                Some(o) => {
+                    tile_activity(o, planes, &ray, &source_px, surface.as_ref(), [tx0, fy0, tx1, ty1], &mut active);
+                }
                 None => active.iter_mut().for_each(|a| *a = true),
             }
             fwd.clear();
@@ -145,7 +151,8 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                     if let Some(l) = lanes.filter(|_| x + 3 <= tx1) {
                         let o = ry * ww + (x - win.x0);
                         let px = Quad { at: [x - win.x0, y0 + ry], o };
-                        if l.four(sampler, ex_lanes, [&fwd, &rev], px, b, &mut stats) {
+                        let srf = surface.as_ref().map(|sr| (sr, planes.as_slice()));
+                        if l.four(sampler, ex_lanes, ([&fwd, &rev], srf), px, b, &mut stats) {
                             x += 4;
                             continue;
                         }
@@ -176,6 +183,18 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                                 break;
                             }
                             let (qx, qy) = source_px(pl, &v, g);
+                            // a true-depth texel: where the ray meets the surface within the
+                            // plane's slab, by fixed-point steps from the plane's point
+                            let (qx, qy, g_t, disp_t, depth_t) = match &surface {
+                                None => (qx, qy, g, pl.disp, pl.depth),
+                                Some(sr) => {
+                                    let ([qx, qy], d, depth, g_t) = sr.search(pl, [v[0], v[1]], inv_s, (qx, qy));
+                                    (qx, qy, g_t, d, depth)
+                                }
+                            };
+                            if g_t <= T::zero() {
+                                continue; // the texel is behind the target camera
+                            }
                             if !(qx >= lo && qx < hix && qy >= lo && qy < hiy) {
                                 continue; // the ray leaves the source image on this plane
                             }
@@ -203,6 +222,7 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                                 continue;
                             }
                             let lambda = cap(g * pl.depth, DEPTH_MAX);
+                            let lambda_t = if surface.is_some() { cap(g_t * depth_t, DEPTH_MAX) } else { lambda };
                             // the next plane along the ray (in front of the camera whenever this one is)
                             let next = if forward { i + 1 } else { i.wrapping_sub(1) };
                             let delta = match planes.get(next) {
@@ -219,18 +239,18 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
                                 rgb[k] += wgt * smp[k];
                             }
                             sum_w += wgt;
-                            sum_z += wgt * lambda;
+                            sum_z += wgt * lambda_t;
                             for (acc, lc) in lacc.iter_mut().zip(consts) {
                                 let m = &lc.m;
                                 let (qx, qy) = q_raw;
                                 let hz = m[2][0] * qx + m[2][1] * qy + m[2][2];
-                                let hzb = hz + lc.b[2] * pl.disp;
+                                let hzb = hz + lc.b[2] * disp_t;
                                 if hzb > z_min * (hz.abs() + T::one()) {
-                                    let hx = m[0][0] * qx + m[0][1] * qy + m[0][2] + lc.b[0] * pl.disp;
-                                    let hy = m[1][0] * qx + m[1][1] * qy + m[1][2] + lc.b[1] * pl.disp;
+                                    let hx = m[0][0] * qx + m[0][1] * qy + m[0][2] + lc.b[0] * disp_t;
+                                    let hy = m[1][0] * qx + m[1][1] * qy + m[1][2] + lc.b[1] * disp_t;
                                     acc[0] += wgt * (hx / hzb - px);
                                     acc[1] += wgt * (hy / hzb - py);
-                                    acc[2] += wgt * cap(hzb * pl.depth, DEPTH_MAX);
+                                    acc[2] += wgt * cap(hzb * depth_t, DEPTH_MAX);
                                     acc[3] += wgt;
                                 }
                             }
