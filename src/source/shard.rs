@@ -419,6 +419,24 @@ impl ShardSource {
         Ok(buf)
     }
 
+    /// The EXIF orientation of an item's image, from its member's first bytes
+    /// ([`orientation_of_prefix`](crate::io::image::orientation_of_prefix)); `open` keeps the
+    /// shard file last opened.
+    fn image_orientation(&self, open: &mut Option<(usize, File)>, e: &Entry) -> Result<u8, SourceError> {
+        let p = &self.shards[e.shard].path;
+        let io_fail =
+            |err: std::io::Error| SourceError::file(p.display().to_string(), FailureKind::Decode, io_msg(&err));
+        let f = match open {
+            Some((i, f)) if *i == e.shard => f,
+            _ => &mut open.insert((e.shard, File::open(p).map_err(io_fail)?)).1,
+        };
+        let n = e.image.size.min(crate::io::image::ORIENTATION_PREFIX as u64);
+        let mut buf = Vec::with_capacity(n as usize);
+        f.seek(SeekFrom::Start(e.image.offset)).map_err(io_fail)?;
+        f.take(n).read_to_end(&mut buf).map_err(io_fail)?;
+        Ok(crate::io::image::orientation_of_prefix(&buf))
+    }
+
     fn compute_fingerprint(&self) -> Result<u64, SourceError> {
         let mut h = Fnv64::new();
         h.str("mpiflow shard source v1");
@@ -446,6 +464,11 @@ impl ShardSource {
                     let bytes = self.read_member(f, e, m, FailureKind::Decode)?;
                     h.bytes(&bytes);
                 }
+            }
+            // only photos turned upright when decoded: other items keep the fingerprint they had
+            let orientation = self.image_orientation(&mut open, e)?;
+            if orientation != 1 {
+                h.str("orientation").u64(u64::from(orientation));
             }
         }
         self.options.hash_into(&mut h);

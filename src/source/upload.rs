@@ -208,6 +208,11 @@ impl UploadSource {
         for (name, item) in &items {
             h.str(name);
             h.str("image").u64(item.image.bytes.len() as u64).u64(item.image.hash);
+            // only photos turned upright when decoded: other items keep the fingerprint they had
+            let orientation = crate::io::image::orientation_of_prefix(&item.image.bytes);
+            if orientation != 1 {
+                h.str("orientation").u64(u64::from(orientation));
+            }
             if let Some((enc, p)) = &item.depth {
                 h.str(match enc {
                     DepthEncoding::Npy => "depth npy",

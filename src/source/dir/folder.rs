@@ -2,7 +2,8 @@
 //! with its companions.
 
 use super::listing::{
-    companions, frame_of, image_entries, pick, stem_of, Entry, FileRef, ItemFiles, Layout, Listing, MaskFile,
+    companions, frame_of, headers_of, image_entries, pick, stem_of, Entry, FileRef, ItemFiles, Layout, Listing,
+    MaskFile,
 };
 use super::options::SourceOptions;
 use crate::io::image::{load_rgb, RgbImage};
@@ -10,7 +11,7 @@ use crate::mpi::{Mpi, MpiError};
 use crate::raster::{cover, crop, resize_depth, InstanceMasks};
 use crate::source::baked::BakeManifest;
 use crate::source::given::DepthFile;
-use crate::source::given::{file_err, fit, io_err, over_limit};
+use crate::source::given::{check_shape, file_err, fit, io_err, over_limit};
 use crate::source::given::{read_depth, read_depth_npy, read_disparity_png, resize_rgb};
 use crate::source::{Carried, FailureKind, Fnv64, GivenDepth, SkippedItem, Source, SourceError, SourceItem};
 use std::io::Read;
@@ -33,6 +34,9 @@ pub struct DirSource {
     /// folder's photos differ in size or are larger than the working size ([`frame_of`]);
     /// `None` when they are read as they are.
     frame: Option<(usize, usize)>,
+    /// The EXIF orientation of each item's photo (1 where it carries none or cannot be read):
+    /// the photos that carry another are turned upright when loaded.
+    oriented: Vec<u8>,
 }
 
 impl DirSource {
@@ -93,8 +97,11 @@ impl DirSource {
         let mut skipped = listing.skipped;
         skipped.sort_by(|a, b| a.item.cmp(&b.item));
         let baked = if layout == Layout::Reference { BakeManifest::read(path)? } else { None };
-        let frame = if options.resize.is_none() { frame_of(&root, &entries, &options.limits) } else { None };
-        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked, frame };
+        let headers = headers_of(&root, &entries, &options.limits);
+        let frame = if options.resize.is_none() { frame_of(&entries, &headers) } else { None };
+        let oriented = headers.iter().map(|h| h.map_or(1, |h| h.orientation)).collect();
+        let mut src =
+            DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked, frame, oriented };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
     }
@@ -141,8 +148,12 @@ impl DirSource {
             }
             Ok(())
         };
-        for e in &self.entries {
+        for (e, &o) in self.entries.iter().zip(&self.oriented) {
             h.str(&e.id);
+            // only photos turned upright when loaded: a folder without them keeps its fingerprint
+            if o != 1 {
+                h.str("orientation").u64(u64::from(o));
+            }
             file(&mut h, "image", &e.image)?;
             if let Some((_, f)) = &e.depth {
                 file(&mut h, "depth", f)?;
@@ -182,7 +193,7 @@ impl DirSource {
             Some((kind, f)) => {
                 let p = self.root.join(&f.rel);
                 let (w, h, d) = read_depth(&p, *kind, limits)?;
-                Some(GivenDepth::Depth(fit(d, w, h, w0, h0)))
+                Some(GivenDepth::Depth(fit("depth", d, w, h, w0, h0).map_err(|m| file_err(&p, FailureKind::Depth, m))?))
             }
             None => match &e.disparity {
                 Some(f) => {
@@ -192,7 +203,8 @@ impl DirSource {
                     } else {
                         read_disparity_png(&p, limits)?
                     };
-                    Some(GivenDepth::Disparity(fit(d, w, h, w0, h0)))
+                    let d = fit("disparity", d, w, h, w0, h0).map_err(|m| file_err(&p, FailureKind::Depth, m))?;
+                    Some(GivenDepth::Disparity(d))
                 }
                 None => None,
             },
@@ -212,7 +224,13 @@ impl DirSource {
                     }
                 }
                 .map_err(|err| file_err(&p, err.failure_kind(), err))?;
-                Some(if (m.width, m.height) != (w0, h0) { m.resize_nearest(w0, h0) } else { m })
+                if (m.width, m.height) != (w0, h0) {
+                    check_shape("masks", m.width, m.height, w0, h0)
+                        .map_err(|msg| file_err(&p, FailureKind::Mask, msg))?;
+                    Some(m.resize_nearest(w0, h0))
+                } else {
+                    Some(m)
+                }
             }
             None => None,
         };

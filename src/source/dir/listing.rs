@@ -2,7 +2,7 @@
 //! and companion files, and the frame the items are brought to.
 
 use super::options::working_size;
-use crate::io::image::ImageLimits;
+use crate::io::image::{read_header, ImageHeader, ImageLimits};
 use crate::source::given::{io_err, DepthFile};
 use crate::source::{FailureKind, SkippedItem, SourceError};
 use std::collections::HashMap;
@@ -185,23 +185,18 @@ pub(super) fn stem_of(entry: &Entry) -> String {
     lower_ext(name).map(|(s, _)| s).unwrap_or_else(|| name.to_string())
 }
 
-/// The frame every item of a folder is brought to ([`working_size`] of its largest photo: most
-/// pixels; among equals the wider, then the first listed), read from the image headers; items
-/// with a given MPI are left out (they keep their size, as MPIs are never resized). `None` when
-/// every readable photo has one size no larger than the working size (nothing is resized) or
-/// none is readable; a photo whose header cannot be read is left out here and fails when loaded.
-pub(super) fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Option<(usize, usize)> {
-    let mut sizes = entries.iter().filter(|e| e.mpi.is_none()).filter_map(|e| {
-        let p = root.join(&e.image.rel);
-        if e.image.size > limits.max_bytes {
-            return None;
-        }
-        let (w, h) = ::image::ImageReader::open(&p).ok()?.with_guessed_format().ok()?.into_dimensions().ok()?;
-        // a photo over the limits fails when loaded: it does not set the frame
-        let within =
-            w <= limits.max_width && h <= limits.max_height && u64::from(w) * u64::from(h) <= limits.max_pixels;
-        within.then_some((w as usize, h as usize))
-    });
+/// The frame every item of a folder is brought to ([`working_size`] of its largest photo as
+/// displayed: most pixels; among equals the wider, then the first listed), from the image
+/// headers (`headers[i]` of `entries[i]`, `None` where it cannot be read); items with a given MPI
+/// are left out (they keep their size, as MPIs are never resized). `None` when every readable
+/// photo has one size no larger than the working size (nothing is resized) or none is readable;
+/// a photo whose header cannot be read, or that is over the limits, does not set the frame.
+pub(super) fn frame_of(entries: &[Entry], headers: &[Option<ImageHeader>]) -> Option<(usize, usize)> {
+    let mut sizes = entries
+        .iter()
+        .zip(headers)
+        .filter(|(e, _)| e.mpi.is_none())
+        .filter_map(|(_, h)| h.map(|h| (h.width as usize, h.height as usize)));
     let first = sizes.next()?;
     let mut mixed = false;
     let mut best = first;
@@ -213,4 +208,9 @@ pub(super) fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> 
     }
     let frame = working_size(best.0, best.1);
     (mixed || frame != best).then_some(frame)
+}
+
+/// The header of each entry's photo (`None` where it cannot be read or is over the limits).
+pub(super) fn headers_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Vec<Option<ImageHeader>> {
+    entries.iter().map(|e| read_header(&root.join(&e.image.rel), limits).ok()).collect()
 }

@@ -1,0 +1,319 @@
+//! Photos as phones store them: a JPEG kept sideways with an EXIF orientation tag is decoded
+//! upright, and depth given upright (in the orientation of the photo as displayed) lines up with
+//! it in the scene; the tag moves the fingerprint only of the folders (shards, uploads) whose
+//! photos carry one. Depth and masks of another aspect than their photo's are refused naming
+//! both shapes and the likely cause; of the same aspect at another resolution they are resized.
+
+use std::path::{Path, PathBuf};
+
+use image::codecs::jpeg::JpegEncoder;
+use image::{ExtendedColorType, ImageEncoder};
+use mpiflow::io::image::{load_rgb, orientation_of_prefix, read_header, ImageLimits};
+use mpiflow::scene::stage::SceneStage;
+use mpiflow::source::dir::{DirSource, SourceOptions};
+use mpiflow::source::encoded::{decode_item, DepthEncoding, Encoded, EncodedItem};
+use mpiflow::source::given::same_aspect;
+use mpiflow::source::{FailureKind, GivenDepth, Source, SourceError};
+
+/// The photo as displayed: 48 x 32, a bright block in its upper-left part on a dark ground.
+const W: u32 = 48;
+const H: u32 = 32;
+
+fn bright(x: u32, y: u32) -> bool {
+    (4..20).contains(&x) && (4..14).contains(&y)
+}
+
+fn upright() -> image::RgbImage {
+    image::RgbImage::from_fn(
+        W,
+        H,
+        |x, y| if bright(x, y) { image::Rgb([230, 220, 210]) } else { image::Rgb([20, 30, 40]) },
+    )
+}
+
+/// The depth of the photo as displayed (H x W, row-major): near on the block, far elsewhere.
+fn upright_depth() -> Vec<f32> {
+    (0..H * W).map(|i| if bright(i % W, i / W) { 1.0 } else { 4.0 }).collect()
+}
+
+/// An EXIF `APP1` segment (big-endian TIFF, one IFD0 entry) with orientation `o`.
+fn exif_app1(o: u16) -> Vec<u8> {
+    let mut tiff = b"MM\0\x2a\0\0\0\x08".to_vec();
+    tiff.extend_from_slice(&1u16.to_be_bytes()); // one entry
+    tiff.extend_from_slice(&0x0112u16.to_be_bytes()); // Orientation
+    tiff.extend_from_slice(&3u16.to_be_bytes()); // SHORT
+    tiff.extend_from_slice(&1u32.to_be_bytes()); // one value
+    tiff.extend_from_slice(&o.to_be_bytes());
+    tiff.extend_from_slice(&[0, 0]);
+    tiff.extend_from_slice(&0u32.to_be_bytes()); // no next IFD
+    let mut body = b"Exif\0\0".to_vec();
+    body.extend(tiff);
+    let mut seg = vec![0xFF, 0xE1];
+    seg.extend_from_slice(&((body.len() + 2) as u16).to_be_bytes());
+    seg.extend(body);
+    seg
+}
+
+/// A JPEG of `img` with an EXIF segment of orientation `o` right after its start marker (as a
+/// phone writes it), or none.
+fn jpeg(img: &image::RgbImage, o: Option<u16>) -> Vec<u8> {
+    let mut plain = Vec::new();
+    JpegEncoder::new_with_quality(&mut plain, 95)
+        .write_image(img.as_raw(), img.width(), img.height(), ExtendedColorType::Rgb8)
+        .unwrap();
+    let mut out = plain[..2].to_vec();
+    if let Some(o) = o {
+        out.extend(exif_app1(o));
+    }
+    out.extend_from_slice(&plain[2..]);
+    out
+}
+
+/// The photo as a phone stores it for tag `o`: 6 means "turn a quarter clockwise to show", so
+/// the stored pixels are the upright ones turned a quarter anticlockwise; 8 the other way.
+fn stored_for(o: u16) -> image::RgbImage {
+    match o {
+        6 => image::imageops::rotate270(&upright()),
+        8 => image::imageops::rotate90(&upright()),
+        _ => upright(),
+    }
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("orientation-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A reference-layout folder: `images/phone.jpg` (stored for tag `o`) with upright depth.
+fn phone_folder(name: &str, o: Option<u16>, stored_tag: u16) -> PathBuf {
+    let dir = tmp(name);
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::create_dir_all(dir.join("depths")).unwrap();
+    std::fs::write(dir.join("images/phone.jpg"), jpeg(&stored_for(stored_tag), o)).unwrap();
+    mpiflow::io::npy::write_f32(&dir.join("depths/phone.npy"), &[u64::from(H), u64::from(W)], &upright_depth())
+        .unwrap();
+    dir
+}
+
+/// Mean brightness of the image where `near` is true and where it is false.
+fn means(rgb: &[f32], near: &[bool]) -> (f32, f32) {
+    let (mut a, mut na, mut b, mut nb) = (0.0, 0, 0.0, 0);
+    for (i, &n) in near.iter().enumerate() {
+        let v = (rgb[3 * i] + rgb[3 * i + 1] + rgb[3 * i + 2]) / 3.0;
+        if n {
+            a += v;
+            na += 1;
+        } else {
+            b += v;
+            nb += 1;
+        }
+    }
+    (a / na as f32, b / nb as f32)
+}
+
+#[test]
+fn exif_orientation_6_and_8_decode_upright() {
+    for o in [6u16, 8] {
+        let dir = tmp(&format!("decode-{o}"));
+        let p = dir.join("phone.jpg");
+        let bytes = jpeg(&stored_for(o), Some(o));
+        std::fs::write(&p, &bytes).unwrap();
+        assert_eq!(orientation_of_prefix(&bytes), o as u8);
+        let header = read_header(&p, &ImageLimits::default()).unwrap();
+        assert_eq!((header.width, header.height, header.stored_width, header.stored_height), (W, H, H, W));
+        assert_eq!(header.orientation, o as u8);
+        let img = load_rgb(&p, &ImageLimits::default()).unwrap();
+        assert_eq!((img.width, img.height), (W as usize, H as usize), "orientation {o}");
+        // every pixel is where the upright photo has it (JPEG error aside)
+        let want = upright();
+        for y in 0..H {
+            for x in 0..W {
+                let got = img.data[3 * (y * W + x) as usize];
+                let exp = f32::from(want.get_pixel(x, y)[0]) / 255.0;
+                // the block's edges ring a little under JPEG; its inside and the ground do not
+                let edge =
+                    (3..=4).contains(&x) || (19..=20).contains(&x) || (3..=4).contains(&y) || (13..=14).contains(&y);
+                if !edge {
+                    assert!((got - exp).abs() < 0.1, "orientation {o}: ({x}, {y}) is {got}, upright {exp}");
+                }
+            }
+        }
+        // without the tag the same pixels stay as stored: sideways
+        let plain = dir.join("plain.jpg");
+        std::fs::write(&plain, jpeg(&stored_for(o), None)).unwrap();
+        let img = load_rgb(&plain, &ImageLimits::default()).unwrap();
+        assert_eq!((img.width, img.height), (H as usize, W as usize));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
+
+#[test]
+fn a_rotated_phone_jpeg_with_upright_depth_gives_a_scene_whose_depth_edges_follow_the_photo() {
+    for o in [6u16, 8] {
+        let dir = phone_folder(&format!("scene-{o}"), Some(o), o);
+        let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+        let item = src.load(0).unwrap();
+        assert_eq!((item.image.width, item.image.height), (W as usize, H as usize), "orientation {o}");
+        // the depth is the file's own, not stretched: its values are the two levels, in place
+        let Some(GivenDepth::Depth(d)) = &item.depth else { panic!("given depth") };
+        assert_eq!(d, &upright_depth(), "orientation {o}");
+        let scene = SceneStage::builtin().scene(item).unwrap();
+        assert_eq!((scene.disparity.width, scene.disparity.height), (W as usize, H as usize));
+        // the near (high disparity) part of the scene is the bright block of the photo
+        let mid = {
+            let (lo, hi) = scene.disparity.data.iter().fold((f32::MAX, f32::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+            (lo + hi) / 2.0
+        };
+        let near: Vec<bool> = scene.disparity.data.iter().map(|&v| v > mid).collect();
+        let (on_near, on_far) = means(&scene.image.data, &near);
+        assert!(on_near > 0.75 && on_far < 0.25, "orientation {o}: brightness {on_near} near, {on_far} far");
+        // the depth edges are the photo's edges: no pixel of the block is far, none of the ground near
+        for (i, &n) in near.iter().enumerate() {
+            let (x, y) = (i as u32 % W, i as u32 / W);
+            assert_eq!(n, bright(x, y), "orientation {o}: ({x}, {y})");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
+
+#[test]
+fn the_orientation_tag_changes_the_fingerprint_only_of_folders_that_carry_one() {
+    // the same stored pixels and the same file sizes: tag 1 (identity) and tag 6
+    let a = phone_folder("fp-1", Some(1), 6);
+    let b = phone_folder("fp-6", Some(6), 6);
+    let c = phone_folder("fp-1-again", Some(1), 6);
+    let size = |d: &Path| std::fs::metadata(d.join("images/phone.jpg")).unwrap().len();
+    assert_eq!(size(&a), size(&b));
+    let fp = |d: &Path| DirSource::open(d, &SourceOptions::default()).unwrap().fingerprint();
+    assert_ne!(fp(&a), fp(&b), "a photo turned upright when loaded has other bytes: another fingerprint");
+    assert_eq!(fp(&a), fp(&c), "an identity tag changes nothing");
+    for d in [a, b, c] {
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+}
+
+/// A reference-layout folder: `images/p.png` of `W` x `H` (the block photo) and
+/// `depths/p.npy` of `dw` x `dh` (the block's depth scaled to it).
+fn depth_folder(name: &str, dw: usize, dh: usize) -> PathBuf {
+    let dir = tmp(name);
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::create_dir_all(dir.join("depths")).unwrap();
+    upright().save(dir.join("images/p.png")).unwrap();
+    let depth: Vec<f32> = (0..dw * dh)
+        .map(|i| {
+            let (x, y) = ((i % dw) * W as usize / dw, (i / dw) * H as usize / dh);
+            if bright(x as u32, y as u32) {
+                1.0
+            } else {
+                4.0
+            }
+        })
+        .collect();
+    mpiflow::io::npy::write_f32(&dir.join("depths/p.npy"), &[dh as u64, dw as u64], &depth).unwrap();
+    dir
+}
+
+fn load_err(dir: &Path) -> (FailureKind, String) {
+    let src = DirSource::open(dir, &SourceOptions::default()).unwrap();
+    match src.load(0) {
+        Err(SourceError::File { kind, message, path }) => (kind, format!("{path}: {message}")),
+        Err(e) => panic!("another error: {e}"),
+        Ok(_) => panic!("{} loads", dir.display()),
+    }
+}
+
+#[test]
+fn depth_of_another_aspect_is_refused_naming_both_shapes_and_the_cause() {
+    // a square depth for a 3:2 photo: stretched it would cut across the content
+    let (kind, m) = load_err(&depth_folder("aspect-square", 10, 10));
+    assert_eq!(kind, FailureKind::Depth, "{m}");
+    assert!(m.contains("depths/p.npy") && m.contains("depth is 10 x 10") && m.contains("photo is 48 x 32"), "{m}");
+    assert!(m.contains("a crop of the photo, or another photo's file"), "{m}");
+    // a transposed depth: turned a quarter against the photo
+    let (kind, m) = load_err(&depth_folder("aspect-turned", H as usize, W as usize));
+    assert_eq!(kind, FailureKind::Depth, "{m}");
+    assert!(m.contains("depth is 32 x 48") && m.contains("photo is 48 x 32"), "{m}");
+    assert!(m.contains("turned a quarter") && m.contains("orientation"), "{m}");
+    // a cropped depth (a few columns short) is another view too
+    let (_, m) = load_err(&depth_folder("aspect-crop", 44, 32));
+    assert!(m.contains("depth is 44 x 32"), "{m}");
+    // a sideways phone photo without its orientation tag, with upright depth: the same refusal
+    let dir = phone_folder("aspect-untagged", None, 6);
+    let (kind, m) = load_err(&dir);
+    assert_eq!(kind, FailureKind::Depth, "{m}");
+    assert!(m.contains("depth is 48 x 32 but its photo is 32 x 48") && m.contains("turned a quarter"), "{m}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn depth_and_masks_of_the_photos_aspect_at_another_resolution_are_resized() {
+    // half the resolution: resized to the photo, the block's edges where the photo's are
+    let dir = depth_folder("half", 24, 16);
+    let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+    let item = src.load(0).unwrap();
+    let Some(GivenDepth::Depth(d)) = &item.depth else { panic!("given depth") };
+    assert_eq!(d.len(), (W * H) as usize);
+    for (i, &v) in d.iter().enumerate() {
+        let (x, y) = (i as u32 % W, i as u32 / W);
+        assert_eq!(v == 1.0, bright(x, y), "({x}, {y}): {v}");
+    }
+    // a pixel of rounding is not another aspect: 49 x 32 and 25 x 17 are taken and resized
+    assert!(same_aspect(49, 32, 48, 32) && same_aspect(25, 17, 48, 32) && same_aspect(450, 375, 225, 188));
+    assert!(!same_aspect(10, 10, 128, 96) && !same_aspect(96, 128, 128, 96) && !same_aspect(44, 32, 48, 32));
+    let src = DirSource::open(&depth_folder("rounding", 25, 17), &SourceOptions::default()).unwrap();
+    assert!(src.load(0).is_ok());
+
+    // masks: the same rule, by nearest neighbour
+    let dir = depth_folder("masks", 48, 32);
+    std::fs::create_dir_all(dir.join("masks")).unwrap();
+    let ids =
+        |w: u32, h: u32| image::GrayImage::from_fn(w, h, |x, y| image::Luma([u8::from(bright(x * W / w, y * H / h))]));
+    ids(24, 16).save(dir.join("masks/p.png")).unwrap();
+    let item = DirSource::open(&dir, &SourceOptions::default()).unwrap().load(0).unwrap();
+    let m = item.masks.expect("masks");
+    assert_eq!((m.width, m.height, m.masks.len()), (48, 32, 1));
+    ids(32, 48).save(dir.join("masks/p.png")).unwrap();
+    let (kind, msg) = load_err(&dir);
+    assert_eq!(kind, FailureKind::Mask, "{msg}");
+    assert!(msg.contains("masks is 32 x 48 but its photo is 48 x 32") && msg.contains("turned a quarter"), "{msg}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn encoded_items_of_uploads_and_shards_follow_the_same_rules() {
+    let photo = jpeg(&stored_for(6), Some(6));
+    let npy = |w: usize, h: usize| {
+        let dir = tmp(&format!("npy-{w}x{h}"));
+        let p = dir.join("d.npy");
+        mpiflow::io::npy::write_f32(&p, &[h as u64, w as u64], &vec![2.0; w * h]).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        bytes
+    };
+    let item = |depth: &[u8]| {
+        decode_item(
+            EncodedItem {
+                id: "phone".into(),
+                image: Encoded { name: "upload:d/image/phone".into(), bytes: &photo },
+                depth: Some((DepthEncoding::Npy, Encoded { name: "upload:d/depth/phone".into(), bytes: depth })),
+                masks: None,
+                intrinsics: None,
+            },
+            &SourceOptions::default(),
+        )
+    };
+    // upright depth for the sideways-stored, tagged photo: taken as it is
+    let ok = item(&npy(W as usize, H as usize)).unwrap();
+    assert_eq!((ok.image.width, ok.image.height), (W as usize, H as usize));
+    // depth of the stored (sideways) shape: refused, naming both shapes
+    match item(&npy(H as usize, W as usize)) {
+        Err(SourceError::File { kind, message, path }) => {
+            assert_eq!(kind, FailureKind::Depth);
+            assert_eq!(path, "upload:d/depth/phone");
+            assert!(message.contains("depth is 32 x 48 but its photo is 48 x 32"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+}
