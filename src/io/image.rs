@@ -1,4 +1,4 @@
-//! PNG/JPEG decoding and encoding with size limits: photos to f32 RGB in [0, 1] as displayed
+//! PNG/JPEG/WebP decoding and PNG encoding with size limits: photos to f32 RGB in [0, 1] as displayed
 //! (their EXIF orientation applied), 16-bit depth PNGs, image headers (displayed size,
 //! orientation) without decoding, and PNG writers for RGB and grayscale results.
 //!
@@ -144,6 +144,18 @@ fn map_decode_error(path: &Path, e: ::image::ImageError) -> ImageError {
     }
 }
 
+/// The advice for a HEIC/HEIF photo (the iPhone's default): no maintained pure-Rust decoder
+/// reads them, so they are named and left out.
+pub const HEIC_ADVICE: &str = "HEIC: not supported, convert to JPEG (e.g. `heif-convert IMG.HEIC IMG.jpg`, or \
+                               set the phone's camera format to Most Compatible)";
+
+/// Whether a file name has a HEIC/HEIF extension (`.heic`, `.heif`, `.hif`, any case).
+pub fn is_heif(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["heic", "heif", "hif"].iter().any(|x| e.eq_ignore_ascii_case(x)))
+}
+
 /// What an image's header tells before any pixel is decoded.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ImageHeader {
@@ -171,7 +183,7 @@ fn swaps_sides(orientation: ::image::metadata::Orientation) -> bool {
     orientation.to_exif() >= 5
 }
 
-/// Opens a PNG or JPEG stream's decoder, checks its header against `limits` and reads its
+/// Opens a PNG, JPEG or WebP stream's decoder, checks its header against `limits` and reads its
 /// orientation; with `decode`, decodes its pixels too (as stored: the caller orients them).
 fn open_reader<R: BufRead + Seek>(
     reader: R,
@@ -183,17 +195,20 @@ fn open_reader<R: BufRead + Seek>(
         .with_guessed_format()
         .map_err(|source| ImageError::Io { path: path.to_path_buf(), source })?;
     match reader.format() {
-        Some(ImageFormat::Png | ImageFormat::Jpeg) => {}
+        Some(ImageFormat::Png | ImageFormat::Jpeg | ImageFormat::WebP) => {}
         Some(other) => {
             return Err(ImageError::Unsupported {
                 path: path.to_path_buf(),
-                reason: format!("{other:?} images are not supported; use PNG or JPEG"),
+                reason: format!("{other:?} images are not supported; use PNG, JPEG or WebP"),
             })
+        }
+        None if is_heif(path) => {
+            return Err(ImageError::Unsupported { path: path.to_path_buf(), reason: HEIC_ADVICE.into() })
         }
         None => {
             return Err(ImageError::Unsupported {
                 path: path.to_path_buf(),
-                reason: "not a PNG or JPEG file (unrecognised signature)".into(),
+                reason: "not a PNG, JPEG or WebP file (unrecognised signature)".into(),
             })
         }
     }
@@ -228,7 +243,7 @@ fn open_reader<R: BufRead + Seek>(
     Ok((header, Some(img)))
 }
 
-/// Decodes a PNG or JPEG stream after checking its header against `limits`; with `orient`, the
+/// Decodes a PNG, JPEG or WebP stream after checking its header against `limits`; with `orient`, the
 /// pixels are turned to the orientation the file asks for (EXIF in JPEG, `eXIf` in PNG), so the
 /// result is the image as a viewer displays it.
 fn decode_reader<R: BufRead + Seek>(
@@ -325,7 +340,7 @@ fn check_encoded(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<(), 
     Ok(())
 }
 
-/// Decodes an encoded PNG or JPEG held in memory, named `path` in errors: the byte size, a
+/// Decodes an encoded PNG, JPEG or WebP held in memory, named `path` in errors: the byte size, a
 /// JPEG's completeness ([`jpeg_truncation`]) and the header's dimensions are checked before any
 /// pixel buffer is allocated. The pixels are turned to the orientation the file carries (EXIF
 /// in JPEG, `eXIf` in PNG): the image as a viewer displays it, for photos, masks and depth alike.
@@ -489,7 +504,7 @@ fn dynamic_to_rgb(img: DynamicImage) -> RgbImage {
     RgbImage { width, height, data }
 }
 
-/// Decodes a PNG or JPEG file (8 or 16 bit; gray, gray+alpha, RGB or RGBA) to RGB in [0, 1];
+/// Decodes a PNG, JPEG or WebP file (8 or 16 bit; gray, gray+alpha, RGB or RGBA) to RGB in [0, 1];
 /// alpha is dropped. The file size and the header's dimensions are checked against `limits`
 /// before any pixel buffer is allocated. The EXIF orientation is applied: the result is the
 /// photo as a viewer displays it (a phone photo stored sideways with orientation 6 comes out

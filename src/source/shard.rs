@@ -10,7 +10,7 @@
 //!
 //! | field | meaning |
 //! |---|---|
-//! | `jpg`, `jpeg`, `png` | the photo (required; the first of them in the shard's order) |
+//! | `jpg`, `jpeg`, `png`, `webp` | the photo (required; the first of them in the shard's order) |
 //! | `depth.npy` | float depth `[H, W]` (or `[1, H, W]`, `[H, W, 1]`, `[1, 1, H, W]`), any linear unit; non-finite or `<= 0` = unknown |
 //! | `disp.npy` | float disparity `[H, W]` in the scene scale (as `disps/NAME.npy`; what `mpiflow bake --format webdataset` writes) |
 //! | `depth.png`, `disp.png` | disparity in [0, 1]: 8-bit grey / 255 or 16-bit / 65535 (as `disps/NAME.png` of a directory) |
@@ -327,13 +327,14 @@ impl ShardSource {
             }
             for s in index.samples {
                 let find = |f: &str| s.members.iter().find(|m| field_is(m, f)).cloned();
-                let image = s.members.iter().find(|m| ["jpg", "jpeg", "png"].iter().any(|f| field_is(m, f))).cloned();
+                let image =
+                    s.members.iter().find(|m| ["jpg", "jpeg", "png", "webp"].iter().any(|f| field_is(m, f))).cloned();
                 let Some(image) = image else {
                     let fields: Vec<&str> = s.members.iter().map(|m| m.field.as_str()).collect();
                     skip(
                         format!("{name}:{}", s.key),
                         FailureKind::NoImage,
-                        format!("no image (jpg, jpeg or png field); fields: {}", fields.join(", ")),
+                        format!("no image (jpg, jpeg, png or webp field); fields: {}", fields.join(", ")),
                     );
                     continue;
                 };

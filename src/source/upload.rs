@@ -8,7 +8,7 @@
 //! A chunk carries `(dataset, name, kind, data)` as the proto's `SourceChunk`: `dataset` is read
 //! from the first chunk of the upload (later values are ignored); a chunk with a non-empty `name`
 //! starts a new file (even with the current file's name: that is the same file sent twice), an
-//! empty `name` continues the current one. `kind` is `image` (PNG or JPEG), `depth` (a `.npy` float depth in any linear unit,
+//! empty `name` continues the current one. `kind` is `image` (PNG, JPEG or WebP), `depth` (a `.npy` float depth in any linear unit,
 //! or an 8/16-bit grey PNG disparity in [0, 1], told apart by their first bytes) or `mask` (an
 //! instance-id PNG). Depth and mask attach to the image of the same name, sent in the same upload
 //! or already in the dataset.

@@ -2,11 +2,11 @@
 //! with its companions.
 
 use super::listing::{
-    companions, frame_of, headers_of, image_entries, pick, stem_of, Entry, FileRef, ItemFiles, Layout, Listing,
-    MaskFile,
+    companions, frame_of, headers_of, image_entries, not_images, pick, stem_of, Entry, FileRef, ItemFiles, Layout,
+    Listing, MaskFile,
 };
 use super::options::SourceOptions;
-use crate::io::image::{load_rgb, RgbImage};
+use crate::io::image::{is_heif, load_rgb, RgbImage, HEIC_ADVICE};
 use crate::mpi::{Mpi, MpiError};
 use crate::raster::{cover, crop, resize_depth, InstanceMasks};
 use crate::source::baked::BakeManifest;
@@ -56,16 +56,15 @@ impl DirSource {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
             let entries = image_entries(&[(name.clone(), meta.len())], "");
             if entries.is_empty() {
-                return Err(SourceError::file(
-                    path.display().to_string(),
-                    FailureKind::Decode,
-                    "not a .png, .jpg or .jpeg image",
-                ));
+                let message = if is_heif(path) { HEIC_ADVICE } else { "not a .png, .jpg, .jpeg or .webp image" };
+                return Err(SourceError::file(path.display().to_string(), FailureKind::Unsupported, message));
             }
             let root = path.parent().map(Path::to_path_buf).unwrap_or_default();
             (root, Layout::File, entries)
         } else if path.join("images").is_dir() {
-            let mut entries = image_entries(&listing.files(&path.join("images"), "images/")?, "images/");
+            let files = listing.files(&path.join("images"), "images/")?;
+            listing.skipped.extend(not_images(&files, "images/"));
+            let mut entries = image_entries(&files, "images/");
             let depths = companions(&mut listing, path, "depths")?;
             let disps = companions(&mut listing, path, "disps")?;
             let masks = companions(&mut listing, path, "masks")?;
@@ -84,14 +83,20 @@ impl DirSource {
             }
             (path.to_path_buf(), Layout::Reference, entries)
         } else {
-            (path.to_path_buf(), Layout::Plain, image_entries(&listing.files(path, "")?, ""))
+            let files = listing.files(path, "")?;
+            listing.skipped.extend(not_images(&files, ""));
+            (path.to_path_buf(), Layout::Plain, image_entries(&files, ""))
         };
         if entries.is_empty() {
-            let message = if layout == Layout::Reference {
-                "no .png, .jpg or .jpeg images in images/"
+            let mut message = if layout == Layout::Reference {
+                "no .png, .jpg, .jpeg or .webp images in images/".to_string()
             } else {
-                "no .png, .jpg or .jpeg images (and no images/ folder)"
+                "no .png, .jpg, .jpeg or .webp images (and no images/ folder)".to_string()
             };
+            let heic = listing.skipped.iter().filter(|s| s.reason == HEIC_ADVICE).count();
+            if heic > 0 {
+                message.push_str(&format!("; {heic} HEIC/HEIF photos: not supported, convert them to JPEG"));
+            }
             return Err(SourceError::file(path.display().to_string(), FailureKind::Decode, message));
         }
         let mut skipped = listing.skipped;
@@ -373,6 +378,37 @@ impl Source for DirSource {
     }
 
     fn describe(&self) -> String {
+        let described = self.describe_items();
+        if self.skipped.is_empty() {
+            return described;
+        }
+        format!("{described}; {}", left_out_summary(&self.skipped))
+    }
+}
+
+/// `N files left out: 2 HEIC (not supported, convert to JPEG), 1 unsupported (notes.txt), ...`:
+/// the entries a listing left out, counted by reason with the first few names.
+pub(crate) fn left_out_summary(skipped: &[SkippedItem]) -> String {
+    const NAMES: usize = 3;
+    let mut by_reason: std::collections::BTreeMap<(&str, &str), Vec<&str>> = std::collections::BTreeMap::new();
+    for s in skipped {
+        let label = if s.reason == HEIC_ADVICE { "HEIC: not supported, convert to JPEG" } else { s.kind.as_str() };
+        by_reason.entry((label, s.kind.as_str())).or_default().push(&s.item);
+    }
+    let parts: Vec<String> = by_reason
+        .iter()
+        .map(|((label, _), names)| {
+            let more = if names.len() > NAMES { format!(", {} more", names.len() - NAMES) } else { String::new() };
+            let shown: Vec<&str> = names.iter().take(NAMES).copied().collect();
+            format!("{} {label} ({}{more})", names.len(), shown.join(", "))
+        })
+        .collect();
+    format!("{} left out: {}", skipped.len(), parts.join(", "))
+}
+
+impl DirSource {
+    /// The source as [`Source::describe`] shows it, before the entries left out.
+    fn describe_items(&self) -> String {
         let n = self.entries.len();
         let root = self.root.display();
         match self.layout {

@@ -2,7 +2,7 @@
 //! and companion files, and the frame the items are brought to.
 
 use super::options::working_size;
-use crate::io::image::{read_header, ImageHeader, ImageLimits};
+use crate::io::image::{is_heif, read_header, ImageHeader, ImageLimits, HEIC_ADVICE};
 use crate::source::given::{io_err, DepthFile};
 use crate::source::{FailureKind, SkippedItem, SourceError};
 use std::collections::HashMap;
@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 /// How a directory source found its items.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Layout {
-    /// `DIR/*.png|jpg|jpeg`.
+    /// `DIR/*.png|jpg|jpeg|webp`.
     Plain,
     /// `DIR/images/`, `depths/`, `disps/`, `masks/`, `mpis/`.
     Reference,
@@ -53,7 +53,7 @@ pub struct ItemFiles {
     pub mpi: Option<PathBuf>,
 }
 
-pub(super) const IMAGE_EXTS: [&str; 3] = ["png", "jpg", "jpeg"];
+pub(super) const IMAGE_EXTS: [&str; 4] = ["png", "jpg", "jpeg", "webp"];
 
 pub(super) fn lower_ext(name: &str) -> Option<(String, String)> {
     let p = Path::new(name);
@@ -63,7 +63,7 @@ pub(super) fn lower_ext(name: &str) -> Option<(String, String)> {
 }
 
 /// Extensions of the files a folder source reads (entries with them are reported when left out).
-pub(super) const SOURCE_EXTENSIONS: [&str; 8] = ["png", "jpg", "jpeg", "npy", "pfm", "npz", "json", "tar"];
+pub(super) const SOURCE_EXTENSIONS: [&str; 9] = ["png", "jpg", "jpeg", "webp", "npy", "pfm", "npz", "json", "tar"];
 
 /// A folder listing: regular files as (name, size), sorted by name, and what was left out.
 pub(super) struct Listing<'a> {
@@ -128,6 +128,24 @@ impl Listing<'_> {
         out.sort();
         Ok(out)
     }
+}
+
+/// The files of a photo folder (a plain folder, or `images/`) that are not photos mpiflow reads,
+/// each with its reason: HEIC/HEIF photos ([`HEIC_ADVICE`]), other files (`unsupported`).
+pub(super) fn not_images(files: &[(String, u64)], prefix: &str) -> Vec<SkippedItem> {
+    files
+        .iter()
+        .filter(|(name, _)| !lower_ext(name).is_some_and(|(_, e)| IMAGE_EXTS.contains(&e.as_str())))
+        .map(|(name, _)| SkippedItem {
+            item: format!("{prefix}{name}"),
+            kind: FailureKind::Unsupported,
+            reason: if is_heif(Path::new(name)) {
+                HEIC_ADVICE.to_string()
+            } else {
+                "not a photo mpiflow reads (PNG, JPEG or WebP)".to_string()
+            },
+        })
+        .collect()
 }
 
 /// Images of a listing as (stem, name, size), with ids made unique.

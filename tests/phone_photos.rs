@@ -3,12 +3,14 @@
 //! it in the scene; the tag moves the fingerprint only of the folders (shards, uploads) whose
 //! photos carry one. Depth and masks of another aspect than their photo's are refused naming
 //! both shapes and the likely cause; of the same aspect at another resolution they are resized.
+//! WebP photos are read; every other file of a photo folder is counted as left out, by reason
+//! (HEIC/HEIF named with the advice to convert it).
 
 use std::path::{Path, PathBuf};
 
 use image::codecs::jpeg::JpegEncoder;
 use image::{ExtendedColorType, ImageEncoder};
-use mpiflow::io::image::{load_rgb, orientation_of_prefix, read_header, ImageLimits};
+use mpiflow::io::image::{load_rgb, orientation_of_prefix, read_header, ImageLimits, HEIC_ADVICE};
 use mpiflow::scene::stage::SceneStage;
 use mpiflow::source::dir::{DirSource, SourceOptions};
 use mpiflow::source::encoded::{decode_item, DepthEncoding, Encoded, EncodedItem};
@@ -316,4 +318,104 @@ fn encoded_items_of_uploads_and_shards_follow_the_same_rules() {
         }
         other => panic!("{other:?}"),
     }
+}
+
+/// The block photo as a lossless WebP.
+fn webp() -> Vec<u8> {
+    let mut out = Vec::new();
+    image::codecs::webp::WebPEncoder::new_lossless(&mut out)
+        .write_image(upright().as_raw(), W, H, ExtendedColorType::Rgb8)
+        .unwrap();
+    out
+}
+
+/// The start of a HEIC file as an iPhone writes it (an ISO-BMFF `ftyp` box of brand `heic`).
+fn heic() -> Vec<u8> {
+    let mut b = vec![0, 0, 0, 24];
+    b.extend_from_slice(b"ftypheic\0\0\0\0mif1heic");
+    b.extend_from_slice(&[0; 64]);
+    b
+}
+
+#[test]
+fn a_folder_reads_webp_and_counts_every_file_it_leaves_out_by_reason() {
+    let dir = tmp("formats");
+    std::fs::write(dir.join("a.jpg"), jpeg(&upright(), None)).unwrap();
+    std::fs::write(dir.join("b.webp"), webp()).unwrap();
+    std::fs::write(dir.join("IMG_0001.HEIC"), heic()).unwrap();
+    std::fs::write(dir.join("IMG_0002.heif"), heic()).unwrap();
+    std::fs::write(dir.join("notes.txt"), b"my photos").unwrap();
+    std::fs::write(dir.join("c.gif"), b"GIF89a\x01\x00\x01\x00\x00\x00\x00;").unwrap();
+    let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+    assert_eq!((src.len(), src.id(0), src.id(1)), (2, "a".to_string(), "b".to_string()));
+    // the WebP decodes losslessly, as the photo it was made from
+    let b = src.load(1).unwrap();
+    let want: Vec<f32> = upright().as_raw().iter().map(|&v| f32::from(v) / 255.0).collect();
+    assert_eq!((b.image.width, b.image.height), (W as usize, H as usize));
+    assert_eq!(b.image.data, want);
+    // every other file counted, by reason, named
+    let skipped = src.skipped();
+    let got: Vec<(&str, &str)> = skipped.iter().map(|s| (s.item.as_str(), s.kind.as_str())).collect();
+    assert_eq!(
+        got,
+        [
+            ("IMG_0001.HEIC", "unsupported"),
+            ("IMG_0002.heif", "unsupported"),
+            ("c.gif", "unsupported"),
+            ("notes.txt", "unsupported")
+        ]
+    );
+    assert_eq!(skipped[0].reason, HEIC_ADVICE);
+    assert!(HEIC_ADVICE.starts_with("HEIC: not supported, convert to JPEG"));
+    assert_eq!(skipped[2].reason, "not a photo mpiflow reads (PNG, JPEG or WebP)");
+    let d = src.describe();
+    assert!(d.contains("(2 images"), "{d}");
+    assert!(
+        d.ends_with(
+            "4 left out: 2 HEIC: not supported, convert to JPEG (IMG_0001.HEIC, IMG_0002.heif), 2 unsupported (c.gif, \
+             notes.txt)"
+        ),
+        "{d}"
+    );
+    // a folder of HEIC photos only: the error says why and what to do
+    let only = tmp("formats-heic");
+    std::fs::write(only.join("IMG_0001.HEIC"), heic()).unwrap();
+    let e = DirSource::open(&only, &SourceOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("1 HEIC/HEIF photos: not supported, convert them to JPEG"), "{e}");
+    // one HEIC file given as the source
+    let e = DirSource::open(&only.join("IMG_0001.HEIC"), &SourceOptions::default()).unwrap_err().to_string();
+    assert!(e.contains(HEIC_ADVICE), "{e}");
+    for d in [dir, only] {
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+}
+
+#[test]
+fn generate_makes_samples_from_a_webp_photo() {
+    let dir = tmp("webp-generate");
+    std::fs::create_dir_all(dir.join("src/images")).unwrap();
+    std::fs::create_dir_all(dir.join("src/depths")).unwrap();
+    std::fs::write(dir.join("src/images/b.webp"), webp()).unwrap();
+    mpiflow::io::npy::write_f32(&dir.join("src/depths/b.npy"), &[u64::from(H), u64::from(W)], &upright_depth())
+        .unwrap();
+    let out = dir.join("out");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+        .args(["generate", "--count", "2", "--source"])
+        .arg(dir.join("src"))
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    assert!(!stderr.contains("warning"), "{stderr}");
+    // two samples, each naming the WebP photo as its source
+    for key in ["00000000", "00000001"] {
+        let j: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join(format!("{key}.json"))).unwrap()).unwrap();
+        assert_eq!(j["source_id"], "b", "{j}");
+        let img = load_rgb(&out.join(format!("{key}_img1.png")), &ImageLimits::default()).unwrap();
+        assert_eq!((img.width, img.height), (W as usize, H as usize));
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
 }
