@@ -61,7 +61,7 @@ fn model(name: &str) -> PathBuf {
 }
 
 /// A plain folder: the bundled photos as 64x48 8-bit PNGs, one twice under two names, one at
-/// 80x60 (the bake's `--size` brings it to 64x48), and a corrupt image.
+/// 80x60 (the bake's `--size` brings it to 64x48), and an image whose pixel data is corrupt.
 fn photos(name: &str) -> PathBuf {
     let d = tmp(name);
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/photos");
@@ -75,7 +75,18 @@ fn photos(name: &str) -> PathBuf {
         let img = load_rgb(&src.join(f), &ImageLimits::default()).unwrap();
         save_rgb_png(&d.join(to), &resize_rgb(img, w, h)).unwrap();
     }
-    std::fs::write(d.join("broken.png"), b"\x89PNG\r\n\x1a\n not really a png").unwrap();
+    // a PNG whose header is whole (it passes the check when the folder is opened) and whose
+    // pixel data is corrupt: it fails when decoded
+    let mut broken = std::io::Cursor::new(Vec::new());
+    image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 3) as u8, (y * 5) as u8, (x ^ y) as u8]))
+        .write_to(&mut broken, image::ImageFormat::Png)
+        .unwrap();
+    let mut broken = broken.into_inner();
+    let n = broken.len();
+    for v in &mut broken[n / 2..n - 20] {
+        *v ^= 0x5a;
+    }
+    std::fs::write(d.join("broken.png"), broken).unwrap();
     d
 }
 

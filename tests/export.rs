@@ -852,12 +852,15 @@ fn generate_passes_over_a_failing_source_with_a_warning_and_counts_it() {
         assert_eq!(j["source_id"], "good");
     }
 
-    // nothing written at all (the one depth file is corrupt): exit code 2 and a one-line error
+    // the one depth file corrupt: its photo is left out when the folder is opened (named), and
+    // the photos left carry no depth: refused before anything is made, exit code 2
     std::fs::write(src.join("depths/good.npy"), b"not an array").unwrap();
     let r = mpiflow(&["generate", "--source", src.to_str().unwrap(), "--count", "2", "--out", out.to_str().unwrap()]);
     assert_eq!(r.status.code(), Some(2));
     let stderr = text(&r.stderr);
-    assert!(stderr.lines().last().unwrap().starts_with("error: no sample written"), "{stderr}");
+    assert!(stderr.contains("depths/good.npy") && stderr.contains("not a valid .npy depth"), "{stderr}");
+    let last = stderr.lines().last().unwrap();
+    assert!(last.starts_with("error: ") && last.contains("pass --depth-model NAME|FILE"), "{stderr}");
 
     // with no photo carrying depth: refused before anything is made, naming the fix
     std::fs::remove_file(src.join("depths/good.npy")).unwrap();

@@ -4,18 +4,27 @@
 //! photos carry one. Depth and masks of another aspect than their photo's are refused naming
 //! both shapes and the likely cause; of the same aspect at another resolution they are resized.
 //! WebP photos are read; every other file of a photo folder is counted as left out, by reason
-//! (HEIC/HEIF named with the advice to convert it).
+//! (HEIC/HEIF named with the advice to convert it). A folder's photos are checked when it is
+//! opened: those that cannot serve are left out of the index, so the others keep equal weight
+//! and the scene window its interleaving; `serve` logs the summary, `--strict` refuses.
 
 use std::path::{Path, PathBuf};
 
 use image::codecs::jpeg::JpegEncoder;
 use image::{ExtendedColorType, ImageEncoder};
 use mpiflow::io::image::{load_rgb, orientation_of_prefix, read_header, ImageLimits, HEIC_ADVICE};
+use mpiflow::sample::config::SampleConfig;
+use mpiflow::sample::pipeline::Pipeline;
+use mpiflow::scene::cache::SceneCache;
 use mpiflow::scene::stage::SceneStage;
 use mpiflow::source::dir::{DirSource, SourceOptions};
 use mpiflow::source::encoded::{decode_item, DepthEncoding, Encoded, EncodedItem};
 use mpiflow::source::given::same_aspect;
 use mpiflow::source::{FailureKind, GivenDepth, Source, SourceError};
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::sync::Arc;
 
 /// The photo as displayed: 48 x 32, a bright block in its upper-left part on a dark ground.
 const W: u32 = 48;
@@ -183,10 +192,13 @@ fn a_rotated_phone_jpeg_with_upright_depth_gives_a_scene_whose_depth_edges_follo
 #[test]
 fn the_orientation_tag_changes_the_fingerprint_only_of_folders_that_carry_one() {
     // the same stored pixels and the same file sizes: tag 1 (identity) and tag 6
-    let a = phone_folder("fp-1", Some(1), 6);
-    let b = phone_folder("fp-6", Some(6), 6);
-    let c = phone_folder("fp-1-again", Some(1), 6);
-    let size = |d: &Path| std::fs::metadata(d.join("images/phone.jpg")).unwrap().len();
+    let plain = |name: &str, o: u16| {
+        let dir = tmp(name);
+        std::fs::write(dir.join("phone.jpg"), jpeg(&stored_for(6), Some(o))).unwrap();
+        dir
+    };
+    let (a, b, c) = (plain("fp-1", 1), plain("fp-6", 6), plain("fp-1-again", 1));
+    let size = |d: &Path| std::fs::metadata(d.join("phone.jpg")).unwrap().len();
     assert_eq!(size(&a), size(&b));
     let fp = |d: &Path| DirSource::open(d, &SourceOptions::default()).unwrap().fingerprint();
     assert_ne!(fp(&a), fp(&b), "a photo turned upright when loaded has other bytes: another fingerprint");
@@ -217,12 +229,16 @@ fn depth_folder(name: &str, dw: usize, dh: usize) -> PathBuf {
     dir
 }
 
+/// The refusal of a folder whose one item cannot serve: found when the folder is opened (the
+/// item left out, so no photo is left), or, for a file changed after that, when it is loaded.
 fn load_err(dir: &Path) -> (FailureKind, String) {
-    let src = DirSource::open(dir, &SourceOptions::default()).unwrap();
-    match src.load(0) {
-        Err(SourceError::File { kind, message, path }) => (kind, format!("{path}: {message}")),
-        Err(e) => panic!("another error: {e}"),
-        Ok(_) => panic!("{} loads", dir.display()),
+    let e = match DirSource::open(dir, &SourceOptions::default()) {
+        Ok(src) => src.load(0).err().unwrap_or_else(|| panic!("{} loads", dir.display())),
+        Err(e) => e,
+    };
+    match e {
+        SourceError::File { kind, message, path } => (kind, format!("{path}: {message}")),
+        e => panic!("another error: {e}"),
     }
 }
 
@@ -241,6 +257,18 @@ fn depth_of_another_aspect_is_refused_naming_both_shapes_and_the_cause() {
     // a cropped depth (a few columns short) is another view too
     let (_, m) = load_err(&depth_folder("aspect-crop", 44, 32));
     assert!(m.contains("depth is 44 x 32"), "{m}");
+    // a depth replaced after the folder was opened: refused when the item is loaded
+    let dir = depth_folder("aspect-later", 24, 16);
+    let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+    mpiflow::io::npy::write_f32(&dir.join("depths/p.npy"), &[16, 16], &[2.0; 256]).unwrap();
+    match src.load(0) {
+        Err(SourceError::File { kind, message, .. }) => {
+            assert_eq!(kind, FailureKind::Depth);
+            assert!(message.contains("depth is 16 x 16 but its photo is 48 x 32"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
     // a sideways phone photo without its orientation tag, with upright depth: the same refusal
     let dir = phone_folder("aspect-untagged", None, 6);
     let (kind, m) = load_err(&dir);
@@ -254,6 +282,8 @@ fn depth_and_masks_of_the_photos_aspect_at_another_resolution_are_resized() {
     // half the resolution: resized to the photo, the block's edges where the photo's are
     let dir = depth_folder("half", 24, 16);
     let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+    // counted in the source's record
+    assert!(src.describe().contains("; 1 with depth or masks at another resolution, resized"), "{}", src.describe());
     let item = src.load(0).unwrap();
     let Some(GivenDepth::Depth(d)) = &item.depth else { panic!("given depth") };
     assert_eq!(d.len(), (W * H) as usize);
@@ -416,6 +446,123 @@ fn generate_makes_samples_from_a_webp_photo() {
         assert_eq!(j["source_id"], "b", "{j}");
         let img = load_rgb(&out.join(format!("{key}_img1.png")), &ImageLimits::default()).unwrap();
         assert_eq!((img.width, img.height), (W as usize, H as usize));
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A reference-layout folder of 12 photos (64 x 48, each its own pattern, each with depth), four
+/// of which cannot serve: a JPEG cut short, a file that is no image, a photo over the size
+/// limit, a depth turned a quarter against its photo.
+fn twelve_with_four_bad(name: &str) -> PathBuf {
+    let dir = tmp(name);
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::create_dir_all(dir.join("depths")).unwrap();
+    let (w, h) = (64u32, 48u32);
+    for k in 0..12u32 {
+        let img = image::RgbImage::from_fn(w, h, |x, y| {
+            let v = |c: u32| ((x * (2 + c + k) + y * (3 + k) + 40 * c + 19 * k) % 256) as u8;
+            image::Rgb([v(0), v(1), v(2)])
+        });
+        let depth: Vec<f32> = (0..w * h).map(|i| 1.0 + ((i % w) + k) as f32 / 32.0).collect();
+        let id = format!("p{k:02}");
+        match k {
+            3 => {
+                let bytes = jpeg(&img, None);
+                std::fs::write(dir.join(format!("images/{id}.jpg")), &bytes[..bytes.len() / 2]).unwrap();
+            }
+            6 => std::fs::write(dir.join(format!("images/{id}.png")), b"\x00\x01 not an image at all").unwrap(),
+            9 => image::GrayImage::new(9000, 2).save(dir.join(format!("images/{id}.png"))).unwrap(),
+            _ => img.save(dir.join(format!("images/{id}.png"))).unwrap(),
+        }
+        let shape = if k == 10 { [u64::from(w), u64::from(h)] } else { [u64::from(h), u64::from(w)] };
+        mpiflow::io::npy::write_f32(&dir.join(format!("depths/{id}.npy")), &shape, &depth).unwrap();
+    }
+    dir
+}
+
+const BAD: [(&str, &str); 4] = [
+    ("depths/p10.npy", "depth"),
+    ("images/p03.jpg", "truncated"),
+    ("images/p06.png", "decode"),
+    ("images/p09.png", "too-large"),
+];
+
+#[test]
+fn photos_that_cannot_serve_are_left_out_so_the_others_keep_equal_weight() {
+    let dir = twelve_with_four_bad("equal-weight");
+    let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+    let ids: Vec<String> = (0..src.len()).map(|i| src.id(i)).collect();
+    assert_eq!(ids, ["p00", "p01", "p02", "p04", "p05", "p07", "p08", "p11"]);
+    let skipped: Vec<(String, String)> =
+        src.skipped().iter().map(|s| (s.item.clone(), s.kind.as_str().to_string())).collect();
+    let want: Vec<(String, String)> = BAD.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect();
+    assert_eq!(skipped, want);
+    for s in src.skipped() {
+        assert!(!s.reason.is_empty() && !s.reason.contains(&dir.display().to_string()), "{s:?}");
+    }
+    let d = src.describe();
+    assert!(
+        d.contains("(8 images") && d.contains("4 left out: 1 decode (images/p06.png), 1 depth (depths/p10.npy)"),
+        "{d}"
+    );
+
+    // 8 x 88 samples: each good photo exactly 88 times, and any 8 consecutive samples from at
+    // least 6 photos
+    let source: Arc<dyn Source> = Arc::new(src);
+    let stage = Arc::new(SceneStage::builtin());
+    let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), SampleConfig::default()).unwrap();
+    let g = p.generator();
+    let order: Vec<String> = (0..8 * 88).map(|i| g.sample(7, i).unwrap().source_id).collect();
+    let mut counts: BTreeMap<&str, usize> = BTreeMap::new();
+    for id in &order {
+        *counts.entry(id.as_str()).or_default() += 1;
+    }
+    assert_eq!(counts.keys().copied().collect::<Vec<_>>(), ids.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(counts.values().all(|&n| n == 88), "{counts:?}");
+    for (at, w) in order.windows(8).enumerate() {
+        let distinct: BTreeSet<&String> = w.iter().collect();
+        assert!(distinct.len() >= 6, "samples {at}..{}: {w:?}", at + 8);
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn serve_logs_what_it_left_out_at_start_up_and_strict_refuses() {
+    let dir = twelve_with_four_bad("start-up");
+    let bin = env!("CARGO_BIN_EXE_mpiflow");
+    // --strict: no server, exit status 2, each file named by reason
+    for args in [
+        vec!["serve", "--strict", "--addr", "127.0.0.1:0", "--source"],
+        vec!["generate", "--strict", "--count", "1", "--out", "/nonexistent/never-written", "--source"],
+    ] {
+        let o = Command::new(bin).args(&args).arg(&dir).output().unwrap();
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {stderr}");
+        assert!(o.stdout.is_empty(), "{args:?}");
+        assert!(stderr.starts_with("error: --strict: "), "{stderr}");
+        for (item, kind) in BAD {
+            assert!(stderr.contains(&format!("1 {kind} ({item})")), "{args:?}: {item} not named: {stderr}");
+        }
+    }
+    // without it: serving the 8, the summary logged before the first line on stdout
+    let mut child = Command::new(bin)
+        .args(["serve", "--addr", "127.0.0.1:0", "--log-level", "info", "--source"])
+        .arg(&dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    assert!(line.starts_with("mpiflow serving on "), "{line:?}");
+    child.kill().unwrap();
+    let out = child.wait_with_output().unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    let opened = log.lines().find(|l| l.contains("dataset opened")).unwrap_or_else(|| panic!("{log}"));
+    assert!(opened.contains("8 images") && opened.contains("4 left out"), "{opened}");
+    for (item, _) in BAD {
+        assert!(opened.contains(item), "{item}: {opened}");
+        assert!(log.lines().any(|l| l.contains("source item left out") && l.contains(item)), "{item}: {log}");
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -2,11 +2,11 @@
 //! with its companions.
 
 use super::listing::{
-    companions, frame_of, headers_of, image_entries, not_images, pick, stem_of, Entry, FileRef, ItemFiles, Layout,
+    check_entries, companions, frame_of, image_entries, not_images, pick, stem_of, Entry, FileRef, ItemFiles, Layout,
     Listing, MaskFile,
 };
 use super::options::SourceOptions;
-use crate::io::image::{is_heif, load_rgb, RgbImage, HEIC_ADVICE};
+use crate::io::image::{is_heif, load_rgb, read_header, RgbImage, HEIC_ADVICE};
 use crate::mpi::{Mpi, MpiError};
 use crate::raster::{cover, crop, resize_depth, InstanceMasks};
 use crate::source::baked::BakeManifest;
@@ -37,6 +37,9 @@ pub struct DirSource {
     /// The EXIF orientation of each item's photo (1 where it carries none or cannot be read):
     /// the photos that carry another are turned upright when loaded.
     oriented: Vec<u8>,
+    /// Items whose depth, disparity or masks have another resolution than the photo (the same
+    /// aspect): resized when loaded.
+    resized: usize,
 }
 
 impl DirSource {
@@ -100,13 +103,60 @@ impl DirSource {
             return Err(SourceError::file(path.display().to_string(), FailureKind::Decode, message));
         }
         let mut skipped = listing.skipped;
+        // every photo checked now, so that the index holds only photos that can serve: each
+        // served photo has equal weight and the scene window keeps its interleaving
+        let mut kept = Vec::with_capacity(entries.len());
+        let mut headers = Vec::with_capacity(entries.len());
+        let mut resized = 0;
+        let checks = if options.check_at_open {
+            check_entries(&root, &entries, &options.limits)
+        } else {
+            // headers only (for the working size and the orientation); a bad photo fails when loaded
+            entries
+                .iter()
+                .map(|e| {
+                    let h = read_header(&root.join(&e.image.rel), &options.limits).ok();
+                    Ok((h, false))
+                })
+                .collect()
+        };
+        for (e, c) in entries.into_iter().zip(checks) {
+            match c {
+                Ok((h, r)) => {
+                    kept.push(e);
+                    headers.push(h);
+                    resized += usize::from(r);
+                }
+                Err(s) => skipped.push(s),
+            }
+        }
+        let entries = kept;
         skipped.sort_by(|a, b| a.item.cmp(&b.item));
+        if entries.is_empty() {
+            return Err(SourceError::file(
+                path.display().to_string(),
+                skipped.first().map_or(FailureKind::Decode, |s| s.kind),
+                match skipped.iter().find(|s| s.kind != FailureKind::Unsupported).or(skipped.first()) {
+                    Some(s) => format!("no photo can serve; {}; {}: {}", left_out_summary(&skipped), s.item, s.reason),
+                    None => "no photo can serve".to_string(),
+                },
+            ));
+        }
         let baked = if layout == Layout::Reference { BakeManifest::read(path)? } else { None };
-        let headers = headers_of(&root, &entries, &options.limits);
         let frame = if options.resize.is_none() { frame_of(&entries, &headers) } else { None };
         let oriented = headers.iter().map(|h| h.map_or(1, |h| h.orientation)).collect();
-        let mut src =
-            DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked, frame, oriented };
+        let mut src = DirSource {
+            root,
+            layout,
+            entries,
+            options: *options,
+            fingerprint: 0,
+            skipped,
+            baked,
+            frame,
+            oriented,
+            resized,
+        };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
     }
@@ -378,17 +428,20 @@ impl Source for DirSource {
     }
 
     fn describe(&self) -> String {
-        let described = self.describe_items();
-        if self.skipped.is_empty() {
-            return described;
+        let mut described = self.describe_items();
+        if self.resized > 0 {
+            described.push_str(&format!("; {} with depth or masks at another resolution, resized", self.resized));
         }
-        format!("{described}; {}", left_out_summary(&self.skipped))
+        if !self.skipped.is_empty() {
+            described.push_str(&format!("; {}", left_out_summary(&self.skipped)));
+        }
+        described
     }
 }
 
 /// `N files left out: 2 HEIC (not supported, convert to JPEG), 1 unsupported (notes.txt), ...`:
 /// the entries a listing left out, counted by reason with the first few names.
-pub(crate) fn left_out_summary(skipped: &[SkippedItem]) -> String {
+pub fn left_out_summary(skipped: &[SkippedItem]) -> String {
     const NAMES: usize = 3;
     let mut by_reason: std::collections::BTreeMap<(&str, &str), Vec<&str>> = std::collections::BTreeMap::new();
     for s in skipped {

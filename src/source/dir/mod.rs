@@ -97,6 +97,6 @@ pub use super::given::{
     depth_npy_from_bytes, disparity_png_from_bytes, read_depth, read_depth_npy, read_disparity_png, resize_rgb,
 };
 pub(crate) use folder::mpi_message;
-pub use folder::DirSource;
+pub use folder::{left_out_summary, DirSource};
 pub use listing::{ItemFiles, Layout, MaskFile};
 pub use options::{working_size, IntrinsicsSpec, SourceOptions, WORKING_MIN, WORKING_PIXELS};
