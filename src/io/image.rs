@@ -359,7 +359,9 @@ pub const ORIENTATION_PREFIX: usize = 1 << 16;
 /// and apply, without decoding anything: for sources that fingerprint their items without opening
 /// them (shards, uploads).
 pub fn orientation_of_prefix(bytes: &[u8]) -> u8 {
-    let from_chunk = |chunk: &[u8]| ::image::metadata::Orientation::from_exif_chunk(chunk).map_or(1, |o| o.to_exif());
+    let from_chunk = |chunk: &[u8]| {
+        ::image::metadata::Orientation::from_exif_chunk(chunk).map_or(1, ::image::metadata::Orientation::to_exif)
+    };
     if bytes.starts_with(&[0xFF, 0xD8]) {
         let mut pos = 2usize;
         while pos + 4 <= bytes.len() && bytes[pos] == 0xFF {
