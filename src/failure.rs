@@ -37,11 +37,16 @@ pub enum FailureKind {
     DanglingLink,
     /// `outside-root`: a symbolic link that leads out of the source folder (not followed).
     OutsideRoot,
+    /// `unsupported`: a file in a photo folder that is not a photo mpiflow reads (HEIC/HEIF,
+    /// which has no maintained pure-Rust decoder, GIF, TIFF, a text file), counted when the
+    /// folder is listed.
+    Unsupported,
 }
 
 impl FailureKind {
     /// The reason string (`decode`, `truncated`, `too-large`, `depth`, `mask`, `mpi`, `scene`,
-    /// `no-image`, `duplicate`, `unnamed`, `not-a-file`, `dangling-link`, `outside-root`).
+    /// `no-image`, `duplicate`, `unnamed`, `not-a-file`, `dangling-link`, `outside-root`,
+    /// `unsupported`).
     pub const fn as_str(self) -> &'static str {
         match self {
             FailureKind::Decode => "decode",
@@ -57,6 +62,7 @@ impl FailureKind {
             FailureKind::NotAFile => "not-a-file",
             FailureKind::DanglingLink => "dangling-link",
             FailureKind::OutsideRoot => "outside-root",
+            FailureKind::Unsupported => "unsupported",
         }
     }
 

@@ -83,8 +83,14 @@ fn dataset(root: &Path) {
     }
 }
 
+/// The test's limits, with the check at open off: bad photos stay in the index and fail when
+/// loaded, as a shard's or an upload's do (the default check leaves them out, see below).
 fn options() -> SourceOptions {
-    SourceOptions { limits: ImageLimits { max_width: 64, ..ImageLimits::default() }, ..SourceOptions::default() }
+    SourceOptions {
+        limits: ImageLimits { max_width: 64, ..ImageLimits::default() },
+        check_at_open: false,
+        ..SourceOptions::default()
+    }
 }
 
 fn generator(root: &Path) -> Generator {
@@ -280,6 +286,31 @@ fn jpeg_truncation_finds_cuts_anywhere_and_accepts_trailers() {
     assert!(e.to_string().contains("truncated JPEG"), "{e}");
     let src_dir = tmp("jpeg");
     std::fs::write(src_dir.join("t.jpg"), &full[..full.len() - 1]).unwrap();
-    let src = open_source(&src_dir, &SourceOptions::default()).unwrap();
+    let src = open_source(&src_dir, &options()).unwrap();
     assert!(src.load(0).unwrap_err().to_string().contains("truncated JPEG"));
+    // checked when the folder is opened (the default), the photo is left out: none can serve
+    let Err(e) = open_source(&src_dir, &SourceOptions::default()) else { panic!("the folder opened") };
+    assert!(e.to_string().contains("no photo can serve") && e.to_string().contains("truncated JPEG"), "{e}");
+}
+
+#[test]
+fn checked_at_open_the_photos_whose_header_fails_are_left_out_by_kind() {
+    let root = tmp("at-open");
+    dataset(&root);
+    let checked = SourceOptions { check_at_open: true, ..options() };
+    let src = open_source(&root, &checked).unwrap();
+    let ids: Vec<String> = (0..src.len()).map(|i| src.id(i)).collect();
+    // the corrupt PNG's header, the truncated JPEG, the photo over the limits and the unreadable
+    // depth are seen at open; the truncated PNG's header is whole (it fails when loaded)
+    assert_eq!(ids, ["a", "d", "g", "h"]);
+    let left: Vec<(String, FailureKind)> = src.skipped().into_iter().map(|s| (s.item, s.kind)).collect();
+    assert_eq!(
+        left,
+        [
+            ("depths/f.npy".to_string(), FailureKind::Depth),
+            ("images/b.png".to_string(), FailureKind::Decode),
+            ("images/c.jpg".to_string(), FailureKind::Truncated),
+            ("images/e.png".to_string(), FailureKind::TooLarge),
+        ]
+    );
 }

@@ -2,7 +2,7 @@
 //! ONNX Runtime sessions and the real binary: N shards cover every item exactly once and give
 //! the bytes of one unsharded bake; an interrupted bake (a `--limit`, an item cut in the middle,
 //! leftover temporaries) restarted loses and repeats nothing; bad items are reported with their
-//! reason; a baked scene is the scene the models make (disparity, masks, image and MPI bit for
+//! reason and make the bake exit with status 2 naming them; a baked scene is the scene the models make (disparity, masks, image and MPI bit for
 //! bit); the WebDataset layout holds the same files as tar members, sharded and resumed the
 //! same way; and a server over the baked folder or shards runs no model (GetInfo says so, the model counters
 //! stay 0) while the same server over the raw photos does.
@@ -61,7 +61,7 @@ fn model(name: &str) -> PathBuf {
 }
 
 /// A plain folder: the bundled photos as 64x48 8-bit PNGs, one twice under two names, one at
-/// 80x60 (the bake's `--size` brings it to 64x48), and a corrupt image.
+/// 80x60 (the bake's `--size` brings it to 64x48), and an image whose pixel data is corrupt.
 fn photos(name: &str) -> PathBuf {
     let d = tmp(name);
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/photos");
@@ -75,7 +75,18 @@ fn photos(name: &str) -> PathBuf {
         let img = load_rgb(&src.join(f), &ImageLimits::default()).unwrap();
         save_rgb_png(&d.join(to), &resize_rgb(img, w, h)).unwrap();
     }
-    std::fs::write(d.join("broken.png"), b"\x89PNG\r\n\x1a\n not really a png").unwrap();
+    // a PNG whose header is whole (it passes the check when the folder is opened) and whose
+    // pixel data is corrupt: it fails when decoded
+    let mut broken = std::io::Cursor::new(Vec::new());
+    image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([(x * 3) as u8, (y * 5) as u8, (x ^ y) as u8]))
+        .write_to(&mut broken, image::ImageFormat::Png)
+        .unwrap();
+    let mut broken = broken.into_inner();
+    let n = broken.len();
+    for v in &mut broken[n / 2..n - 20] {
+        *v ^= 0x5a;
+    }
+    std::fs::write(d.join("broken.png"), broken).unwrap();
     d
 }
 
@@ -89,13 +100,24 @@ fn bake(source: &Path, out: &Path, extra: &[&str]) -> (serde_json::Value, String
     cmd.args(["--size", SIZE]).args(extra);
     let o = cmd.output().expect("runs mpiflow bake");
     let stderr = String::from_utf8_lossy(&o.stderr).to_string();
-    assert!(o.status.success(), "bake failed: {stderr}");
     let shard = extra.iter().position(|a| *a == "--shard").map(|i| extra[i + 1].replace('/', "-of-"));
     let report = match shard {
         Some(tag) if tag != "0-of-1" => out.join(format!("bake-report.{tag}.json")),
         _ => out.join("bake-report.json"),
     };
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(report).expect("a report")).unwrap();
+    // success exactly when no item failed; otherwise exit status 2 and a last line naming each
+    let failed: Vec<&str> = r["failures"].as_array().unwrap().iter().map(|f| f["id"].as_str().unwrap()).collect();
+    if failed.is_empty() {
+        assert!(o.status.success(), "bake failed: {stderr}");
+    } else {
+        assert_eq!(o.status.code(), Some(2), "{failed:?} failed, yet: {stderr}");
+        let last = stderr.lines().last().unwrap_or_default();
+        assert!(last.starts_with(&format!("error: {} of ", failed.len())), "{stderr}");
+        for id in &failed {
+            assert!(last.contains(id), "{id} is not named: {stderr}");
+        }
+    }
     (r, stderr)
 }
 
@@ -637,4 +659,47 @@ async fn serving_a_baked_folder_runs_no_model() {
     let m = http_get(&metrics, "/metrics").await;
     assert!(metric(&m, "mpiflow_model_runs_total{role=\"depth\"}").unwrap() > 0.0, "{m}");
     s.shutdown(std::time::Duration::from_secs(5)).await;
+}
+
+/// A folder that carries its depth needs no model to bake; one item whose photo is cut short
+/// fails: the bake goes on with the others, then exits with status 2 naming it.
+#[test]
+fn a_bake_with_a_failing_item_exits_non_zero_naming_it() {
+    let src = tmp("failing_src");
+    std::fs::create_dir_all(src.join("images")).unwrap();
+    std::fs::create_dir_all(src.join("depths")).unwrap();
+    let photos = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/photos");
+    for (f, id) in [("chelsea.png", "cat"), ("coffee.png", "mug"), ("rocket.jpg", "rocket")] {
+        let img = resize_rgb(load_rgb(&photos.join(f), &ImageLimits::default()).unwrap(), 64, 48);
+        save_rgb_png(&src.join(format!("images/{id}.png")), &img).unwrap();
+        let depth: Vec<f32> = (0..64 * 48).map(|i| 1.0 + (i % 64) as f32 / 32.0).collect();
+        mpiflow::io::npy::write_f32(&src.join(format!("depths/{id}.npy")), &[48, 64], &depth).unwrap();
+    }
+    // the rocket's PNG cut in half: it lists, then fails to decode
+    let p = src.join("images/rocket.png");
+    let bytes = std::fs::read(&p).unwrap();
+    std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+    let run = |out: &Path| {
+        Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+            .args(["bake", "--quiet", "--source"])
+            .arg(&src)
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    let out = tmp("failing_out");
+    let o = run(&out);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{stderr}");
+    let last = stderr.lines().last().unwrap();
+    assert!(last.starts_with("error: 1 of 3 items failed (rocket;"), "{stderr}");
+    assert!(last.contains("bake-report.json"), "{stderr}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bake-report.json")).unwrap()).unwrap();
+    assert_eq!((n(&r, "baked"), n(&r, "failed")), (2, 1), "{r}");
+    assert_eq!(r["failures"][0]["id"], "rocket");
+    // the same folder without the broken photo: exit status 0
+    std::fs::remove_file(&p).unwrap();
+    let o = run(&tmp("failing_out_fixed"));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
 }

@@ -140,7 +140,12 @@ fn pull_prints_no_wrote_line_before_an_error() {
     std::fs::create_dir_all(dir.join("src/images")).unwrap();
     std::fs::create_dir_all(dir.join("src/depths")).unwrap();
     std::fs::write(dir.join("src/images/a.png"), photo_png(64, 48, 1)).unwrap();
-    std::fs::write(dir.join("src/depths/a.npy"), b"not an array").unwrap();
+    // a depth whose header is whole (the folder opens) and whose data ends early (it fails when
+    // the scene is made, so in the stream)
+    let npy = dir.join("src/depths/a.npy");
+    mpiflow::io::npy::write_f32(&npy, &[48, 64], &vec![2.0; 64 * 48]).unwrap();
+    let bytes = std::fs::read(&npy).unwrap();
+    std::fs::write(&npy, &bytes[..bytes.len() / 2]).unwrap();
     let (mut server, line) = serve(&["--size", "64x48", "--source", &dir.join("src").display().to_string()]);
     let addr = line.trim().strip_prefix("mpiflow serving on ").unwrap_or_else(|| panic!("{line:?}")).to_string();
     let out = Command::new(BIN).args(["pull", "--addr", &addr, "--count", "2", "--out"]).arg(dir.join("out")).output();

@@ -1,6 +1,7 @@
 //! `mpiflow bake`: the scene models run once per source item; the output folder (reference
 //! layout + `bake.json`) is served with no model (see [`mpiflow::export::bake`] and
-//! docs/deploy.md). Progress with ETA on stderr, `bake-report.json` at the end.
+//! docs/deploy.md). Progress with ETA on stderr, `bake-report.json` at the end; exit status 2
+//! when any item failed, naming them.
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
@@ -135,5 +136,21 @@ pub fn run(a: BakeArgs) -> Result<(), CliError> {
         report.peak_rss_mib.unwrap_or(0.0),
         path.display()
     );
-    Ok(())
+    if report.failures.is_empty() {
+        return Ok(());
+    }
+    // a batch job (a CI step, a Kubernetes Indexed Job) must see that items are missing
+    const NAMED: usize = 10;
+    let mut names: Vec<&str> = report.failures.iter().take(NAMED).map(|f| f.id.as_str()).collect();
+    let more = report.failures.len().saturating_sub(NAMED);
+    let and_more = if more > 0 { format!(" and {more} more") } else { String::new() };
+    names.sort_unstable();
+    Err(CliError(format!(
+        "{} of {} items failed ({}{and_more}; each with its reason above and in {}); fix or remove them and run \
+         the bake again: what is baked is kept",
+        report.failures.len(),
+        report.shard_items,
+        names.join(", "),
+        path.display()
+    )))
 }

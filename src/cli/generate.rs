@@ -51,6 +51,10 @@ pub struct GenerateArgs {
     /// Output folder (created if missing).
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
+    /// Refuse to run when any file of the source is left out (a photo that cannot serve, a
+    /// format mpiflow does not read) instead of warning and going on with the others.
+    #[arg(long)]
+    strict: bool,
     /// Layout: flo (FlyingChairs-style, .flo flow), kitti (16-bit flow PNG), webdataset (tar
     /// shards), sintel (the MPI Sintel training layout, for clips) or stereo (left/ right/
     /// disparity/ folders of rectified pairs; needs --preset stereo).
@@ -184,7 +188,21 @@ fn source(a: &GenerateArgs) -> Result<Arc<dyn Source>, CliError> {
     };
     let options = OpenOptions { resize: a.size, intrinsics, ..OpenOptions::default() };
     let what = if a.source.is_some() { "--source" } else { "bundled scenes" };
-    open_source(&spec, &options).map_err(|e| CliError(format!("{what}: {e}")))
+    let source = open_source(&spec, &options).map_err(|e| CliError(format!("{what}: {e}")))?;
+    let skipped = source.skipped();
+    if !a.strict {
+        // said at once: a refusal below (no photo with depth left) names what was left out
+        for s in &skipped {
+            eprintln!("warning: {} left out of the source: {}", s.item, s.reason);
+        }
+    }
+    if a.strict && !skipped.is_empty() {
+        return Err(CliError(format!(
+            "--strict: {what}: {}; remove or fix them, or run without --strict",
+            mpiflow::source::dir::left_out_summary(&skipped)
+        )));
+    }
+    Ok(source)
 }
 
 /// What a worker hands to the writer for one index.
@@ -270,7 +288,7 @@ pub fn run(a: GenerateArgs) -> Result<(), CliError> {
         Err(_) => return Err(CliError("the writer thread panicked".into())),
     };
     let secs = started.elapsed().as_secs_f64();
-    let bad = warn_bad_sources(source.as_ref(), &generator);
+    let bad = warn_bad_sources(&generator);
     report(&summary, skipped, bad, secs, &a)
 }
 
@@ -380,10 +398,7 @@ fn make_one(
 
 /// Bad sources passed over (their samples came from the next good source), once each; the number
 /// of source items the generator skipped.
-fn warn_bad_sources(source: &dyn Source, generator: &Generator) -> usize {
-    for skipped in source.skipped() {
-        eprintln!("warning: {} left out of the source: {}", skipped.item, skipped.reason);
-    }
+fn warn_bad_sources(generator: &Generator) -> usize {
     let bad = generator.skipped();
     for (item, id, reason) in &bad {
         eprintln!("warning: source item {item} ({id}) skipped, its samples use the next good source: {reason}");

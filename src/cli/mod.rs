@@ -63,9 +63,9 @@ pub fn run() -> i32 {
     let cli = match Cli::try_parse() {
         Ok(c) => c,
         Err(e) if e.use_stderr() => {
-            // one line naming the problem (clap's own first line), exit code 2
-            let text = e.render().to_string();
-            eprintln!("{}", text.lines().next().unwrap_or("error: bad arguments"));
+            // clap's whole message: the problem, the usage line, a suggestion for a near miss
+            // and the pointer to --help; exit code 2
+            let _ = e.print();
             return 2;
         }
         Err(e) => {

@@ -22,6 +22,10 @@ pub struct ServeArgs {
     /// first is the default. Default: the bundled scenes as dataset `builtin`.
     #[arg(long, value_name = "DIR")]
     source: Vec<String>,
+    /// Refuse to start when any file of a dataset's folder is left out (a photo that cannot
+    /// serve, a format mpiflow does not read) instead of logging them and serving the others.
+    #[arg(long)]
+    strict: bool,
     #[command(flatten)]
     keys: KeyFlags,
 }
@@ -206,9 +210,38 @@ async fn shutdown_signal() {
     }
 }
 
+/// `--strict`: every dataset's source opened as the server opens it; any file left out is an
+/// error naming them by reason.
+fn check_strict(config: &ServiceConfig) -> Result<(), CliError> {
+    use mpiflow::sample::pipeline::{open_source, OpenOptions};
+    let open = OpenOptions {
+        resize: config.resize()?,
+        limits: config.image_limits(),
+        photo_limits: Some(config.photo_limits()),
+        follow_links: config.follow_source_links,
+        ..OpenOptions::default()
+    };
+    for spec in &config.datasets {
+        let name = spec.name();
+        let source =
+            open_source(&spec.source_spec(), &open).map_err(|e| CliError(format!("dataset \"{name}\": {e}")))?;
+        let skipped = source.skipped();
+        if !skipped.is_empty() {
+            return Err(CliError(format!(
+                "--strict: dataset \"{name}\": {}; remove or fix them, or start without --strict",
+                mpiflow::source::dir::left_out_summary(&skipped)
+            )));
+        }
+    }
+    Ok(())
+}
+
 pub fn run(a: ServeArgs) -> Result<(), CliError> {
     let config = build_config(&a)?;
     init_tracing(config.log_format, &config.log_level)?;
+    if a.strict {
+        check_strict(&config)?;
+    }
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .thread_name("mpiflow-io")

@@ -6,7 +6,7 @@
 //! KITTI: a 16-bit RGB PNG with u = (R - 2^15) / 64, v = (G - 2^15) / 64 and B = 1 where the
 //! flow is valid, 0 elsewhere.
 
-use super::image::{decode_file, write_png, ImageError, ImageLimits};
+use super::image::{decode_file_as_stored, write_png, ImageError, ImageLimits};
 use ::image::{DynamicImage, ExtendedColorType};
 use std::fs::File;
 use std::io::{self, BufReader, BufWriter, Read, Write};
@@ -222,7 +222,7 @@ pub fn read_kitti_flow_png(path: &Path) -> io::Result<KittiFlow> {
 
 /// [`read_kitti_flow_png`] with explicit limits.
 pub fn read_kitti_flow_png_with_limits(path: &Path, limits: &ImageLimits) -> io::Result<KittiFlow> {
-    let (w, h, raw, channels) = match decode_file(path, limits)? {
+    let (w, h, raw, channels) = match decode_file_as_stored(path, limits)? {
         DynamicImage::ImageRgb16(b) => (b.width(), b.height(), b.into_raw(), 3),
         DynamicImage::ImageRgba16(b) => (b.width(), b.height(), b.into_raw(), 4),
         other => {

@@ -1,5 +1,6 @@
-//! PNG/JPEG decoding and encoding with size limits: photos to f32 RGB in [0, 1], 16-bit depth
-//! PNGs, and PNG writers for RGB and grayscale results.
+//! PNG/JPEG/WebP decoding and PNG encoding with size limits: photos to f32 RGB in [0, 1] as displayed
+//! (their EXIF orientation applied), 16-bit depth PNGs, image headers (displayed size,
+//! orientation) without decoding, and PNG writers for RGB and grayscale results.
 //!
 //! Limits are checked against the file size and the dimensions in the image header before any
 //! pixel buffer is allocated, so a decompression bomb (a small file whose header promises a huge
@@ -143,23 +144,71 @@ fn map_decode_error(path: &Path, e: ::image::ImageError) -> ImageError {
     }
 }
 
-/// Decodes a PNG or JPEG stream after checking its header against `limits`.
-fn decode_reader<R: BufRead + Seek>(reader: R, path: &Path, limits: &ImageLimits) -> Result<DynamicImage, ImageError> {
+/// The advice for a HEIC/HEIF photo (the iPhone's default): no maintained pure-Rust decoder
+/// reads them, so they are named and left out.
+pub const HEIC_ADVICE: &str = "HEIC: not supported, convert to JPEG (e.g. `heif-convert IMG.HEIC IMG.jpg`, or \
+                               set the phone's camera format to Most Compatible)";
+
+/// Whether a file name has a HEIC/HEIF extension (`.heic`, `.heif`, `.hif`, any case).
+pub fn is_heif(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["heic", "heif", "hif"].iter().any(|x| e.eq_ignore_ascii_case(x)))
+}
+
+/// What an image's header tells before any pixel is decoded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ImageHeader {
+    /// The size as displayed: after the orientation (sides swapped for the quarter turns).
+    pub width: u32,
+    pub height: u32,
+    /// The size as stored in the file, before the orientation.
+    pub stored_width: u32,
+    pub stored_height: u32,
+    /// The EXIF orientation (1 to 8; 1 when the file carries none): the turn or mirror a viewer
+    /// applies to show the photo upright, and the decoders of this module apply.
+    pub orientation: u8,
+}
+
+impl ImageHeader {
+    /// Whether the file carries an orientation other than the identity (its pixels are turned
+    /// or mirrored when decoded).
+    pub fn is_oriented(&self) -> bool {
+        self.orientation != 1
+    }
+}
+
+/// Whether an EXIF orientation swaps width and height (the quarter turns, 5 to 8).
+fn swaps_sides(orientation: ::image::metadata::Orientation) -> bool {
+    orientation.to_exif() >= 5
+}
+
+/// Opens a PNG, JPEG or WebP stream's decoder, checks its header against `limits` and reads its
+/// orientation; with `decode`, decodes its pixels too (as stored: the caller orients them).
+fn open_reader<R: BufRead + Seek>(
+    reader: R,
+    path: &Path,
+    limits: &ImageLimits,
+    decode: bool,
+) -> Result<(ImageHeader, Option<DynamicImage>), ImageError> {
     let mut reader = ::image::ImageReader::new(reader)
         .with_guessed_format()
         .map_err(|source| ImageError::Io { path: path.to_path_buf(), source })?;
     match reader.format() {
-        Some(ImageFormat::Png | ImageFormat::Jpeg) => {}
+        Some(ImageFormat::Png | ImageFormat::Jpeg | ImageFormat::WebP) => {}
         Some(other) => {
             return Err(ImageError::Unsupported {
                 path: path.to_path_buf(),
-                reason: format!("{other:?} images are not supported; use PNG or JPEG"),
+                reason: format!("{other:?} images are not supported; use PNG, JPEG or WebP"),
             })
+        }
+        None if is_heif(path) => {
+            return Err(ImageError::Unsupported { path: path.to_path_buf(), reason: HEIC_ADVICE.into() })
         }
         None => {
             return Err(ImageError::Unsupported {
                 path: path.to_path_buf(),
-                reason: "not a PNG or JPEG file (unrecognised signature)".into(),
+                reason: "not a PNG, JPEG or WebP file (unrecognised signature)".into(),
             })
         }
     }
@@ -175,14 +224,60 @@ fn decode_reader<R: BufRead + Seek>(reader: R, path: &Path, limits: &ImageLimits
             limits: *limits,
         });
     }
+    let orientation = decoder.orientation().map_err(|e| map_decode_error(path, e))?;
+    let (dw, dh) = if swaps_sides(orientation) { (height, width) } else { (width, height) };
+    let header = ImageHeader {
+        width: dw,
+        height: dh,
+        stored_width: width,
+        stored_height: height,
+        orientation: orientation.to_exif(),
+    };
+    if !decode {
+        return Ok((header, None));
+    }
     let mut il = limits.to_image_limits();
     il.reserve(decoder.total_bytes()).map_err(|e| map_decode_error(path, e))?;
     decoder.set_limits(il).map_err(|e| map_decode_error(path, e))?;
-    DynamicImage::from_decoder(decoder).map_err(|e| map_decode_error(path, e))
+    let img = DynamicImage::from_decoder(decoder).map_err(|e| map_decode_error(path, e))?;
+    Ok((header, Some(img)))
 }
 
-/// Opens a file and decodes it, refusing files over `limits.max_bytes` before reading them.
-pub(crate) fn decode_file(path: &Path, limits: &ImageLimits) -> Result<DynamicImage, ImageError> {
+/// Decodes a PNG, JPEG or WebP stream after checking its header against `limits`; with `orient`, the
+/// pixels are turned to the orientation the file asks for (EXIF in JPEG, `eXIf` in PNG), so the
+/// result is the image as a viewer displays it.
+fn decode_reader<R: BufRead + Seek>(
+    reader: R,
+    path: &Path,
+    limits: &ImageLimits,
+    orient: bool,
+) -> Result<DynamicImage, ImageError> {
+    let (header, img) = open_reader(reader, path, limits, true)?;
+    let mut img = img.ok_or_else(|| ImageError::Corrupt { path: path.to_path_buf(), reason: "no pixels".into() })?;
+    if orient {
+        if let Some(o) = ::image::metadata::Orientation::from_exif(header.orientation) {
+            img.apply_orientation(o);
+        }
+    }
+    Ok(img)
+}
+
+/// Reads an image file's header (size, orientation) under `limits`, without decoding its
+/// pixels: the file size, a JPEG's completeness and the header's dimensions are checked as the
+/// decoders check them.
+pub fn read_header(path: &Path, limits: &ImageLimits) -> Result<ImageHeader, ImageError> {
+    let bytes = read_file(path, limits)?;
+    read_header_bytes(&bytes, path, limits)
+}
+
+/// [`read_header`] for an encoded image held in memory, named `path` in errors.
+pub fn read_header_bytes(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<ImageHeader, ImageError> {
+    check_encoded(bytes, path, limits)?;
+    open_reader(Cursor::new(bytes), path, limits, false).map(|(h, _)| h)
+}
+
+/// Reads a file whole, refusing files over `limits.max_bytes` before reading them.
+fn read_file(path: &Path, limits: &ImageLimits) -> Result<Vec<u8>, ImageError> {
     let open_err = |source: io::Error| {
         if source.kind() == io::ErrorKind::NotFound {
             ImageError::NotFound { path: path.to_path_buf() }
@@ -211,13 +306,27 @@ pub(crate) fn decode_file(path: &Path, limits: &ImageLimits) -> Result<DynamicIm
         .take(limits.max_bytes.saturating_add(1))
         .read_to_end(&mut bytes)
         .map_err(|source| ImageError::Io { path: path.to_path_buf(), source })?;
+    Ok(bytes)
+}
+
+/// Opens a file and decodes it, refusing files over `limits.max_bytes` before reading them;
+/// the pixels are oriented as the file asks ([`decode_bytes`]).
+pub(crate) fn decode_file(path: &Path, limits: &ImageLimits) -> Result<DynamicImage, ImageError> {
+    let bytes = read_file(path, limits)?;
     decode_bytes(&bytes, path, limits)
 }
 
-/// Decodes an encoded PNG or JPEG held in memory, named `path` in errors: the byte size, a
-/// JPEG's completeness ([`jpeg_truncation`]) and the header's dimensions are checked before any
-/// pixel buffer is allocated.
-pub(crate) fn decode_bytes(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<DynamicImage, ImageError> {
+/// [`decode_file`] with the pixels as stored, whatever orientation the file carries (rasters
+/// whose values are directions, such as flow, cannot be turned as pixels).
+pub(crate) fn decode_file_as_stored(path: &Path, limits: &ImageLimits) -> Result<DynamicImage, ImageError> {
+    let bytes = read_file(path, limits)?;
+    check_encoded(&bytes, path, limits)?;
+    decode_reader(Cursor::new(&bytes[..]), path, limits, false)
+}
+
+/// The checks on encoded bytes before their header is read: the byte size and a JPEG's
+/// completeness ([`jpeg_truncation`]).
+fn check_encoded(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<(), ImageError> {
     if bytes.len() as u64 > limits.max_bytes {
         return Err(ImageError::FileTooLarge {
             path: path.to_path_buf(),
@@ -228,7 +337,67 @@ pub(crate) fn decode_bytes(bytes: &[u8], path: &Path, limits: &ImageLimits) -> R
     if let Some(reason) = jpeg_truncation(bytes) {
         return Err(ImageError::Truncated { path: path.to_path_buf(), reason });
     }
-    decode_reader(Cursor::new(bytes), path, limits)
+    Ok(())
+}
+
+/// Decodes an encoded PNG, JPEG or WebP held in memory, named `path` in errors: the byte size, a
+/// JPEG's completeness ([`jpeg_truncation`]) and the header's dimensions are checked before any
+/// pixel buffer is allocated. The pixels are turned to the orientation the file carries (EXIF
+/// in JPEG, `eXIf` in PNG): the image as a viewer displays it, for photos, masks and depth alike.
+pub(crate) fn decode_bytes(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<DynamicImage, ImageError> {
+    check_encoded(bytes, path, limits)?;
+    decode_reader(Cursor::new(bytes), path, limits, true)
+}
+
+/// The bytes of an image's start that [`orientation_of_prefix`] needs at most: a JPEG's EXIF
+/// segment lies in its first 64 KiB.
+pub const ORIENTATION_PREFIX: usize = 1 << 16;
+
+/// The EXIF orientation (1 to 8) an encoded image carries, from its first bytes alone (a JPEG's
+/// `APP1` Exif segment, a PNG's `eXIf` chunk before its pixel data); 1 when it carries none, the
+/// tag is not valid, or the bytes are neither. It reads the tag the decoders of this module read
+/// and apply, without decoding anything: for sources that fingerprint their items without opening
+/// them (shards, uploads).
+pub fn orientation_of_prefix(bytes: &[u8]) -> u8 {
+    let from_chunk = |chunk: &[u8]| {
+        ::image::metadata::Orientation::from_exif_chunk(chunk).map_or(1, ::image::metadata::Orientation::to_exif)
+    };
+    if bytes.starts_with(&[0xFF, 0xD8]) {
+        let mut pos = 2usize;
+        while pos + 4 <= bytes.len() && bytes[pos] == 0xFF {
+            let code = bytes[pos + 1];
+            if code == 0xFF {
+                pos += 1;
+                continue;
+            }
+            if code == 0xDA || code == 0xD9 {
+                break;
+            }
+            let len = usize::from(u16::from_be_bytes([bytes[pos + 2], bytes[pos + 3]]));
+            let body = &bytes[(pos + 4).min(bytes.len())..(pos + 2 + len).min(bytes.len())];
+            if code == 0xE1 && body.starts_with(b"Exif\0\0") {
+                return from_chunk(&body[6..]);
+            }
+            if len < 2 {
+                break;
+            }
+            pos += 2 + len;
+        }
+    } else if bytes.starts_with(b"\x89PNG\r\n\x1a\n") {
+        let mut pos = 8usize;
+        while pos + 8 <= bytes.len() {
+            let len = u32::from_be_bytes([bytes[pos], bytes[pos + 1], bytes[pos + 2], bytes[pos + 3]]) as usize;
+            let kind = &bytes[pos + 4..pos + 8];
+            if kind == b"IDAT" {
+                break;
+            }
+            if kind == b"eXIf" {
+                return from_chunk(&bytes[(pos + 8).min(bytes.len())..(pos + 8).saturating_add(len).min(bytes.len())]);
+            }
+            pos = pos.saturating_add(12).saturating_add(len);
+        }
+    }
+    1
 }
 
 /// Why a JPEG stream is truncated (`None` when it is complete or not a JPEG).
@@ -337,9 +506,11 @@ fn dynamic_to_rgb(img: DynamicImage) -> RgbImage {
     RgbImage { width, height, data }
 }
 
-/// Decodes a PNG or JPEG file (8 or 16 bit; gray, gray+alpha, RGB or RGBA) to RGB in [0, 1];
+/// Decodes a PNG, JPEG or WebP file (8 or 16 bit; gray, gray+alpha, RGB or RGBA) to RGB in [0, 1];
 /// alpha is dropped. The file size and the header's dimensions are checked against `limits`
-/// before any pixel buffer is allocated. EXIF orientation is not applied.
+/// before any pixel buffer is allocated. The EXIF orientation is applied: the result is the
+/// photo as a viewer displays it (a phone photo stored sideways with orientation 6 comes out
+/// upright, its width and height swapped).
 pub fn load_rgb(path: &Path, limits: &ImageLimits) -> Result<RgbImage, ImageError> {
     decode_file(path, limits).map(dynamic_to_rgb)
 }

@@ -53,26 +53,29 @@ fn err(name: &str, kind: FailureKind, message: impl std::fmt::Display) -> Source
 }
 
 /// Decodes an item: image, depth or disparity and masks resized to the image (nearest
-/// neighbour) when their size differs, then [`SourceOptions::resize`] and the intrinsics
+/// neighbour) when their size differs with the aspect kept (another aspect is an error naming
+/// both shapes), then [`SourceOptions::resize`] and the intrinsics
 /// ([`SourceOptions::intrinsics`] wins over the item's own, which are scaled with a resize).
 pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<SourceItem, SourceError> {
     let limits = &options.limits;
     let mut image = load_rgb_from_bytes_named(item.image.bytes, &item.image.name, limits)
         .map_err(|e| err(&item.image.name, e.failure_kind(), e))?;
     let (w0, h0) = (image.width, image.height);
-    let fit = |d: Vec<f32>, w: usize, h: usize| super::given::fit(d, w, h, w0, h0);
+    let fit = |what: &str, name: &str, d: Vec<f32>, w: usize, h: usize| {
+        super::given::fit(what, d, w, h, w0, h0).map_err(|m| err(name, FailureKind::Depth, m))
+    };
     let mut depth = match &item.depth {
         Some((DepthEncoding::Npy, f)) => {
             let (w, h, d) = depth_npy_from_bytes(f.bytes, limits).map_err(|(kind, m)| err(&f.name, kind, m))?;
-            Some(GivenDepth::Depth(fit(d, w, h)))
+            Some(GivenDepth::Depth(fit("depth", &f.name, d, w, h)?))
         }
         Some((DepthEncoding::DisparityNpy, f)) => {
             let (w, h, d) = depth_npy_from_bytes(f.bytes, limits).map_err(|(kind, m)| err(&f.name, kind, m))?;
-            Some(GivenDepth::Disparity(fit(d, w, h)))
+            Some(GivenDepth::Disparity(fit("disparity", &f.name, d, w, h)?))
         }
         Some((DepthEncoding::DisparityPng, f)) => {
             let (w, h, d) = disparity_png_from_bytes(f.bytes, &f.name, limits)?;
-            Some(GivenDepth::Disparity(fit(d, w, h)))
+            Some(GivenDepth::Disparity(fit("disparity", &f.name, d, w, h)?))
         }
         None => None,
     };
@@ -80,7 +83,13 @@ pub fn decode_item(item: EncodedItem<'_>, options: &SourceOptions) -> Result<Sou
         Some(f) => {
             let m = InstanceMasks::from_index_png_bytes(f.bytes, &f.name, limits)
                 .map_err(|e| err(&f.name, e.failure_kind(), e))?;
-            Some(if (m.width, m.height) != (w0, h0) { m.resize_nearest(w0, h0) } else { m })
+            if (m.width, m.height) != (w0, h0) {
+                super::given::check_shape("masks", m.width, m.height, w0, h0)
+                    .map_err(|msg| err(&f.name, FailureKind::Mask, msg))?;
+                Some(m.resize_nearest(w0, h0))
+            } else {
+                Some(m)
+            }
         }
         None => None,
     };

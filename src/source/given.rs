@@ -37,15 +37,44 @@ pub(crate) fn over_limit(size: u64, limits: &ImageLimits) -> String {
     format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes)
 }
 
+/// Whether a companion raster of `w` x `h` (depth, disparity, masks) has the aspect of its photo
+/// of `w0` x `h0` within a pixel of rounding: scaled to the larger of the two, each side lands
+/// within one pixel of the smaller one's (`|w h0 - h w0| <= max(W, H)` of the larger raster).
+pub fn same_aspect(w: usize, h: usize, w0: usize, h0: usize) -> bool {
+    let cross = (w as u128 * h0 as u128).abs_diff(h as u128 * w0 as u128);
+    let larger = if w * h >= w0 * h0 { w.max(h) } else { w0.max(h0) };
+    cross <= larger as u128
+}
+
+/// Checks a companion raster's shape against its photo's (as displayed, after its EXIF
+/// orientation): the same aspect within a pixel of rounding ([`same_aspect`]), else the message
+/// naming both shapes and the likely cause. `what` is `depth`, `disparity` or `masks`.
+pub(crate) fn check_shape(what: &str, w: usize, h: usize, w0: usize, h0: usize) -> Result<(), String> {
+    if same_aspect(w, h, w0, h0) {
+        return Ok(());
+    }
+    let cause = if same_aspect(w, h, h0, w0) {
+        "it is turned a quarter against the photo: depth and masks are taken in the orientation of the \
+         photo as displayed (after its EXIF orientation), so make them from the upright photo, or check \
+         that the photo's orientation tag is the one the depth was made for"
+    } else {
+        "it is of another view: a crop of the photo, or another photo's file"
+    };
+    Err(format!(
+        "{what} is {w} x {h} but its photo is {w0} x {h0} (as displayed): the aspects differ by more than a \
+         pixel of rounding, so it cannot be resized to the photo; {cause}"
+    ))
+}
+
 /// Resizes a depth or disparity map `data` (w x h) to (w0 x h0) when the sizes differ:
 /// bilinear on a surface, nearest across its edges and next to unknown values
-/// ([`resize_depth`]).
-pub(crate) fn fit(data: Vec<f32>, w: usize, h: usize, w0: usize, h0: usize) -> Vec<f32> {
+/// ([`resize_depth`]). A map of another aspect is refused ([`check_shape`]).
+pub(crate) fn fit(what: &str, data: Vec<f32>, w: usize, h: usize, w0: usize, h0: usize) -> Result<Vec<f32>, String> {
     if (w, h) == (w0, h0) {
-        data
-    } else {
-        resize_depth(&data, w, h, w0, h0)
+        return Ok(data);
     }
+    check_shape(what, w, h, w0, h0)?;
+    Ok(resize_depth(&data, w, h, w0, h0))
 }
 
 /// Reads a depth file as (width, height, values).

@@ -147,7 +147,7 @@ pub use upload::{UploadLimits, UploadSession, UploadStore, UploadSummary};
 /// - a `.tar` file: a WebDataset shard ([`ShardSource`]);
 /// - another file: a single image ([`DirSource`]);
 /// - a directory with an `images/` folder: the reference layout ([`DirSource`]);
-/// - a directory with `.png` / `.jpg` / `.jpeg` files: the plain layout ([`DirSource`]);
+/// - a directory with `.png` / `.jpg` / `.jpeg` / `.webp` files: the plain layout ([`DirSource`]);
 /// - a directory with `.tar` files (and no images): its shards ([`ShardSource`]).
 ///
 /// A directory holding both images and `.tar` files is refused as ambiguous (open it with
@@ -179,7 +179,7 @@ pub fn open_source(path: &std::path::Path, options: &SourceOptions) -> Result<st
         if !std::fs::metadata(&p).is_ok_and(|m| m.is_file()) {
             continue;
         }
-        images |= ext_is(&p, &["png", "jpg", "jpeg"]);
+        images |= ext_is(&p, &["png", "jpg", "jpeg", "webp"]);
         tars |= ext_is(&p, &["tar"]);
     }
     match (images, tars) {

@@ -10,7 +10,7 @@
 //!
 //! | field | meaning |
 //! |---|---|
-//! | `jpg`, `jpeg`, `png` | the photo (required; the first of them in the shard's order) |
+//! | `jpg`, `jpeg`, `png`, `webp` | the photo (required; the first of them in the shard's order) |
 //! | `depth.npy` | float depth `[H, W]` (or `[1, H, W]`, `[H, W, 1]`, `[1, 1, H, W]`), any linear unit; non-finite or `<= 0` = unknown |
 //! | `disp.npy` | float disparity `[H, W]` in the scene scale (as `disps/NAME.npy`; what `mpiflow bake --format webdataset` writes) |
 //! | `depth.png`, `disp.png` | disparity in [0, 1]: 8-bit grey / 255 or 16-bit / 65535 (as `disps/NAME.png` of a directory) |
@@ -327,13 +327,14 @@ impl ShardSource {
             }
             for s in index.samples {
                 let find = |f: &str| s.members.iter().find(|m| field_is(m, f)).cloned();
-                let image = s.members.iter().find(|m| ["jpg", "jpeg", "png"].iter().any(|f| field_is(m, f))).cloned();
+                let image =
+                    s.members.iter().find(|m| ["jpg", "jpeg", "png", "webp"].iter().any(|f| field_is(m, f))).cloned();
                 let Some(image) = image else {
                     let fields: Vec<&str> = s.members.iter().map(|m| m.field.as_str()).collect();
                     skip(
                         format!("{name}:{}", s.key),
                         FailureKind::NoImage,
-                        format!("no image (jpg, jpeg or png field); fields: {}", fields.join(", ")),
+                        format!("no image (jpg, jpeg, png or webp field); fields: {}", fields.join(", ")),
                     );
                     continue;
                 };
@@ -419,6 +420,24 @@ impl ShardSource {
         Ok(buf)
     }
 
+    /// The EXIF orientation of an item's image, from its member's first bytes
+    /// ([`orientation_of_prefix`](crate::io::image::orientation_of_prefix)); `open` keeps the
+    /// shard file last opened.
+    fn image_orientation(&self, open: &mut Option<(usize, File)>, e: &Entry) -> Result<u8, SourceError> {
+        let p = &self.shards[e.shard].path;
+        let io_fail =
+            |err: std::io::Error| SourceError::file(p.display().to_string(), FailureKind::Decode, io_msg(&err));
+        let f = match open {
+            Some((i, f)) if *i == e.shard => f,
+            _ => &mut open.insert((e.shard, File::open(p).map_err(io_fail)?)).1,
+        };
+        let n = e.image.size.min(crate::io::image::ORIENTATION_PREFIX as u64);
+        let mut buf = Vec::with_capacity(n as usize);
+        f.seek(SeekFrom::Start(e.image.offset)).map_err(io_fail)?;
+        f.take(n).read_to_end(&mut buf).map_err(io_fail)?;
+        Ok(crate::io::image::orientation_of_prefix(&buf))
+    }
+
     fn compute_fingerprint(&self) -> Result<u64, SourceError> {
         let mut h = Fnv64::new();
         h.str("mpiflow shard source v1");
@@ -446,6 +465,11 @@ impl ShardSource {
                     let bytes = self.read_member(f, e, m, FailureKind::Decode)?;
                     h.bytes(&bytes);
                 }
+            }
+            // only photos turned upright when decoded: other items keep the fingerprint they had
+            let orientation = self.image_orientation(&mut open, e)?;
+            if orientation != 1 {
+                h.str("orientation").u64(u64::from(orientation));
             }
         }
         self.options.hash_into(&mut h);

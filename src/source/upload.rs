@@ -8,7 +8,7 @@
 //! A chunk carries `(dataset, name, kind, data)` as the proto's `SourceChunk`: `dataset` is read
 //! from the first chunk of the upload (later values are ignored); a chunk with a non-empty `name`
 //! starts a new file (even with the current file's name: that is the same file sent twice), an
-//! empty `name` continues the current one. `kind` is `image` (PNG or JPEG), `depth` (a `.npy` float depth in any linear unit,
+//! empty `name` continues the current one. `kind` is `image` (PNG, JPEG or WebP), `depth` (a `.npy` float depth in any linear unit,
 //! or an 8/16-bit grey PNG disparity in [0, 1], told apart by their first bytes) or `mask` (an
 //! instance-id PNG). Depth and mask attach to the image of the same name, sent in the same upload
 //! or already in the dataset.
@@ -208,6 +208,11 @@ impl UploadSource {
         for (name, item) in &items {
             h.str(name);
             h.str("image").u64(item.image.bytes.len() as u64).u64(item.image.hash);
+            // only photos turned upright when decoded: other items keep the fingerprint they had
+            let orientation = crate::io::image::orientation_of_prefix(&item.image.bytes);
+            if orientation != 1 {
+                h.str("orientation").u64(u64::from(orientation));
+            }
             if let Some((enc, p)) = &item.depth {
                 h.str(match enc {
                     DepthEncoding::Npy => "depth npy",

@@ -2,15 +2,16 @@
 //! with its companions.
 
 use super::listing::{
-    companions, frame_of, image_entries, pick, stem_of, Entry, FileRef, ItemFiles, Layout, Listing, MaskFile,
+    check_entries, companions, frame_of, image_entries, not_images, pick, stem_of, Entry, FileRef, ItemFiles, Layout,
+    Listing, MaskFile,
 };
 use super::options::SourceOptions;
-use crate::io::image::{load_rgb, RgbImage};
+use crate::io::image::{is_heif, load_rgb, read_header, RgbImage, HEIC_ADVICE};
 use crate::mpi::{Mpi, MpiError};
 use crate::raster::{cover, crop, resize_depth, InstanceMasks};
 use crate::source::baked::BakeManifest;
 use crate::source::given::DepthFile;
-use crate::source::given::{file_err, fit, io_err, over_limit};
+use crate::source::given::{check_shape, file_err, fit, io_err, over_limit};
 use crate::source::given::{read_depth, read_depth_npy, read_disparity_png, resize_rgb};
 use crate::source::{Carried, FailureKind, Fnv64, GivenDepth, SkippedItem, Source, SourceError, SourceItem};
 use std::io::Read;
@@ -33,6 +34,12 @@ pub struct DirSource {
     /// folder's photos differ in size or are larger than the working size ([`frame_of`]);
     /// `None` when they are read as they are.
     frame: Option<(usize, usize)>,
+    /// The EXIF orientation of each item's photo (1 where it carries none or cannot be read):
+    /// the photos that carry another are turned upright when loaded.
+    oriented: Vec<u8>,
+    /// Items whose depth, disparity or masks have another resolution than the photo (the same
+    /// aspect): resized when loaded.
+    resized: usize,
 }
 
 impl DirSource {
@@ -52,16 +59,15 @@ impl DirSource {
             let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
             let entries = image_entries(&[(name.clone(), meta.len())], "");
             if entries.is_empty() {
-                return Err(SourceError::file(
-                    path.display().to_string(),
-                    FailureKind::Decode,
-                    "not a .png, .jpg or .jpeg image",
-                ));
+                let message = if is_heif(path) { HEIC_ADVICE } else { "not a .png, .jpg, .jpeg or .webp image" };
+                return Err(SourceError::file(path.display().to_string(), FailureKind::Unsupported, message));
             }
             let root = path.parent().map(Path::to_path_buf).unwrap_or_default();
             (root, Layout::File, entries)
         } else if path.join("images").is_dir() {
-            let mut entries = image_entries(&listing.files(&path.join("images"), "images/")?, "images/");
+            let files = listing.files(&path.join("images"), "images/")?;
+            listing.skipped.extend(not_images(&files, "images/"));
+            let mut entries = image_entries(&files, "images/");
             let depths = companions(&mut listing, path, "depths")?;
             let disps = companions(&mut listing, path, "disps")?;
             let masks = companions(&mut listing, path, "masks")?;
@@ -80,21 +86,77 @@ impl DirSource {
             }
             (path.to_path_buf(), Layout::Reference, entries)
         } else {
-            (path.to_path_buf(), Layout::Plain, image_entries(&listing.files(path, "")?, ""))
+            let files = listing.files(path, "")?;
+            listing.skipped.extend(not_images(&files, ""));
+            (path.to_path_buf(), Layout::Plain, image_entries(&files, ""))
         };
         if entries.is_empty() {
-            let message = if layout == Layout::Reference {
-                "no .png, .jpg or .jpeg images in images/"
+            let mut message = if layout == Layout::Reference {
+                "no .png, .jpg, .jpeg or .webp images in images/".to_string()
             } else {
-                "no .png, .jpg or .jpeg images (and no images/ folder)"
+                "no .png, .jpg, .jpeg or .webp images (and no images/ folder)".to_string()
             };
+            let heic = listing.skipped.iter().filter(|s| s.reason == HEIC_ADVICE).count();
+            if heic > 0 {
+                message.push_str(&format!("; {heic} HEIC/HEIF photos: not supported, convert them to JPEG"));
+            }
             return Err(SourceError::file(path.display().to_string(), FailureKind::Decode, message));
         }
         let mut skipped = listing.skipped;
+        // every photo checked now, so that the index holds only photos that can serve: each
+        // served photo has equal weight and the scene window keeps its interleaving
+        let mut kept = Vec::with_capacity(entries.len());
+        let mut headers = Vec::with_capacity(entries.len());
+        let mut resized = 0;
+        let checks = if options.check_at_open {
+            check_entries(&root, &entries, &options.limits)
+        } else {
+            // headers only (for the working size and the orientation); a bad photo fails when loaded
+            entries
+                .iter()
+                .map(|e| {
+                    let h = read_header(&root.join(&e.image.rel), &options.limits).ok();
+                    Ok((h, false))
+                })
+                .collect()
+        };
+        for (e, c) in entries.into_iter().zip(checks) {
+            match c {
+                Ok((h, r)) => {
+                    kept.push(e);
+                    headers.push(h);
+                    resized += usize::from(r);
+                }
+                Err(s) => skipped.push(s),
+            }
+        }
+        let entries = kept;
         skipped.sort_by(|a, b| a.item.cmp(&b.item));
+        if entries.is_empty() {
+            return Err(SourceError::file(
+                path.display().to_string(),
+                skipped.first().map_or(FailureKind::Decode, |s| s.kind),
+                match skipped.iter().find(|s| s.kind != FailureKind::Unsupported).or(skipped.first()) {
+                    Some(s) => format!("no photo can serve; {}; {}: {}", left_out_summary(&skipped), s.item, s.reason),
+                    None => "no photo can serve".to_string(),
+                },
+            ));
+        }
         let baked = if layout == Layout::Reference { BakeManifest::read(path)? } else { None };
-        let frame = if options.resize.is_none() { frame_of(&root, &entries, &options.limits) } else { None };
-        let mut src = DirSource { root, layout, entries, options: *options, fingerprint: 0, skipped, baked, frame };
+        let frame = if options.resize.is_none() { frame_of(&entries, &headers) } else { None };
+        let oriented = headers.iter().map(|h| h.map_or(1, |h| h.orientation)).collect();
+        let mut src = DirSource {
+            root,
+            layout,
+            entries,
+            options: *options,
+            fingerprint: 0,
+            skipped,
+            baked,
+            frame,
+            oriented,
+            resized,
+        };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
     }
@@ -141,8 +203,12 @@ impl DirSource {
             }
             Ok(())
         };
-        for e in &self.entries {
+        for (e, &o) in self.entries.iter().zip(&self.oriented) {
             h.str(&e.id);
+            // only photos turned upright when loaded: a folder without them keeps its fingerprint
+            if o != 1 {
+                h.str("orientation").u64(u64::from(o));
+            }
             file(&mut h, "image", &e.image)?;
             if let Some((_, f)) = &e.depth {
                 file(&mut h, "depth", f)?;
@@ -182,7 +248,7 @@ impl DirSource {
             Some((kind, f)) => {
                 let p = self.root.join(&f.rel);
                 let (w, h, d) = read_depth(&p, *kind, limits)?;
-                Some(GivenDepth::Depth(fit(d, w, h, w0, h0)))
+                Some(GivenDepth::Depth(fit("depth", d, w, h, w0, h0).map_err(|m| file_err(&p, FailureKind::Depth, m))?))
             }
             None => match &e.disparity {
                 Some(f) => {
@@ -192,7 +258,8 @@ impl DirSource {
                     } else {
                         read_disparity_png(&p, limits)?
                     };
-                    Some(GivenDepth::Disparity(fit(d, w, h, w0, h0)))
+                    let d = fit("disparity", d, w, h, w0, h0).map_err(|m| file_err(&p, FailureKind::Depth, m))?;
+                    Some(GivenDepth::Disparity(d))
                 }
                 None => None,
             },
@@ -212,7 +279,13 @@ impl DirSource {
                     }
                 }
                 .map_err(|err| file_err(&p, err.failure_kind(), err))?;
-                Some(if (m.width, m.height) != (w0, h0) { m.resize_nearest(w0, h0) } else { m })
+                if (m.width, m.height) != (w0, h0) {
+                    check_shape("masks", m.width, m.height, w0, h0)
+                        .map_err(|msg| file_err(&p, FailureKind::Mask, msg))?;
+                    Some(m.resize_nearest(w0, h0))
+                } else {
+                    Some(m)
+                }
             }
             None => None,
         };
@@ -355,6 +428,40 @@ impl Source for DirSource {
     }
 
     fn describe(&self) -> String {
+        let mut described = self.describe_items();
+        if self.resized > 0 {
+            described.push_str(&format!("; {} with depth or masks at another resolution, resized", self.resized));
+        }
+        if !self.skipped.is_empty() {
+            described.push_str(&format!("; {}", left_out_summary(&self.skipped)));
+        }
+        described
+    }
+}
+
+/// `N files left out: 2 HEIC (not supported, convert to JPEG), 1 unsupported (notes.txt), ...`:
+/// the entries a listing left out, counted by reason with the first few names.
+pub fn left_out_summary(skipped: &[SkippedItem]) -> String {
+    const NAMES: usize = 3;
+    let mut by_reason: std::collections::BTreeMap<(&str, &str), Vec<&str>> = std::collections::BTreeMap::new();
+    for s in skipped {
+        let label = if s.reason == HEIC_ADVICE { "HEIC: not supported, convert to JPEG" } else { s.kind.as_str() };
+        by_reason.entry((label, s.kind.as_str())).or_default().push(&s.item);
+    }
+    let parts: Vec<String> = by_reason
+        .iter()
+        .map(|((label, _), names)| {
+            let more = if names.len() > NAMES { format!(", {} more", names.len() - NAMES) } else { String::new() };
+            let shown: Vec<&str> = names.iter().take(NAMES).copied().collect();
+            format!("{} {label} ({}{more})", names.len(), shown.join(", "))
+        })
+        .collect();
+    format!("{} left out: {}", skipped.len(), parts.join(", "))
+}
+
+impl DirSource {
+    /// The source as [`Source::describe`] shows it, before the entries left out.
+    fn describe_items(&self) -> String {
         let n = self.entries.len();
         let root = self.root.display();
         match self.layout {

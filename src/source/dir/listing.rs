@@ -2,8 +2,8 @@
 //! and companion files, and the frame the items are brought to.
 
 use super::options::working_size;
-use crate::io::image::ImageLimits;
-use crate::source::given::{io_err, DepthFile};
+use crate::io::image::{is_heif, read_header, ImageHeader, ImageLimits, HEIC_ADVICE};
+use crate::source::given::{check_shape, io_err, DepthFile};
 use crate::source::{FailureKind, SkippedItem, SourceError};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 /// How a directory source found its items.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Layout {
-    /// `DIR/*.png|jpg|jpeg`.
+    /// `DIR/*.png|jpg|jpeg|webp`.
     Plain,
     /// `DIR/images/`, `depths/`, `disps/`, `masks/`, `mpis/`.
     Reference,
@@ -53,7 +53,7 @@ pub struct ItemFiles {
     pub mpi: Option<PathBuf>,
 }
 
-pub(super) const IMAGE_EXTS: [&str; 3] = ["png", "jpg", "jpeg"];
+pub(super) const IMAGE_EXTS: [&str; 4] = ["png", "jpg", "jpeg", "webp"];
 
 pub(super) fn lower_ext(name: &str) -> Option<(String, String)> {
     let p = Path::new(name);
@@ -63,7 +63,7 @@ pub(super) fn lower_ext(name: &str) -> Option<(String, String)> {
 }
 
 /// Extensions of the files a folder source reads (entries with them are reported when left out).
-pub(super) const SOURCE_EXTENSIONS: [&str; 8] = ["png", "jpg", "jpeg", "npy", "pfm", "npz", "json", "tar"];
+pub(super) const SOURCE_EXTENSIONS: [&str; 9] = ["png", "jpg", "jpeg", "webp", "npy", "pfm", "npz", "json", "tar"];
 
 /// A folder listing: regular files as (name, size), sorted by name, and what was left out.
 pub(super) struct Listing<'a> {
@@ -130,6 +130,24 @@ impl Listing<'_> {
     }
 }
 
+/// The files of a photo folder (a plain folder, or `images/`) that are not photos mpiflow reads,
+/// each with its reason: HEIC/HEIF photos ([`HEIC_ADVICE`]), other files (`unsupported`).
+pub(super) fn not_images(files: &[(String, u64)], prefix: &str) -> Vec<SkippedItem> {
+    files
+        .iter()
+        .filter(|(name, _)| !lower_ext(name).is_some_and(|(_, e)| IMAGE_EXTS.contains(&e.as_str())))
+        .map(|(name, _)| SkippedItem {
+            item: format!("{prefix}{name}"),
+            kind: FailureKind::Unsupported,
+            reason: if is_heif(Path::new(name)) {
+                HEIC_ADVICE.to_string()
+            } else {
+                "not a photo mpiflow reads (PNG, JPEG or WebP)".to_string()
+            },
+        })
+        .collect()
+}
+
 /// Images of a listing as (stem, name, size), with ids made unique.
 pub(super) fn image_entries(files: &[(String, u64)], prefix: &str) -> Vec<Entry> {
     let images: Vec<(String, String, u64)> = files
@@ -185,23 +203,18 @@ pub(super) fn stem_of(entry: &Entry) -> String {
     lower_ext(name).map(|(s, _)| s).unwrap_or_else(|| name.to_string())
 }
 
-/// The frame every item of a folder is brought to ([`working_size`] of its largest photo: most
-/// pixels; among equals the wider, then the first listed), read from the image headers; items
-/// with a given MPI are left out (they keep their size, as MPIs are never resized). `None` when
-/// every readable photo has one size no larger than the working size (nothing is resized) or
-/// none is readable; a photo whose header cannot be read is left out here and fails when loaded.
-pub(super) fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Option<(usize, usize)> {
-    let mut sizes = entries.iter().filter(|e| e.mpi.is_none()).filter_map(|e| {
-        let p = root.join(&e.image.rel);
-        if e.image.size > limits.max_bytes {
-            return None;
-        }
-        let (w, h) = ::image::ImageReader::open(&p).ok()?.with_guessed_format().ok()?.into_dimensions().ok()?;
-        // a photo over the limits fails when loaded: it does not set the frame
-        let within =
-            w <= limits.max_width && h <= limits.max_height && u64::from(w) * u64::from(h) <= limits.max_pixels;
-        within.then_some((w as usize, h as usize))
-    });
+/// The frame every item of a folder is brought to ([`working_size`] of its largest photo as
+/// displayed: most pixels; among equals the wider, then the first listed), from the image
+/// headers (`headers[i]` of `entries[i]`, `None` where it cannot be read); items with a given MPI
+/// are left out (they keep their size, as MPIs are never resized). `None` when every readable
+/// photo has one size no larger than the working size (nothing is resized) or none is readable;
+/// a photo whose header cannot be read, or that is over the limits, does not set the frame.
+pub(super) fn frame_of(entries: &[Entry], headers: &[Option<ImageHeader>]) -> Option<(usize, usize)> {
+    let mut sizes = entries
+        .iter()
+        .zip(headers)
+        .filter(|(e, _)| e.mpi.is_none())
+        .filter_map(|(_, h)| h.map(|h| (h.width as usize, h.height as usize)));
     let first = sizes.next()?;
     let mut mixed = false;
     let mut best = first;
@@ -213,4 +226,109 @@ pub(super) fn frame_of(root: &Path, entries: &[Entry], limits: &ImageLimits) -> 
     }
     let frame = working_size(best.0, best.1);
     (mixed || frame != best).then_some(frame)
+}
+
+/// Most photos checked at once when a folder is opened (each check reads one photo's file).
+const CHECK_THREADS: usize = 4;
+
+/// What the check of one entry at open found: its photo's header, whether a companion has
+/// another resolution (resized when loaded), or why the entry cannot serve.
+pub(super) type Checked = Result<(Option<ImageHeader>, bool), SkippedItem>;
+
+/// Checks every entry when the folder is opened, at most [`CHECK_THREADS`] at once: the photo's
+/// header (a known format, complete as far as its header tells, within the limits) and the shape
+/// of its depth, disparity and index-PNG masks against the photo's displayed shape
+/// ([`check_shape`]). Results in the entries' order.
+pub(super) fn check_entries(root: &Path, entries: &[Entry], limits: &ImageLimits) -> Vec<Checked> {
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let threads =
+        std::thread::available_parallelism().map_or(1, usize::from).clamp(1, CHECK_THREADS).min(entries.len());
+    let mut found: Vec<(usize, Checked)> = std::thread::scope(|s| {
+        let workers: Vec<_> = (0..threads)
+            .map(|_| {
+                s.spawn(|| {
+                    let mut out = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(e) = entries.get(i) else { break };
+                        out.push((i, check_entry(root, e, limits)));
+                    }
+                    out
+                })
+            })
+            .collect();
+        // a worker that panicked checked nothing more: its entries are checked again below
+        workers.into_iter().flat_map(|w| w.join().unwrap_or_default()).collect()
+    });
+    found.sort_by_key(|(i, _)| *i);
+    let mut out = Vec::with_capacity(entries.len());
+    let mut it = found.into_iter().peekable();
+    for (i, e) in entries.iter().enumerate() {
+        match it.next_if(|(j, _)| *j == i) {
+            Some((_, c)) => out.push(c),
+            None => out.push(check_entry(root, e, limits)),
+        }
+    }
+    out
+}
+
+fn check_entry(root: &Path, e: &Entry, limits: &ImageLimits) -> Checked {
+    let left_out = |rel: &str, kind: FailureKind, message: String| {
+        let shown = root.join(rel).display().to_string();
+        let reason = message.strip_prefix(&format!("{shown}: ")).map(str::to_string).unwrap_or(message);
+        SkippedItem { item: rel.to_string(), kind, reason }
+    };
+    let header = read_header(&root.join(&e.image.rel), limits)
+        .map_err(|err| left_out(&e.image.rel, err.failure_kind(), err.to_string()))?;
+    let (w0, h0) = (header.width as usize, header.height as usize);
+    let mut resized = false;
+    let mut companions: Vec<(&FileRef, FailureKind, &str)> = Vec::new();
+    if let Some((kind, f)) = &e.depth {
+        if *kind != DepthFile::Pfm {
+            companions.push((f, FailureKind::Depth, "depth"));
+        }
+    } else if let Some(f) = &e.disparity {
+        companions.push((f, FailureKind::Depth, "disparity"));
+    }
+    if let Some((MaskFile::IndexPng, f)) = &e.masks {
+        companions.push((f, FailureKind::Mask, "masks"));
+    }
+    for (f, part, what) in companions {
+        let p = root.join(&f.rel);
+        let shape = if f.rel.to_ascii_lowercase().ends_with(".npy") {
+            npy_shape(&p, limits)
+        } else {
+            read_header(&p, limits).map(|h| (h.width as usize, h.height as usize)).map_err(|err| {
+                let kind = err.failure_kind().in_part(part);
+                (kind, err.to_string())
+            })
+        };
+        let (w, h) = shape.map_err(|(kind, m)| left_out(&f.rel, kind, m))?;
+        if (w, h) != (w0, h0) {
+            check_shape(what, w, h, w0, h0).map_err(|m| left_out(&f.rel, part, m))?;
+            resized = true;
+        }
+    }
+    Ok((Some(header), resized))
+}
+
+/// The (width, height) of a depth `.npy` from its header alone.
+fn npy_shape(p: &Path, limits: &ImageLimits) -> Result<(usize, usize), (FailureKind, String)> {
+    let fail = |m: String| (FailureKind::Depth, m);
+    let size = std::fs::metadata(p).map_err(|e| fail(e.to_string()))?.len();
+    if size > limits.max_bytes {
+        return Err((
+            FailureKind::TooLarge,
+            format!("{size} bytes is larger than the limit of {} bytes", limits.max_bytes),
+        ));
+    }
+    let mut f = std::fs::File::open(p).map_err(|e| fail(e.to_string()))?;
+    crate::io::npy::check_header(&mut f, size).map_err(|e| fail(format!("not a valid .npy depth: {e}")))?;
+    std::io::Seek::rewind(&mut f).map_err(|e| fail(e.to_string()))?;
+    let npy =
+        npyz::NpyFile::new(std::io::BufReader::new(f)).map_err(|e| fail(format!("not a valid .npy depth: {e}")))?;
+    match npy.shape() {
+        [h, w] | [1, h, w] | [h, w, 1] | [1, 1, h, w] => Ok((*w as usize, *h as usize)),
+        s => Err(fail(format!("depth array has shape {s:?}, expected [H, W] (or [1, H, W], [H, W, 1], [1, 1, H, W])"))),
+    }
 }

@@ -37,7 +37,12 @@
 //!
 //! # Sizes and camera
 //!
-//! Depth, disparity and masks whose size differs from the image's are resized to it (masks by
+//! Photos are decoded as displayed (their EXIF orientation applied, see
+//! [`crate::io::image::load_rgb`]); given depth, disparity and masks are taken in the orientation
+//! of the photo as displayed. Depth, disparity and masks whose aspect differs from the photo's by
+//! more than a pixel of rounding fail the item, naming both shapes and the likely cause
+//! ([`super::given::same_aspect`]). Those whose size differs with the aspect kept are resized to
+//! the image's (masks by
 //! nearest neighbour, so ids stay ids; depth and disparity bilinearly on a surface and by
 //! nearest neighbour across its edges and next to unknown values, so unknown depth stays unknown
 //! and no depth is invented between surfaces: [`crate::raster::resize_depth`]), as the reference
@@ -72,7 +77,8 @@
 //! # Fingerprint
 //!
 //! FNV-1a 64 ([`Fnv64`](super::Fnv64)) over the layout, each item's relative file paths (`/`-separated) and
-//! sizes in bytes, and the options that change what is loaded (resize, intrinsics). It does not
+//! sizes in bytes, the EXIF orientation of each photo that carries one other than 1 (read from
+//! the headers at open), and the options that change what is loaded (resize, intrinsics). It does not
 //! depend on where the directory is (same files, same fingerprint on every machine), but a file
 //! edited in place to the same size keeps it unless [`SourceOptions::hash_contents`] is set
 //! (which reads every file once at open and hashes its bytes too). A baked folder's fingerprint
@@ -91,6 +97,6 @@ pub use super::given::{
     depth_npy_from_bytes, disparity_png_from_bytes, read_depth, read_depth_npy, read_disparity_png, resize_rgb,
 };
 pub(crate) use folder::mpi_message;
-pub use folder::DirSource;
+pub use folder::{left_out_summary, DirSource};
 pub use listing::{ItemFiles, Layout, MaskFile};
 pub use options::{working_size, IntrinsicsSpec, SourceOptions, WORKING_MIN, WORKING_PIXELS};

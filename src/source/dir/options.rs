@@ -52,6 +52,11 @@ pub struct SourceOptions {
     /// [`resize`](Self::resize) before use and so may be larger than `limits` allows (a phone's
     /// 12-megapixel photos); `None` = `limits`. Sources read as they are keep `limits`.
     pub photo_limits: Option<ImageLimits>,
+    /// Check every photo of a folder when it is opened (its header, its depth's and masks'
+    /// shapes) and leave those that cannot serve out of the index (default): every served photo
+    /// then has equal weight. Without it, a bad photo fails when loaded and its samples use the
+    /// next good photo (as shards and uploads do).
+    pub check_at_open: bool,
 }
 
 impl SourceOptions {
@@ -83,6 +88,7 @@ impl Default for SourceOptions {
             hash_contents: false,
             follow_links: false,
             photo_limits: None,
+            check_at_open: true,
         }
     }
 }
