@@ -143,6 +143,10 @@ pub enum ServiceError {
     /// message are named, and the worker goes on with the next job.
     #[error("sample {index} of dataset {} (source item {item}): the worker panicked: {message}", echo(.dataset))]
     Panicked { dataset: String, index: u64, item: String, message: String },
+    /// A call's request did not arrive whole within the request deadline (headers sent, the
+    /// body trickled or withheld: `service::reply`).
+    #[error("the request did not arrive whole within {seconds} s (idle_connection_timeout_s)")]
+    RequestIncomplete { seconds: f64 },
     #[error("{0}")]
     Unimplemented(String),
     /// A start-up configuration problem (never sent to clients during serving).
@@ -159,7 +163,7 @@ impl ServiceError {
 
     pub fn code(&self) -> Code {
         match self {
-            ServiceError::InvalidArgument { .. } => Code::InvalidArgument,
+            ServiceError::InvalidArgument { .. } | ServiceError::RequestIncomplete { .. } => Code::InvalidArgument,
             ServiceError::UnknownDataset { .. } => Code::NotFound,
             ServiceError::FingerprintMismatch { .. } | ServiceError::Unusable { .. } => Code::FailedPrecondition,
             ServiceError::TooManyStreams { .. } | ServiceError::LimitExceeded(..) => Code::ResourceExhausted,
@@ -178,6 +182,7 @@ impl ServiceError {
     pub fn reason(&self) -> Reason {
         match self {
             ServiceError::InvalidArgument { .. } => Reason::InvalidArgument,
+            ServiceError::RequestIncomplete { .. } => Reason::MalformedRequest,
             ServiceError::UnknownDataset { .. } => Reason::UnknownDataset,
             ServiceError::FingerprintMismatch { .. } => Reason::FingerprintMismatch,
             ServiceError::Unusable { .. } => Reason::DatasetUnusable,
