@@ -624,14 +624,24 @@ async fn calls_whose_request_never_arrives_fail_at_the_request_deadline() {
 /// open, so a newcomer takes the place of one of their connections and is served.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn unfinished_requests_do_not_keep_a_newcomer_out() {
-    let s = server(ServiceConfig { max_connections: 4, idle_connection_timeout_s: 600.0, ..config() }).await;
+    let s = server(ServiceConfig {
+        max_connections: 4,
+        max_calls_per_connection: 129,
+        idle_connection_timeout_s: 600.0,
+        ..config()
+    })
+    .await;
     let mut held = Vec::new();
     for a in 0..4u8 {
-        let (send, conn) = h2_connection_from([127, 0, 7, 2 + a], s.addr, 1 << 20).await;
+        let (mut send, conn) = h2_connection_from([127, 0, 7, 2 + a], s.addr, 1 << 20).await;
         let mut calls = Vec::new();
         for _ in 0..128 {
             calls.push(unfinished_check(&send, &[0, 0, 0, 0, 10]).await);
         }
+        // a whole call after them on the same connection, answered: the server has taken the
+        // unfinished calls' headers (HTTP/2 frames arrive in order) and dispatched them first
+        let done = raw_request(&mut send, "/grpc.health.v1.Health/Check", &[], &[]).await;
+        assert_eq!(header_status(&done), None, "the whole call is answered with a message");
         held.push((send, conn, calls));
     }
     for round in 0..3 {
