@@ -4,8 +4,8 @@
 //! (`tools/make_test_models.py`), and a test registry (`MPIFLOW_MODEL_REGISTRY`) points
 //! `depth-anything-v2-small` at it with the file's SHA-256 and the built-in entry's contract.
 //! Checked through the real binary and the real ONNX Runtime: first use downloads into the hub
-//! cache layout and serves; `HF_HUB_OFFLINE=1` serves from the cache; a wrong checksum keeps
-//! nothing and an interrupted download its part (to resume); offline without the file names the
+//! cache layout and serves; `HF_HUB_OFFLINE=1` serves from the cache; a wrong checksum and an
+//! interrupted download keep nothing; offline without the file names the
 //! URL and the path; a local FILE runs with its manifest; the built-in contract (names, size,
 //! normalisation) runs.
 //!
@@ -262,18 +262,18 @@ fn a_wrong_checksum_is_refused_and_nothing_is_kept() {
     assert_eq!(files_under(&repo_cache(&dir)), Vec::<String>::new(), "no blob, no partial file, no snapshot");
 }
 
-/// An interrupted download keeps what it received (to resume it: `tests/hub_downloads.rs`); a
-/// later download from a mirror that sends the whole file again works.
+/// An interrupted download keeps nothing (no partial file left to fill a disk); a later
+/// download from a mirror that sends the whole file again works.
 #[test]
-fn an_interrupted_download_keeps_its_part_and_a_later_one_works() {
+fn an_interrupted_download_keeps_nothing_and_a_later_one_works() {
     let dir = tmp("cut");
     let model = models().join("depth_hub.onnx");
     let cut = hub(&model, Serve::Cut);
     let out = fetch(&dir, &cut.endpoint, false);
     let err = text(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
-    assert!(err.contains("the download ended after") && err.contains("resume"), "{err}");
-    assert_eq!(files_under(&repo_cache(&dir)), [format!("blobs/{}.incomplete", sha256(&model))]);
+    assert!(err.contains("the download ended after") && err.contains("nothing was kept"), "{err}");
+    assert_eq!(files_under(&repo_cache(&dir)), Vec::<String>::new(), "no partial file");
     let whole = hub(&model, Serve::Whole);
     let out = fetch(&dir, &whole.endpoint, false);
     assert!(out.status.success(), "{}", text(&out.stderr));
@@ -418,6 +418,8 @@ fn a_metric_depth_manifest_inverts_the_output() {
             cache: dir.join("hub"),
             offline: true,
             timeout: std::time::Duration::from_secs(10),
+            deadline: std::time::Duration::from_secs(3600),
+            min_rate: 0,
         };
         let r = registry::resolve(&model, registry::Role::Depth, &hub, false).unwrap();
         registry::load_depth(&r).unwrap().estimate(&image).unwrap().data
@@ -446,6 +448,8 @@ fn a_segmentation_manifest_names_the_outputs() {
         cache: dir.join("hub"),
         offline: true,
         timeout: std::time::Duration::from_secs(10),
+        deadline: std::time::Duration::from_secs(3600),
+        min_rate: 0,
     };
     let load = || {
         let r = registry::resolve(&model, registry::Role::Segment, &hub, false).unwrap();

@@ -572,6 +572,86 @@ async fn watches_and_quiet_connections_make_room_for_newcomers() {
     s.shutdown(Duration::from_millis(500)).await;
 }
 
+/// A Health/Check request's headers, its body to follow.
+fn health_check_headers() -> http::Request<()> {
+    http::Request::post("http://localhost/grpc.health.v1.Health/Check")
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .body(())
+        .unwrap()
+}
+
+/// Opens a Health/Check call on `send` whose request never arrives whole: its headers, then
+/// `prefix` (the start of the body) and nothing more.
+async fn unfinished_check(
+    send: &h2::client::SendRequest<Bytes>,
+    prefix: &'static [u8],
+) -> (h2::client::ResponseFuture, h2::SendStream<Bytes>) {
+    let mut ready = send.clone().ready().await.expect("room for a call");
+    let (response, mut stream) = ready.send_request(health_check_headers(), false).expect("the call opens");
+    if !prefix.is_empty() {
+        stream.send_data(Bytes::from_static(prefix), false).expect("the prefix goes out");
+    }
+    (response, stream)
+}
+
+/// Health/Check calls whose request never arrives whole (headers, then the gRPC prefix of a
+/// 10-byte message and nothing more; or headers alone) fail at the request deadline
+/// (`idle_connection_timeout_s`) with INVALID_ARGUMENT `malformed-request` naming it, instead of
+/// holding their call for as long as the client likes.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn calls_whose_request_never_arrives_fail_at_the_request_deadline() {
+    let s = server(ServiceConfig { idle_connection_timeout_s: 1.0, ..config() }).await;
+    let (send, _conn) = h2_connection_from([127, 0, 6, 2], s.addr, 1 << 20).await;
+    for prefix in [&[0u8, 0, 0, 0, 10][..], &[][..]] {
+        let (response, _stream) = unfinished_check(&send, prefix).await;
+        // the guard only turns a call held for ever into a failure
+        let response = tokio::time::timeout(Duration::from_secs(60), response)
+            .await
+            .expect("the call is answered, not held")
+            .expect("reply headers");
+        assert_eq!(header_status(&response), Some(Code::InvalidArgument as i32), "{prefix:?}: {response:?}");
+        let status = tonic::Status::from_header_map(response.headers()).expect("a status");
+        assert!(status.message().contains("did not arrive whole within 1 s"), "{prefix:?}: {status:?}");
+        let reason = response.headers().get("mpiflow-reason").map(|v| v.to_str().unwrap().to_string());
+        assert_eq!(reason.as_deref(), Some("malformed-request"), "{prefix:?}");
+    }
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// 512 Health/Check calls whose request never arrives whole (128 on each of 4 connections from 4
+/// addresses, all of `max_connections`) do not keep newcomers out: such a call does not count as
+/// open, so a newcomer takes the place of one of their connections and is served.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unfinished_requests_do_not_keep_a_newcomer_out() {
+    let s = server(ServiceConfig {
+        max_connections: 4,
+        max_calls_per_connection: 129,
+        idle_connection_timeout_s: 600.0,
+        ..config()
+    })
+    .await;
+    let mut held = Vec::new();
+    for a in 0..4u8 {
+        let (mut send, conn) = h2_connection_from([127, 0, 7, 2 + a], s.addr, 1 << 20).await;
+        let mut calls = Vec::new();
+        for _ in 0..128 {
+            calls.push(unfinished_check(&send, &[0, 0, 0, 0, 10]).await);
+        }
+        // a whole call after them on the same connection, answered: the server has taken the
+        // unfinished calls' headers (HTTP/2 frames arrive in order) and dispatched them first
+        let done = raw_request(&mut send, "/grpc.health.v1.Health/Check", &[], &[]).await;
+        assert_eq!(header_status(&done), None, "the whole call is answered with a message");
+        held.push((send, conn, calls));
+    }
+    for round in 0..3 {
+        let mut c = client(s.addr).await;
+        assert!(c.get_info(pb::InfoRequest {}).await.is_ok(), "newcomer {round} is served");
+    }
+    until("an unfinished call's connection made room", || held.iter().any(|(_, conn, _)| conn.is_finished())).await;
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
 /// A client that reads, however slowly, is never closed for room: while unread replies from many
 /// addresses keep the budget short, a client that takes a few KiB of its reply every 100 ms
 /// (well within `UNREAD_GRACE` each time) reads its whole reply and its OK status.

@@ -12,14 +12,21 @@
 //! - `HF_HUB_OFFLINE=1` (or `true`, `yes`, `on`): the cache only; without the file there, the
 //!   error names the URL and the path to put the file at.
 //! - Bounds: name lookup, connecting and each read wait at most `HF_HUB_DOWNLOAD_TIMEOUT`
-//!   seconds ([`DEFAULT_TIMEOUT_S`], as `huggingface_hub`); a file is at most the registry's
-//!   `size` when it pins one, else [`MAX_MODEL_BYTES`]: a longer `Content-Length` is refused
-//!   before any byte is read, a longer body stops at the bound.
+//!   seconds ([`DEFAULT_TIMEOUT_S`], as `huggingface_hub`); a file's whole fetch (the wait for
+//!   its lock included) ends within `MPIFLOW_DOWNLOAD_DEADLINE_S` ([`DEFAULT_DEADLINE_S`]); each
+//!   span of `HF_HUB_DOWNLOAD_TIMEOUT` seconds of the body brings at least
+//!   `MPIFLOW_DOWNLOAD_MIN_RATE` bytes a second ([`DEFAULT_MIN_RATE`]; 0 = no least rate), so
+//!   a mirror that trickles fails early; a file is at most the registry's `size` when it pins
+//!   one, else [`MAX_MODEL_BYTES`]: a longer `Content-Length` is refused before any byte is read,
+//!   a longer body stops at the bound.
 //! - One download of a file at a time: it holds an exclusive lock on
-//!   `.locks/models--ORG--NAME/SHA256.lock` (where `huggingface_hub` keeps its locks), writes
+//!   `.locks/models--ORG--NAME/SHA256.lock` (where `huggingface_hub` keeps its locks; the holder
+//!   writes its process id and the time it took the lock there), writes
 //!   `blobs/SHA256.incomplete`, and renames it into place only when whole and of the pinned
-//!   SHA-256, then hashes the file in place again. An interrupted download keeps its partial
-//!   file and the next one resumes it (an HTTP `Range` request); a mismatch keeps nothing.
+//!   SHA-256, then hashes the file in place again. A second fetch waits for the lock until the
+//!   deadline, then fails naming the holder. A download that fails for any reason (the mirror,
+//!   the deadline, a full disk) removes its partial file; one left by a process that was killed
+//!   is resumed by the next download (an HTTP `Range` request).
 //! - No symbolic link is followed inside the cache folder (the folder itself may be one):
 //!   directories are checked before they are used and files opened with `O_NOFOLLOW`, a link
 //!   there is refused; the snapshot links are the only links, made here.
@@ -29,7 +36,7 @@
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Component, Path, PathBuf};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use sha2::{Digest, Sha256};
 
@@ -59,6 +66,19 @@ const MAX_REDIRECTS: usize = 8;
 pub const DEFAULT_TIMEOUT_S: f64 = 10.0;
 /// The variable that sets the download timeout, in seconds (as `huggingface_hub` reads it).
 pub const TIMEOUT_ENV: &str = "HF_HUB_DOWNLOAD_TIMEOUT";
+/// The longest a file's whole fetch may take by default (the wait for its lock, the request and
+/// the body), in seconds (`MPIFLOW_DOWNLOAD_DEADLINE_S` sets it): a 533 MB model at 150 KB/s.
+pub const DEFAULT_DEADLINE_S: f64 = 3600.0;
+/// The variable that sets the deadline of a file's fetch, in seconds.
+pub const DEADLINE_ENV: &str = "MPIFLOW_DOWNLOAD_DEADLINE_S";
+/// The least rate of a download by default, in bytes a second, over each span of the read
+/// timeout (`MPIFLOW_DOWNLOAD_MIN_RATE` sets it; 0 = none).
+pub const DEFAULT_MIN_RATE: u64 = 64 << 10;
+/// The variable that sets the least rate of a download, in bytes a second.
+pub const MIN_RATE_ENV: &str = "MPIFLOW_DOWNLOAD_MIN_RATE";
+/// How often a fetch waiting for another's lock tries it again.
+const LOCK_POLL: Duration = Duration::from_millis(100);
+
 /// The variable naming a TOML file of further registry entries (the same layout as the built-in
 /// registry); an entry with a built-in name replaces it. Named here, where the hub's errors say
 /// how to pin a file of one's own.
@@ -84,9 +104,24 @@ pub enum HubError {
         .path.display()
     )]
     Unreachable { url: String, path: PathBuf, message: String },
-    #[error("{url}: no answer within {seconds} s ({TIMEOUT_ENV}); what was received is kept to resume")]
+    #[error("{url}: no answer within {seconds} s ({TIMEOUT_ENV}); nothing was kept")]
     TimedOut { url: String, seconds: f64 },
-    #[error("{url}: the download ended after {got} of {expected} bytes; run it again to resume it")]
+    #[error(
+        "{url}: the download did not finish within its deadline of {seconds} s ({DEADLINE_ENV}); nothing was kept"
+    )]
+    DeadlineExceeded { url: String, seconds: f64 },
+    #[error(
+        "{url}: {got} bytes in {window} s, below the least rate of {min_rate} bytes a second ({MIN_RATE_ENV}); \
+         nothing was kept"
+    )]
+    TooSlow { url: String, got: u64, window: f64, min_rate: u64 },
+    #[error(
+        "{}: another download of this file holds the lock ({holder}) and did not end within the deadline of \
+         {seconds} s ({DEADLINE_ENV}); try again when it is done",
+        .path.display()
+    )]
+    Locked { path: PathBuf, holder: String, seconds: f64 },
+    #[error("{url}: the download ended after {got} of {expected} bytes; nothing was kept, run it again")]
     Interrupted { url: String, got: u64, expected: u64 },
     #[error("{url}: the file is larger than the {limit} bytes {what}: refused; nothing was kept")]
     TooLarge { url: String, limit: u64, what: &'static str },
@@ -117,8 +152,13 @@ pub struct Hub {
     /// The hub cache folder (the one holding `models--ORG--NAME`).
     pub cache: PathBuf,
     pub offline: bool,
-    /// The longest a name lookup, a connection or one read may take.
+    /// The longest a name lookup, a connection or one read may take; also the span over which
+    /// the least rate is measured.
     pub timeout: Duration,
+    /// The longest a file's whole fetch may take (the wait for its lock included).
+    pub deadline: Duration,
+    /// The least bytes a second of a body, over each span of `timeout` (0 = none).
+    pub min_rate: u64,
 }
 
 fn env_nonempty(key: &str) -> Option<String> {
@@ -127,10 +167,20 @@ fn env_nonempty(key: &str) -> Option<String> {
 
 /// `HF_HUB_DOWNLOAD_TIMEOUT` as seconds: a positive number of at most a day, else the default.
 fn timeout_from(value: Option<&str>) -> Duration {
+    seconds_from(value, DEFAULT_TIMEOUT_S)
+}
+
+/// A positive number of seconds of at most a day, else `default`.
+fn seconds_from(value: Option<&str>, default: f64) -> Duration {
     value
         .and_then(|v| v.trim().parse::<f64>().ok())
         .filter(|s| s.is_finite() && *s > 0.0 && *s <= 86_400.0)
-        .map_or(Duration::from_secs_f64(DEFAULT_TIMEOUT_S), Duration::from_secs_f64)
+        .map_or(Duration::from_secs_f64(default), Duration::from_secs_f64)
+}
+
+/// `MPIFLOW_DOWNLOAD_MIN_RATE` as bytes a second (0 = none), else the default.
+fn rate_from(value: Option<&str>) -> u64 {
+    value.and_then(|v| v.trim().parse::<u64>().ok()).unwrap_or(DEFAULT_MIN_RATE)
 }
 
 impl Hub {
@@ -156,7 +206,9 @@ impl Hub {
         let offline = env_nonempty("HF_HUB_OFFLINE")
             .is_some_and(|v| matches!(v.to_ascii_lowercase().as_str(), "1" | "true" | "yes" | "on"));
         let timeout = timeout_from(env_nonempty(TIMEOUT_ENV).as_deref());
-        Hub { endpoint: endpoint.trim_end_matches('/').to_string(), cache, offline, timeout }
+        let deadline = seconds_from(env_nonempty(DEADLINE_ENV).as_deref(), DEFAULT_DEADLINE_S);
+        let min_rate = rate_from(env_nonempty(MIN_RATE_ENV).as_deref());
+        Hub { endpoint: endpoint.trim_end_matches('/').to_string(), cache, offline, timeout, deadline, min_rate }
     }
 
     /// `{endpoint}/{repo}/resolve/{revision}/{file}`.
@@ -308,12 +360,12 @@ impl Hub {
     }
 
     fn download(&self, e: &HubFile, progress: bool) -> Result<PathBuf, HubError> {
+        let deadline = Instant::now() + self.deadline;
         let url = self.url(e);
         let repo_name = Self::repo_name(e);
         let locks = self.make_dirs(&[".locks", &repo_name])?;
         let lock_path = locks.join(format!("{}.lock", e.sha256));
-        let lock = open_nofollow(&lock_path, OpenOptions::new().read(true).write(true).create(true))?;
-        lock.lock().map_err(io(&lock_path))?;
+        let lock = self.take_lock(&lock_path, deadline)?;
         // another download may have finished while this one waited for the lock
         if let Some(p) = self.cached(e)? {
             return Ok(p);
@@ -321,7 +373,24 @@ impl Hub {
         let blobs = self.make_dirs(&[&repo_name, "blobs"])?;
         let blob = blobs.join(&e.sha256);
         let partial_path = blobs.join(format!("{}.incomplete", e.sha256));
-        let (actual, commit) = self.receive(&url, e, &partial_path, progress)?;
+        tracing::info!(
+            model = %e.name,
+            %url,
+            to = %blob.display(),
+            deadline_s = self.deadline.as_secs_f64(),
+            min_rate = self.min_rate,
+            "downloading a model"
+        );
+        let (actual, commit) = match self.receive(&url, e, &partial_path, progress, deadline) {
+            Ok(r) => r,
+            Err(err) => {
+                // whatever went wrong, the partial file goes (a link planted there is left alone)
+                if !matches!(err, HubError::Link { .. }) && is_regular(&partial_path).unwrap_or(false) {
+                    let _ = std::fs::remove_file(&partial_path);
+                }
+                return Err(err);
+            }
+        };
         if actual != e.sha256 {
             let _ = std::fs::remove_file(&partial_path);
             return Err(HubError::Checksum {
@@ -342,15 +411,53 @@ impl Hub {
         Ok(link)
     }
 
-    /// Receives `e` from `url` into `partial_path`, resuming what an interrupted download kept
-    /// there: the SHA-256 of the whole file (hex) and the commit the hub named. A download cut
-    /// short keeps what it received, to be resumed; one over the bound keeps nothing.
+    /// The download lock at `lock_path`, waited for until `deadline`; the holder's process id
+    /// and the time it took the lock are written into it. Waiting past the deadline is
+    /// [`HubError::Locked`], naming the holder.
+    fn take_lock(&self, lock_path: &Path, deadline: Instant) -> Result<File, HubError> {
+        let mut lock = open_nofollow(lock_path, OpenOptions::new().read(true).write(true).create(true))?;
+        let mut logged = false;
+        loop {
+            match lock.try_lock() {
+                Ok(()) => break,
+                Err(std::fs::TryLockError::WouldBlock) => {}
+                Err(std::fs::TryLockError::Error(err)) => return Err(io(lock_path)(err)),
+            }
+            let holder = lock_holder(lock_path);
+            let now = Instant::now();
+            if now >= deadline {
+                return Err(HubError::Locked {
+                    path: lock_path.to_path_buf(),
+                    holder,
+                    seconds: self.deadline.as_secs_f64(),
+                });
+            }
+            if !logged {
+                tracing::info!(lock = %lock_path.display(), %holder, "waiting for another download of the model");
+                logged = true;
+            }
+            std::thread::sleep(LOCK_POLL.min(deadline - now));
+        }
+        let unix = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+        let record = format!("process {} since unix time {unix}\n", std::process::id());
+        let written = lock
+            .set_len(0)
+            .and_then(|()| lock.seek(SeekFrom::Start(0)))
+            .and_then(|_| lock.write_all(record.as_bytes()));
+        written.map_err(io(lock_path))?;
+        Ok(lock)
+    }
+
+    /// Receives `e` from `url` into `partial_path`, resuming what a killed download left there:
+    /// the SHA-256 of the whole file (hex) and the commit the hub named. It ends by `deadline`,
+    /// and each span of `timeout` brings at least `min_rate` bytes a second.
     fn receive(
         &self,
         url: &str,
         e: &HubFile,
         partial_path: &Path,
         progress: bool,
+        deadline: Instant,
     ) -> Result<(String, Option<String>), HubError> {
         let limit = e.size.unwrap_or(MAX_MODEL_BYTES);
         // the bytes an interrupted download kept, resumed unless over the bound
@@ -359,7 +466,7 @@ impl Hub {
         } else {
             0
         };
-        let (response, commit, resumed) = self.request(url, e, if kept > limit { 0 } else { kept })?;
+        let (response, commit, resumed) = self.request(url, e, if kept > limit { 0 } else { kept }, deadline)?;
         let mut got = if resumed { kept } else { 0 };
         let mut partial =
             open_nofollow(partial_path, OpenOptions::new().read(true).write(true).create(true).truncate(false))?;
@@ -384,7 +491,16 @@ impl Hub {
         let expected = remaining.map(|r| got + r).or(e.size);
         let bar = progress.then(|| progress_bar(expected, &e.name, got));
         let mut reader = response.into_body().into_reader();
-        let read = read_body(&mut reader, &mut partial, partial_path, &mut hasher, &mut got, limit, bar.as_ref())?;
+        let pace = Pace { deadline, window: self.timeout, min_rate: self.min_rate };
+        let read =
+            read_body(&mut reader, &mut partial, partial_path, &mut hasher, &mut got, limit, bar.as_ref(), &pace);
+        let read = read.map_err(|stop| match stop {
+            Stop::Io(err) => err,
+            Stop::Deadline => HubError::DeadlineExceeded { url: url.to_string(), seconds: self.deadline.as_secs_f64() },
+            Stop::Slow { got, window } => {
+                HubError::TooSlow { url: url.to_string(), got, window, min_rate: self.min_rate }
+            }
+        })?;
         let Some(read_result) = read else {
             drop(partial);
             let _ = std::fs::remove_file(partial_path);
@@ -395,25 +511,20 @@ impl Hub {
         }
         partial.sync_all().map_err(io(partial_path))?;
         drop(partial);
-        // an interrupted download keeps what it received, to be resumed; an empty file is not kept
-        let stop = |err: HubError| {
-            if got == 0 {
-                let _ = std::fs::remove_file(partial_path);
-            }
-            Err(err)
-        };
         let url = url.to_string();
         if let Err(err) = read_result {
-            if is_timeout(&err) {
-                return stop(HubError::TimedOut { url, seconds: self.timeout.as_secs_f64() });
-            }
-            return stop(match expected {
-                Some(expected) => HubError::Interrupted { url, got, expected },
-                None => HubError::Http { url, message: format!("reading the body: {err}") },
+            return Err(match timeout_of(&err) {
+                Some(ureq::Timeout::Global) => HubError::DeadlineExceeded { url, seconds: self.deadline.as_secs_f64() },
+                Some(_) => HubError::TimedOut { url, seconds: self.timeout.as_secs_f64() },
+                None if is_timeout(&err) => HubError::TimedOut { url, seconds: self.timeout.as_secs_f64() },
+                None => match expected {
+                    Some(expected) => HubError::Interrupted { url, got, expected },
+                    None => HubError::Http { url, message: format!("reading the body: {err}") },
+                },
             });
         }
         if let Some(expected) = expected.filter(|&x| x != got) {
-            return stop(HubError::Interrupted { url, got, expected });
+            return Err(HubError::Interrupted { url, got, expected });
         }
         Ok((hex(&hasher.finalize()), commit))
     }
@@ -458,11 +569,17 @@ impl Hub {
         url: &str,
         e: &HubFile,
         from: u64,
+        deadline: Instant,
     ) -> Result<(ureq::http::Response<ureq::Body>, Option<String>, bool), HubError> {
         let http = |message: String| HubError::Http { url: url.to_string(), message };
         let t = Some(self.timeout);
+        let left = deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(HubError::DeadlineExceeded { url: url.to_string(), seconds: self.deadline.as_secs_f64() });
+        }
         let agent: ureq::Agent = ureq::Agent::config_builder()
             .max_redirects(0)
+            .timeout_global(Some(left))
             .http_status_as_error(false)
             .timeout_resolve(t)
             .timeout_connect(t)
@@ -479,6 +596,9 @@ impl Hub {
                 req = req.header("range", format!("bytes={from}-"));
             }
             let r = req.call().map_err(|err| match err {
+                ureq::Error::Timeout(ureq::Timeout::Global) => {
+                    HubError::DeadlineExceeded { url: next.clone(), seconds: self.deadline.as_secs_f64() }
+                }
                 ureq::Error::Timeout(_) => {
                     HubError::TimedOut { url: next.clone(), seconds: self.timeout.as_secs_f64() }
                 }
@@ -512,7 +632,7 @@ impl Hub {
             }
             if from > 0 && status.as_u16() == 416 {
                 // the partial file is not a prefix the server knows: start again
-                return self.request(url, e, 0);
+                return self.request(url, e, 0, deadline);
             }
             if !status.is_success() {
                 let hint = match status.as_u16() {
@@ -528,6 +648,33 @@ impl Hub {
     }
 }
 
+/// The ureq timeout that failed a body read, if one did.
+fn timeout_of(err: &std::io::Error) -> Option<ureq::Timeout> {
+    match err.get_ref().and_then(|e| e.downcast_ref::<ureq::Error>()) {
+        Some(ureq::Error::Timeout(t)) => Some(*t),
+        _ => None,
+    }
+}
+
+/// The pace a body must keep: done by `deadline`, and at least `min_rate` bytes a second over
+/// each span of `window` (0 = no least rate).
+struct Pace {
+    deadline: Instant,
+    window: Duration,
+    min_rate: u64,
+}
+
+/// Why [`read_body`] stopped a download.
+enum Stop {
+    Io(HubError),
+    Deadline,
+    /// `got` bytes in the last `window` seconds, below the least rate.
+    Slow {
+        got: u64,
+        window: f64,
+    },
+}
+
 /// Whether a body read failed for want of data within the timeout.
 fn is_timeout(err: &std::io::Error) -> bool {
     let ureq_timeout = err
@@ -539,7 +686,9 @@ fn is_timeout(err: &std::io::Error) -> bool {
 
 /// Reads the body from `reader` into `partial` (at `partial_path`) and `hasher`, `got` counting
 /// the file's bytes and `bar` showing them: the read's own result (an error cuts the download
-/// short), or `None` when the file would grow over `limit`.
+/// short), or `None` when the file would grow over `limit`; a body that misses its `pace` (its
+/// deadline, or its least rate over a span) stops it.
+#[allow(clippy::too_many_arguments)]
 fn read_body(
     reader: &mut impl Read,
     partial: &mut File,
@@ -548,8 +697,10 @@ fn read_body(
     got: &mut u64,
     limit: u64,
     bar: Option<&indicatif::ProgressBar>,
-) -> Result<Option<std::io::Result<()>>, HubError> {
+    pace: &Pace,
+) -> Result<Option<std::io::Result<()>>, Stop> {
     let mut buf = vec![0u8; 1 << 16];
+    let (mut span_start, mut span_bytes) = (Instant::now(), 0u64);
     loop {
         let n = match reader.read(&mut buf) {
             Ok(0) => return Ok(Some(Ok(()))),
@@ -561,12 +712,42 @@ fn read_body(
             return Ok(None);
         }
         hasher.update(&buf[..n]);
-        partial.write_all(&buf[..n]).map_err(io(partial_path))?;
+        partial.write_all(&buf[..n]).map_err(|e| Stop::Io(io(partial_path)(e)))?;
         *got += n as u64;
         if let Some(b) = bar {
             b.set_position(*got);
         }
+        let now = Instant::now();
+        if now >= pace.deadline {
+            return Err(Stop::Deadline);
+        }
+        span_bytes += n as u64;
+        let span = now - span_start;
+        if span >= pace.window {
+            if (span_bytes as f64) < pace.min_rate as f64 * span.as_secs_f64() {
+                return Err(Stop::Slow { got: span_bytes, window: span.as_secs_f64() });
+            }
+            (span_start, span_bytes) = (now, 0);
+        }
     }
+}
+
+/// Who holds the download lock at `path`, as its holder wrote it (a process id and since when),
+/// or that it did not say.
+fn lock_holder(path: &Path) -> String {
+    let said = open_nofollow(path, OpenOptions::new().read(true)).ok().and_then(|f| {
+        let mut s = String::new();
+        f.take(256).read_to_string(&mut s).ok().map(|_| s.trim().to_string())
+    });
+    match said.filter(|s| !s.is_empty()) {
+        Some(s) => printable_line(&s),
+        None => "a holder that did not say who it is".to_string(),
+    }
+}
+
+/// `s` with control characters dropped (it comes from a file anyone may write).
+fn printable_line(s: &str) -> String {
+    s.chars().filter(|c| !c.is_control()).collect()
 }
 
 /// Feeds what is written into a SHA-256.

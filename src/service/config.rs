@@ -53,6 +53,16 @@ pub const MAX_TOKEN_FILE_BYTES: u64 = 64 << 10;
 /// The longest any timeout or delay key may be: one day (in seconds).
 pub const MAX_SECONDS: f64 = 86_400.0;
 
+/// The shortest `idle_connection_timeout_s` and `stall_timeout_s` may be: half a second, more
+/// than a round trip across the world, so that a keepalive ping can be answered and a handshake
+/// finished before the connection is closed for silence.
+pub const MIN_TIMEOUT_SECONDS: f64 = 0.5;
+
+/// The smallest side of a working frame (`size`): the bundled scenes place objects of at least
+/// 8 pixels within 45% of the frame's width (so no sample of theirs can be made below 18
+/// pixels), and a frame is rendered in 16x16 blocks; 32 keeps two blocks a side.
+pub const MIN_FRAME_SIDE: usize = 32;
+
 /// The most any count key (connections, streams, calls, uploads, samples in flight) may be.
 pub const MAX_COUNT: u64 = 1_000_000;
 
@@ -343,8 +353,14 @@ impl ServiceConfig {
             if (w * h) as u64 > self.max_image_pixels {
                 return bad(format!("size = {w}x{h} is larger than max_image_pixels = {}", self.max_image_pixels));
             }
+            if w.min(h) < MIN_FRAME_SIDE {
+                return bad(format!(
+                    "size = {w}x{h} is smaller than the smallest working frame ({MIN_FRAME_SIDE} pixels a side)"
+                ));
+            }
         }
         self.sample.validate().map_err(|e| ServiceError::Config(format!("[sample]: {e}")))?;
+        self.check_radius("[sample] inpaint_radius", &self.sample)?;
         let paths = [
             ("auth_token_file", &self.auth_token_file),
             ("tls_cert", &self.tls_cert),
@@ -382,7 +398,31 @@ impl ServiceConfig {
             }
             if let Some(s) = &d.sample {
                 s.validate().map_err(|e| ServiceError::Config(format!("dataset {name}: {e}")))?;
+                self.check_radius(&format!("dataset {name}: inpaint_radius"), s)?;
             }
+        }
+        Ok(())
+    }
+
+    /// The longest side a frame can have: that of `size` when set, else `max_image_side`.
+    pub fn max_frame_side(&self) -> usize {
+        match self.resize() {
+            Ok(Some((w, h))) => w.max(h),
+            _ => self.max_image_side as usize,
+        }
+    }
+
+    /// Refuses an inpainting radius beyond the frame (longer than its longest side,
+    /// [`max_frame_side`](Self::max_frame_side)): every pixel of the frame is within a radius of
+    /// that length, so a longer one only costs time.
+    fn check_radius(&self, key: &str, sample: &SampleConfig) -> Result<(), ServiceError> {
+        let side = self.max_frame_side();
+        if f64::from(sample.inpaint_radius) > side as f64 {
+            let of = if self.size.is_some() { "size" } else { "max_image_side" };
+            return Err(ServiceError::Config(format!(
+                "{key} = {:?} is beyond the frame (expected at most its longest side, {side} pixels: {of})",
+                sample.inpaint_radius
+            )));
         }
         Ok(())
     }
@@ -409,16 +449,14 @@ impl ServiceConfig {
     /// ([`MAX_SECONDS`], [`MAX_COUNT`], [`MAX_MIB`], [`MAX_PREFETCH`]); the error names the key.
     fn validate_ranges(&self) -> Result<(), ServiceError> {
         let seconds = [
-            ("idle_connection_timeout_s", self.idle_connection_timeout_s, false),
-            ("stall_timeout_s", self.stall_timeout_s, false),
-            ("drain_timeout_s", self.drain_timeout_s, true),
+            ("idle_connection_timeout_s", self.idle_connection_timeout_s, MIN_TIMEOUT_SECONDS),
+            ("stall_timeout_s", self.stall_timeout_s, MIN_TIMEOUT_SECONDS),
+            ("drain_timeout_s", self.drain_timeout_s, 0.0),
         ];
-        for (key, v, zero) in seconds {
-            let low_ok = if zero { v >= 0.0 } else { v > 0.0 };
-            if !(v.is_finite() && low_ok && v <= MAX_SECONDS) {
-                let low = if zero { ">= 0" } else { "> 0" };
+        for (key, v, least) in seconds {
+            if !(v.is_finite() && v >= least && v <= MAX_SECONDS) {
                 return Err(ServiceError::Config(format!(
-                    "{key} = {v} (expected seconds {low} and at most {MAX_SECONDS})"
+                    "{key} = {v:?} (expected seconds, at least {least:?} and at most {MAX_SECONDS:?})"
                 )));
             }
         }

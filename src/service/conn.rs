@@ -13,10 +13,11 @@
 //! off when the process is out of descriptors or memory ([`AcceptErrors`]).
 //!
 //! Peers are keyed by [`PeerKey`] (an IPv6 client by its /64). When all `max_connections` are
-//! taken, a new connection closes one that has no call open but health watches (one that
-//! has not sent its first bytes, is idle, or only watches health), from the peer with the most
-//! connections, the oldest first ([`Registry::evict`]); a connection with a call open is never
-//! closed for a newcomer. So connections that never authenticate, idle ones and health watches,
+//! taken, a new connection closes one that has no call open whose request has arrived, but
+//! health watches (one that has not sent its first bytes, is idle, only watches health, or whose
+//! calls' requests never finish), from the peer with the most connections, the oldest first
+//! ([`Registry::evict`]); a connection with a call whose request has arrived is never closed for
+//! a newcomer. So connections that never authenticate, idle ones and health watches,
 //! from any number of addresses, cannot keep a client out. The worker pool may also close a
 //! connection ([`Activity::cut`]) that holds made samples it has not taken for a while when
 //! another client needs the room (`service::pool`).
@@ -25,7 +26,7 @@ use std::collections::HashMap;
 use std::future::Future;
 use std::io;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
 use std::task::{Context, Poll, Waker};
 use std::time::Duration;
@@ -53,6 +54,10 @@ pub struct Activity {
     /// Health watches among the calls: they keep the connection from the idle timeout, not from
     /// being closed for a newcomer.
     watches: AtomicUsize,
+    /// Calls whose request has arrived whole, health watches aside: only they keep the
+    /// connection from being closed for a newcomer (a call whose request never ends holds
+    /// nothing).
+    arrived: AtomicUsize,
     /// When the last call ended (or the connection was accepted).
     quiet_since: Mutex<Instant>,
     /// When the peer last took written bytes (or the connection was accepted).
@@ -71,6 +76,7 @@ impl Activity {
             opened: now,
             calls: AtomicUsize::new(0),
             watches: AtomicUsize::new(0),
+            arrived: AtomicUsize::new(0),
             quiet_since: Mutex::new(now),
             taken_at: Mutex::new(now),
             cut: AtomicBool::new(false),
@@ -90,12 +96,13 @@ impl Activity {
         if watch {
             self.watches.fetch_add(1, Ordering::SeqCst);
         }
-        CallGuard { activity: self.clone(), watch }
+        CallGuard { activity: self.clone(), watch, state: Arc::new(AtomicU8::new(WAITING)) }
     }
 
-    /// Whether a newcomer may close the connection: no call open but health watches.
+    /// Whether a newcomer may close the connection: no call open whose request has arrived, but
+    /// health watches.
     fn evictable(&self) -> bool {
-        self.calls.load(Ordering::SeqCst) <= self.watches.load(Ordering::SeqCst)
+        self.arrived.load(Ordering::SeqCst) == 0
     }
 
     /// How long the peer has taken no written bytes.
@@ -142,20 +149,58 @@ impl Activity {
     }
 }
 
+/// A call's request has not arrived whole yet.
+const WAITING: u8 = 0;
+/// A call's request has arrived (counted in [`Activity::arrived`] unless it is a watch).
+const ARRIVED: u8 = 1;
+/// A call has ended.
+const ENDED: u8 = 2;
+
 /// A call counted on its connection ([`Activity::begin`]).
 #[derive(Debug)]
 pub struct CallGuard {
     activity: Arc<Activity>,
     watch: bool,
+    /// [`WAITING`], [`ARRIVED`] or [`ENDED`], shared with its [`Arrival`].
+    state: Arc<AtomicU8>,
+}
+
+impl CallGuard {
+    /// What says that the call's request has arrived whole.
+    pub fn arrival(&self) -> Arrival {
+        Arrival { activity: self.activity.clone(), watch: self.watch, state: self.state.clone() }
+    }
 }
 
 impl Drop for CallGuard {
     fn drop(&mut self) {
         *locked(&self.activity.quiet_since) = Instant::now();
+        if self.state.swap(ENDED, Ordering::SeqCst) == ARRIVED && !self.watch {
+            self.activity.arrived.fetch_sub(1, Ordering::SeqCst);
+        }
         if self.watch {
             self.activity.watches.fetch_sub(1, Ordering::SeqCst);
         }
         self.activity.calls.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+/// Says that a call's request has arrived whole ([`CallGuard::arrival`]): from then on the call
+/// keeps its connection from being closed for a newcomer.
+#[derive(Debug)]
+pub struct Arrival {
+    activity: Arc<Activity>,
+    watch: bool,
+    state: Arc<AtomicU8>,
+}
+
+impl Arrival {
+    /// The request has arrived (once; nothing after the call has ended).
+    pub fn arrived(&self) {
+        let first = self.state.compare_exchange(WAITING, ARRIVED, Ordering::SeqCst, Ordering::SeqCst).is_ok();
+        if first && !self.watch {
+            self.activity.arrived.fetch_add(1, Ordering::SeqCst);
+        }
     }
 }
 
@@ -192,9 +237,9 @@ impl Registry {
         Some(PeerSlot { registry: self.clone(), peer: activity.peer })
     }
 
-    /// Closes one connection for a newcomer: among those with no call open but health watches
-    /// (and not cut already), one of the peer with the most connections, the oldest first.
-    /// Never `newcomer` itself. Whether there was one.
+    /// Closes one connection for a newcomer: among those with no call open whose request has
+    /// arrived, but health watches (and not cut already), one of the peer with the most
+    /// connections, the oldest first. Never `newcomer` itself. Whether there was one.
     fn evict(&self, newcomer: &Arc<Activity>) -> bool {
         let m = locked(&self.0);
         let victim = m
@@ -206,7 +251,7 @@ impl Registry {
         drop(m);
         match victim {
             Some(a) => {
-                tracing::debug!(peer = %a.peer, "connection closed for a newcomer: no call open but health watches");
+                tracing::debug!(peer = %a.peer, "connection closed for a newcomer: no call open whose request has arrived");
                 a.cut();
                 true
             }

@@ -139,6 +139,14 @@ pub enum ServiceError {
         #[source]
         source: SampleError,
     },
+    /// Making a sample panicked (a defect, caught on the worker): the item and the panic's own
+    /// message are named, and the worker goes on with the next job.
+    #[error("sample {index} of dataset {} (source item {item}): the worker panicked: {message}", echo(.dataset))]
+    Panicked { dataset: String, index: u64, item: String, message: String },
+    /// A call's request did not arrive whole within the request deadline (headers sent, the
+    /// body trickled or withheld: `service::reply`).
+    #[error("the request did not arrive whole within {seconds} s (idle_connection_timeout_s)")]
+    RequestIncomplete { seconds: f64 },
     #[error("{0}")]
     Unimplemented(String),
     /// A start-up configuration problem (never sent to clients during serving).
@@ -155,12 +163,15 @@ impl ServiceError {
 
     pub fn code(&self) -> Code {
         match self {
-            ServiceError::InvalidArgument { .. } => Code::InvalidArgument,
+            ServiceError::InvalidArgument { .. } | ServiceError::RequestIncomplete { .. } => Code::InvalidArgument,
             ServiceError::UnknownDataset { .. } => Code::NotFound,
             ServiceError::FingerprintMismatch { .. } | ServiceError::Unusable { .. } => Code::FailedPrecondition,
             ServiceError::TooManyStreams { .. } | ServiceError::LimitExceeded(..) => Code::ResourceExhausted,
             ServiceError::Draining => Code::Unavailable,
-            ServiceError::Generation { .. } | ServiceError::Internal(_) | ServiceError::Config(_) => Code::Internal,
+            ServiceError::Generation { .. }
+            | ServiceError::Panicked { .. }
+            | ServiceError::Internal(_)
+            | ServiceError::Config(_) => Code::Internal,
             ServiceError::Unimplemented(_) => Code::Unimplemented,
         }
     }
@@ -171,6 +182,7 @@ impl ServiceError {
     pub fn reason(&self) -> Reason {
         match self {
             ServiceError::InvalidArgument { .. } => Reason::InvalidArgument,
+            ServiceError::RequestIncomplete { .. } => Reason::MalformedRequest,
             ServiceError::UnknownDataset { .. } => Reason::UnknownDataset,
             ServiceError::FingerprintMismatch { .. } => Reason::FingerprintMismatch,
             ServiceError::Unusable { .. } => Reason::DatasetUnusable,
@@ -179,8 +191,17 @@ impl ServiceError {
             ServiceError::Draining => Reason::Draining,
             ServiceError::Generation { .. } => Reason::SampleFailed,
             ServiceError::Unimplemented(_) => Reason::Unimplemented,
-            ServiceError::Internal(_) | ServiceError::Config(_) => Reason::Internal,
+            ServiceError::Panicked { .. } | ServiceError::Internal(_) | ServiceError::Config(_) => Reason::Internal,
         }
+    }
+}
+
+/// The message of a caught panic's payload (a `&str` or a `String`, as `panic!` makes them).
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    match (payload.downcast_ref::<&str>(), payload.downcast_ref::<String>()) {
+        (Some(s), _) => (*s).to_string(),
+        (_, Some(s)) => s.clone(),
+        _ => "(no message)".to_string(),
     }
 }
 

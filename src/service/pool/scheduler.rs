@@ -12,7 +12,7 @@ use prost::Message;
 use tokio_stream::Stream;
 use tonic::Status;
 
-use crate::service::error::{with_cursor, ServiceError};
+use crate::service::error::{panic_message, with_cursor, ServiceError};
 use crate::service::metrics::Metrics;
 use crate::service::pb;
 use crate::service::peer::PeerKey;
@@ -530,8 +530,14 @@ impl Scheduler {
         } else {
             // the index exists: k < len
             let index = st.index(k);
-            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| (st.produce.make)(index)))
-                .unwrap_or_else(|_| Err(ServiceError::Internal(format!("sample {index}: the worker panicked"))));
+            let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| (st.produce.make)(index))).unwrap_or_else(
+                |payload| {
+                    Err(ServiceError::Internal(format!(
+                        "sample {index}: the worker panicked: {}",
+                        panic_message(payload.as_ref())
+                    )))
+                },
+            );
             Some(r.map(|s| {
                 let n = s.encoded_len();
                 (s, n)

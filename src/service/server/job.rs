@@ -8,7 +8,7 @@ use crate::sample::error::SampleError;
 use crate::sample::pipeline::Generator;
 use crate::service::dataset::Dataset;
 use crate::service::encode::{to_proto, OutputSpec};
-use crate::service::error::ServiceError;
+use crate::service::error::{panic_message, ServiceError};
 use crate::service::pb;
 use crate::service::pool::{Make, Prepare, Produce};
 use crate::service::spec::{self, Spec};
@@ -33,10 +33,21 @@ impl State {
         let make: Make = Arc::new(move |index| {
             // a plain crop is made over its window only; an augmentation crops what it resizes
             let crop = out.crop.filter(|_| out.augment.is_none());
-            let made = match &crop {
+            let made = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| match &crop {
                 Some(c) => generator.sample_cropped(seed, index, c),
                 None => generator.sample(seed, index).map(|s| (s, (0, 0))),
-            };
+            }))
+            .map_err(|payload| {
+                let item = generator.source_item(index).map_or_else(|| "none".to_string(), |i| dataset.source.id(i));
+                let e = ServiceError::Panicked {
+                    dataset: dataset.name.clone(),
+                    index,
+                    item,
+                    message: panic_message(payload.as_ref()),
+                };
+                tracing::error!(error = %e, "sample failed");
+                e
+            })?;
             let (s, mut corner) = made.map_err(|source| {
                 if let SampleError::Crop(e) = &source {
                     // a crop larger than the frame is the request's fault, never shrunk

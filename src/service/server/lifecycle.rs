@@ -184,7 +184,7 @@ async fn spawn_health<H: Health>(
             let health = tonic::transport::Server::builder()
                 .http2_keepalive_interval(Some(idle))
                 .http2_keepalive_timeout(Some(idle))
-                .layer(ReplyLayer)
+                .layer(ReplyLayer { request_deadline: idle })
                 .add_service(health_service);
             (Some(bound), Some(tokio::spawn(health.serve_with_incoming(incoming))))
         }
@@ -233,7 +233,7 @@ fn spawn_api<H: Health>(
     let incoming = conn::incoming(listener, conn_limits(config));
     let server = tokio::spawn(
         builder
-            .layer(ReplyLayer)
+            .layer(ReplyLayer { request_deadline: idle })
             .add_service(health_service)
             .add_service(InterceptedService::new(reflection_v1, auth.clone()))
             .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
