@@ -309,6 +309,11 @@ fn source_scenes_loads_and_fingerprints_the_configuration() {
     let hard =
         SourceScenes::new(Arc::new(TwoItems), Arc::new(SceneStage::new(Arc::new(BuiltinMpi::new(32, Layering::Hard)))));
     assert_ne!(a.fingerprint(), hard.fingerprint());
+    let true_depth = SourceScenes::new(
+        Arc::new(TwoItems),
+        Arc::new(SceneStage::new(Arc::new(BuiltinMpi::new(32, Layering::TrueDepth)))),
+    );
+    assert_ne!(a.fingerprint(), true_depth.fingerprint());
     let backdrop = SourceScenes::new(
         Arc::new(TwoItems),
         Arc::new(SceneStage::new(Arc::new(BuiltinMpi { backdrop: true, ..BuiltinMpi::default() }))),
@@ -324,7 +329,9 @@ fn source_scenes_loads_and_fingerprints_the_configuration() {
     let dir = std::env::temp_dir().join(format!("mpiflow-stage-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("broken.png"), b"not a png").unwrap();
-    let src = DirSource::open(&dir, &SourceOptions::default()).unwrap();
+    // (not checked when the folder is opened, which would leave the broken photo out: the
+    // error is the scene's here)
+    let src = DirSource::open(&dir, &SourceOptions { check_at_open: false, ..SourceOptions::default() }).unwrap();
     let scenes = SourceScenes::new(Arc::new(src), Arc::new(SceneStage::builtin()));
     match scenes.load_scene(0) {
         Err(SceneError::Given { path, .. }) => assert!(path.ends_with("broken.png")),
