@@ -697,6 +697,15 @@ fn generate_label_rule_selects_the_occlusion_rule() {
 }
 
 #[test]
+fn generate_makes_the_smallest_frames_of_the_bundled_scenes() {
+    let dir = tmpdir("gen-small");
+    let out = dir.join("out");
+    let r = mpiflow(&["generate", "--count", "4", "--size", "16x16", "--out", out.to_str().unwrap()]);
+    assert!(r.status.success(), "stdout: {}\nstderr: {}", text(&r.stdout), text(&r.stderr));
+    assert!(text(&r.stdout).contains("wrote 4 samples (0 skipped)"), "{}", text(&r.stdout));
+}
+
+#[test]
 fn generate_flo_on_the_bundled_scenes() {
     let dir = tmpdir("gen-flo");
     let out = dir.join("out");

@@ -321,7 +321,10 @@ impl BuiltinSource {
             let shape = if rng.below(2) == 0 { Shape::Ellipse } else { Shape::RoundedRect };
             let z = rng.uniform(z_lo, z_hi);
             let ph = (k.fy * rng.uniform(0.7, 1.4) * geo.camera_height / z).max(8.0);
-            let pw = (ph * rng.uniform(0.6, 1.4)).clamp(8.0, 0.45 * w as f64);
+            // at most 0.45 W, and at least 8 px where the frame allows it (a frame under 18 px
+            // wide takes objects narrower than 8 px)
+            let pw_max = 0.45 * w as f64;
+            let pw = (ph * rng.uniform(0.6, 1.4)).clamp(8.0f64.min(pw_max), pw_max);
             let foot = k.cy + k.fy * geo.camera_height / z;
             let x0 = rng.uniform(0.0, w as f64 - pw);
             let src = self.photo(photo)?;
