@@ -2,7 +2,8 @@
 # The target view's instructions per plane sample, counted (not timed) and held to a budget.
 #
 # Cachegrind counts the instructions of `mpiflow bench render` at 320x240, 32 planes, one
-# thread, the target pass only, with 5 runs and with 1 run: the difference over 4 is one render
+# thread, the target pass only (the planes' own depths, or `--true-depth`: every texel at its
+# pixel's depth, the true-depth layering's search), with 5 runs and with 1 run: the difference over 4 is one render
 # (the synthetic MPI, its prefilter and the warm-up render cancel out), and that render's plane
 # samples come from the bench's own count. Counts are deterministic for a binary and a path, so
 # the check has no noise; a vector path valgrind cannot run (AVX-512) is not counted.
@@ -26,9 +27,10 @@ trap 'rm -rf "$tmp"' EXIT
 
 # one count: prints "<instructions> <plane samples>"
 count() {
-    local path=$1 runs=$2
+    local path=$1 layers=$2 runs=$3 flag=()
+    [ "$layers" = true-depth ] && flag=(--true-depth)
     MPIFLOW_SIMD=$path valgrind --tool=cachegrind --cache-sim=no --cachegrind-out-file="$tmp/cg.out" \
-        "$BIN" bench render --width 320 --height 240 --planes 32 --threads 1 --pass target --runs "$runs" \
+        "$BIN" bench render --width 320 --height 240 --planes 32 --threads 1 --pass target --runs "$runs" "${flag[@]}" \
         >"$tmp/out" 2>"$tmp/err" || { cat "$tmp/out" "$tmp/err" >&2; return 1; }
     local refs samples
     refs=$(grep -E 'I[[:space:]]+refs:' "$tmp/err" | sed 's/.*refs://' | tr -dc '0-9')
@@ -38,12 +40,12 @@ count() {
 }
 
 status=0
-while read -r path recorded; do
+while read -r path layers recorded; do
     case "$path" in ''|'#'*) continue ;; esac
     # a failed count stops the script here (set -e), with the bench's output on stderr
-    one=$(count "$path" 1)
-    five=$(count "$path" 5)
-    line=$(python3 - "$path" "$recorded" $one $five <<'PY'
+    one=$(count "$path" "$layers" 1)
+    five=$(count "$path" "$layers" 5)
+    line=$(python3 - "$path $layers" "$recorded" $one $five <<'PY'
 import sys
 path, recorded, one, samples, five, _ = sys.argv[1], float(sys.argv[2]), *map(int, sys.argv[3:])
 per, limit = (five - one) / 4 / samples, recorded * 1.2

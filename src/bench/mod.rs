@@ -64,6 +64,9 @@ pub struct RenderBenchConfig {
     pub width: usize,
     pub height: usize,
     pub planes: usize,
+    /// The synthetic MPI carries its surface ([`crate::mpi::synthetic::with_surface`]): the
+    /// true-depth layering's renders.
+    pub true_depth: bool,
     pub runs: usize,
     pub mode: Mode,
     pub skip: Skip,
@@ -78,6 +81,9 @@ pub struct RenderBenchConfig {
 /// once before the timed runs (as the scene cache keeps it).
 pub fn bench_render(cfg: &RenderBenchConfig) -> (Timing, RenderStats) {
     let mut mpi = bench_mpi(cfg.width, cfg.height, cfg.planes);
+    if cfg.true_depth {
+        crate::mpi::synthetic::with_surface(&mut mpi);
+    }
     crate::render::resample::prefilter(&mut mpi, cfg.resample);
     if crate::render::store::packs(cfg.mode, cfg.resample, false) {
         crate::render::store::pack(&mut mpi);

@@ -204,6 +204,10 @@ pub struct RenderBench {
     /// its depth and coverage) or `source` (the forward flow and its validity).
     #[arg(long, default_value = "both", value_parser = ["both", "target", "source"])]
     pass: String,
+    /// Give the synthetic MPI its surface, so every texel lies at its pixel's own disparity
+    /// within its plane's slab: the renders of the true-depth layering (`--layering true-depth`).
+    #[arg(long)]
+    true_depth: bool,
 }
 
 pub fn run(cmd: BenchCommand) -> Result<(), CliError> {
@@ -383,7 +387,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     }
     let kernels = if q.resample.is_empty() { vec![base.resample] } else { q.resample.clone() };
     // the generator keeps the default method's addresses (--same-motions)
-    let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
+    let p = Pipeline::new(source, stage.clone(), Arc::new(SceneCache::new(1 << 30)), base.clone())
         .map_err(|e| CliError(e.to_string()))?;
     base.inpaint_method = q.inpaint;
     println!(
@@ -402,6 +406,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         }
         .map_err(|e| CliError(e.to_string()))
     };
+    scene_line(p.source().as_ref(), &stage)?;
     if let Some(right) = &q.right_view {
         real_view_table(&p, &base, &q, right)?;
     }
@@ -416,6 +421,40 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         return realism_table(&run, &base);
     }
     rules_table(&run, &base, &kernels)
+}
+
+/// What the source's scenes cost: each item's scene (at most 8, from the first) built once more
+/// outside the cache and timed, and its size in the scene cache (`Scene::byte_size`), medians
+/// with the largest; a build that fails is counted, not timed.
+fn scene_line(source: &dyn mpiflow::source::Source, stage: &mpiflow::scene::stage::SceneStage) -> Result<(), CliError> {
+    let n = source.len().min(8);
+    let (mut ms, mut mib, mut failed) = (Vec::new(), Vec::new(), 0);
+    for i in 0..n {
+        let item = source.load(i).map_err(|e| CliError(e.to_string()))?;
+        let t = std::time::Instant::now();
+        match stage.scene(item) {
+            Ok(scene) => {
+                ms.push(t.elapsed().as_secs_f64() * 1e3);
+                mib.push(scene.byte_size() as f64 / f64::from(1 << 20));
+            }
+            Err(_) => failed += 1,
+        }
+    }
+    if ms.is_empty() {
+        println!("scenes: none of the first {n} items built");
+        return Ok(());
+    }
+    let (t, m) = (mpiflow::bench::Timing::from_samples(ms), mpiflow::bench::Timing::from_samples(mib));
+    println!(
+        "scenes: {} of the first {n} items built one at a time: build median {:.0} ms (max {:.0}), scene cache size median {:.1} MiB (max {:.1}){}",
+        t.runs,
+        t.median,
+        t.max,
+        m.median,
+        m.max,
+        if failed > 0 { format!(", {failed} failed") } else { String::new() }
+    );
+    Ok(())
 }
 
 /// The table of the merge and label rules (`bench quality`'s default): a row per kernel, merge
@@ -556,6 +595,7 @@ fn render(b: RenderBench) -> Result<(), CliError> {
                 width: b.width,
                 height: b.height,
                 planes: b.planes,
+                true_depth: b.true_depth,
                 runs: b.runs,
                 mode: b.mode,
                 skip,

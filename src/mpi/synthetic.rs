@@ -48,6 +48,17 @@ pub fn bench_mpi(width: usize, height: usize, planes: usize) -> Mpi {
     mpi
 }
 
+/// Gives a [`bench_mpi`] its surface ([`super::Surface`]): each pixel at
+/// [`surface_disparity`], so its texels lie at the surface within their planes' slabs, as the
+/// true-depth layering places them.
+pub fn with_surface(mpi: &mut Mpi) {
+    let grid = Grid::new(mpi.width, mpi.height);
+    let (w, h) = (mpi.width as f64, mpi.height as f64);
+    let disparity =
+        grid.pixels().map(|(x, y)| surface_disparity((x as f64 + 0.5) / w, (y as f64 + 0.5) / h) as f32).collect();
+    mpi.surface = Some(std::sync::Arc::new(super::Surface { disparity }));
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -3,7 +3,7 @@
 //! operations in its order).
 
 use super::geometry::TargetGeometry;
-use super::plane::{cap, PlaneConst, SurfaceRay};
+use super::plane::{PlaneConst, SurfaceRay, SURFACE_STEPS};
 use super::sampler::{lanes_of, LaneTaps, PlaneSampler};
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::render::real::Real;
@@ -304,9 +304,12 @@ impl Sums4 {
 pub(super) type Surfaced<'a, T> = Option<(&'a SurfaceRay<'a, T>, &'a [PlaneConst<T>])>;
 
 /// The texels of a true-depth MPI's plane `pl` that the lanes of `lanes` meet, from the plane's
-/// points `q`, by [`SurfaceRay::search`] lane by lane (the scalar loop's function, so its
-/// bits): the points, their depths along the rays (the depth sums' `lambda`) and the lanes whose
-/// texel is in front of the camera (bit k: lane k; the other lanes keep `q` and are not taken).
+/// points `q`: [`SurfaceRay::search`] in `f32x4` lanes, its operations in its order (the clamp,
+/// the tap's pixel and fractions, the four surface reads per lane, [`super::plane::slab_offset`] and the
+/// bilinear blend, the ray's point at that disparity; `T` is `f32` wherever the lanes run, so
+/// every lane gets the scalar loop's bits, `tests/render_window.rs` compares the two): the
+/// points, their depths along the rays (the depth sums' `lambda`) and the lanes whose texel is in
+/// front of the camera (bit k: lane k; the other lanes keep `q` and are not taken).
 #[inline(always)]
 fn surface4<T: Real>(
     sr: &SurfaceRay<'_, T>,
@@ -315,21 +318,52 @@ fn surface4<T: Real>(
     q: [f32x4; 2],
     lanes: u32,
 ) -> (f32x4, f32x4, f32x4, u32) {
-    let [mut qx, mut qy] = q.map(f32x4::to_array);
-    let [v0, v1] = rays.v.map(f32x4::to_array);
-    let inv_s = rays.inv_s.to_array();
-    let mut lambda = [0.0f32; 4];
-    let mut in_front = 0u32;
-    for k in lanes_of(lanes) {
-        let of = T::of32;
-        let ([x, y], _, depth, g) = sr.search(pl, [of(v0[k]), of(v1[k])], of(inv_s[k]), (of(qx[k]), of(qy[k])));
-        (qx[k], qy[k]) = (x.f32(), y.f32());
-        if g > T::zero() {
-            in_front |= 1 << k;
-            lambda[k] = cap(g * depth, DEPTH_MAX).f32();
-        }
+    use wide::i32x4;
+    let sp = f32x4::splat;
+    let (zero, one, depth_max) = (sp(0.0), sp(1.0), sp(DEPTH_MAX as f32));
+    let (disp, lo, hi) = (sp(pl.disp.f32()), sp(pl.lo.f32()), sp(pl.hi.f32()));
+    let (lo2, hi2) = (sp(pl.lo.f32() + pl.lo.f32()), sp(pl.hi.f32() + pl.hi.f32()));
+    let (wm, hm, k) = (sp(sr.wm.f32()), sp(sr.hm.f32()), sp(sr.k.f32()));
+    let [fx, fy] = sr.fs.map(|v| sp(v.f32()));
+    let [cx, cy] = sr.cs.map(|v| sp(v.f32()));
+    let [ox, oy] = sr.centre.map(|v| sp(v.f32()));
+    let (w, h) = (sr.w as i32, sr.h as i32);
+    let (wl, hl, ww) = (i32x4::splat(w - 1), i32x4::splat(h - 1), i32x4::splat(w));
+    let [v0, v1] = rays.v;
+    let inv_s = rays.inv_s;
+    // `slab_offset` in lanes
+    let offset = |s: f32x4| {
+        let o = s - disp;
+        (o.simd_ge(lo2) & o.simd_le(hi2)).select(o.max(lo).min(hi), zero)
+    };
+    let (mut qx, mut qy, mut d) = (q[0], q[1], disp);
+    for _ in 0..SURFACE_STEPS {
+        // `Tap::new` at the clamped point (q >= 0 there, so truncation is floor)
+        let (px, py) = (qx.max(zero).min(wm), qy.max(zero).min(hm));
+        let x0 = px.trunc_int().max(i32x4::splat(0)).min(wl);
+        let y0 = py.trunc_int().max(i32x4::splat(0)).min(hl);
+        let (wx, wy) = (px - x0.round_float(), py - y0.round_float());
+        let x1 = (x0 + i32x4::splat(1)).min(wl);
+        let (r0, r1) = (y0 * ww, (y0 + i32x4::splat(1)).min(hl) * ww);
+        let idx = [r0 + x0, r0 + x1, r1 + x0, r1 + x1].map(i32x4::to_array);
+        let at = |c: usize| f32x4::from(idx[c].map(|i| sr.surface[i as usize]));
+        let [a00, a10, a01, a11] = [0, 1, 2, 3].map(|c| offset(at(c)));
+        let top = a00 + wx * (a10 - a00);
+        let bot = a01 + wx * (a11 - a01);
+        d = disp + (top + wy * (bot - top));
+        // `SurfaceRay::at`
+        let g = (one + k * d) * inv_s;
+        qx = fx * (ox * d + v0 * g) + cx;
+        qy = fy * (oy * d + v1 * g) + cy;
     }
-    (f32x4::from(qx), f32x4::from(qy), f32x4::from(lambda), in_front)
+    // `texel_depth`
+    let depth = d.simd_gt(zero).select(cap4(one / d, depth_max), depth_max);
+    let g = (one + k * d) * inv_s;
+    let front = g.simd_gt(zero);
+    let in_front = front.to_bitmask() & lanes;
+    let keep = lane_mask(lanes);
+    let lambda = lane_mask(in_front).select(cap4(g * depth, depth_max), zero);
+    (keep.select(qx, q[0]), keep.select(qy, q[1]), lambda, in_front)
 }
 
 /// `v`, at most `max` (lane by lane, the scalar loop's `cap`).

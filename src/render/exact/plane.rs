@@ -69,6 +69,18 @@ pub(super) fn slab_offset<T: Real>(s: T, disp: T, lo: T, hi: T) -> T {
     }
 }
 
+/// The depth of a texel at disparity `d`: [`crate::mpi::planes::plane_depth`] in `T`, and
+/// [`DEPTH_MAX`] where `d <= 0` (a texel's offset may take it to disparity 0 or beyond). Both
+/// views' searches and reads call this one function (the four-lane loop its operations in lanes).
+#[inline(always)]
+pub(super) fn texel_depth<T: Real>(d: T) -> T {
+    if d > T::zero() {
+        cap(T::one() / d, DEPTH_MAX)
+    } else {
+        T::of(DEPTH_MAX)
+    }
+}
+
 impl<T: Real> SurfaceRay<'_, T> {
     /// The source pixel where the ray of direction `v` (x and y; `inv_s` = 1 / v_z) meets
     /// disparity `d`: `(fx_s (C_x d + v_x g) + cx_s, fy_s (C_y d + v_y g) + cy_s)`, g = (1 + k d)
@@ -96,7 +108,6 @@ impl<T: Real> SurfaceRay<'_, T> {
             d = pl.disp + tap.sample_map(self.surface, |s| slab_offset(s, pl.disp, pl.lo, pl.hi));
             (qx, qy) = self.at(v, inv_s, d);
         }
-        let depth = if d > T::zero() { cap(T::one() / d, DEPTH_MAX) } else { T::of(DEPTH_MAX) };
-        ([qx, qy], d, depth, (T::one() + self.k * d) * inv_s)
+        ([qx, qy], d, texel_depth(d), (T::one() + self.k * d) * inv_s)
     }
 }

@@ -1,7 +1,7 @@
 //! The source view's lane loops ([`SourceLanes`]): four pixels at a time in `f32x4`, or the
 //! path's 8 or 16 in plain arrays, each the scalar loop's operations in its order.
 
-use super::plane::slab_offset;
+use super::plane::{slab_offset, texel_depth};
 use crate::mpi::planes::DEPTH_MAX;
 use crate::render::real::Real;
 use crate::render::store::Rgba;
@@ -41,8 +41,7 @@ pub(super) struct SourceLanes<'a> {
 #[inline(always)]
 pub(super) fn texel_disparity<T: Real>(surface: &[f32], p: usize, d: T, (lo, hi): (T, T)) -> (T, T) {
     let d = d + slab_offset(T::of32(surface[p]), d, lo, hi);
-    let z = if d > T::zero() { (T::one() / d).min(T::of(DEPTH_MAX)) } else { T::of(DEPTH_MAX) };
-    (d, z)
+    (d, texel_depth(d))
 }
 
 impl SourceLanes<'_> {
