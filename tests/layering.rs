@@ -484,3 +484,36 @@ fn true_depth_layers_move_every_pixel_by_its_own_depth() {
     let (flow_32, image_32) = tilted_plane_errors(Layering::TrueDepth, 32);
     assert!(flow_32 < 1e-4 && image_32 < 1e-4, "32 planes: flow {flow_32}, image {image_32}");
 }
+
+/// `bench quality` states what a source's scenes cost before its table: the build time and the
+/// size in the scene cache, its parts adding up to the largest; and a true-depth layering of 8
+/// planes (which keeps each pixel's depth with fewer planes) takes less of the cache than the
+/// soft layering's 32 on the same scenes.
+#[test]
+fn bench_quality_states_the_scenes_cost_and_fewer_true_depth_planes_take_less() {
+    let scenes = |layering: &str, planes: &str| -> (f64, f64) {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_mpiflow"))
+            .args(["bench", "quality", "--count", "1", "--sharpness", "--size", "64x48"])
+            .args(["--layering", layering, "--planes", planes])
+            .output()
+            .expect("run mpiflow bench quality");
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+        let line = text.lines().find(|l| l.starts_with("scenes: ")).unwrap_or_else(|| panic!("no scenes line: {text}"));
+        assert!(line.contains("8 of the first 8 items built"), "{line}");
+        // the figures in order: items, first, build median and max, size median and max, parts
+        let nums: Vec<f64> = line
+            .split(|c: char| !(c.is_ascii_digit() || c == '.'))
+            .filter_map(|w| w.trim_matches('.').parse().ok())
+            .collect();
+        assert_eq!(nums.len(), 10, "{line}");
+        let (median, max, parts) = (nums[4], nums[5], nums[6..].to_vec());
+        assert!(median > 0.0 && median <= max, "{line}");
+        // the parts are rounded to 0.1 MiB each
+        assert!((parts.iter().sum::<f64>() - max).abs() <= 0.25, "{line}");
+        (median, max)
+    };
+    let (soft, _) = scenes("soft", "32");
+    let (true_depth, _) = scenes("true-depth", "8");
+    assert!(true_depth < 0.6 * soft, "true-depth 8 planes {true_depth} MiB, soft 32 planes {soft} MiB");
+}

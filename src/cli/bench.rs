@@ -387,7 +387,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     }
     let kernels = if q.resample.is_empty() { vec![base.resample] } else { q.resample.clone() };
     // the generator keeps the default method's addresses (--same-motions)
-    let p = Pipeline::new(source, stage.clone(), Arc::new(SceneCache::new(1 << 30)), base.clone())
+    let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 30)), base.clone())
         .map_err(|e| CliError(e.to_string()))?;
     base.inpaint_method = q.inpaint;
     println!(
@@ -406,7 +406,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
         }
         .map_err(|e| CliError(e.to_string()))
     };
-    scene_line(p.source().as_ref(), &stage)?;
+    scene_line(p.generator(), p.source().len())?;
     if let Some(right) = &q.right_view {
         real_view_table(&p, &base, &q, right)?;
     }
@@ -423,19 +423,30 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     rules_table(&run, &base, &kernels)
 }
 
-/// What the source's scenes cost: each item's scene (at most 8, from the first) built once more
-/// outside the cache and timed, and its size in the scene cache (`Scene::byte_size`), medians
-/// with the largest; a build that fails is counted, not timed.
-fn scene_line(source: &dyn mpiflow::source::Source, stage: &mpiflow::scene::stage::SceneStage) -> Result<(), CliError> {
-    let n = source.len().min(8);
+/// What the source's scenes cost: the first `items`' scenes (at most 8) built into the generator's
+/// cache one at a time and timed (loading, the scene models, the layering and the preparation the
+/// cache keeps: what a cache miss costs), and their size in the scene cache (`Scene::byte_size`),
+/// medians with the largest; a build that fails is counted, not timed.
+fn scene_line(g: &mpiflow::sample::pipeline::Generator, items: usize) -> Result<(), CliError> {
+    let n = items.min(8);
     let (mut ms, mut mib, mut failed) = (Vec::new(), Vec::new(), 0);
+    // the largest scene's parts: planes (colour and density), B-spline colour coefficients,
+    // the rest of the MPI (extras, levels, surface), the photo with its depth and masks
+    let mut parts = [0usize; 4];
+    let m = |b: usize| b as f64 / f64::from(1 << 20);
     for i in 0..n {
-        let item = source.load(i).map_err(|e| CliError(e.to_string()))?;
         let t = std::time::Instant::now();
-        match stage.scene(item) {
+        match g.scene(i) {
             Ok(scene) => {
                 ms.push(t.elapsed().as_secs_f64() * 1e3);
-                mib.push(scene.byte_size() as f64 / f64::from(1 << 20));
+                mib.push(m(scene.byte_size()));
+                if scene.byte_size() >= parts.iter().sum() {
+                    let mpi = &scene.mpi;
+                    let planes = mpi.rgba.len() * 4 + mpi.rgba_blocks.as_ref().map_or(0, |b| b.byte_size());
+                    let coefficients = mpi.bspline_rgb.as_ref().map_or(0, |c| c.coefficients.byte_size());
+                    let rest = mpi.byte_size() - planes - coefficients;
+                    parts = [planes, coefficients, rest, scene.byte_size() - mpi.byte_size()];
+                }
             }
             Err(_) => failed += 1,
         }
@@ -444,14 +455,18 @@ fn scene_line(source: &dyn mpiflow::source::Source, stage: &mpiflow::scene::stag
         println!("scenes: none of the first {n} items built");
         return Ok(());
     }
-    let (t, m) = (mpiflow::bench::Timing::from_samples(ms), mpiflow::bench::Timing::from_samples(mib));
+    let (t, sz) = (mpiflow::bench::Timing::from_samples(ms), mpiflow::bench::Timing::from_samples(mib));
     println!(
-        "scenes: {} of the first {n} items built one at a time: build median {:.0} ms (max {:.0}), scene cache size median {:.1} MiB (max {:.1}){}",
+        "scenes: {} of the first {n} items built one at a time: build median {:.0} ms (max {:.0}), scene cache size median {:.1} MiB (max {:.1}: planes {:.1}, B-spline colour {:.1}, the MPI's other maps {:.1}, photo, depth and masks {:.1}){}",
         t.runs,
         t.median,
         t.max,
-        m.median,
-        m.max,
+        sz.median,
+        sz.max,
+        m(parts[0]),
+        m(parts[1]),
+        m(parts[2]),
+        m(parts[3]),
         if failed > 0 { format!(", {failed} failed") } else { String::new() }
     );
     Ok(())
