@@ -1,8 +1,8 @@
 //! A folder's listing: the layout, the regular files and what was left out, each item's image
 //! and companion files, and the frame the items are brought to.
 
-use super::options::working_size;
-use crate::io::image::{is_heif, read_header, ImageHeader, ImageLimits, HEIC_ADVICE};
+use super::options::{photo_limit_advice, working_size};
+use crate::io::image::{is_heif, read_header, read_photo_header, ImageHeader, ImageLimits, HEIC_ADVICE};
 use crate::source::given::{check_shape, io_err, DepthFile};
 use crate::source::{FailureKind, SkippedItem, SourceError};
 use std::collections::HashMap;
@@ -278,8 +278,8 @@ fn check_entry(root: &Path, e: &Entry, limits: &ImageLimits) -> Checked {
         let reason = message.strip_prefix(&format!("{shown}: ")).map(str::to_string).unwrap_or(message);
         SkippedItem { item: rel.to_string(), kind, reason }
     };
-    let header = read_header(&root.join(&e.image.rel), limits)
-        .map_err(|err| left_out(&e.image.rel, err.failure_kind(), err.to_string()))?;
+    let header = read_photo_header(&root.join(&e.image.rel), limits)
+        .map_err(|err| left_out(&e.image.rel, err.failure_kind(), photo_limit_advice(&err)))?;
     let (w0, h0) = (header.width as usize, header.height as usize);
     let mut resized = false;
     let mut companions: Vec<(&FileRef, FailureKind, &str)> = Vec::new();

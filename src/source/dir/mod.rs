@@ -99,4 +99,6 @@ pub use super::given::{
 pub(crate) use folder::mpi_message;
 pub use folder::{left_out_summary, DirSource};
 pub use listing::{ItemFiles, Layout, MaskFile};
-pub use options::{working_size, IntrinsicsSpec, SourceOptions, WORKING_MIN, WORKING_PIXELS};
+pub use options::{
+    photo_limit_advice, working_size, IntrinsicsSpec, SourceOptions, PHOTO_LIMIT_SETTINGS, WORKING_MIN, WORKING_PIXELS,
+};

@@ -1,0 +1,175 @@
+//! Phone-sized photos: a 48-megapixel baseline JPEG (8064 x 6048, made here) is served by the
+//! real `mpiflow` binary at the folder's working size with the server's peak resident memory
+//! under 1 GiB (it is decoded at reduced scale, never whole), and shows the photo; a photo over
+//! the limits even at its reduced scale is left out with a message naming the settings.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use mpiflow::service::client::client_for;
+use mpiflow::service::pb;
+use mpiflow::source::{open_source, FailureKind, SourceOptions};
+use tonic::transport::Endpoint;
+
+const BIN: &str = env!("CARGO_BIN_EXE_mpiflow");
+
+/// 1 GiB, in the kB that /proc/PID/status counts.
+const GIB_KB: u64 = 1 << 20;
+
+fn tmp(name: &str) -> PathBuf {
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("phone-sizes-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A smooth photo-like pattern of `w` x `h`: waves in red and green, a ramp in blue.
+fn pattern(w: u32, h: u32) -> image::RgbImage {
+    image::RgbImage::from_fn(w, h, |x, y| {
+        let (xf, yf) = (x as f32, y as f32);
+        let r = 127.0 + 100.0 * (xf / 97.0).sin() * (yf / 131.0).cos();
+        let g = 127.0 + 100.0 * ((xf + yf) / 211.0).sin();
+        let b = xf * 255.0 / w as f32;
+        image::Rgb([r as u8, g as u8, b as u8])
+    })
+}
+
+fn baseline_jpeg(img: &image::RgbImage) -> Vec<u8> {
+    let mut out = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 90).encode_image(img).unwrap();
+    out
+}
+
+/// The peak resident memory (VmHWM) of process `pid`, in kB.
+fn peak_rss_kb(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let line = status.lines().find(|l| l.starts_with("VmHWM:")).unwrap_or_else(|| panic!("{status}"));
+    line.split_whitespace().nth(1).unwrap().parse().unwrap()
+}
+
+/// A folder with one 8064 x 6048 baseline JPEG and its depth (a step: the left half nearer) at
+/// 1008 x 756: the server renders it at the working size 640 x 480 with its peak resident memory
+/// under 1 GiB, and the samples show the photo (the source image is the photo brought to 640 x
+/// 480 by a plain resize, within a few levels).
+#[test]
+fn a_48_megapixel_jpeg_serves_at_the_working_size_with_peak_memory_under_1_gib() {
+    let dir = tmp("48mp");
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    std::fs::create_dir_all(dir.join("depths")).unwrap();
+    let (w, h) = (8064u32, 6048u32);
+    let photo = pattern(w, h);
+    std::fs::write(dir.join("images/big.jpg"), baseline_jpeg(&photo)).unwrap();
+    let expected = image::imageops::resize(&photo, 640, 480, image::imageops::FilterType::Triangle);
+    drop(photo);
+    let (dw, dh) = (1008usize, 756usize);
+    let depth: Vec<f32> = (0..dw * dh).map(|k| if k % dw < dw / 2 { 2.0 } else { 4.0 }).collect();
+    mpiflow::io::npy::write_f32(&dir.join("depths/big.npy"), &[dh as u64, dw as u64], &depth).unwrap();
+
+    let log_path = dir.join("serve.log");
+    let mut child = Command::new(BIN)
+        .args(["serve", "--addr", "127.0.0.1:0", "--log-level", "info", "--workers", "2", "--source"])
+        .arg(&dir)
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log_path).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.trim().strip_prefix("mpiflow serving on ").unwrap_or_else(|| {
+        let _ = child.kill();
+        panic!("{line:?}: {}", std::fs::read_to_string(&log_path).unwrap_or_default())
+    });
+    let samples = tokio::runtime::Runtime::new().unwrap().block_on(async {
+        let channel = Endpoint::from_shared(format!("http://{addr}")).unwrap().connect().await.unwrap();
+        let spec = pb::SampleSpec { seed: 1, ..Default::default() };
+        let request = pb::StreamRequest { count: 3, ..spec.stream() };
+        let mut stream = client_for(channel).stream_samples(request).await.unwrap().into_inner();
+        let mut out = Vec::new();
+        while let Some(b) = stream.message().await.unwrap() {
+            out.extend(b.samples);
+        }
+        out
+    });
+    let peak = peak_rss_kb(child.id());
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let log = std::fs::read_to_string(&log_path).unwrap();
+    let opened = log.lines().find(|l| l.contains("dataset opened")).unwrap_or_else(|| panic!("{log}"));
+    assert!(opened.contains("working size 640x480"), "{opened}");
+
+    assert_eq!(samples.len(), 3);
+    for s in &samples {
+        assert_eq!((s.width, s.height), (640, 480), "{}", s.source_id);
+        let image1 = s.tensors.iter().find(|t| t.name == "image1").unwrap();
+        assert_eq!(image1.shape, [480, 640, 3]);
+        assert_eq!(image1.data.len(), expected.as_raw().len(), "uncompressed u8");
+        let diff = |a: &[u8], b: &[u8]| {
+            a.iter().zip(b).map(|(&x, &y)| f64::from((i32::from(x) - i32::from(y)).unsigned_abs())).sum::<f64>()
+                / a.len() as f64
+        };
+        let mirrored = image::imageops::flip_horizontal(&expected);
+        let (same, other) = (diff(&image1.data, expected.as_raw()), diff(&image1.data, mirrored.as_raw()));
+        assert!(same < 3.0 && other > 10.0 * same, "mean difference {same} to the photo, {other} to its mirror");
+    }
+    eprintln!("peak resident memory of the server: {} MiB", peak / 1024);
+    assert!(peak < GIB_KB, "peak resident memory {peak} kB");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A photo larger than the limits allow is left out when the folder is opened, by reason
+/// `too-large`, with a message naming the size, the limit and the settings: a PNG of 9000 pixels
+/// a side (over the 8192 of `max_image_side`), and a baseline JPEG whose header promises 65000 x
+/// 65000 (over 40000000 pixels even at 1/8 scale, 8125 x 8125).
+#[test]
+fn a_photo_over_the_limits_is_left_out_naming_the_size_and_the_settings() {
+    let dir = tmp("limits");
+    let save = |name: &str, img: &image::RgbImage| img.save(dir.join(name)).unwrap();
+    save("good.png", &pattern(64, 48));
+    save("wide.png", &pattern(9000, 16));
+    let mut bomb = baseline_jpeg(&pattern(16, 16));
+    let sof = bomb.windows(2).position(|w| w == [0xFF, 0xC0]).unwrap();
+    // SOF0: marker, length (2), precision (1), height (2), width (2)
+    bomb[sof + 5..sof + 9].copy_from_slice(&[0xFD, 0xE8, 0xFD, 0xE8]);
+    std::fs::write(dir.join("bomb.jpg"), bomb).unwrap();
+
+    let source = open_source(&dir, &SourceOptions::default()).unwrap();
+    assert_eq!(source.len(), 1, "{}", source.describe());
+    let skipped = source.skipped();
+    assert_eq!(skipped.len(), 2, "{skipped:?}");
+    for s in &skipped {
+        assert_eq!(s.kind, FailureKind::TooLarge, "{s:?}");
+        assert!(s.reason.contains("max_photo_pixels") && s.reason.contains("max_image_side"), "{}", s.reason);
+    }
+    let reason = |item: &str| &skipped.iter().find(|s| s.item == item).unwrap().reason;
+    assert!(reason("wide.png").contains("9000 x 16 pixels is too large"), "{}", reason("wide.png"));
+    assert!(
+        reason("bomb.jpg").contains("65000 x 65000 pixels is too large even decoded at 1/8 scale, 8125 x 8125"),
+        "{}",
+        reason("bomb.jpg")
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The scale is the smallest of 1/8, 1/4, 1/2 that covers the size on both sides (full size when
+/// none does), each side rounded up as the decoder rounds it; only sequential JPEGs of one or
+/// three components are scaled.
+#[test]
+fn the_decoding_scale_is_the_smallest_that_covers_both_sides() {
+    use mpiflow::io::scaled::{decode_scale, jpeg_scalable, scaled_side};
+    assert_eq!(decode_scale((8064, 6048), (640, 480)), 1, "1008 x 756 covers 640 x 480");
+    assert_eq!(decode_scale((4032, 3024), (640, 480)), 2, "504 x 378 does not: 1008 x 756");
+    assert_eq!(decode_scale((4032, 3024), (1100, 480)), 4);
+    assert_eq!(decode_scale((1280, 960), (640, 480)), 4, "exactly half");
+    assert_eq!(decode_scale((1000, 750), (640, 480)), 8, "half is too small: full size");
+    assert_eq!(decode_scale((6048, 8064), (480, 640)), 1, "portrait");
+    assert_eq!(scaled_side(4033, 2), 1009, "rounded up");
+    let jpg = baseline_jpeg(&pattern(32, 24));
+    assert!(jpeg_scalable(&jpg));
+    let sof = jpg.windows(2).position(|w| w == [0xFF, 0xC0]).unwrap();
+    let mut progressive = jpg.clone();
+    progressive[sof + 1] = 0xC2;
+    assert!(!jpeg_scalable(&progressive), "progressive");
+    assert!(!jpeg_scalable(&jpg[..sof]), "cut before its frame header");
+    assert!(!jpeg_scalable(b"\x89PNG\r\n\x1a\n"));
+}
