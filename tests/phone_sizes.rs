@@ -41,6 +41,25 @@ fn baseline_jpeg(img: &image::RgbImage) -> Vec<u8> {
     out
 }
 
+/// [`baseline_jpeg`] with an EXIF segment of orientation 6 after the start marker, as a phone
+/// writes a portrait photo: stored sideways, shown turned a quarter clockwise.
+fn sideways_jpeg(img: &image::RgbImage) -> Vec<u8> {
+    let mut tiff = b"MM\0\x2a\0\0\0\x08".to_vec();
+    // one entry: Orientation (0x0112), SHORT, one value, 6; then no next IFD
+    for field in [&1u16.to_be_bytes()[..], &0x0112u16.to_be_bytes(), &3u16.to_be_bytes(), &1u32.to_be_bytes()] {
+        tiff.extend_from_slice(field);
+    }
+    tiff.extend_from_slice(&[0, 6, 0, 0, 0, 0, 0, 0]);
+    let mut body = b"Exif\0\0".to_vec();
+    body.extend(tiff);
+    let plain = baseline_jpeg(img);
+    let mut out = vec![0xFF, 0xD8, 0xFF, 0xE1];
+    out.extend_from_slice(&((body.len() + 2) as u16).to_be_bytes());
+    out.extend(body);
+    out.extend_from_slice(&plain[2..]);
+    out
+}
+
 /// The peak resident memory (VmHWM) of process `pid`, in kB.
 fn peak_rss_kb(pid: u32) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
@@ -49,20 +68,38 @@ fn peak_rss_kb(pid: u32) -> u64 {
 }
 
 /// A folder with one 8064 x 6048 baseline JPEG and its depth (a step: the left half nearer) at
-/// 1008 x 756: the server renders it at the working size 640 x 480 with its peak resident memory
-/// under 1 GiB, and the samples show the photo (the source image is the photo brought to 640 x
-/// 480 by a plain resize, within a few levels).
+/// a quarter of its resolution: the server renders it at the working size 640 x 480 with its peak
+/// resident memory under 1 GiB, and the samples show the photo (the source image is the photo
+/// brought to 640 x 480 by a plain resize, within a few levels).
 #[test]
 fn a_48_megapixel_jpeg_serves_at_the_working_size_with_peak_memory_under_1_gib() {
-    let dir = tmp("48mp");
+    let photo = pattern(8064, 6048);
+    let expected = image::imageops::resize(&photo, 640, 480, image::imageops::FilterType::Triangle);
+    serves_at_the_working_size("48mp", baseline_jpeg(&photo), expected);
+}
+
+/// The same photo stored sideways with orientation 6, as a phone stores a portrait: served
+/// upright at the portrait working size 560 x 744, under 1 GiB.
+#[test]
+fn a_48_megapixel_portrait_stored_sideways_serves_upright_under_1_gib() {
+    let photo = pattern(8064, 6048);
+    let upright = image::imageops::rotate90(&photo);
+    // the photo covers 560 x 744 at 560 x 747, centred: rows 1 to 744
+    let covered = image::imageops::resize(&upright, 560, 747, image::imageops::FilterType::Triangle);
+    let expected = image::imageops::crop_imm(&covered, 0, 1, 560, 744).to_image();
+    serves_at_the_working_size("48mp-portrait", sideways_jpeg(&photo), expected);
+}
+
+/// Serves `jpeg` (an 8064 x 6048 photo, as displayed `expected`'s aspect) with a depth step at a
+/// quarter of its displayed resolution; asserts the samples have `expected`'s size and show it,
+/// and the server's peak resident memory stays under 1 GiB.
+fn serves_at_the_working_size(name: &str, jpeg: Vec<u8>, expected: image::RgbImage) {
+    let dir = tmp(name);
     std::fs::create_dir_all(dir.join("images")).unwrap();
     std::fs::create_dir_all(dir.join("depths")).unwrap();
-    let (w, h) = (8064u32, 6048u32);
-    let photo = pattern(w, h);
-    std::fs::write(dir.join("images/big.jpg"), baseline_jpeg(&photo)).unwrap();
-    let expected = image::imageops::resize(&photo, 640, 480, image::imageops::FilterType::Triangle);
-    drop(photo);
-    let (dw, dh) = (1008usize, 756usize);
+    std::fs::write(dir.join("images/big.jpg"), jpeg).unwrap();
+    let (fw, fh) = (expected.width(), expected.height());
+    let (dw, dh) = if fw > fh { (2016usize, 1512usize) } else { (1512, 2016) };
     let depth: Vec<f32> = (0..dw * dh).map(|k| if k % dw < dw / 2 { 2.0 } else { 4.0 }).collect();
     mpiflow::io::npy::write_f32(&dir.join("depths/big.npy"), &[dh as u64, dw as u64], &depth).unwrap();
 
@@ -96,13 +133,13 @@ fn a_48_megapixel_jpeg_serves_at_the_working_size_with_peak_memory_under_1_gib()
     child.wait().unwrap();
     let log = std::fs::read_to_string(&log_path).unwrap();
     let opened = log.lines().find(|l| l.contains("dataset opened")).unwrap_or_else(|| panic!("{log}"));
-    assert!(opened.contains("working size 640x480"), "{opened}");
+    assert!(opened.contains(&format!("working size {fw}x{fh}")), "{opened}");
 
     assert_eq!(samples.len(), 3);
     for s in &samples {
-        assert_eq!((s.width, s.height), (640, 480), "{}", s.source_id);
+        assert_eq!((s.width, s.height), (fw, fh), "{}", s.source_id);
         let image1 = s.tensors.iter().find(|t| t.name == "image1").unwrap();
-        assert_eq!(image1.shape, [480, 640, 3]);
+        assert_eq!(image1.shape, [fh, fw, 3]);
         assert_eq!(image1.data.len(), expected.as_raw().len(), "uncompressed u8");
         let diff = |a: &[u8], b: &[u8]| {
             a.iter().zip(b).map(|(&x, &y)| f64::from((i32::from(x) - i32::from(y)).unsigned_abs())).sum::<f64>()
