@@ -210,3 +210,47 @@ fn the_decoding_scale_is_the_smallest_that_covers_both_sides() {
     assert!(!jpeg_scalable(&jpg[..sof]), "cut before its frame header");
     assert!(!jpeg_scalable(b"\x89PNG\r\n\x1a\n"));
 }
+
+/// A crop larger than the frame (Cones, 450 x 375, read as it is) names the setting that makes
+/// the frame larger: `generate` says to pass `--size`, and `pull` from a server gives the
+/// server's refusal without a resume hint (resuming the same request fails again).
+#[test]
+fn a_crop_larger_than_the_frame_names_size_and_gives_no_resume_hint() {
+    let cones = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/rgbd/cones");
+    let dir = tmp("crop");
+    let o = Command::new(BIN)
+        .args(["generate", "--count", "2", "--crop", "496x368", "--objects", "0", "--preview-every", "0", "--out"])
+        .arg(dir.join("out"))
+        .arg("--source")
+        .arg(&cones)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(
+            "--crop 496x368 is larger than the rendered frame 450x375; pass --size WxH with both sides at \
+                         least 496x368"
+        ),
+        "{stderr}"
+    );
+
+    let mut child = Command::new(BIN)
+        .args(["serve", "--addr", "127.0.0.1:0", "--log-level", "warn", "--source"])
+        .arg(&cones)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.trim().strip_prefix("mpiflow serving on ").unwrap_or_else(|| panic!("{line:?}")).to_string();
+    let o = Command::new(BIN).args(["pull", "--addr", &addr, "--count", "2", "--crop", "496x368"]).output().unwrap();
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{stderr}");
+    assert!(stderr.contains("InvalidArgument") && stderr.contains("450x375"), "{stderr}");
+    assert!(!stderr.contains("resume"), "{stderr}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
