@@ -254,3 +254,23 @@ fn a_crop_larger_than_the_frame_names_size_and_gives_no_resume_hint() {
     assert!(!stderr.contains("resume"), "{stderr}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A small portrait in a landscape folder is upscaled and loses much of its area to the frame's
+/// crop: the source's description (what `serve` logs at start-up) says so, with the factor and
+/// the share kept.
+#[test]
+fn a_small_portrait_in_a_landscape_folder_is_noted_as_upscaled_and_cropped() {
+    let dir = tmp("portrait-note");
+    pattern(640, 480).save(dir.join("wide.png")).unwrap();
+    pattern(300, 400).save(dir.join("small.png")).unwrap();
+    let d = open_source(&dir, &SourceOptions::default()).unwrap().describe();
+    assert!(d.contains("working size 640x480"), "{d}");
+    assert!(d.contains("; 1 smaller than the frame, upscaled (small 2.1x)"), "{d}");
+    assert!(d.contains("; 1 of another aspect, cropped to under two thirds of their area (small 56% kept)"), "{d}");
+    // a folder of one aspect gets no note
+    std::fs::remove_file(dir.join("small.png")).unwrap();
+    pattern(1280, 960).save(dir.join("large.png")).unwrap();
+    let d = open_source(&dir, &SourceOptions::default()).unwrap().describe();
+    assert!(!d.contains("upscaled") && !d.contains("cropped"), "{d}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

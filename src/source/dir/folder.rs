@@ -2,8 +2,8 @@
 //! with its companions.
 
 use super::listing::{
-    check_entries, companions, frame_of, image_entries, not_images, pick, stem_of, Entry, FileRef, ItemFiles, Layout,
-    Listing, MaskFile,
+    check_entries, companions, fit_notes, frame_of, image_entries, not_images, pick, stem_of, Entry, FileRef,
+    ItemFiles, Layout, Listing, MaskFile,
 };
 use super::options::{photo_limit_advice, SourceOptions};
 use crate::io::image::{is_heif, load_photo, photo_scale, read_photo_header, RgbImage, HEIC_ADVICE};
@@ -43,6 +43,8 @@ pub struct DirSource {
     /// The scale, in eighths, each item's photo is decoded at ([`photo_scale`]): below 8 for a
     /// baseline JPEG at least twice the size it is brought to.
     scales: Vec<u32>,
+    /// The photos upscaled or cropped hard to fit the frame, for the description ([`fit_notes`]).
+    fit_notes: String,
 }
 
 impl DirSource {
@@ -153,6 +155,7 @@ impl DirSource {
             .zip(&headers)
             .map(|(e, h)| h.map_or(8, |h| photo_scale(&h, need_of(options, frame, e))))
             .collect();
+        let notes = frame.map_or(String::new(), |f| fit_notes(&entries, &headers, f));
         let mut src = DirSource {
             root,
             layout,
@@ -165,6 +168,7 @@ impl DirSource {
             oriented,
             resized,
             scales,
+            fit_notes: notes,
         };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
@@ -452,6 +456,7 @@ impl Source for DirSource {
 
     fn describe(&self) -> String {
         let mut described = self.describe_items();
+        described.push_str(&self.fit_notes);
         if self.resized > 0 {
             described.push_str(&format!("; {} with depth or masks at another resolution, resized", self.resized));
         }
