@@ -38,8 +38,10 @@
 //! # Sizes and camera
 //!
 //! Photos are decoded as displayed (their EXIF orientation applied, see
-//! [`crate::io::image::load_rgb`]); given depth, disparity and masks are taken in the orientation
-//! of the photo as displayed. Depth, disparity and masks whose aspect differs from the photo's by
+//! [`crate::io::image::load_photo`]), a baseline JPEG brought to a smaller size at the smallest
+//! DCT scale that still covers it ([`crate::io::scaled`]; the limits apply to the size decoded
+//! at, and size errors name the settings: [`PHOTO_LIMIT_SETTINGS`]); given depth, disparity
+//! and masks are taken in the orientation of the photo as displayed. Depth, disparity and masks whose aspect differs from the photo's by
 //! more than a pixel of rounding fail the item, naming both shapes and the likely cause
 //! ([`super::given::same_aspect`]). Those whose size differs with the aspect kept are resized to
 //! the image's (masks by
