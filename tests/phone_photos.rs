@@ -566,3 +566,32 @@ fn serve_logs_what_it_left_out_at_start_up_and_strict_refuses() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `bake` and `bench quality` open the folder as `serve` does and print the same summary: what
+/// they serve and what they passed over, by reason with the names.
+#[test]
+fn bake_and_bench_quality_print_the_folder_summary() {
+    let dir = twelve_with_four_bad("summaries");
+    let bin = env!("CARGO_BIN_EXE_mpiflow");
+    let baked = dir.join("baked");
+    let runs: [Vec<&std::ffi::OsStr>; 2] = [
+        vec!["bake".as_ref(), "--quiet".as_ref(), "--out".as_ref(), baked.as_os_str()],
+        vec!["bench".as_ref(), "quality".as_ref(), "--sharpness".as_ref(), "--count".as_ref(), "1".as_ref()],
+    ];
+    for args in runs {
+        let o = Command::new(bin).args(&args).arg("--source").arg(&dir).output().unwrap();
+        let (stdout, stderr) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        assert!(o.status.success(), "{args:?}: {stderr}");
+        let summary = format!("{stdout}{stderr}");
+        let line = summary.lines().find(|l| l.contains("left out:")).unwrap_or_else(|| panic!("{args:?}: {summary}"));
+        assert!(line.contains("(8 images"), "{args:?}: {line}");
+        assert!(
+            line.contains(
+                "4 left out: 1 decode (images/p06.png), 1 depth (depths/p10.npy), 1 too-large (images/p09.png), 1 \
+                 truncated (images/p03.jpg)"
+            ),
+            "{args:?}: {line}"
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -4,7 +4,8 @@ masks/), made from the repository's real RGB-D photos (tests/data/rgbd: Cones an
 cropping, flipping and resizing: what a user's folder of phone and camera photos with depth looks
 like to mpiflow, for the folder benchmarks (docs/performance.md).
 
-    python tools/make_rgbd_folder.py OUTDIR [--count 48] [--largest 4032x3024]
+    python tools/make_rgbd_folder.py OUTDIR [--count 48] [--largest 4032x3024] [--sources cones]
+                                            [--no-masks]
 
 Every photo is a random crop (at least half of each side) of one source, flipped at random,
 resized to one of the sizes below (the largest is --largest); its depth and mask follow it (depth
@@ -29,16 +30,18 @@ def main():
     ap.add_argument("--count", type=int, default=48)
     ap.add_argument("--largest", default="4032x3024", help="WxH of the largest photos (every 8th photo)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sources", default="cones,chelsea", help="the photos of tests/data/rgbd to crop, in turn")
+    ap.add_argument("--no-masks", action="store_true", help="write no masks/ (the photos have no objects)")
     a = ap.parse_args()
     lw, lh = (int(v) for v in a.largest.lower().split("x"))
     rng = np.random.default_rng(a.seed)
     sources = []
-    for name in ("cones", "chelsea"):
+    for name in a.sources.split(","):
         img = np.asarray(Image.open(os.path.join(RGBD, name, "images", name + ".png")).convert("RGB"))
         depth = np.load(os.path.join(RGBD, name, "depths", name + ".npy")).astype(np.float32)
         mask = np.asarray(Image.open(os.path.join(RGBD, name, "masks", name + ".png")))
         sources.append((name, img, depth, mask))
-    for sub in ("images", "depths", "masks"):
+    for sub in ("images", "depths") if a.no_masks else ("images", "depths", "masks"):
         os.makedirs(os.path.join(a.out, sub), exist_ok=True)
     for i in range(a.count):
         name, img, depth, mask = sources[i % len(sources)]
@@ -55,7 +58,9 @@ def main():
         )
         de = np.asarray(Image.fromarray(np.ascontiguousarray(de)).resize(size, Image.NEAREST), dtype=np.float32)
         np.save(os.path.join(a.out, "depths", stem + ".npy"), de)
-        Image.fromarray(np.ascontiguousarray(ma)).resize(size, Image.NEAREST).save(os.path.join(a.out, "masks", stem + ".png"))
+        if not a.no_masks:
+            ma = Image.fromarray(np.ascontiguousarray(ma)).resize(size, Image.NEAREST)
+            ma.save(os.path.join(a.out, "masks", stem + ".png"))
     print(f"{a.count} photos in {a.out} (largest {lw}x{lh})")
 
 

@@ -392,6 +392,14 @@ fn make_one(
         },
         // a scene error already names the source item
         Err(e @ SampleError::Scene { .. }) => Outcome::Skipped(e.to_string()),
+        // the frame is the photos' working size (or --size): say which setting makes it larger
+        Err(SampleError::Crop(c)) => Outcome::Skipped(format!(
+            "{}: --crop {c}; pass --size WxH with both sides at least {}x{} to render a larger frame, or a smaller \
+             --crop",
+            describe_source(),
+            c.want_w,
+            c.want_h
+        )),
         Err(e) => Outcome::Skipped(format!("{}: {e}", describe_source())),
     }
 }

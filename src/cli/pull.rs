@@ -228,9 +228,14 @@ pub fn run(a: PullArgs) -> Result<(), CliError> {
         }
     }
     if let Some(status) = &report.error {
+        // a request the server refuses as invalid fails again when resumed: no resume hint
+        let resumable = status.code() != tonic::Code::InvalidArgument;
         let cursor = cursor_of(status)
+            .filter(|_| resumable)
             .map(|(n, r)| format!("; next index {n}, resume with --start-index {r}"))
-            .or_else(|| report.resume_start_index.map(|r| format!("; resume with --start-index {r}")))
+            .or_else(|| {
+                report.resume_start_index.filter(|_| resumable).map(|r| format!("; resume with --start-index {r}"))
+            })
             .unwrap_or_default();
         return Err(CliError(format!("the stream ended with {:?}: {}{cursor}", status.code(), status.message())));
     }

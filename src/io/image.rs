@@ -12,6 +12,7 @@ use std::fs::File;
 use std::io::{self, BufRead, BufReader, BufWriter, Cursor, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
+use super::scaled::{decode_jpeg_scaled, decode_scale, jpeg_scalable, scaled_side};
 use crate::failure::FailureKind;
 
 /// An RGB image, H x W x 3 values in [0, 1], row-major.
@@ -92,6 +93,21 @@ pub enum ImageError {
     Truncated { path: PathBuf, reason: String },
     #[error("{}: image of {width} x {height} pixels is too large ({limits})", .path.display())]
     TooLarge { path: PathBuf, width: u64, height: u64, limits: ImageLimits },
+    /// A JPEG over the limits even at the reduced scale it is decoded at ([`load_photo`]).
+    #[error(
+        "{}: image of {width} x {height} pixels is too large even decoded at {eighths}/8 scale, {scaled_width} x \
+         {scaled_height} ({limits})",
+        .path.display()
+    )]
+    ScaledTooLarge {
+        path: PathBuf,
+        width: u64,
+        height: u64,
+        eighths: u32,
+        scaled_width: u64,
+        scaled_height: u64,
+        limits: ImageLimits,
+    },
     #[error("{}: {bytes} bytes is larger than the limit of {max_bytes} bytes", .path.display())]
     FileTooLarge { path: PathBuf, bytes: u64, max_bytes: u64 },
     #[error("{}: invalid image buffer: {reason}", .path.display())]
@@ -103,7 +119,9 @@ impl ImageError {
     /// [`FailureKind::Truncated`] for data that ends early, [`FailureKind::Decode`] otherwise.
     pub fn failure_kind(&self) -> FailureKind {
         match self {
-            ImageError::TooLarge { .. } | ImageError::FileTooLarge { .. } => FailureKind::TooLarge,
+            ImageError::TooLarge { .. } | ImageError::ScaledTooLarge { .. } | ImageError::FileTooLarge { .. } => {
+                FailureKind::TooLarge
+            }
             ImageError::Truncated { .. } => FailureKind::Truncated,
             _ => FailureKind::Decode,
         }
@@ -168,6 +186,9 @@ pub struct ImageHeader {
     /// The EXIF orientation (1 to 8; 1 when the file carries none): the turn or mirror a viewer
     /// applies to show the photo upright, and the decoders of this module apply.
     pub orientation: u8,
+    /// A sequential JPEG of one or three components: decodable at 1/2, 1/4 or 1/8 scale
+    /// ([`load_photo`], [`super::scaled`]).
+    pub scalable: bool,
 }
 
 impl ImageHeader {
@@ -183,13 +204,15 @@ fn swaps_sides(orientation: ::image::metadata::Orientation) -> bool {
     orientation.to_exif() >= 5
 }
 
-/// Opens a PNG, JPEG or WebP stream's decoder, checks its header against `limits` and reads its
-/// orientation; with `decode`, decodes its pixels too (as stored: the caller orients them).
+/// Opens a PNG, JPEG or WebP stream's decoder, checks its header against `limits` (unless
+/// `check` is false: the caller checks the size it decodes at) and reads its orientation; with
+/// `decode`, decodes its pixels too (as stored: the caller orients them).
 fn open_reader<R: BufRead + Seek>(
     reader: R,
     path: &Path,
     limits: &ImageLimits,
     decode: bool,
+    check: bool,
 ) -> Result<(ImageHeader, Option<DynamicImage>), ImageError> {
     let mut reader = ::image::ImageReader::new(reader)
         .with_guessed_format()
@@ -216,7 +239,7 @@ fn open_reader<R: BufRead + Seek>(
     reader.no_limits();
     let mut decoder = reader.into_decoder().map_err(|e| map_decode_error(path, e))?;
     let (width, height) = decoder.dimensions();
-    if !limits.check_dimensions(width, height) {
+    if check && !limits.check_dimensions(width, height) {
         return Err(ImageError::TooLarge {
             path: path.to_path_buf(),
             width: width.into(),
@@ -232,6 +255,7 @@ fn open_reader<R: BufRead + Seek>(
         stored_width: width,
         stored_height: height,
         orientation: orientation.to_exif(),
+        scalable: false,
     };
     if !decode {
         return Ok((header, None));
@@ -252,7 +276,7 @@ fn decode_reader<R: BufRead + Seek>(
     limits: &ImageLimits,
     orient: bool,
 ) -> Result<DynamicImage, ImageError> {
-    let (header, img) = open_reader(reader, path, limits, true)?;
+    let (header, img) = open_reader(reader, path, limits, true, true)?;
     let mut img = img.ok_or_else(|| ImageError::Corrupt { path: path.to_path_buf(), reason: "no pixels".into() })?;
     if orient {
         if let Some(o) = ::image::metadata::Orientation::from_exif(header.orientation) {
@@ -273,7 +297,88 @@ pub fn read_header(path: &Path, limits: &ImageLimits) -> Result<ImageHeader, Ima
 /// [`read_header`] for an encoded image held in memory, named `path` in errors.
 pub fn read_header_bytes(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<ImageHeader, ImageError> {
     check_encoded(bytes, path, limits)?;
-    open_reader(Cursor::new(bytes), path, limits, false).map(|(h, _)| h)
+    let (header, _) = open_reader(Cursor::new(bytes), path, limits, false, true)?;
+    Ok(ImageHeader { scalable: jpeg_scalable(bytes), ..header })
+}
+
+/// [`read_header`] for a photo that is brought to a smaller size ([`load_photo`]): a sequential
+/// JPEG ([`ImageHeader::scalable`]) is checked against `limits` at the smallest size it decodes
+/// at (1/8 of each side), every other image at its size as stored.
+pub fn read_photo_header(path: &Path, limits: &ImageLimits) -> Result<ImageHeader, ImageError> {
+    let bytes = read_file(path, limits)?;
+    let header = unchecked_header(&bytes, path, limits)?;
+    check_photo(&header, if header.scalable { 1 } else { 8 }, path, limits)?;
+    Ok(header)
+}
+
+/// The header of an image's `bytes`, its file size and completeness checked but not its
+/// dimensions.
+fn unchecked_header(bytes: &[u8], path: &Path, limits: &ImageLimits) -> Result<ImageHeader, ImageError> {
+    check_encoded(bytes, path, limits)?;
+    let (header, _) = open_reader(Cursor::new(bytes), path, limits, false, false)?;
+    Ok(ImageHeader { scalable: jpeg_scalable(bytes), ..header })
+}
+
+/// Checks a photo's size decoded at `eighths` / 8 scale against `limits`.
+fn check_photo(header: &ImageHeader, eighths: u32, path: &Path, limits: &ImageLimits) -> Result<(), ImageError> {
+    let (sw, sh) = (scaled_side(header.stored_width, eighths), scaled_side(header.stored_height, eighths));
+    if limits.check_dimensions(sw, sh) {
+        return Ok(());
+    }
+    let (width, height) = (header.stored_width.into(), header.stored_height.into());
+    Err(if eighths == 8 {
+        ImageError::TooLarge { path: path.to_path_buf(), width, height, limits: *limits }
+    } else {
+        ImageError::ScaledTooLarge {
+            path: path.to_path_buf(),
+            width,
+            height,
+            eighths,
+            scaled_width: sw.into(),
+            scaled_height: sh.into(),
+            limits: *limits,
+        }
+    })
+}
+
+/// The scale, in eighths, a photo with `header` is decoded at to cover `need` (width, height as
+/// displayed; `None`: kept at its size): 8 (its full size) unless it is a sequential JPEG
+/// ([`ImageHeader::scalable`]) brought to a smaller size, else the smallest of 1/8, 1/4, 1/2
+/// that covers `need` ([`decode_scale`]).
+pub fn photo_scale(header: &ImageHeader, need: Option<(usize, usize)>) -> u32 {
+    let Some((nw, nh)) = need.filter(|_| header.scalable) else { return 8 };
+    let side = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
+    // `need` is as displayed; the scale applies to the sides as stored
+    let swapped = (header.width, header.height) != (header.stored_width, header.stored_height);
+    let stored_need = if swapped { (side(nh), side(nw)) } else { (side(nw), side(nh)) };
+    decode_scale((header.stored_width, header.stored_height), stored_need)
+}
+
+/// Decodes a photo that is brought to cover `need` (width, height as displayed; `None`: kept at
+/// its size) as small as its format allows: a sequential JPEG at the smallest DCT scale that
+/// covers `need` ([`photo_scale`]), every other image whole. The limits apply to the size it is
+/// decoded at; the file size is checked before reading. The EXIF orientation is applied (as
+/// [`load_rgb`]). Gives the image and the photo's header (its full size).
+pub fn load_photo(
+    path: &Path,
+    limits: &ImageLimits,
+    need: Option<(usize, usize)>,
+) -> Result<(RgbImage, ImageHeader), ImageError> {
+    let bytes = read_file(path, limits)?;
+    let header = unchecked_header(&bytes, path, limits)?;
+    let eighths = photo_scale(&header, need);
+    check_photo(&header, eighths, path, limits)?;
+    if eighths == 8 {
+        return Ok((decode_bytes(&bytes, path, limits).map(dynamic_to_rgb)?, header));
+    }
+    let (sw, sh) = (scaled_side(header.stored_width, eighths), scaled_side(header.stored_height, eighths));
+    let max = usize::try_from(u64::from(sw) * u64::from(sh) * 3).unwrap_or(usize::MAX);
+    let mut img = decode_jpeg_scaled(&bytes, path, eighths, max)?;
+    drop(bytes);
+    if let Some(o) = ::image::metadata::Orientation::from_exif(header.orientation) {
+        img.apply_orientation(o);
+    }
+    Ok((dynamic_to_rgb(img), header))
 }
 
 /// Reads a file whole, refusing files over `limits.max_bytes` before reading them.

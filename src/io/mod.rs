@@ -7,3 +7,4 @@ pub mod extent;
 pub mod flo;
 pub mod image;
 pub mod npy;
+pub mod scaled;

@@ -7,6 +7,8 @@
     ds = MPIFlowDataset("127.0.0.1:50051")        # RAFT-style dicts; torch IterableDataset
     ss = client.get_samples([7, 3, 7])            # random access, one call, in that order
     mds = MPIFlowMapDataset("127.0.0.1:50051", 1000)  # ds[i] = sample i; torch map-style Dataset
+    rgb = flow_to_image(s["flow"])                # the Middlebury colour wheel, u8 [H, W, 3]
+    write_flo("0.flo", s["flow"]); read_flo("0.flo")  # Middlebury .flo files, as RAFT reads them
 
 `MPIFlowDataset` and `MPIFlowMapDataset` import torch (when installed) on first use only.
 """
@@ -14,6 +16,7 @@ from ._proto import mpiflow_pb2 as pb
 from .client import Client, parse_addresses
 from .decode import DEFAULT_FIELDS, DecodeError, Sample, decode_sample, decode_tensor, to_raft_dict
 from .errors import MpiFlowError, NotReadyError, is_retryable
+from .flow import flow_to_image, read_flo, write_flo
 from .stream import FlowStream, Prefetcher, ProtocolError, StreamFailed
 
 __version__ = "0.1.0"
@@ -33,10 +36,13 @@ __all__ = [
     "StreamFailed",
     "decode_sample",
     "decode_tensor",
+    "flow_to_image",
     "is_retryable",
     "parse_addresses",
     "pb",
+    "read_flo",
     "to_raft_dict",
+    "write_flo",
 ]
 
 

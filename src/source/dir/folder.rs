@@ -2,11 +2,11 @@
 //! with its companions.
 
 use super::listing::{
-    check_entries, companions, frame_of, image_entries, not_images, pick, stem_of, Entry, FileRef, ItemFiles, Layout,
-    Listing, MaskFile,
+    check_entries, companions, fit_notes, frame_of, image_entries, not_images, pick, stem_of, Entry, FileRef,
+    ItemFiles, Layout, Listing, MaskFile,
 };
-use super::options::SourceOptions;
-use crate::io::image::{is_heif, load_rgb, read_header, RgbImage, HEIC_ADVICE};
+use super::options::{photo_limit_advice, SourceOptions};
+use crate::io::image::{is_heif, load_photo, photo_scale, read_photo_header, RgbImage, HEIC_ADVICE};
 use crate::mpi::{Mpi, MpiError};
 use crate::raster::{cover, crop, resize_depth, InstanceMasks};
 use crate::source::baked::BakeManifest;
@@ -40,6 +40,11 @@ pub struct DirSource {
     /// Items whose depth, disparity or masks have another resolution than the photo (the same
     /// aspect): resized when loaded.
     resized: usize,
+    /// The scale, in eighths, each item's photo is decoded at ([`photo_scale`]): below 8 for a
+    /// baseline JPEG at least twice the size it is brought to.
+    scales: Vec<u32>,
+    /// The photos upscaled or cropped hard to fit the frame, for the description ([`fit_notes`]).
+    fit_notes: String,
 }
 
 impl DirSource {
@@ -115,7 +120,7 @@ impl DirSource {
             entries
                 .iter()
                 .map(|e| {
-                    let h = read_header(&root.join(&e.image.rel), &options.limits).ok();
+                    let h = read_photo_header(&root.join(&e.image.rel), &options.limits).ok();
                     Ok((h, false))
                 })
                 .collect()
@@ -145,6 +150,12 @@ impl DirSource {
         let baked = if layout == Layout::Reference { BakeManifest::read(path)? } else { None };
         let frame = if options.resize.is_none() { frame_of(&entries, &headers) } else { None };
         let oriented = headers.iter().map(|h| h.map_or(1, |h| h.orientation)).collect();
+        let scales = entries
+            .iter()
+            .zip(&headers)
+            .map(|(e, h)| h.map_or(8, |h| photo_scale(&h, need_of(options, frame, e))))
+            .collect();
+        let notes = frame.map_or(String::new(), |f| fit_notes(&entries, &headers, f));
         let mut src = DirSource {
             root,
             layout,
@@ -156,6 +167,8 @@ impl DirSource {
             frame,
             oriented,
             resized,
+            scales,
+            fit_notes: notes,
         };
         src.fingerprint = src.compute_fingerprint()?;
         Ok(src)
@@ -203,11 +216,15 @@ impl DirSource {
             }
             Ok(())
         };
-        for (e, &o) in self.entries.iter().zip(&self.oriented) {
+        for ((e, &o), &eighths) in self.entries.iter().zip(&self.oriented).zip(&self.scales) {
             h.str(&e.id);
             // only photos turned upright when loaded: a folder without them keeps its fingerprint
             if o != 1 {
                 h.str("orientation").u64(u64::from(o));
+            }
+            // only photos decoded at reduced scale, likewise
+            if eighths != 8 {
+                h.str("decoded at eighths").u64(u64::from(eighths));
             }
             file(&mut h, "image", &e.image)?;
             if let Some((_, f)) = &e.depth {
@@ -241,8 +258,12 @@ impl DirSource {
     fn load_entry(&self, e: &Entry) -> Result<SourceItem, SourceError> {
         let limits = &self.options.limits;
         let ipath = self.root.join(&e.image.rel);
-        let mut image = load_rgb(&ipath, limits).map_err(|err| file_err(&ipath, err.failure_kind(), err))?;
+        let (mut image, header) = load_photo(&ipath, limits, need_of(&self.options, self.frame, e))
+            .map_err(|err| file_err(&ipath, err.failure_kind(), photo_limit_advice(&err)))?;
+        // the photo's size as decoded (a baseline JPEG may be decoded at reduced scale) and as
+        // displayed at full size (COCO annotations are in its pixels)
         let (w0, h0) = (image.width, image.height);
+        let (full_w, full_h) = (header.width as usize, header.height as usize);
 
         let mut depth = match &e.depth {
             Some((kind, f)) => {
@@ -275,7 +296,7 @@ impl DirSource {
                         if size > limits.max_bytes {
                             return Err(file_err(&p, FailureKind::TooLarge, over_limit(size, limits)));
                         }
-                        InstanceMasks::from_coco_json_file(&p, h0, w0)
+                        InstanceMasks::from_coco_json_file(&p, full_h, full_w)
                     }
                 }
                 .map_err(|err| file_err(&p, err.failure_kind(), err))?;
@@ -358,6 +379,12 @@ impl DirSource {
     }
 }
 
+/// The size an entry's photo is brought to, which its decoding must cover: the resize, else the
+/// folder's frame (not for an item with its MPI, which keeps its size); `None`: kept as it is.
+fn need_of(options: &SourceOptions, frame: Option<(usize, usize)>, e: &Entry) -> Option<(usize, usize)> {
+    options.resize.or(frame.filter(|_| e.mpi.is_none()))
+}
+
 pub(crate) fn mpi_message(e: MpiError) -> String {
     match e {
         MpiError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => "not found".into(),
@@ -429,6 +456,7 @@ impl Source for DirSource {
 
     fn describe(&self) -> String {
         let mut described = self.describe_items();
+        described.push_str(&self.fit_notes);
         if self.resized > 0 {
             described.push_str(&format!("; {} with depth or masks at another resolution, resized", self.resized));
         }

@@ -1,8 +1,9 @@
 //! A folder's listing: the layout, the regular files and what was left out, each item's image
 //! and companion files, and the frame the items are brought to.
 
-use super::options::working_size;
-use crate::io::image::{is_heif, read_header, ImageHeader, ImageLimits, HEIC_ADVICE};
+use super::options::{photo_limit_advice, working_size};
+use crate::io::image::{is_heif, read_header, read_photo_header, ImageHeader, ImageLimits, HEIC_ADVICE};
+use crate::raster::cover;
 use crate::source::given::{check_shape, io_err, DepthFile};
 use crate::source::{FailureKind, SkippedItem, SourceError};
 use std::collections::HashMap;
@@ -228,6 +229,52 @@ pub(super) fn frame_of(entries: &[Entry], headers: &[Option<ImageHeader>]) -> Op
     (mixed || frame != best).then_some(frame)
 }
 
+/// Kept area below which a photo's crop to the frame is noted: a portrait in a landscape frame
+/// keeps about 56% of its area.
+const CROP_NOTED: f64 = 2.0 / 3.0;
+
+/// What fitting the photos to `frame` does that a user should know, for the source's
+/// description: the photos smaller than the frame, upscaled (with the factor), and those whose
+/// aspect differs so much that the centred crop keeps less than two thirds of their area (with
+/// the share kept), each counted with the first few ids; empty when none.
+pub(super) fn fit_notes(entries: &[Entry], headers: &[Option<ImageHeader>], frame: (usize, usize)) -> String {
+    const NAMES: usize = 3;
+    let (fw, fh) = frame;
+    let (mut upscaled, mut cropped) = (Vec::new(), Vec::new());
+    for (e, h) in entries.iter().zip(headers).filter(|(e, _)| e.mpi.is_none()) {
+        let Some(h) = h else { continue };
+        let (w, hh) = (h.width as usize, h.height as usize);
+        if w == 0 || hh == 0 || (w, hh) == frame {
+            continue;
+        }
+        let (rw, rh, _, _) = cover(w, hh, fw, fh);
+        let scale = rw as f64 / w as f64;
+        if scale > 1.0 {
+            upscaled.push(format!("{} {scale:.1}x", e.id));
+        }
+        let kept = (fw * fh) as f64 / (rw * rh) as f64;
+        if kept < CROP_NOTED {
+            cropped.push(format!("{} {:.0}%", e.id, kept * 100.0));
+        }
+    }
+    let list = |v: &[String]| {
+        let more = if v.len() > NAMES { format!(", {} more", v.len() - NAMES) } else { String::new() };
+        format!("{}{more}", v.iter().take(NAMES).cloned().collect::<Vec<_>>().join(", "))
+    };
+    let mut notes = String::new();
+    if !upscaled.is_empty() {
+        notes.push_str(&format!("; {} smaller than the frame, upscaled ({})", upscaled.len(), list(&upscaled)));
+    }
+    if !cropped.is_empty() {
+        notes.push_str(&format!(
+            "; {} of another aspect, cropped to under two thirds of their area ({} kept)",
+            cropped.len(),
+            list(&cropped)
+        ));
+    }
+    notes
+}
+
 /// Most photos checked at once when a folder is opened (each check reads one photo's file).
 const CHECK_THREADS: usize = 4;
 
@@ -278,8 +325,8 @@ fn check_entry(root: &Path, e: &Entry, limits: &ImageLimits) -> Checked {
         let reason = message.strip_prefix(&format!("{shown}: ")).map(str::to_string).unwrap_or(message);
         SkippedItem { item: rel.to_string(), kind, reason }
     };
-    let header = read_header(&root.join(&e.image.rel), limits)
-        .map_err(|err| left_out(&e.image.rel, err.failure_kind(), err.to_string()))?;
+    let header = read_photo_header(&root.join(&e.image.rel), limits)
+        .map_err(|err| left_out(&e.image.rel, err.failure_kind(), photo_limit_advice(&err)))?;
     let (w0, h0) = (header.width as usize, header.height as usize);
     let mut resized = false;
     let mut companions: Vec<(&FileRef, FailureKind, &str)> = Vec::new();

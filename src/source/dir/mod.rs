@@ -38,8 +38,10 @@
 //! # Sizes and camera
 //!
 //! Photos are decoded as displayed (their EXIF orientation applied, see
-//! [`crate::io::image::load_rgb`]); given depth, disparity and masks are taken in the orientation
-//! of the photo as displayed. Depth, disparity and masks whose aspect differs from the photo's by
+//! [`crate::io::image::load_photo`]), a baseline JPEG brought to a smaller size at the smallest
+//! DCT scale that still covers it ([`crate::io::scaled`]; the limits apply to the size decoded
+//! at, and size errors name the settings: [`PHOTO_LIMIT_SETTINGS`]); given depth, disparity
+//! and masks are taken in the orientation of the photo as displayed. Depth, disparity and masks whose aspect differs from the photo's by
 //! more than a pixel of rounding fail the item, naming both shapes and the likely cause
 //! ([`super::given::same_aspect`]). Those whose size differs with the aspect kept are resized to
 //! the image's (masks by
@@ -99,4 +101,6 @@ pub use super::given::{
 pub(crate) use folder::mpi_message;
 pub use folder::{left_out_summary, DirSource};
 pub use listing::{ItemFiles, Layout, MaskFile};
-pub use options::{working_size, IntrinsicsSpec, SourceOptions, WORKING_MIN, WORKING_PIXELS};
+pub use options::{
+    photo_limit_advice, working_size, IntrinsicsSpec, SourceOptions, PHOTO_LIMIT_SETTINGS, WORKING_MIN, WORKING_PIXELS,
+};

@@ -2,7 +2,7 @@
 //! contents, following links; and the working size a folder's photos are brought to.
 
 use crate::geometry::Intrinsics;
-use crate::io::image::ImageLimits;
+use crate::io::image::{ImageError, ImageLimits};
 use crate::source::Fnv64;
 
 /// Camera intrinsics set for a whole run.
@@ -90,6 +90,25 @@ impl Default for SourceOptions {
             photo_limits: None,
             check_at_open: true,
         }
+    }
+}
+
+/// The settings that bound a folder's photos, named in every size error of a photo
+/// ([`photo_limit_advice`]).
+pub const PHOTO_LIMIT_SETTINGS: &str = "the limits of a folder's photos are `mpiflow serve`'s keys max_photo_pixels \
+     and max_image_side (max_image_bytes for the file; TOML, or MPIFLOW_MAX_PHOTO_PIXELS and the like; `generate`, \
+     `bake` and `bench` read up to 8192 pixels a side and 40000000 pixels): raise them, or shrink the photo; a \
+     baseline JPEG is held to them at the reduced scale it is decoded at, a progressive JPEG, PNG or WebP at its \
+     full size";
+
+/// A photo's decoding error as a message; a size error names the settings that bound it
+/// ([`PHOTO_LIMIT_SETTINGS`]).
+pub fn photo_limit_advice(err: &ImageError) -> String {
+    match err {
+        ImageError::TooLarge { .. } | ImageError::ScaledTooLarge { .. } | ImageError::FileTooLarge { .. } => {
+            format!("{err}; {PHOTO_LIMIT_SETTINGS}")
+        }
+        other => other.to_string(),
     }
 }
 
