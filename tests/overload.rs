@@ -792,3 +792,163 @@ async fn unauthenticated_connections_do_not_keep_a_token_holder_out() {
     drop(refused);
     s.shutdown(Duration::from_millis(500)).await;
 }
+
+/// Holders that answer nothing but pings keep nothing: 16 clients from 16 addresses, each a raw
+/// connection with a 16 KiB window and 2 GetSample calls of every field (twice the budget in
+/// all), never grant window and send a PING every 100 ms, answered each time. PING ACKs are not
+/// data taken, so when an honest stream needs the room their connections are closed (once a
+/// reply has waited `UNREAD_GRACE` with no DATA taken), and the stream gets every sample.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pings_alone_do_not_keep_a_holder_from_being_cut() {
+    const MIB: u64 = 1 << 20;
+    let s = server(ServiceConfig { max_buffered_mb: 1, ..config() }).await;
+    let all: Vec<i32> = (1..=9).collect();
+    let pongs = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let mut holders = Vec::new();
+    let mut pending = Vec::new();
+    for a in 0..16u8 {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind((std::net::Ipv4Addr::new(127, 0, 8, 2 + a), 0).into()).expect("binds a loopback address");
+        let tcp = socket.connect(s.addr).await.unwrap();
+        let (send, mut conn) = h2::client::Builder::new().initial_window_size(16 << 10).handshake(tcp).await.unwrap();
+        let mut ping_pong = conn.ping_pong().expect("the connection's pings");
+        let conn = tokio::spawn(conn);
+        let counted = pongs.clone();
+        pending.push(tokio::spawn(async move {
+            let mut every = tokio::time::interval(Duration::from_millis(100));
+            loop {
+                every.tick().await;
+                if ping_pong.ping(h2::Ping::opaque()).await.is_err() {
+                    return; // the connection is closed
+                }
+                counted.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            }
+        }));
+        for index in 0..2u64 {
+            let req = pb::SampleSpec { fields: all.clone(), ..Default::default() }.sample(u64::from(a) * 2 + index);
+            let mut send = send.clone();
+            pending.push(tokio::spawn(async move {
+                let path = "/mpiflow.v1.MpiFlow/GetSample";
+                let _reply = try_raw_request(&mut send, path, &req.encode_to_vec(), &[]).await;
+                std::future::pending::<()>().await;
+            }));
+        }
+        holders.push((send, conn));
+    }
+    // the holders' pings are answered while they hold their replies
+    until("every holder's pings are answered", || pongs.load(std::sync::atomic::Ordering::SeqCst) >= 64).await;
+    let mut honest = client(s.addr).await;
+    let req = pb::StreamRequest {
+        count: 16,
+        ..pb::SampleSpec { seed: 5, fields: all.clone(), ..Default::default() }.stream()
+    };
+    let mut stream = honest.stream_samples(req).await.unwrap().into_inner();
+    let mut got = Vec::new();
+    while let Some(b) = tokio::time::timeout(Duration::from_secs(60), stream.message()).await.expect("served").unwrap()
+    {
+        got.extend(b.samples.iter().map(|x| x.index));
+    }
+    assert_eq!(got, (0..16).collect::<Vec<_>>());
+    // the room came from pinging holders' connections, closed by the server
+    until("a pinging holder's connection is closed", || holders.iter().any(|(_, conn)| conn.is_finished())).await;
+    let cut = s
+        .state
+        .metrics
+        .render()
+        .lines()
+        .find_map(|l| l.strip_prefix("mpiflow_holders_cut_total ").and_then(|v| v.trim().parse::<f64>().ok()));
+    assert!(cut.unwrap_or(0.0) >= 1.0, "holders were cut: {cut:?}");
+    assert!(s.state.scheduler.stats().max_buffered_seen <= MIB, "the budget held");
+    for (_, conn) in &holders {
+        conn.abort();
+    }
+    for p in pending {
+        p.abort();
+    }
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// Three clients whose connections grant no HTTP/2 window at all hold every stream slot
+/// (`max_streams` 6, 2 streams each); once their first messages have waited `UNREAD_GRACE` in
+/// the transport with no DATA taken, a newcomer's StreamSamples takes the slot of one of them
+/// (its connection is closed) and is served.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn zero_window_clients_do_not_hold_every_stream_slot() {
+    let s = server(ServiceConfig { max_streams: 6, ..config() }).await;
+    let mut holders = Vec::new();
+    let mut replies = Vec::new();
+    for a in 0..3u8 {
+        let (mut send, conn) = h2_connection_from([127, 0, 9, 2 + a], s.addr, 0).await;
+        for seed in 0..2u64 {
+            let req = pb::SampleSpec { seed, ..Default::default() }.stream().encode_to_vec();
+            let r = raw_call(&mut send, "StreamSamples", &req).await;
+            assert_eq!(header_status(&r), None, "the holder's stream opened");
+            replies.push(r);
+        }
+        holders.push((send, conn));
+    }
+    assert_eq!(s.state.active_streams(), 6, "every slot is held");
+    // each holder's first message is made and handed to the transport, where it stays
+    until("every holder's first message waits in the transport", || {
+        let st = s.state.scheduler.stats();
+        st.per_stream.len() == 6 && st.per_stream.iter().all(|&(_, _, delivered, ..)| delivered >= 1)
+    })
+    .await;
+    let mut newcomer = client(s.addr).await;
+    let mut stream = newcomer
+        .stream_samples(pb::StreamRequest { count: 2, ..Default::default() })
+        .await
+        .expect("the newcomer's stream is opened")
+        .into_inner();
+    let mut got = 0;
+    while let Some(b) = stream.message().await.expect("served") {
+        got += b.samples.len();
+    }
+    assert_eq!(got, 2);
+    until("a holder's connection is closed", || holders.iter().any(|(_, conn)| conn.is_finished())).await;
+    for (_, conn) in &holders {
+        conn.abort();
+    }
+    drop(replies);
+    s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// A client's calls whose request has not arrived whole are bounded over all its connections
+/// (`max_calls_per_connection` of them, here 16): with 10 unfinished Health/Check calls on one
+/// connection and 6 on another from the same address, its next call is refused at once with
+/// RESOURCE_EXHAUSTED `too-many-calls` naming the bound, while another client's Check is answered.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unfinished_calls_of_one_client_are_bounded() {
+    let s = server(ServiceConfig { max_calls_per_connection: 16, idle_connection_timeout_s: 600.0, ..config() }).await;
+    let mut held = Vec::new();
+    let (first, _first_conn) = h2_connection_from([127, 0, 10, 2], s.addr, 1 << 20).await;
+    for _ in 0..10 {
+        held.push(unfinished_check(&first, &[0, 0, 0, 0, 10]).await);
+    }
+    let (mut second, _second_conn) = h2_connection_from([127, 0, 10, 2], s.addr, 1 << 20).await;
+    for _ in 0..6 {
+        held.push(unfinished_check(&second, &[0, 0, 0, 0, 10]).await);
+    }
+    // each call is dispatched on a task of its own, in no set order: a whole call may be answered
+    // until the server has counted all 16 unfinished ones, and is refused from then on
+    let ask = async {
+        loop {
+            let r = raw_request(&mut second, "/grpc.health.v1.Health/Check", &[], &[]).await;
+            if header_status(&r).is_some() {
+                return r;
+            }
+        }
+    };
+    let refused = tokio::time::timeout(Duration::from_secs(60), ask).await.expect("a call over the bound is refused");
+    assert_eq!(header_status(&refused), Some(Code::ResourceExhausted as i32), "{refused:?}");
+    let status = tonic::Status::from_header_map(refused.headers()).expect("a status");
+    assert!(status.message().contains("16 of this client are waiting for their request"), "{status:?}");
+    let reason = refused.headers().get("mpiflow-reason").map(|v| v.to_str().unwrap().to_string());
+    assert_eq!(reason.as_deref(), Some("too-many-calls"));
+    // another client is served
+    let (mut other, _other_conn) = h2_connection_from([127, 0, 10, 3], s.addr, 1 << 20).await;
+    let answered = raw_request(&mut other, "/grpc.health.v1.Health/Check", &[], &[]).await;
+    assert_eq!(header_status(&answered), None, "another client's call is answered");
+    drop(held);
+    s.shutdown(Duration::from_millis(500)).await;
+}

@@ -20,7 +20,10 @@
 //! a newcomer. So connections that never authenticate, idle ones and health watches,
 //! from any number of addresses, cannot keep a client out. The worker pool may also close a
 //! connection ([`Activity::cut`]) that holds made samples it has not taken for a while when
-//! another client needs the room (`service::pool`).
+//! another client needs the room (`service::pool`). What the peer took counts only as DATA on a
+//! connection in the clear (`service::progress`: a PING ACK is not data taken). A peer may have at
+//! most `max_calls_per_connection` calls whose request has not arrived whole over all its
+//! connections ([`TooManyWaiting`]), so a few addresses cannot hold tens of thousands of them.
 
 use std::collections::HashMap;
 use std::future::Future;
@@ -38,6 +41,7 @@ use tokio::time::{Instant, Sleep};
 use tonic::transport::server::{Connected, TcpConnectInfo};
 
 use super::peer::PeerKey;
+use super::progress::FrameScan;
 use super::stall::StallWatch;
 
 fn locked<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -49,6 +53,8 @@ fn locked<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 #[derive(Debug)]
 pub struct Activity {
     peer: PeerKey,
+    /// The calls whose request has not arrived whole, per peer, over the listener's connections.
+    waiting: Arc<WaitingCalls>,
     opened: Instant,
     calls: AtomicUsize,
     /// Health watches among the calls: they keep the connection from the idle timeout, not from
@@ -60,7 +66,7 @@ pub struct Activity {
     arrived: AtomicUsize,
     /// When the last call ended (or the connection was accepted).
     quiet_since: Mutex<Instant>,
-    /// When the peer last took written bytes (or the connection was accepted).
+    /// When the peer last took DATA written to it (or the connection was accepted).
     taken_at: Mutex<Instant>,
     cut: AtomicBool,
     /// The connection's reader, woken by a cut.
@@ -68,11 +74,13 @@ pub struct Activity {
 }
 
 impl Activity {
-    /// The activity of a new connection of `peer`.
-    pub fn new(peer: PeerKey) -> Arc<Self> {
+    /// The activity of a new connection of `peer`, its calls counted in `waiting` until their
+    /// requests arrive.
+    fn new(peer: PeerKey, waiting: Arc<WaitingCalls>) -> Arc<Self> {
         let now = Instant::now();
         Arc::new(Self {
             peer,
+            waiting,
             opened: now,
             calls: AtomicUsize::new(0),
             watches: AtomicUsize::new(0),
@@ -90,13 +98,15 @@ impl Activity {
     }
 
     /// Counts a call on the connection until the guard is dropped; a health watch counts as a
-    /// watch too.
-    pub fn begin(self: &Arc<Self>, watch: bool) -> CallGuard {
+    /// watch too. Refused when the peer already has as many calls whose request has not arrived
+    /// whole as its bound (over all its connections: `WaitingCalls`).
+    pub fn begin(self: &Arc<Self>, watch: bool) -> Result<CallGuard, TooManyWaiting> {
+        self.waiting.enter(self.peer)?;
         self.calls.fetch_add(1, Ordering::SeqCst);
         if watch {
             self.watches.fetch_add(1, Ordering::SeqCst);
         }
-        CallGuard { activity: self.clone(), watch, state: Arc::new(AtomicU8::new(WAITING)) }
+        Ok(CallGuard { activity: self.clone(), watch, state: Arc::new(AtomicU8::new(WAITING)) })
     }
 
     /// Whether a newcomer may close the connection: no call open whose request has arrived, but
@@ -105,7 +115,8 @@ impl Activity {
         self.arrived.load(Ordering::SeqCst) == 0
     }
 
-    /// How long the peer has taken no written bytes.
+    /// How long the peer has taken no DATA written to it (PING ACKs and other control frames
+    /// do not count on a connection in the clear).
     pub fn not_taken_for(&self) -> Duration {
         locked(&self.taken_at).elapsed()
     }
@@ -175,8 +186,12 @@ impl CallGuard {
 impl Drop for CallGuard {
     fn drop(&mut self) {
         *locked(&self.activity.quiet_since) = Instant::now();
-        if self.state.swap(ENDED, Ordering::SeqCst) == ARRIVED && !self.watch {
-            self.activity.arrived.fetch_sub(1, Ordering::SeqCst);
+        match self.state.swap(ENDED, Ordering::SeqCst) {
+            ARRIVED if !self.watch => {
+                self.activity.arrived.fetch_sub(1, Ordering::SeqCst);
+            }
+            WAITING => self.activity.waiting.leave(self.activity.peer),
+            _ => {}
         }
         if self.watch {
             self.activity.watches.fetch_sub(1, Ordering::SeqCst);
@@ -198,8 +213,51 @@ impl Arrival {
     /// The request has arrived (once; nothing after the call has ended).
     pub fn arrived(&self) {
         let first = self.state.compare_exchange(WAITING, ARRIVED, Ordering::SeqCst, Ordering::SeqCst).is_ok();
+        if first {
+            self.activity.waiting.leave(self.activity.peer);
+        }
         if first && !self.watch {
             self.activity.arrived.fetch_add(1, Ordering::SeqCst);
+        }
+    }
+}
+
+/// The calls whose request has not arrived whole (headers sent, the body still to come), per
+/// peer over all the listener's connections: at most `max` at once, so a few addresses cannot
+/// hold tens of thousands of unfinished calls (each a few KiB of the server's memory until the
+/// request deadline) however many connections and calls per connection they may open.
+#[derive(Debug)]
+struct WaitingCalls {
+    per_peer: Mutex<HashMap<PeerKey, usize>>,
+    max: usize,
+}
+
+/// A call refused because its peer has as many calls whose request has not arrived as it may.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "too many calls whose request has not arrived whole: {0} of this client are waiting for their \
+     request (max_calls_per_connection); retry when they have arrived or failed"
+)]
+pub struct TooManyWaiting(pub usize);
+
+impl WaitingCalls {
+    fn enter(&self, peer: PeerKey) -> Result<(), TooManyWaiting> {
+        let mut m = locked(&self.per_peer);
+        let n = m.entry(peer).or_insert(0);
+        if *n >= self.max {
+            return Err(TooManyWaiting(self.max));
+        }
+        *n += 1;
+        Ok(())
+    }
+
+    fn leave(&self, peer: PeerKey) {
+        let mut m = locked(&self.per_peer);
+        if let Some(n) = m.get_mut(&peer) {
+            *n -= 1;
+            if *n == 0 {
+                m.remove(&peer);
+            }
         }
     }
 }
@@ -287,6 +345,8 @@ impl Drop for PeerSlot {
 pub struct Guarded {
     inner: StallWatch<TcpStream>,
     info: ConnInfo,
+    /// The HTTP/2 frames written, on a connection in the clear (none under TLS).
+    scan: Option<FrameScan>,
     limits: ConnLimits,
     idle_timer: Pin<Box<Sleep>>,
     ended: bool,
@@ -310,13 +370,30 @@ impl Guarded {
         }
     }
 
-    /// A write's result: the peer's taking noted, the connection ended (and logged once) when the
-    /// stall watch cut it.
-    fn noted(&mut self, r: Poll<io::Result<usize>>) -> Poll<io::Result<usize>> {
-        if matches!(r, Poll::Ready(Ok(n)) if n > 0) {
-            self.info.activity.took();
+    /// A write's result: the peer's taking noted when the bytes written carry DATA payload
+    /// (`data`: how many of the `n` written do; in the clear a PING ACK or any other control
+    /// frame is no sign that the client took anything), the connection ended (and logged once)
+    /// when the stall watch cut it.
+    fn noted(
+        &mut self,
+        r: Poll<io::Result<usize>>,
+        data: impl FnOnce(&mut Self, usize) -> usize,
+    ) -> Poll<io::Result<usize>> {
+        if let Poll::Ready(Ok(n)) = r {
+            if n > 0 && data(self, n) > 0 {
+                self.info.activity.took();
+            }
         }
         self.stalled(r)
+    }
+
+    /// How many of the first `n` bytes of `buf` just written are DATA payload; under TLS the
+    /// frames cannot be seen, and every byte counts.
+    fn data_in(&mut self, buf: &[u8], n: usize) -> usize {
+        match &mut self.scan {
+            Some(scan) => scan.feed(&buf[..n]),
+            None => n,
+        }
     }
 
     fn stalled<T>(&mut self, r: Poll<io::Result<T>>) -> Poll<io::Result<T>> {
@@ -356,7 +433,7 @@ impl AsyncWrite for Guarded {
             return Poll::Ready(Err(cut_error()));
         }
         let r = Pin::new(&mut self.inner).poll_write(cx, buf);
-        self.noted(r)
+        self.noted(r, |me, n| me.data_in(buf, n))
     }
 
     fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
@@ -377,7 +454,10 @@ impl AsyncWrite for Guarded {
             return Poll::Ready(Err(cut_error()));
         }
         let r = Pin::new(&mut self.inner).poll_write_vectored(cx, bufs);
-        self.noted(r)
+        self.noted(r, |me, n| match &mut me.scan {
+            Some(scan) => scan.feed_vectored(bufs, n),
+            None => n,
+        })
     }
 
     fn is_write_vectored(&self) -> bool {
@@ -411,6 +491,11 @@ pub struct ConnLimits {
     /// How long the peer may take no data while the server has bytes for it before the
     /// connection is closed.
     pub stall_timeout: Duration,
+    /// Most calls of one peer whose request has not arrived whole, over all its connections.
+    pub max_waiting_per_peer: usize,
+    /// Whether the connections carry HTTP/2 in the clear: then only DATA payload written counts
+    /// as the client taking data ([`FrameScan`]); under TLS any byte written counts.
+    pub frames_in_clear: bool,
 }
 
 /// Probes a silent peer gets before the kernel drops the connection.
@@ -498,6 +583,7 @@ pub fn incoming(
     let (tx, rx) = mpsc::channel::<io::Result<Guarded>>(64);
     let slots = Arc::new(Semaphore::new(limits.max_connections.max(1)));
     let registry = Arc::new(Registry::default());
+    let waiting = Arc::new(WaitingCalls { per_peer: Mutex::default(), max: limits.max_waiting_per_peer.max(1) });
     tokio::spawn(async move {
         let mut accept_errors = AcceptErrors::default();
         loop {
@@ -518,7 +604,7 @@ pub fn incoming(
                     continue;
                 }
             };
-            let activity = Activity::new(PeerKey::of(peer.ip()));
+            let activity = Activity::new(PeerKey::of(peer.ip()), waiting.clone());
             let Some(peer_slot) = registry.take(&activity, limits.max_per_peer.max(1)) else {
                 tracing::debug!(%peer, max_connections_per_peer = limits.max_per_peer, "connection refused: max_connections_per_peer");
                 drop(stream);
@@ -568,6 +654,7 @@ pub fn incoming(
                         let g = Guarded {
                             inner: StallWatch::new(stream, limits.stall_timeout),
                             info,
+                            scan: limits.frames_in_clear.then(FrameScan::default),
                             limits,
                             idle_timer: Box::pin(tokio::time::sleep(limits.first_bytes_timeout)),
                             ended: false,
@@ -600,6 +687,8 @@ mod tests {
             max_per_peer: 4,
             first_bytes_timeout: Duration::from_secs(7),
             stall_timeout: Duration::from_secs(60),
+            max_waiting_per_peer: 4,
+            frames_in_clear: true,
         };
         let mut conns = incoming(listener, limits);
         let mut client = TcpStream::connect(addr).await.unwrap();

@@ -11,7 +11,8 @@
 //! reflection, Prometheus [`metrics`] and graceful drain; [`config`] holds the keys, read from
 //! the TOML file, the `MPIFLOW_*` variables and the flags, layered ([`layers`]); [`security`]
 //! the optional TLS and bearer-token check; [`conn`] the listeners' connection bounds and timeouts,
-//! [`stall`] the cut of a client that stops taking data; [`client`] is the Rust client side used by
+//! [`stall`] the cut of a client that stops taking data, [`progress`] what counts as taken (DATA,
+//! never a PING ACK); [`client`] is the Rust client side used by
 //! `mpiflow pull` and the tests. The API and its guarantees: `docs/api.md`.
 
 /// The generated protobuf messages and the tonic server and client of `mpiflow.v1`.
@@ -35,6 +36,7 @@ pub mod layers;
 pub mod metrics;
 pub mod peer;
 pub mod pool;
+pub mod progress;
 pub mod reply;
 pub mod security;
 pub mod server;

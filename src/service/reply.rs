@@ -3,11 +3,13 @@
 //! [`super::conn`]) and says when its request has arrived whole (from then on the call keeps its
 //! connection from being closed for a newcomer); a request that has not arrived whole within the
 //! request deadline (`idle_connection_timeout_s`: headers sent, the body trickled or withheld)
-//! fails the call ([`RequestBody`]), so such calls hold no slot for long; keeps what a handler attached to its reply (a [`ReplyHold`]: the budget a
-//! unary sample holds) until the reply's last byte has left, hands the reply body to HTTP/2 in
-//! pieces of at most [`PIECE_BYTES`] (so a reply the client does not read stays in this layer,
-//! counted, instead of in the transport's buffers), and rewrites the status of the replies tonic
-//! makes before any handler runs to the codes of the error table ([`super::error::transport_code`]).
+//! fails the call ([`RequestBody`]), so such calls hold no slot for long, and a client with as
+//! many such calls as it may have (`conn::TooManyWaiting`) has its next call refused at once;
+//! keeps what a handler attached to its reply (a [`ReplyHold`]: the budget a unary sample holds)
+//! until the reply's last byte has left, hands the reply body to HTTP/2 in pieces of at most
+//! [`PIECE_BYTES`] (so a reply the client does not read stays in this layer, counted, instead of
+//! in the transport's buffers), and rewrites the status of the replies tonic makes before any
+//! handler runs to the codes of the error table ([`super::error::transport_code`]).
 
 use std::any::Any;
 use std::future::Future;
@@ -22,7 +24,7 @@ use http_body::{Body, Frame, SizeHint};
 use tonic::transport::server::TcpConnectInfo;
 
 use super::conn::{Arrival, CallGuard, ConnInfo};
-use super::error::ServiceError;
+use super::error::{Reason, ServiceError};
 
 /// The largest piece of a reply handed to HTTP/2 at once: the transport asks for the next piece
 /// only when the client's window has room, so a reply keeps at most about one piece in the
@@ -116,7 +118,15 @@ where
         let path = req.uri().path();
         let watch = path == HEALTH_WATCH_PATH;
         let streaming = STREAMING_REQUEST_PATHS.contains(&path);
-        let call = info.map(|i| i.activity.begin(watch));
+        let call = match info.map(|i| i.activity.begin(watch)).transpose() {
+            Ok(call) => call,
+            Err(too_many) => {
+                tracing::debug!(error = %too_many, "call refused");
+                let status =
+                    tonic::Status::from(ServiceError::LimitExceeded(Reason::TooManyCalls, too_many.to_string()));
+                return Box::pin(async move { Ok(status.into_http::<()>().map(|()| ReplyBody::empty())) });
+            }
+        };
         let arrival = call.as_ref().map(CallGuard::arrival);
         if streaming {
             if let Some(a) = &arrival {
@@ -130,7 +140,7 @@ where
             rewrite_status(&mut response);
             let hold = response.extensions_mut().remove::<ReplyHold>();
             Ok(response.map(|inner| ReplyBody {
-                inner,
+                inner: Some(inner),
                 piece: Bytes::new(),
                 piece_size: FIRST_PIECE_BYTES,
                 _call: call,
@@ -283,7 +293,8 @@ fn rewrite_status<B>(response: &mut Response<B>) {
 /// keeps its call counted on the connection and its [`ReplyHold`] until it is dropped (sent, or
 /// abandoned with the call).
 pub struct ReplyBody<B> {
-    inner: B,
+    /// None for a call refused before it reached a service (its status in the headers).
+    inner: Option<B>,
     /// The rest of the current data frame.
     piece: Bytes,
     /// The size of the next piece.
@@ -293,6 +304,11 @@ pub struct ReplyBody<B> {
 }
 
 impl<B> ReplyBody<B> {
+    /// The body of a trailers-only reply: nothing.
+    fn empty() -> Self {
+        ReplyBody { inner: None, piece: Bytes::new(), piece_size: FIRST_PIECE_BYTES, _call: None, _hold: None }
+    }
+
     fn next_piece(&mut self) -> Frame<Bytes> {
         let n = self.piece.len().min(self.piece_size);
         self.piece_size = (self.piece_size * 2).min(PIECE_BYTES);
@@ -308,7 +324,8 @@ impl<B: Body<Data = Bytes> + Unpin> Body for ReplyBody<B> {
         if !self.piece.is_empty() {
             return Poll::Ready(Some(Ok(self.next_piece())));
         }
-        match Pin::new(&mut self.inner).poll_frame(cx) {
+        let Some(inner) = self.inner.as_mut() else { return Poll::Ready(None) };
+        match Pin::new(inner).poll_frame(cx) {
             Poll::Ready(Some(Ok(frame))) => match frame.into_data() {
                 Ok(data) => {
                     self.piece = data;
@@ -321,11 +338,11 @@ impl<B: Body<Data = Bytes> + Unpin> Body for ReplyBody<B> {
     }
 
     fn is_end_stream(&self) -> bool {
-        self.piece.is_empty() && self.inner.is_end_stream()
+        self.piece.is_empty() && self.inner.as_ref().is_none_or(Body::is_end_stream)
     }
 
     fn size_hint(&self) -> SizeHint {
-        let inner = self.inner.size_hint();
+        let inner = self.inner.as_ref().map_or_else(|| SizeHint::with_exact(0), Body::size_hint);
         let extra = self.piece.len() as u64;
         let mut h = SizeHint::new();
         h.set_lower(inner.lower() + extra);

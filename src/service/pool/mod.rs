@@ -70,10 +70,13 @@
 //! while its peer holds less than its share, the dispatch reclaims it ([`Scheduler::reclaim`]):
 //! peers over their share drop finished samples, and a connection whose message has waited in
 //! the transport for [`UNREAD_GRACE`] while its client took none of its bytes is closed (the
-//! client that stopped reading, the unary replies never read, the window never granted), and no
+//! client that stopped reading, the unary replies never read, the window never granted; only
+//! DATA taken counts, never a PING ACK: `service::progress`), and no
 //! sample starts for that client for [`PENALTY_FIRST`] (doubled at each repeat, up to
 //! [`PENALTY_MAX`]): a client that never reads cannot keep the workers making samples for it by
-//! reconnecting. A client that reads, however slowly, is never closed for room. A unary reply (GetSample) keeps
+//! reconnecting. A client that reads, however slowly, is never closed for room. Stream slots
+//! come back the same way: a newcomer refused because every slot of `max_streams` is taken
+//! closes the connection of a stream whose message has so waited ([`Scheduler::stalled_holder`]). A unary reply (GetSample) keeps
 //! its stream, and so its bytes, until the reply has left (`service::reply`).
 //!
 //! # Fairness by cost

@@ -12,6 +12,7 @@ use prost::Message;
 use tokio_stream::Stream;
 use tonic::Status;
 
+use crate::service::conn::Activity;
 use crate::service::error::{panic_message, with_cursor, ServiceError};
 use crate::service::metrics::Metrics;
 use crate::service::pb;
@@ -464,6 +465,29 @@ impl Scheduler {
         for peer in cut {
             s.penalise(peer);
         }
+    }
+
+    /// The connection to close so that a client (`newcomer`) refused a stream slot gets one: of
+    /// the streams `holds_slot` names, of other clients, one whose message has waited in the
+    /// transport for [`UNREAD_GRACE`] while its connection took no DATA as long (a window never
+    /// granted, a socket never read), from the client with the most such streams, the longest
+    /// waiting first. None when every slot holder makes progress.
+    pub fn stalled_holder(&self, newcomer: PeerKey, holds_slot: impl Fn(u64) -> bool) -> Option<Arc<Activity>> {
+        let s = lock(&self.inner);
+        let stalled: Vec<(PeerKey, std::time::Duration, Arc<Activity>)> = s
+            .streams
+            .iter()
+            .filter(|st| st.peer != newcomer && holds_slot(st.id))
+            .filter_map(|st| {
+                let conn = st.conn.as_ref().filter(|c| !c.is_cut())?;
+                let g = lock(&st.state);
+                let waited = g.in_transport_since.elapsed();
+                let stalled = g.in_transport > 0 && waited >= UNREAD_GRACE && conn.not_taken_for() >= UNREAD_GRACE;
+                stalled.then(|| (st.peer, waited, conn.clone()))
+            })
+            .collect();
+        let of_peer = |p: PeerKey| stalled.iter().filter(|(q, ..)| *q == p).count();
+        stalled.iter().max_by_key(|(p, waited, _)| (of_peer(*p), *waited)).map(|(.., c)| c.clone())
     }
 
     /// Sets every peer's and stream's share of the budget: budget / peers with open streams,

@@ -1,11 +1,13 @@
 //! A call's place under its limits: `max_streams` (over all clients and half of it per client)
-//! and `max_random_access_calls`, the slot given back with the call's stream or reply; a call's
-//! client, and the refusal of a call (counted and logged).
+//! and `max_random_access_calls`, the slot given back with the call's stream or reply; a slot of
+//! `max_streams` taken back from a stream that makes no progress when another client needs one;
+//! a call's client, and the refusal of a call (counted and logged).
 
 use std::pin::Pin;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::task::{Context, Poll};
+use std::time::Duration;
 
 use tokio_stream::Stream;
 use tonic::{Request, Status};
@@ -63,11 +65,70 @@ impl State {
         Ok(Admitted { state: self.clone(), kind, peer })
     }
 
+    /// Takes a slot of `max_streams` back for `newcomer`, refused one because every slot is
+    /// taken. Within [`SLOT_WAIT`] (and once more at its end) it looks for a stream of another
+    /// client whose message has waited in the transport for `pool::UNREAD_GRACE` while its
+    /// connection took no DATA as long (`Scheduler::stalled_holder`: a zero window, a socket
+    /// never read), checking again whenever a slot comes back and every [`CHECK_EVERY`]; that
+    /// stream's connection is closed (its streams end with their slots) and the newcomer waits
+    /// up to [`SLOT_WAIT`] more for a slot. Whether a slot came back.
+    pub(super) async fn reclaim_stream_slot(&self, newcomer: PeerKey) -> bool {
+        let limit = self.config.max_streams;
+        let until = tokio::time::Instant::now() + SLOT_WAIT;
+        loop {
+            let notified = self.slot_freed.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            if self.active_streams() < limit {
+                return true;
+            }
+            let holder = {
+                let slots = self.slot_streams.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+                self.scheduler.stalled_holder(newcomer, |id| slots.contains(&id))
+            };
+            if let Some(holder) = holder {
+                tracing::info!(
+                    peer = %holder.peer(),
+                    for_peer = %newcomer,
+                    "connection closed: its stream makes no progress, and another client needs a stream slot"
+                );
+                self.metrics.holders_cut.inc();
+                holder.cut();
+                return self.slot_back(limit).await;
+            }
+            if tokio::time::Instant::now() >= until {
+                return false;
+            }
+            let tick = (tokio::time::Instant::now() + CHECK_EVERY).min(until);
+            tokio::select! {
+                () = notified => {}
+                () = tokio::time::sleep_until(tick) => {}
+            }
+        }
+    }
+
+    /// Waits up to [`SLOT_WAIT`] for fewer than `limit` streams to be open; whether they are.
+    async fn slot_back(&self, limit: usize) -> bool {
+        let freed = async {
+            loop {
+                let notified = self.slot_freed.notified();
+                tokio::pin!(notified);
+                notified.as_mut().enable();
+                if self.active_streams() < limit {
+                    return;
+                }
+                notified.await;
+            }
+        };
+        tokio::time::timeout(SLOT_WAIT, freed).await.is_ok()
+    }
+
     /// Gives a call's slot back.
     pub(super) fn release(&self, kind: CallKind, peer: PeerKey) {
         match kind {
             CallKind::Stream => {
                 self.active_streams.fetch_sub(1, Ordering::SeqCst);
+                self.slot_freed.notify_waiters();
                 let mut of_peer = self.streams_per_peer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
                 if let Some(n) = of_peer.get_mut(&peer) {
                     *n -= 1;
@@ -88,6 +149,14 @@ impl State {
         }
     }
 }
+
+/// How long a client refused a stream slot waits for a slot holder to have made no progress for
+/// `pool::UNREAD_GRACE`, and then for the slot of the connection closed for it
+/// ([`State::reclaim_stream_slot`]).
+pub const SLOT_WAIT: Duration = Duration::from_secs(1);
+
+/// How often a client waiting for a stream slot looks again for a holder that makes no progress.
+const CHECK_EVERY: Duration = Duration::from_millis(100);
 
 /// Which limit a call counts against.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -136,7 +205,9 @@ impl Stream for CountedStream {
 
 impl Drop for CountedStream {
     fn drop(&mut self) {
-        self._admitted.state.metrics.active_streams.dec();
+        let state = &self._admitted.state;
+        state.slot_streams.lock().unwrap_or_else(std::sync::PoisonError::into_inner).remove(&self.inner.id());
+        state.metrics.active_streams.dec();
         if self._admitted.kind == CallKind::RandomAccess {
             tracing::debug!(stream = self.inner.id(), "samples closed");
         } else {

@@ -38,6 +38,7 @@ impl State {
         };
         let peer = client.peer;
         let inner = self.scheduler.open_for(client, spec, p.produce)?;
+        self.slot_streams.lock().unwrap_or_else(std::sync::PoisonError::into_inner).insert(inner.id());
         self.metrics.active_streams.inc();
         tracing::info!(
             %peer,
@@ -54,6 +55,21 @@ impl State {
             "stream opened"
         );
         Ok(CountedStream { inner, _admitted: admitted })
+    }
+
+    /// [`State::open_stream`]; when every slot of `max_streams` is taken, once more after a slot
+    /// was taken back from a stream that makes no progress ([`State::reclaim_stream_slot`]).
+    pub(super) async fn open_stream_making_room(
+        self: &Arc<Self>,
+        r: &pb::StreamRequest,
+        client: Client,
+    ) -> Result<CountedStream, ServiceError> {
+        match self.open_stream(r, client.clone()) {
+            Err(ServiceError::TooManyStreams { .. }) if self.reclaim_stream_slot(client.peer).await => {
+                self.open_stream(r, client)
+            }
+            opened => opened,
+        }
     }
 
     /// The samples of an explicit index list, in its order (GetSamples): a stream of the pool

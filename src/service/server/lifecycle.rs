@@ -85,6 +85,8 @@ pub async fn start(config: ServiceConfig) -> Result<RunningServer, ServiceError>
         active_streams: AtomicUsize::new(0),
         streams_per_peer: std::sync::Mutex::new(std::collections::HashMap::new()),
         random_access_calls: std::sync::Mutex::new(std::collections::HashMap::new()),
+        slot_streams: std::sync::Mutex::new(std::collections::HashSet::new()),
+        slot_freed: tokio::sync::Notify::new(),
     });
     state.set_health(ServingStatus::NotServing).await;
 
@@ -144,13 +146,16 @@ fn idle_timeout(config: &ServiceConfig) -> Duration {
     Duration::from_secs_f64(config.idle_connection_timeout_s)
 }
 
-/// Connection hygiene, the same on every listener (see service::conn).
-fn conn_limits(config: &ServiceConfig) -> ConnLimits {
+/// Connection hygiene, the same on every listener (see service::conn); `tls`: whether the
+/// listener's connections carry TLS (their HTTP/2 frames cannot be told apart below it).
+fn conn_limits(config: &ServiceConfig, tls: bool) -> ConnLimits {
     ConnLimits {
         max_connections: config.max_connections,
         max_per_peer: config.max_connections_per_peer,
         first_bytes_timeout: idle_timeout(config),
         stall_timeout: Duration::from_secs_f64(config.stall_timeout_s),
+        max_waiting_per_peer: config.max_calls_per_connection as usize,
+        frames_in_clear: !tls,
     }
 }
 
@@ -179,7 +184,7 @@ async fn spawn_health<H: Health>(
         Some(a) => {
             let l = bind(a, "health_addr").await?;
             let bound = l.local_addr().map_err(|e| ServiceError::Config(format!("health_addr: {e}")))?;
-            let incoming = conn::incoming(l, conn_limits(config));
+            let incoming = conn::incoming(l, conn_limits(config, false));
             let idle = idle_timeout(config);
             let health = tonic::transport::Server::builder()
                 .http2_keepalive_interval(Some(idle))
@@ -226,11 +231,12 @@ fn spawn_api<H: Health>(
         .http2_keepalive_interval(Some(idle))
         .http2_keepalive_timeout(Some(idle))
         .max_concurrent_streams(config.max_calls_per_connection);
+    let limits = conn_limits(config, tls.is_some());
     if let Some(tls) = tls {
         builder = builder.tls_config(tls).map_err(|e| ServiceError::Config(format!("tls_cert / tls_key: {e}")))?;
     }
     let (tx, rx) = oneshot::channel::<()>();
-    let incoming = conn::incoming(listener, conn_limits(config));
+    let incoming = conn::incoming(listener, limits);
     let server = tokio::spawn(
         builder
             .layer(ReplyLayer { request_deadline: idle })

@@ -62,13 +62,13 @@ where
         let (state, max_request, max_message) = (self.state.clone(), self.max_request, self.max_message);
         match req.uri().path() {
             STREAM_SAMPLES_PATH => {
-                Box::pin(reply(req, max_request, max_message, move |r: Request<pb::StreamRequest>| {
-                    refused(&state, state.open_stream(r.get_ref(), client_of(&r)))
+                Box::pin(reply(req, max_request, max_message, move |r: Request<pb::StreamRequest>| async move {
+                    refused(&state, state.open_stream_making_room(r.get_ref(), client_of(&r)).await)
                 }))
             }
             GET_SAMPLES_PATH => {
                 Box::pin(reply(req, max_request, max_message, move |r: Request<pb::SamplesRequest>| {
-                    refused(&state, state.open_samples(r.get_ref(), client_of(&r))).map(samples_of)
+                    std::future::ready(refused(&state, state.open_samples(r.get_ref(), client_of(&r))).map(samples_of))
                 }))
             }
             _ => Box::pin(self.inner.call(req)),
@@ -79,13 +79,14 @@ where
 /// A sample stream's reply: the request decoded (tonic's decoder, at most `max_request` bytes; no
 /// request compression, as the generated service), the stream opened by `open`, its messages
 /// sent by [`FrameBody`]; a refusal as tonic's trailers-only reply.
-async fn reply<Q, S, M>(
+async fn reply<Q, S, M, F>(
     req: http::Request<tonic::body::Body>,
     max_request: usize,
     max_message: usize,
-    open: impl FnOnce(Request<Q>) -> Result<S, Status>,
+    open: impl FnOnce(Request<Q>) -> F,
 ) -> Result<http::Response<tonic::body::Body>, Infallible>
 where
+    F: std::future::Future<Output = Result<S, Status>>,
     Q: prost::Message + Default + Send + 'static,
     S: Stream<Item = Result<M, Status>> + Send + Unpin + 'static,
     M: Framed + Send + 'static,
@@ -105,7 +106,7 @@ where
         let decoder = tonic_prost::ProstDecoder::<Q>::new(tonic::codec::BufferSettings::default());
         let mut messages = Streaming::new_request(decoder, body, None, Some(max_request));
         let message = messages.message().await?.ok_or_else(|| Status::internal("Missing request message."))?;
-        open(Request::from_http(http::Request::from_parts(parts, message)))
+        open(Request::from_http(http::Request::from_parts(parts, message))).await
     };
     Ok(match opened.await {
         Ok(stream) => {

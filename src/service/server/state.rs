@@ -28,6 +28,10 @@ pub struct State {
     pub(super) active_streams: AtomicUsize,
     /// StreamSamples calls open now per peer (at most half of `max_streams`).
     pub(super) streams_per_peer: std::sync::Mutex<std::collections::HashMap<PeerKey, usize>>,
+    /// The pool's ids of the streams that hold a slot of `max_streams` (StreamSamples calls).
+    pub(super) slot_streams: std::sync::Mutex<std::collections::HashSet<u64>>,
+    /// Woken when a slot of `max_streams` is given back.
+    pub(super) slot_freed: tokio::sync::Notify,
     /// GetSample and GetSamples calls open now per peer (`max_random_access_calls`), replies not
     /// yet sent included.
     pub(super) random_access_calls: std::sync::Mutex<std::collections::HashMap<PeerKey, usize>>,
