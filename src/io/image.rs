@@ -12,7 +12,7 @@ use std::fs::File;
 use std::io::{self, BufRead, BufReader, BufWriter, Cursor, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
-use super::scaled::{decode_jpeg_scaled, decode_scale, jpeg_scalable, scaled_side};
+use super::scaled::{decode_jpeg_scaled, decode_scale, jpeg_scalable, scaled_side, ScaledError};
 use crate::failure::FailureKind;
 
 /// An RGB image, H x W x 3 values in [0, 1], row-major.
@@ -373,7 +373,10 @@ pub fn load_photo(
     }
     let (sw, sh) = (scaled_side(header.stored_width, eighths), scaled_side(header.stored_height, eighths));
     let max = usize::try_from(u64::from(sw) * u64::from(sh) * 3).unwrap_or(usize::MAX);
-    let mut img = decode_jpeg_scaled(&bytes, path, eighths, max)?;
+    let mut img = decode_jpeg_scaled(&bytes, eighths, max).map_err(|e| match e {
+        ScaledError::Corrupt(reason) => ImageError::Corrupt { path: path.to_path_buf(), reason },
+        ScaledError::Unsupported(reason) => ImageError::Unsupported { path: path.to_path_buf(), reason },
+    })?;
     drop(bytes);
     if let Some(o) = ::image::metadata::Orientation::from_exif(header.orientation) {
         img.apply_orientation(o);

@@ -10,9 +10,15 @@
 
 use ::image::{DynamicImage, GrayImage};
 use std::io::Cursor;
-use std::path::Path;
 
-use super::image::ImageError;
+/// Why a reduced-scale decode failed (the caller names the file: `io::image`'s `ImageError`).
+#[derive(Debug)]
+pub(crate) enum ScaledError {
+    /// the file is not a JPEG the decoder can read
+    Corrupt(String),
+    /// a JPEG of a kind with no reduced decoding here
+    Unsupported(String),
+}
 
 /// Whether `bytes` are a sequential JPEG (start-of-frame `SOF0` or `SOF1`, Huffman coded) of one
 /// or three components: a JPEG decodable at 1/2, 1/4 or 1/8 scale. The marker segments are
@@ -69,29 +75,18 @@ pub fn decode_scale(stored: (u32, u32), need: (u32, u32)) -> u32 {
 /// Decodes a sequential JPEG ([`jpeg_scalable`]) at `eighths` / 8 of its stored size, its pixels
 /// as stored (the caller turns them to the file's orientation). `max_bytes` bounds the decoded
 /// buffer.
-pub(crate) fn decode_jpeg_scaled(
-    bytes: &[u8],
-    path: &Path,
-    eighths: u32,
-    max_bytes: usize,
-) -> Result<DynamicImage, ImageError> {
-    let corrupt = |e: jpeg_decoder::Error| ImageError::Corrupt {
-        path: path.to_path_buf(),
-        reason: crate::failure::printable(&e.to_string(), 300),
-    };
+pub(crate) fn decode_jpeg_scaled(bytes: &[u8], eighths: u32, max_bytes: usize) -> Result<DynamicImage, ScaledError> {
+    let corrupt = |e: jpeg_decoder::Error| ScaledError::Corrupt(crate::failure::printable(&e.to_string(), 300));
     let mut decoder = jpeg_decoder::Decoder::new(Cursor::new(bytes));
     decoder.set_max_decoding_buffer_size(max_bytes);
     decoder.read_info().map_err(corrupt)?;
-    let info = decoder
-        .info()
-        .ok_or_else(|| ImageError::Corrupt { path: path.to_path_buf(), reason: "no frame header".into() })?;
+    let info = decoder.info().ok_or_else(|| ScaledError::Corrupt("no frame header".into()))?;
     let (w, h) = (u32::from(info.width), u32::from(info.height));
     let want = (scaled_side(w, eighths), scaled_side(h, eighths));
     // the decoder picks the smallest scale that reaches one of the requested sides: asking for
     // the sides at `eighths` gives that scale (smaller scales give shorter sides)
     let (sw, sh) = decoder.scale(want.0 as u16, want.1 as u16).map_err(corrupt)?;
     let pixels = decoder.decode().map_err(corrupt)?;
-    let unsupported = |what: String| ImageError::Unsupported { path: path.to_path_buf(), reason: what };
     let image = match info.pixel_format {
         jpeg_decoder::PixelFormat::L8 => {
             GrayImage::from_raw(u32::from(sw), u32::from(sh), pixels).map(DynamicImage::ImageLuma8)
@@ -100,11 +95,10 @@ pub(crate) fn decode_jpeg_scaled(
             ::image::RgbImage::from_raw(u32::from(sw), u32::from(sh), pixels).map(DynamicImage::ImageRgb8)
         }
         other => {
-            return Err(unsupported(format!("a JPEG of pixel format {other:?} cannot be decoded at reduced scale")))
+            return Err(ScaledError::Unsupported(format!(
+                "a JPEG of pixel format {other:?} cannot be decoded at reduced scale"
+            )))
         }
     };
-    image.ok_or_else(|| ImageError::Corrupt {
-        path: path.to_path_buf(),
-        reason: format!("the decoder gave too few pixels for {sw} x {sh}"),
-    })
+    image.ok_or_else(|| ScaledError::Corrupt(format!("the decoder gave too few pixels for {sw} x {sh}")))
 }
