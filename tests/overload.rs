@@ -35,6 +35,22 @@ async fn client(addr: impl ToString) -> MpiFlowClient<Channel> {
     client_for(ch)
 }
 
+/// An honest trainer's stream of 16 samples with every field in `fields` (seed 5): every sample
+/// arrives, in order (each message within 60 s: the deadline only turns a hang into a failure).
+async fn honest_stream_gets_every_sample(honest: &mut MpiFlowClient<Channel>, fields: &[i32]) {
+    let req = pb::StreamRequest {
+        count: 16,
+        ..pb::SampleSpec { seed: 5, fields: fields.to_vec(), ..Default::default() }.stream()
+    };
+    let mut stream = honest.stream_samples(req).await.unwrap().into_inner();
+    let mut got = Vec::new();
+    while let Some(b) = tokio::time::timeout(Duration::from_secs(60), stream.message()).await.expect("served").unwrap()
+    {
+        got.extend(b.samples.iter().map(|x| x.index));
+    }
+    assert_eq!(got, (0..16).collect::<Vec<_>>());
+}
+
 /// Waits until `done()` holds (an observable state), checking it every few milliseconds; the
 /// deadline only turns a hang into a failure.
 async fn until(what: &str, mut done: impl FnMut() -> bool) {
@@ -524,17 +540,7 @@ async fn unread_replies_from_many_addresses_stay_within_the_budget() {
     };
     until("the attackers fill the budget", || cut(s.state.metrics.render()).unwrap_or(0.0) >= 1.0).await;
     // the honest stream gets every sample, in order
-    let req = pb::StreamRequest {
-        count: 16,
-        ..pb::SampleSpec { seed: 5, fields: all.clone(), ..Default::default() }.stream()
-    };
-    let mut stream = honest.stream_samples(req).await.unwrap().into_inner();
-    let mut got = Vec::new();
-    while let Some(b) = tokio::time::timeout(Duration::from_secs(60), stream.message()).await.expect("served").unwrap()
-    {
-        got.extend(b.samples.iter().map(|x| x.index));
-    }
-    assert_eq!(got, (0..16).collect::<Vec<_>>());
+    honest_stream_gets_every_sample(&mut honest, &all).await;
     let st = s.state.scheduler.stats();
     assert!(st.max_buffered_seen <= MIB, "the budget held: {st:?}");
     // a newcomer is served
@@ -838,17 +844,7 @@ async fn pings_alone_do_not_keep_a_holder_from_being_cut() {
     // the holders' pings are answered while they hold their replies
     until("every holder's pings are answered", || pongs.load(std::sync::atomic::Ordering::SeqCst) >= 64).await;
     let mut honest = client(s.addr).await;
-    let req = pb::StreamRequest {
-        count: 16,
-        ..pb::SampleSpec { seed: 5, fields: all.clone(), ..Default::default() }.stream()
-    };
-    let mut stream = honest.stream_samples(req).await.unwrap().into_inner();
-    let mut got = Vec::new();
-    while let Some(b) = tokio::time::timeout(Duration::from_secs(60), stream.message()).await.expect("served").unwrap()
-    {
-        got.extend(b.samples.iter().map(|x| x.index));
-    }
-    assert_eq!(got, (0..16).collect::<Vec<_>>());
+    honest_stream_gets_every_sample(&mut honest, &all).await;
     // the room came from pinging holders' connections, closed by the server
     until("a pinging holder's connection is closed", || holders.iter().any(|(_, conn)| conn.is_finished())).await;
     let cut = s
