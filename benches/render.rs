@@ -46,7 +46,7 @@ fn texture(w: usize, h: usize) -> Vec<f32> {
 }
 
 /// The built-in layering of a 640 x 480 RGB-D image into 32 planes (a receding floor, a near box;
-/// the scene of `tests/layering.rs::full_size_layering_is_well_formed_and_independent_of_threads`).
+/// the scene of `tests/render/layering.rs::full_size_layering_is_well_formed_and_independent_of_threads`).
 fn layering(c: &mut Criterion) {
     let (w, h) = (640, 480);
     let rgb = texture(w, h);

@@ -10,7 +10,7 @@
 //! set performs exactly (add, multiply, divide, square root, compares, conversions), in one
 //! order; nothing here or in the loops asks for fused multiply-add, and LLVM does not contract a
 //! multiply and an add into one without fast-math flags, which Rust never sets. So a sample's
-//! bytes do not depend on the path (`tests/simd_paths.rs` renders and makes samples on every
+//! bytes do not depend on the path (`tests/process/simd_paths.rs` renders and makes samples on every
 //! path this CPU has and compares them byte for byte).
 
 use std::sync::atomic::{AtomicU8, Ordering};

@@ -6,7 +6,7 @@ outputs are known, simple functions of their inputs, plus broken variants for th
 
 Only the `onnx` package is needed (onnx.helper); opset 17, IR version 8, so that any ONNX
 Runtime >= 1.14 (and the 1.31 the project pins) loads them. `h` and `w` are symbolic
-dimensions unless a model says otherwise. The known functions (tests/onnx_scene.rs checks them):
+dimensions unless a model says otherwise. The known functions (tests/samples/onnx_scene.rs checks them):
 
 depth.onnx               image [1,3,h,w] -> depth [1,h,w] = 2 R + G - 0.5 B + 3
 depth_fixed.onnx         the same on a static 32x24 (W x H) input, output [1,1,24,32]

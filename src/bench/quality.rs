@@ -4,7 +4,7 @@
 //! inpainting, thin-line runs in image2 against image1, the sharpness ratio of image2 to image1
 //! (variance of the Laplacian), valid and occluded fractions and the flow magnitude percentiles. Every metric is a pure function of a sample (and, for the depth
 //! law, the merge's target depth), written here independently of the merge's rule so that the
-//! tests (`tests/labels.rs`) can hold the merge to it.
+//! tests (`tests/samples/labels.rs`) can hold the merge to it.
 //!
 //! # The label laws
 //!

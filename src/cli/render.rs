@@ -9,7 +9,7 @@ use mpiflow::io::{colorwheel, flo, npy};
 use mpiflow::mpi::layering::{build_mpi, Layering, LayeringOptions};
 use mpiflow::mpi::npz::load_npz;
 use mpiflow::mpi::Mpi;
-use mpiflow::render::{render, Fields, Mode, RenderParams, Resample, Skip};
+use mpiflow::render::{render, Fields, Mode, Occupancy, RenderParams, Resample, Skip};
 use std::path::{Path, PathBuf};
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -158,7 +158,9 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
         resample: a.resample,
         minify: a.minify,
     };
-    let out = render::<f32>(&mpi, &params, None)?;
+    // tile skipping as the pipeline skips (the same output; the plane samples below show it)
+    let occ = (a.mode == Mode::Exact).then(|| Occupancy::build(&mpi, params.skip.tile_sigma_eps));
+    let out = render::<f32>(&mpi, &params, occ.as_ref())?;
     if out.stats.repaired > 0 {
         eprintln!("warning: {} non-finite output values were replaced by 0", out.stats.repaired);
     }
@@ -185,6 +187,14 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
         100.0 * valid,
         100.0 * occluded,
         a.out.display()
+    );
+    let st = &out.stats;
+    println!(
+        "target view: {} plane samples ({:.2} per pixel), {} left out by tile skipping, {} by early ray termination",
+        st.samples,
+        st.samples as f64 / (w * h) as f64,
+        st.skipped_tile,
+        st.skipped_early
     );
     Ok(())
 }

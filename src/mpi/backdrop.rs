@@ -39,8 +39,7 @@
 //! machine. The
 //! synthesis is [`crate::raster::exemplar`], which the texture fill of image2's holes shares.
 //! Cost: `O(region x candidates x WINDOW^2)`, about 0.1-0.4 s for a 640 x 480 scene with a third
-//! of it in the region (`tests/backdrop.rs` prints nothing; `mpiflow bench quality --realism`
-//! states the scene build's time).
+//! of it in the region (`mpiflow bench quality --realism` states the scene build's time).
 
 use crate::raster::exemplar::{peel_order, synthesise as synthesise_exemplar, Draw, Layout, Sources};
 use crate::raster::morph::dilate;

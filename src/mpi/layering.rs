@@ -88,7 +88,7 @@
 //! 9. **Cost.** Planes are processed in parallel with rayon (fill and densities of each plane are
 //!    independent). 640 x 480 with 32 planes takes about 110 ms of user CPU time plus the kernel's
 //!    zeroing of the 157 MB of plane data on first touch (`build_time_640x480x32` in
-//!    `tests/layering.rs` prints the median wall time).
+//!    `tests/render/layering.rs` prints the median wall time).
 
 use super::{Mpi, MpiError, SIGMA_MAX};
 use crate::geometry::Intrinsics;

@@ -59,7 +59,7 @@ pub const DEPTH_RESIZE_SPREAD: f32 = 1.05;
 /// nearest, as [`resize_nearest`], so no depth is invented between two surfaces and unknown
 /// stays unknown. Nearest alone turns an upsampled slanted surface into stair steps (rows of
 /// equal depth), which the object merge saw as depth ripples and drew as thin lines
-/// (`tests/labels.rs`).
+/// (`tests/samples/labels.rs`).
 ///
 /// # Panics
 /// If `v.len() != w * h`.

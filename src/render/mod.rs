@@ -4,7 +4,7 @@
 //! Two modes share the output type:
 //! - [`Mode::Reference`] reproduces the public MPI-Flow implementation formula for formula
 //!   (border-clamped sampling, `+1e-6` in the transmittance, flow clipped to ±200, depth
-//!   normalised by `sum w + 1e-5`); see `tests/reference_vectors.rs`.
+//!   normalised by `sum w + 1e-5`); see `tests/render/reference_vectors.rs`.
 //! - [`Mode::Exact`] ray-casts every target pixel against the planes analytically (no clamping:
 //!   a ray that leaves the source frustum sees nothing, which shows up as coverage < 1), drops
 //!   the `+1e-6`, composites planes in the order the target ray meets them, normalises flow and
@@ -23,7 +23,7 @@
 //! plane ([`Channels::Broadcast`], which equals an MPI copy holding that mask on every plane,
 //! without the copy), and optionally computes the source view only where a mask is positive
 //! (`flow_where`). Every value equals the full-frame render's at the same pixel, bit for bit
-//! (`tests/render_window.rs`). Occlusion needs the whole target frame, so it is computed only
+//! (`tests/render/render_window.rs`). Occlusion needs the whole target frame, so it is computed only
 //! when the window is the full frame. The reference mode renders full frames with per-plane
 //! channels only. Every output, full frame or window, passes the non-finite guard (a NaN or Inf
 //! is replaced by 0 and counted in [`RenderStats::repaired`]).
@@ -47,7 +47,7 @@
 //!
 //! This file is the front door: [`render`], [`render_window`] and the occlusion mask, and the
 //! names of the public API. The shared types live in the leaf `types.rs`; the modules below
-//! it name only modules under them (`tests/layers.rs` holds the order):
+//! it name only modules under them (`tests/server/layers.rs` holds the order):
 //! `types`, `simd` (four-lane arithmetic) < `real` (the scalar type) < `tap` (bilinear taps),
 //! `window` ([`Rect`]) < `band` (row bands, `valid`), `guard` (input checks, the non-finite
 //! guard), `resample` (colour kernels), `store` (packed planes) < `mip` (minification levels),

@@ -14,7 +14,7 @@
 //! Every lane does the scalar loop's operations in its order (the ray set-up, the plane
 //! intersection, the clamps, the tap, the gap, the exponential, the kernel's sums, the
 //! compositing), so every pixel gets the scalar loop's bits on every path
-//! (`tests/render_window.rs`, `tests/simd_paths.rs`); only the data movement differs.
+//! (`tests/render/render_window.rs`, `tests/process/simd_paths.rs`); only the data movement differs.
 //! The loop is taken for the packed planes (`render::store`) with the bilinear kernel or the
 //! cubic B-spline and no minified planes; the four-lane loop takes the rest.
 

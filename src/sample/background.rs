@@ -31,7 +31,7 @@
 //! [`Background::Inpaint`] leaves every hole to Telea (the paper's rule; the reference merge rule
 //! always does). It is the default: on RGB-D photos whose object masks span many depths (a mask
 //! that includes part of the floor), the planes' render over the holes alternates row by row
-//! between the floor and what lies behind it, which Telea's blend hides (`tests/labels.rs`,
+//! between the floor and what lies behind it, which Telea's blend hides (`tests/samples/labels.rs`,
 //! thin-line runs; `mpiflow bench quality`, column "lines img2 / img1").
 
 use serde::{Deserialize, Serialize};

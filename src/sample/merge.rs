@@ -43,7 +43,7 @@
 //! object render and the scene render show the same surface at nearly the same depth, and the
 //! paper's exact comparison `D_t < D_t^obj` flips from row to row with the renders' rounding:
 //! image2 showed one-pixel rows of the object's render across the scene's ("thin lines";
-//! `tests/labels.rs` counts them). Within the tolerance the object is drawn, as
+//! `tests/samples/labels.rs` counts them). Within the tolerance the object is drawn, as
 //! where it is nearer, so the decision changes only at a real depth step.
 //!
 //! **Seams.** A pixel with `s < tau` and no candidate, where some object's `m_j < tau` is not
@@ -80,7 +80,7 @@
 //!     object, an object's self-occlusion, points whose surface image2 does not show (it shows
 //!     something farther), and points that land on or next to a hole. So the label never says
 //!     "this surface moved here" where image2 shows another surface or an inpainted smudge
-//!     (tested as laws in `tests/labels.rs`).
+//!     (tested as laws in `tests/samples/labels.rs`).
 //!   - [`LabelRule::DepthOnly`] (the renderer's rule, for comparison): occluded when `z` exceeds `d` by more
 //!     than `tol` relative at all four pixels of `N` (the renderer's rule applied to the merged
 //!     frame); holes never occlude.

@@ -4,7 +4,7 @@
 //! # The rooms
 //!
 //! This file is the front door: the module list and the names of what a sample is (from the
-//! room `types.rs`). The rooms name only rooms under them (`tests/layers.rs` holds the order):
+//! room `types.rs`). The rooms name only rooms under them (`tests/server/layers.rs` holds the order):
 //! `inpaint` (Telea), `motion` (motion laws and draws), `object` (object choice and windowed
 //! renders), `preblend` < `types` (the sample's fields), `error` ([`error::SampleError`]) <
 //! `merge`, `noise` < `background` (the planes behind moved objects) < `config`

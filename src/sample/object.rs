@@ -23,11 +23,11 @@
 //! MPI (no copy), only the target pixels of a window that holds that footprint: it is the exact
 //! renderer itself ([`render_window`] with [`Channels::Broadcast`], the scene's occupancy for
 //! tile skipping, the non-finite guard), so every value it computes equals the full-frame
-//! render's at the same pixel, bit for bit (`tests/render_window.rs`); the pixels it leaves out are those where the mask channel is exactly 0, which the merge never
+//! render's at the same pixel, bit for bit (`tests/render/render_window.rs`); the pixels it leaves out are those where the mask channel is exactly 0, which the merge never
 //! reads there (an object is a candidate only where its channel reaches the threshold, and the
 //! scene mask is the coverage where the union's channel is 0). So the windowed path changes
 //! nothing but the cost (tested against full-frame renders of MPI copies in
-//! `tests/sample_merge.rs`):
+//! `tests/samples/sample_merge.rs`):
 //!
 //! - **Scene mask** (the union `U` of the moved objects' masks, under the camera motion): the
 //!   window is [`scene_mask_window`], the target footprint of `U`'s support. The recipe does not
@@ -207,7 +207,7 @@ pub fn render_full_with_mask(mpi: &Mpi, params: &RenderParams, mask: &[f32]) -> 
 /// `params.fields.flow`, the source view (flow, expected target depth, `valid`) of the pixels of `win` where
 /// `mask > 0`: [`render_window`] with [`Channels::Broadcast`], so every value equals the
 /// full-frame render's at the same pixel (tested against [`render_full_with_mask`] in
-/// `tests/sample_merge.rs`, and the renderer's window laws in `tests/render_window.rs`); only
+/// `tests/samples/sample_merge.rs`, and the renderer's window laws in `tests/render/render_window.rs`); only
 /// the pixels outside `win` are not computed. `occupancy` (built with `skip.tile_sigma_eps`)
 /// serves tile skipping when `skip.tiles` is set (the renderer builds one when it is missing).
 /// `params` gives the camera (one intrinsics for source and target), the motion, work skipping,

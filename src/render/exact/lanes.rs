@@ -30,7 +30,7 @@ fn lane_mask(on: u32) -> wide::f32x4 {
 /// the colour kernel run per lane through the same [`PlaneSampler`] calls. A plane a lane does
 /// not take is masked out, a lane whose transmittance fell below `t_eps` is done (counted as
 /// the scalar loop counts its early exit), and the loop ends when all four are done, so every
-/// pixel gets the scalar loop's bits (`tests/render_window.rs` compares the two).
+/// pixel gets the scalar loop's bits (`tests/render/render_window.rs` compares the two).
 impl TargetLanes {
     /// The lanes' copy of the scalar loop's constants ([`TargetGeometry`]) in `f32`.
     pub(super) fn new<T: Real>(g: &TargetGeometry<T>, w: usize, h: usize) -> Self {
@@ -307,7 +307,7 @@ pub(super) type Surfaced<'a, T> = Option<(&'a SurfaceRay<'a, T>, &'a [PlaneConst
 /// points `q`: [`SurfaceRay::search`] in `f32x4` lanes, its operations in its order (the clamp,
 /// the tap's pixel and fractions, the four surface reads per lane, [`super::plane::slab_offset`] and the
 /// bilinear blend, the ray's point at that disparity; `T` is `f32` wherever the lanes run, so
-/// every lane gets the scalar loop's bits, `tests/render_window.rs` compares the two): the
+/// every lane gets the scalar loop's bits, `tests/render/render_window.rs` compares the two): the
 /// points, their depths along the rays (the depth sums' `lambda`) and the lanes whose texel is in
 /// front of the camera (bit k: lane k; the other lanes keep `q` and are not taken).
 #[inline(always)]

@@ -41,7 +41,7 @@
 //! # The rooms
 //!
 //! This file is the front door: the entry points [`target_view`], [`target_view_cut`] and
-//! [`source_view`]. Each room names only rooms under it (`tests/layers.rs` holds the order):
+//! [`source_view`]. Each room names only rooms under it (`tests/server/layers.rs` holds the order):
 //! `plane` (the tile width, the per-plane constants, the depth cap, a true-depth texel's search
 //! `SurfaceRay`) < `source_lanes` (the source view's lane loops, `SourceLanes`) < `sampler` (the plane samplers' trait, the bilinear and
 //! the density-cut samplers, the four lanes' taps), `geometry` (the target view's per-render

@@ -11,7 +11,7 @@ use crate::render::store::Rgba;
 /// operations in its order on its own pixel, planes a lane does not take (density 0, or the
 /// lane done because its transmittance fell below `t_eps`) are masked out instead of skipped,
 /// and the plane loop ends when every lane is done. So each pixel gets the scalar loop's bits
-/// (`tests/render_window.rs` compares the two: a window one pixel wide makes the scalar loop run).
+/// (`tests/render/render_window.rs` compares the two: a window one pixel wide makes the scalar loop run).
 pub(super) struct SourceLanes<'a> {
     pub(super) m: [[f32; 3]; 3],
     pub(super) b: [f32; 3],

@@ -177,7 +177,7 @@ pub fn assemble_with_occupancy(
 /// [`assemble_with_occupancy`], with the expected target depth of every image1 pixel (H x W, the
 /// depth its point has in image2's camera under the motion that moves it; 0 where unknown): the
 /// `z` of the merge's occlusion rule ([`super::merge::LabelRule`]), for checking the labels
-/// (`tests/labels.rs`, `mpiflow bench quality`).
+/// (`tests/samples/labels.rs`, `mpiflow bench quality`).
 pub fn assemble_with_target_depth(
     scene: &Scene,
     address: SampleAddress,

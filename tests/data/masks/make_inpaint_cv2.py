@@ -1,10 +1,10 @@
-"""Writes the cv2.inpaint (INPAINT_TELEA) comparison cases used by tests/inpaint.rs.
+"""Writes the cv2.inpaint (INPAINT_TELEA) comparison cases used by tests/samples/inpaint.rs.
 
 Run with numpy and opencv-python-headless installed (used: opencv-python-headless 5.0.0):
     python make_inpaint_cv2.py
 Each case NAME gives NAME_in.npy (image), NAME_mask.npy (u8, 1 = fill) and NAME_out.npy
 (cv2.inpaint(image, mask, radius, cv2.INPAINT_TELEA)); the radius is in the case list below and
-in tests/inpaint.rs.
+in tests/samples/inpaint.rs.
 """
 import cv2
 import numpy as np

@@ -1,5 +1,5 @@
 """Writes pycocotools_random.json: random masks and polygons with pycocotools' results, used by
-tests/masks.rs to check the RLE codec, area, bbox and polygon rasterisation bit for bit.
+tests/samples/masks.rs to check the RLE codec, area, bbox and polygon rasterisation bit for bit.
 
 Run with numpy and pycocotools installed (used: pycocotools 2.0.11):
     python make_pycocotools_random.py

@@ -86,7 +86,7 @@ fn rigid(t: [f64; 3], r: [f64; 3]) -> RigidLaw {
 }
 
 /// The closed forms below hold pixel colours next to hard colour edges to the bilinear kernel's
-/// one-pixel reach (the other kernels' laws are in tests/resample.rs).
+/// one-pixel reach (the other kernels' laws are in tests/render/resample.rs).
 fn config(camera: RigidLaw, object: RigidLaw, rule: MergeRule) -> SampleConfig {
     SampleConfig {
         motion: MotionSpec::Ranges(Box::new(MotionRanges {

@@ -412,7 +412,7 @@ async fn refusals_have_the_right_code_and_name_the_field() {
     let e =
         c.get_sample(pb::SampleSpec { resample: "nearest".into(), ..Default::default() }.sample(0)).await.unwrap_err();
     assert_eq!((e.code(), e.message().starts_with("resample")), (inv, true), "{e:?}");
-    // an upload without a dataset name (more upload cases in tests/service_data.rs)
+    // an upload without a dataset name (more upload cases in tests/server/service_data.rs)
     let chunks = tokio_stream::iter(vec![pb::SourceChunk::default()]);
     let e = c.upload_sources(chunks).await.unwrap_err();
     assert_eq!((e.code(), e.message().starts_with("dataset")), (inv, true), "{e:?}");

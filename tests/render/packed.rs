@@ -3,7 +3,7 @@
 //! path: both passes, the lanes and the scalar loops (odd windows, `flow_where`), links
 //! (backward flow), the three kernels a prepared scene packs for, f32 and f64, the reference
 //! mode, the density cut of the object and background renders, the tile occupancy. (What it
-//! saves on real scenes: `tests/scene_cache.rs`, docs/performance.md.)
+//! saves on real scenes: `tests/samples/scene_cache.rs`, docs/performance.md.)
 
 use mpiflow::geometry::{Intrinsics, Pose};
 use mpiflow::mpi::Mpi;
