@@ -213,20 +213,6 @@ mod tests {
     }
 
     /// Prints the values the golden tests pin (run with `--nocapture` when (re)computing them).
-    #[test]
-    fn print_golden() {
-        let mut r = rng(Purpose::CameraMotion);
-        let words: Vec<u64> = (0..4).map(|_| r.next_word()).collect();
-        println!("seed {:02x?}", seed_from_key(KEY.0, KEY.1, KEY.2, Purpose::CameraMotion));
-        println!("words {words:#018x?}");
-        let mut r = rng(Purpose::CameraMotion);
-        let u: Vec<u64> = (0..3).map(|_| r.uniform(-1.0, 2.0).to_bits()).collect();
-        println!("uniform bits {u:#018x?}");
-        let mut r = rng(Purpose::ObjectMotion(1));
-        let mixed = [r.sign(), r.sign(), r.sign(), r.sign(), r.below(10) as f64, r.below(1000) as f64, r.unit()];
-        println!("mixed {mixed:?} mix64(1) {:#018x}", mix64(1));
-    }
-
     /// DETERMINISM CONTRACT. These values were computed once with this implementation and are
     /// hard-coded on purpose: if this test fails, every sample address now yields different data.
     /// Never update them to make the test pass; a change of the key mixing, the generator or the

@@ -18,7 +18,7 @@ use super::CliError;
 #[derive(Args, Debug)]
 pub struct PullArgs {
     /// Server address (HOST:PORT; https://HOST:PORT or --tls-ca for TLS).
-    #[arg(long, value_name = "HOST:PORT", default_value = "127.0.0.1:50051")]
+    #[arg(long, value_name = "HOST:PORT", default_value = mpiflow::service::config::DEFAULT_ADDR)]
     addr: String,
     #[command(flatten)]
     connect: ConnectArgs,

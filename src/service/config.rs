@@ -154,6 +154,10 @@ impl DatasetConfig {
     }
 }
 
+/// The server's default listen address, and the address the clients (`pull`, `health`) ask
+/// by default.
+pub const DEFAULT_ADDR: &str = "127.0.0.1:50051";
+
 /// Everything the server reads at start-up.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -261,7 +265,7 @@ pub struct ServiceConfig {
 impl Default for ServiceConfig {
     fn default() -> Self {
         Self {
-            addr: "127.0.0.1:50051".into(),
+            addr: DEFAULT_ADDR.into(),
             metrics_addr: None,
             workers: 0,
             max_in_flight: 0,
