@@ -101,7 +101,7 @@ impl Bricks {
     pub const SIZE: usize = 16;
 
     /// Zero values stored after the last block, so that a reader may load this many values
-    /// from the start of any stored row (`render::row16` loads a block row in five 512-bit
+    /// from the start of any stored row (`render::exact::row16` loads a block row in five 512-bit
     /// registers) without a bounds branch.
     pub const TAIL: usize = 80;
 

@@ -51,8 +51,8 @@
 //! `types`, `simd` (four-lane arithmetic) < `real` (the scalar type) < `tap` (bilinear taps),
 //! `window` ([`Rect`]) < `band` (row bands, `valid`), `guard` (input checks, the non-finite
 //! guard), `resample` (colour kernels), `store` (packed planes) < `mip` (minification levels),
-//! `occupancy` (tile occupancy) < `row16` (the target view's sixteen-lane loop on AVX-512) <
-//! `reference`, `exact` (the two modes' loops) < `cut` (the density cut).
+//! `occupancy` (tile occupancy) < `reference`, `exact` (the two modes' loops; `exact/row16.rs`
+//! the target view's sixteen-lane loop on AVX-512) < `cut` (the density cut).
 
 mod band;
 pub mod cut;
@@ -63,7 +63,6 @@ mod occupancy;
 mod real;
 mod reference;
 pub mod resample;
-mod row16;
 mod simd;
 pub mod store;
 mod tap;

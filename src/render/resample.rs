@@ -43,7 +43,7 @@ use crate::mpi::Mpi;
 /// `floor(q)`; tap `k` sits at `floor(q) + k - (N / 2 - 1)`.
 pub(crate) trait Kernel<const N: usize>: Sync {
     /// Whether this is the cubic B-spline ([`Bspline3`]), which the sixteen-lane target loop
-    /// evaluates itself (`render::row16`).
+    /// evaluates itself (`render::exact::row16`).
     const BSPLINE3: bool = false;
 
     fn weights<T: Real>(t: T) -> [T; N];

@@ -32,7 +32,6 @@ const ROOMS: &[(&str, &[&[&str]])] = &[
             &["tap"],
             &["band", "guard", "store"],
             &["mip", "occupancy", "resample"],
-            &["row16"],
             &["exact", "reference"],
             &["cut"],
         ],
@@ -41,7 +40,7 @@ const ROOMS: &[(&str, &[&[&str]])] = &[
         "render/exact",
         &[
             &["plane"],
-            &["source_lanes"],
+            &["row16", "source_lanes"],
             &["activity", "geometry", "sampler", "source"],
             &["kernel", "lanes"],
             &["target_band"],

@@ -2,12 +2,12 @@
 //! density, colour by the kernel from dense planes ([`DenseColour`]) or B-spline coefficients in
 //! blocks.
 
+use super::row16::{Blocks16, KERNEL_MIN_WEIGHT};
 use super::sampler::{colour_per_lane, lanes_of, LaneTaps, PlaneSampler};
 use crate::mpi::bricks::Bricks;
 use crate::render::mip::MipPlane;
 use crate::render::real::Real;
 use crate::render::resample::{sample_rgb_bricks_weighted, sample_rgb_weighted, Kernel};
-use crate::render::row16::{Blocks16, KERNEL_MIN_WEIGHT};
 use crate::render::store::Rgba;
 use crate::render::tap::Tap;
 

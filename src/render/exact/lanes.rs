@@ -4,10 +4,10 @@
 
 use super::geometry::TargetGeometry;
 use super::plane::{PlaneConst, SurfaceRay, SURFACE_STEPS};
+use super::row16::TargetLanes;
 use super::sampler::{lanes_of, LaneTaps, PlaneSampler};
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::render::real::Real;
-use crate::render::row16::TargetLanes;
 use crate::render::simd::exp_neg4;
 use crate::render::types::RenderStats;
 use wide::f32x4;

@@ -35,7 +35,7 @@
 //! job (`TargetBandJob`, `SourceBandJob`) whose loop is inlined into a function compiled for
 //! AVX-512, AVX2 or the SSE2 baseline; the source view then takes 16, 8 or 4 pixels per plane
 //! step (`SourceLanes::wide`, `SourceLanes::four`), and on AVX-512 the target view takes a tile
-//! row of 16 pixels reading packed planes in registers ([`super::row16`]; four pixels at a time
+//! row of 16 pixels reading packed planes in registers ([`row16`]; four pixels at a time
 //! on the other paths and for the other samplers), the same bits on every path.
 //!
 //! # The rooms
@@ -43,7 +43,7 @@
 //! This file is the front door: the entry points [`target_view`], [`target_view_cut`] and
 //! [`source_view`]. Each room names only rooms under it (`tests/server/layers.rs` holds the order):
 //! `plane` (the tile width, the per-plane constants, the depth cap, a true-depth texel's search
-//! `SurfaceRay`) < `source_lanes` (the source view's lane loops, `SourceLanes`) < `sampler` (the plane samplers' trait, the bilinear and
+//! `SurfaceRay`) < `row16` (the target view's sixteen-lane loop on AVX-512, `TargetLanes`), `source_lanes` (the source view's lane loops, `SourceLanes`) < `sampler` (the plane samplers' trait, the bilinear and
 //! the density-cut samplers, the four lanes' taps), `geometry` (the target view's per-render
 //! constants, `TargetGeometry`), `activity` (the planes a tile may need, `tile_activity`),
 //! `source` (the source view and its band loop) < `kernel` (the samplers of the higher-order
@@ -65,6 +65,7 @@ mod geometry;
 mod kernel;
 mod lanes;
 mod plane;
+mod row16;
 mod sampler;
 mod source;
 mod source_lanes;

@@ -2,9 +2,9 @@
 //! ([`PlaneSampler`]), bilinear ([`Bilinear`]) or with a density cut ([`CutSampler`]), and the
 //! taps of the four-lane loop ([`LaneTaps`]).
 
+use super::row16::Blocks16;
 use crate::render::mip::MipPlane;
 use crate::render::real::Real;
-use crate::render::row16::Blocks16;
 use crate::render::store::Rgba;
 use crate::render::tap::Tap;
 use crate::render::types::DensityCut;

@@ -3,6 +3,7 @@
 
 use super::geometry::TargetGeometry;
 use super::kernel::{DenseColour, HighOrder};
+use super::row16::TargetLanes;
 use super::sampler::{Bilinear, CutSampler, PlaneSampler};
 use super::target_band::{LinkConst, TargetBand, TargetBandJob};
 use crate::mpi::bricks::Bricks;
@@ -12,7 +13,6 @@ use crate::render::mip::{mip_planes, missing_levels, plane_lods};
 use crate::render::occupancy::Occupancy;
 use crate::render::real::Real;
 use crate::render::resample::{bspline_bricks, Bspline3, Bspline5, Keys, Lanczos3};
-use crate::render::row16::TargetLanes;
 use crate::render::store::Rgba;
 use crate::render::types::{Channels, DensityCut, RenderOutput, RenderParams, RenderStats, Resample};
 use crate::render::window::Rect;

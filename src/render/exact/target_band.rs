@@ -8,11 +8,11 @@ use super::activity::tile_activity;
 use super::geometry::TargetGeometry;
 use super::lanes::Quad;
 use super::plane::{cap, PlaneConst, SurfaceRay, TILE};
+use super::row16::TargetLanes;
 use super::sampler::PlaneSampler;
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::render::occupancy::Occupancy;
 use crate::render::real::Real;
-use crate::render::row16::TargetLanes;
 use crate::render::tap::Tap;
 use crate::render::types::{RenderParams, RenderStats, View};
 use crate::render::window::Rect;
@@ -116,8 +116,7 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
         let mut acc_ex = vec![T::zero(); c];
         let mut ex = vec![T::zero(); c];
         // sixteen pixels at a time on AVX-512 where the planes are blocks it reads
-        // (not for a true-depth MPI, whose texels the sixteen-lane loop does not search)
-        let blocks16 = v4.zip(lanes).and_then(|_| sampler.blocks16()).filter(|_| surface.is_none());
+        let blocks16 = v4.zip(lanes).and_then(|_| sampler.blocks16());
         for tx0 in (win.x0..win.x1).step_by(TILE) {
             let tx1 = (tx0 + TILE).min(win.x1) - 1;
             let ty1 = fy0 + rows - 1;
@@ -140,9 +139,9 @@ impl<T: Real, S: PlaneSampler<T>, const NL: usize> TargetBand<'_, T, S, NL> {
             let mut rows16 = 0u32;
             #[cfg(target_arch = "x86_64")]
             if let (Some(v4), Some(l), Some(src)) = (v4, lanes, blocks16.filter(|_| tx1 + 1 - tx0 == TILE)) {
-                let out = crate::render::row16::TileOut { b: &mut *b, stats: &mut stats, o: tx0 - win.x0, row_len: ww };
-                rows16 =
-                    crate::render::row16::rows16(v4, l, src, ex_lanes, [tx0 - win.x0, y0], rows, [&fwd, &rev], out);
+                let out = super::row16::TileOut { b: &mut *b, stats: &mut stats, o: tx0 - win.x0, row_len: ww };
+                let srf = surface.as_ref().map(|sr| (sr, planes.as_slice()));
+                rows16 = super::row16::rows16(v4, l, (src, srf), ex_lanes, [tx0 - win.x0, y0], rows, [&fwd, &rev], out);
             }
             for ry in (0..rows).filter(|ry| rows16 >> ry & 1 == 0) {
                 let uy_y = uy[y0 + ry];

@@ -21,9 +21,11 @@
 // the lane helpers serve the AVX-512 loop only
 #![cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
 
-use super::types::RenderStats;
+use super::plane::{PlaneConst, SurfaceRay, SURFACE_STEPS};
 use crate::mpi::bricks::Bricks;
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
+use crate::render::real::Real;
+use crate::render::types::RenderStats;
 
 /// Composite weights below this take the bilinear colour even with a higher-order kernel: the
 /// difference is at most this fraction of full scale (below half an 8-bit step), and such
@@ -419,7 +421,7 @@ fn bspline3(v4: pulp::x86::V4, coef: &Bricks, i: usize, px: &TapPixels, f: [&F; 
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 fn exp_neg16(v4: pulp::x86::V4, x: &F) -> F {
-    use super::simd::EXP2_TAYLOR as C;
+    use crate::render::simd::EXP2_TAYLOR as C;
     let x = f16(|k| if x[k] < 80.0 { x[k] } else { 80.0 });
     let x = f16(|k| if x[k] > 0.0 { x[k] } else { 0.0 });
     let t = f16(|k| -x[k] * std::f32::consts::LOG2_E);
@@ -460,6 +462,9 @@ fn weights(t: &F) -> [F; 4] {
 #[repr(C, align(64))]
 struct Rays {
     inv_s: F,
+    /// the rays' directions v = R^T u (x and y), for a true-depth texel's search
+    v0: F,
+    v1: F,
     fv0: F,
     fv1: F,
     norm_u: F,
@@ -474,6 +479,8 @@ struct Rays {
 impl Rays {
     const NONE: Rays = Rays {
         inv_s: [0.0; L],
+        v0: [0.0; L],
+        v1: [0.0; L],
         fv0: [0.0; L],
         fv1: [0.0; L],
         norm_u: [0.0; L],
@@ -500,6 +507,8 @@ impl Rays {
         }
         let rays = Rays {
             inv_s: f16(|k| 1.0 / v2[k]),
+            v0,
+            v1,
             fv0: f16(|k| c.fxs * v0[k]),
             fv1: f16(|k| c.fys * v1[k]),
             norm_u: f16(|k| (ux[k] * ux[k] + uy * uy + 1.0).sqrt()),
@@ -510,7 +519,7 @@ impl Rays {
 }
 
 /// Rows a tile holds at most: a band's.
-const ROWS: usize = super::band::BAND_ROWS;
+const ROWS: usize = crate::render::band::BAND_ROWS;
 
 /// Where [`rows16`] writes and counts: the band's buffers (image, depth, coverage, the extra
 /// channel, ...), the index in them of the tile's first pixel and the length of a band row.
@@ -530,10 +539,10 @@ pub(super) struct TileOut<'a, 'b> {
 #[cfg(target_arch = "x86_64")]
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
-pub(super) fn rows16(
+pub(super) fn rows16<T: Real>(
     v4: pulp::x86::V4,
     c: &TargetLanes,
-    src: Blocks16<'_>,
+    (src, srf): (Blocks16<'_>, Surfaced16<'_, T>),
     ex: Option<&[&[f32]]>,
     at: [usize; 2],
     rows: usize,
@@ -560,7 +569,7 @@ pub(super) fn rows16(
         let next = if forward { i + 1 } else { i.wrapping_sub(1) };
         let plane = Plane { i, next, left: order.len() - j };
         for r in each(live) {
-            if !step(v4, c, src, ex, &plane, &mut tile[r], out.stats) {
+            if !step(v4, c, (src, srf), ex, &plane, &mut tile[r], out.stats) {
                 live &= !(1 << r);
             }
         }
@@ -584,10 +593,10 @@ struct Plane {
 /// ray has stopped (nothing more to gather).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn step(
+fn step<T: Real>(
     v4: pulp::x86::V4,
     c: &TargetLanes,
-    src: Blocks16<'_>,
+    (src, srf): (Blocks16<'_>, Surfaced16<'_, T>),
     ex: Option<&[&[f32]]>,
     p: &Plane,
     r: &mut Rays,
@@ -611,9 +620,17 @@ fn step(
     let (ox, oy) = (c.ox[i], c.oy[i]);
     let qx = f16(|k| ox + r.fv0[k] * g[k]);
     let qy = f16(|k| oy + r.fv1[k] * g[k]);
+    // a true-depth MPI: each lane's texel searched as the scalar loop searches it
+    let (qx, qy, lambda_z, in_front) = match srf {
+        None => (qx, qy, None, ALL),
+        Some((sr, pls)) => {
+            let (qx, qy, lz, f) = surface16(sr, &pls[i], r, [qx, qy], front & !r.done);
+            (qx, qy, Some(lz), f)
+        }
+    };
     let inside =
         cmp1::<GE>(v4, &qx, c.lo) & cmp1::<LT>(v4, &qx, c.hix) & cmp1::<GE>(v4, &qy, c.lo) & cmp1::<LT>(v4, &qy, c.hiy);
-    let take = front & inside & !r.done;
+    let take = front & inside & in_front & !r.done;
     if take == 0 {
         return true;
     }
@@ -652,13 +669,94 @@ fn step(
     }
     if let Some(ex) = ex {
         for k in each(lit.into()) {
-            let tap = super::tap::Tap::from_parts(x0[k] as usize, y0[k] as usize, c.w, c.h, fx[k], fy[k]);
+            let tap = crate::render::tap::Tap::from_parts(x0[k] as usize, y0[k] as usize, c.w, c.h, fx[k], fy[k]);
             r.acc1[k] += wgt[k] * tap.sample1(ex[i]);
         }
     }
     r.sum_w = pick(v4, lit, &f16(|k| r.sum_w[k] + wgt[k]), &r.sum_w);
-    r.sum_z = add_mul(v4, lit, &r.sum_z, &wgt, &lambda);
+    r.sum_z = add_mul(v4, lit, &r.sum_z, &wgt, lambda_z.as_ref().unwrap_or(&lambda));
     true
+}
+
+/// A true-depth MPI's search and the planes' constants ([`rows16`]; `None`: texels on their
+/// planes).
+pub(super) type Surfaced16<'a, T> = Option<(&'a SurfaceRay<'a, T>, &'a [PlaneConst<T>])>;
+
+/// The texels of a true-depth MPI's plane `pl` that the lanes of `lanes` meet, from the plane's
+/// points `q`: [`SurfaceRay::search`] in sixteen lanes, the four-lane loop's `surface4` lane for
+/// lane (the clamp, the tap's pixel and fractions, the four surface reads,
+/// [`super::plane::slab_offset`] and the bilinear blend, the ray's point at that disparity, all
+/// in `f32` in the scalar loop's order): the points (`q` in the other lanes), their depths along
+/// the rays (0 in lanes not taken) and the lanes whose texel is in front of the camera.
+#[inline(always)]
+fn surface16<T: Real>(
+    sr: &SurfaceRay<'_, T>,
+    pl: &PlaneConst<T>,
+    r: &Rays,
+    q: [F; 2],
+    lanes: Lanes,
+) -> (F, F, F, Lanes) {
+    let depth_max = DEPTH_MAX as f32;
+    let (disp, lo, hi) = (pl.disp.f32(), pl.lo.f32(), pl.hi.f32());
+    let (lo2, hi2) = (pl.lo.f32() + pl.lo.f32(), pl.hi.f32() + pl.hi.f32());
+    let (wm, hm, kk) = (sr.wm.f32(), sr.hm.f32(), sr.k.f32());
+    let [fx, fy] = sr.fs.map(Real::f32);
+    let [cx, cy] = sr.cs.map(Real::f32);
+    let [ox, oy] = sr.centre.map(Real::f32);
+    let (w, h) = (sr.w as i32, sr.h as i32);
+    let surface = sr.surface;
+    // `slab_offset`
+    let offset = |s: f32| {
+        let o = s - disp;
+        if o >= lo2 && o <= hi2 {
+            o.max(lo).min(hi)
+        } else {
+            0.0
+        }
+    };
+    let (mut qx, mut qy, mut d) = (q[0], q[1], [disp; L]);
+    for _ in 0..SURFACE_STEPS {
+        for k in 0..L {
+            // `Tap::new` at the clamped point (q >= 0 there, so truncation is floor)
+            let (px, py) = (qx[k].max(0.0).min(wm), qy[k].max(0.0).min(hm));
+            let x0 = (px as i32).max(0).min(w - 1);
+            let y0 = (py as i32).max(0).min(h - 1);
+            let (wx, wy) = (px - x0 as f32, py - y0 as f32);
+            let x1 = (x0 + 1).min(w - 1);
+            let (r0, r1) = (y0 * w, (y0 + 1).min(h - 1) * w);
+            let at = |i: i32| offset(surface[i as usize]);
+            let [a00, a10, a01, a11] = [at(r0 + x0), at(r0 + x1), at(r1 + x0), at(r1 + x1)];
+            let top = a00 + wx * (a10 - a00);
+            let bot = a01 + wx * (a11 - a01);
+            d[k] = disp + (top + wy * (bot - top));
+        }
+        // `SurfaceRay::at`
+        let g = f16(|k| (1.0 + kk * d[k]) * r.inv_s[k]);
+        qx = f16(|k| fx * (ox * d[k] + r.v0[k] * g[k]) + cx);
+        qy = f16(|k| fy * (oy * d[k] + r.v1[k] * g[k]) + cy);
+    }
+    // `texel_depth`
+    let depth = f16(|k| if d[k] > 0.0 { cap16(1.0 / d[k], depth_max) } else { depth_max });
+    let g = f16(|k| (1.0 + kk * d[k]) * r.inv_s[k]);
+    let in_front = (0..L).filter(|&k| g[k] > 0.0).fold(0, |m, k| m | 1 << k) & lanes;
+    let on = |m: Lanes, k: usize| m >> k & 1 == 1;
+    let lambda = f16(|k| if on(in_front, k) { cap16(g[k] * depth[k], depth_max) } else { 0.0 });
+    (
+        f16(|k| if on(lanes, k) { qx[k] } else { q[0][k] }),
+        f16(|k| if on(lanes, k) { qy[k] } else { q[1][k] }),
+        lambda,
+        in_front,
+    )
+}
+
+/// `v`, at most `max` (the scalar loop's `cap`).
+#[inline(always)]
+fn cap16(v: f32, max: f32) -> f32 {
+    if v > max {
+        max
+    } else {
+        v
+    }
 }
 
 /// The colour of the lanes' samples of plane `i`: the bilinear colour of `texel`, or in the
