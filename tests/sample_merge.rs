@@ -11,7 +11,7 @@ use mpiflow::mpi::npz::load_npz;
 use mpiflow::raster::{Instance, InstanceMasks};
 use mpiflow::render::{render, Fields, Rect, RenderOutput, RenderParams, Skip, WindowRender};
 use mpiflow::sample::config::{InpaintMethod, MotionSpec, SampleConfig};
-use mpiflow::sample::holes::inpaint_holes;
+use mpiflow::sample::holes::{inpaint_background, inpaint_holes};
 use mpiflow::sample::merge::{merge, LabelRule, MergeRule, ObjectView, SceneView};
 use mpiflow::sample::motion::{Axes, Component, MotionRanges, RigidLaw, RotationKind};
 use mpiflow::sample::object::{object_window, scene_mask_window, support_rect, target_footprint};
@@ -624,6 +624,15 @@ fn cropped_inpainting_equals_whole_frame_inpainting() {
             inpaint_holes(&mut b, w, h, &hole, method, radius, false);
             assert!(a == b, "{method:?} radius {radius}: cropped and whole-frame inpainting differ");
             assert!(a.iter().zip(&img).zip(hole.iter().flat_map(|&v| [v; 3])).all(|((x, y), m)| m != 0 || x == y));
+            // from the background only: an object beside the disc and inside the two close holes
+            let labels: Vec<u8> = (0..w * h)
+                .map(|i| u8::from(hole[i] == 0 && ((76..84).contains(&(i % w)) || (126..128).contains(&(i % w)))))
+                .collect();
+            let mut a = img.clone();
+            let mut b = img.clone();
+            inpaint_background(&mut a, w, h, &hole, &labels, method, radius, true);
+            inpaint_background(&mut b, w, h, &hole, &labels, method, radius, false);
+            assert!(a == b, "{method:?} radius {radius}: cropped and whole-frame background fills differ");
         }
     }
 }
