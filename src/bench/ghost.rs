@@ -15,7 +15,7 @@
 //! shows in training is background).
 //!
 //! The figure is the share of image2's revealed background pixels (revealed as
-//! [`super::realism::revealed`], `mask2 = 0`) classified as object, next to the share of the
+//! the realism measures' `revealed`, `mask2 = 0`) classified as object, next to the share of the
 //! ring's held-out half classified as object: what the classifier calls object in true
 //! background of the same photo. Their difference is the object colour the revealed region
 //! carries beyond what the background around the object already has. Counts are pooled over the
@@ -84,7 +84,7 @@ fn training(i: usize) -> bool {
     mix64(i as u64 ^ SPLIT_SEED) & 1 == 0
 }
 
-/// The object-colour counts of one sample, `rev` from [`super::realism::revealed`]; `None`
+/// The object-colour counts of one sample, `rev` the revealed pixels; `None`
 /// without a moved object or without ring pixels.
 pub fn object_colour(s: &Sample, rev: &[bool]) -> Option<ObjectColour> {
     let frames = Frames { width: s.width, height: s.height, image1: &s.image1, mask1: &s.mask1, image2: &s.image2 };
