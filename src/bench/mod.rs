@@ -3,6 +3,7 @@
 
 pub mod accuracy;
 pub mod clients;
+pub mod ghost;
 pub mod hostile;
 pub mod measure;
 pub mod quality;

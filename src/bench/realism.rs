@@ -26,6 +26,7 @@
 //! patches apart, 1.0 that they always can. With fewer than 8 held-out patches of either class
 //! there is no figure (`None`).
 
+use super::ghost::{object_colour, ObjectColour};
 use super::measure::{ideal_warp, laplacian_variance, luminance};
 use crate::raster::Grid;
 use crate::rng::mix64;
@@ -294,6 +295,7 @@ pub struct RealismAccumulator {
     detail: Vec<f64>,
     noise: Vec<f64>,
     fb: (f64, u64),
+    colour: Option<ObjectColour>,
 }
 
 /// The realism figures over a set of samples.
@@ -315,6 +317,9 @@ pub struct RealismReport {
     pub revealed_noise: Option<f64>,
     /// Mean forward-backward residual in pixels ([`forward_backward_residual`]).
     pub fb_residual: Option<f64>,
+    /// Object colour in the revealed background against the ring around the object
+    /// ([`super::ghost`]), pooled over the samples with a moved object.
+    pub object_colour: Option<ObjectColour>,
 }
 
 /// The patches of a region covering at least half of each patch.
@@ -346,6 +351,9 @@ impl RealismAccumulator {
             self.ideal.test.extend(patches(&ideal, w, h, |i| !rev[i] && s.holes[i] == 0 && s.backward.valid[i] != 0));
             self.ideal.reference.extend(patches(&s.image1, w, h, |i| s.valid[i] != 0));
         }
+        if let Some(c) = object_colour(s, &rev) {
+            self.colour.get_or_insert_with(ObjectColour::default).add(&c);
+        }
         let d = revealed_detail(s, &rev);
         self.shares.push(d.share);
         self.detail.extend(d.detail);
@@ -366,6 +374,7 @@ impl RealismAccumulator {
             revealed_detail: mean(&self.detail),
             revealed_noise: mean(&self.noise),
             fb_residual: (self.fb.1 > 0).then(|| self.fb.0 / self.fb.1 as f64),
+            object_colour: self.colour,
         }
     }
 }

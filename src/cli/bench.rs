@@ -278,15 +278,15 @@ fn sharpness_table(
 fn realism_table(run: &RunQuality<'_>, base: &mpiflow::sample::config::SampleConfig) -> Result<(), CliError> {
     use mpiflow::sample::background::Background;
     use mpiflow::sample::config::SampleConfig;
-    println!("| fill | objects | hole fraction | revealed | revealed detail / noise vs other background | AUC revealed vs img1 background | AUC img2 vs img1 | AUC ideal warp vs img1 | photometric | label laws | fb residual px |");
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("| fill | objects | hole fraction | revealed | revealed detail / noise vs other background | AUC revealed vs img1 background | AUC img2 vs img1 | AUC ideal warp vs img1 | object colour revealed - ring (revealed / ring) | photometric | label laws | fb residual px |");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for background in [Background::Planes, Background::Inpaint] {
         for objects in [0, 1] {
             let c = SampleConfig { background, max_objects: objects, backward: true, ..base.clone() };
             let r = run(&c)?;
             let laws = r.laws.holes + r.laws.label + r.laws.depth;
             println!(
-                "| {background} | {objects} ({} moved) | {:.4} | {:.4} | {} / {} | {} | {} | {} | {:.4} | {laws} | {} |",
+                "| {background} | {objects} ({} moved) | {:.4} | {:.4} | {} / {} | {} | {} | {} | {} | {:.4} | {laws} | {} |",
                 r.with_objects,
                 r.hole_fraction,
                 r.realism.revealed,
@@ -295,6 +295,7 @@ fn realism_table(run: &RunQuality<'_>, base: &mpiflow::sample::config::SampleCon
                 opt3(r.realism.auc_revealed),
                 opt3(r.realism.auc_pair),
                 opt3(r.realism.auc_ideal),
+                object_colour_cell(r.realism.object_colour),
                 r.photometric,
                 opt3(r.realism.fb_residual),
             );
@@ -351,6 +352,14 @@ fn real_view_table(
     println!("|---|---|---|---|");
     println!("| {} | {:.2} ({:.2}) | {:.3} | {:.4} |", right.display(), r.mae, r.floor, r.sharpness, r.epe);
     Ok(())
+}
+
+/// The object-colour column: the excess over the ring, with the two shares.
+fn object_colour_cell(c: Option<mpiflow::bench::ghost::ObjectColour>) -> String {
+    match c.and_then(|c| Some((c.excess()?, c.revealed_share()?, c.ring_share()?))) {
+        Some((e, r, g)) => format!("{e:+.3} ({r:.3} / {g:.3})"),
+        None => "-".to_string(),
+    }
 }
 
 /// A figure with three decimals, or `-` when there is none.

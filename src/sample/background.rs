@@ -4,7 +4,8 @@
 //!
 //! # Rule ([`Background::Planes`], with the depth-aware merge; opt-in)
 //!
-//! The moved objects' union mask `U` takes the object out of the MPI: at a source pixel `p` with
+//! The moved objects' union mask `U` (their footprint, [`super::object::object_footprint`], with
+//! the depth-aware merge) takes the object out of the MPI: at a source pixel `p` with
 //! `U(p) > 0` the planes that carry the pixel's own surface, the planes at or in front of its
 //! disparity `d(p)` and the first plane behind it (the built-in layering puts a pixel on the
 //! two planes around its disparity, [`crate::mpi::layering`]), keep `1 - U(p)` of their density

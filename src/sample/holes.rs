@@ -35,7 +35,9 @@
 //! the others.
 
 use super::config::InpaintMethod;
-use super::inpaint::{inpaint_telea_opencv_u8, inpaint_telea_u8_with, GradientTerm, TeleaOptions};
+use super::inpaint::{
+    inpaint_telea_opencv_u8, inpaint_telea_u8_excluding, inpaint_telea_u8_with, GradientTerm, TeleaOptions,
+};
 use crate::raster::exemplar::{peel_order, synthesise, Draw, Layout, Sources};
 use crate::raster::grid::{interleaved, pixel_values};
 use crate::raster::morph::dilate;
@@ -87,8 +89,9 @@ pub struct TextureSource<'a> {
 }
 
 /// Fills the holes of `image` with `method`: the texture fill from `texture` for
-/// [`InpaintMethod::Exemplar`] (Telea, known-only, for what it leaves), else [`inpaint_holes`]
-/// (windowed). Returns the object labels the fill drew ([`TextureFill::continued`]; empty for the
+/// [`InpaintMethod::Exemplar`] (Telea, known-only, for what it leaves), else Telea; Telea from
+/// the frame's background only (`texture.mask`'s objects are no context: [`inpaint_background`],
+/// windowed). Returns the object labels the fill drew ([`TextureFill::continued`]; empty for the
 /// Telea variants), for the frame's mask.
 pub fn fill_holes(
     image: &mut [u8],
@@ -100,12 +103,12 @@ pub fn fill_holes(
     texture: &TextureSource<'_>,
 ) -> Vec<u8> {
     if method != InpaintMethod::Exemplar {
-        inpaint_holes(image, w, h, hole, method, radius, true);
+        inpaint_background(image, w, h, hole, texture.mask, method, radius, true);
         return Vec::new();
     }
     let fill = texture_fill(image, w, h, hole, texture);
     if fill.left.iter().any(|&o| o != 0) {
-        inpaint_holes(image, w, h, &fill.left, InpaintMethod::TeleaKnownOnly, radius, true);
+        inpaint_background(image, w, h, &fill.left, texture.mask, InpaintMethod::TeleaKnownOnly, radius, true);
     }
     fill.continued
 }
@@ -502,7 +505,42 @@ pub fn inpaint_holes(
     radius: f32,
     windowed: bool,
 ) {
+    telea_holes(image, Grid::new(w, h), hole, None, method, radius, windowed);
+}
+
+/// [`inpaint_holes`] from the frame's background only: the pixels where `labels` (H x W, the
+/// frame's object labels) shows an object are never read by the fill (the Telea variants of the
+/// paper, [`crate::sample::inpaint::inpaint_telea_u8_excluding`]), so a moved object's colours
+/// do not spread into what it uncovers; a hole enclosed by objects and the frame's border is
+/// filled from them. The OpenCV variant reads every known pixel, as `cv2.inpaint` does.
+#[allow(clippy::too_many_arguments)]
+pub fn inpaint_background(
+    image: &mut [u8],
+    w: usize,
+    h: usize,
+    hole: &[u8],
+    labels: &[u8],
+    method: InpaintMethod,
+    radius: f32,
+    windowed: bool,
+) {
+    let objects = (labels.len() == w * h && labels.iter().any(|&l| l != 0)).then_some(labels);
+    telea_holes(image, Grid::new(w, h), hole, objects, method, radius, windowed);
+}
+
+/// [`inpaint_holes`] and [`inpaint_background`] (`objects`: the labels whose pixels are no
+/// context).
+fn telea_holes(
+    image: &mut [u8],
+    g: Grid,
+    hole: &[u8],
+    objects: Option<&[u8]>,
+    method: InpaintMethod,
+    radius: f32,
+    windowed: bool,
+) {
     use rayon::prelude::*;
+    let Grid { w, h } = g;
     let gradient = match method {
         InpaintMethod::Telea => GradientTerm::Propagated,
         InpaintMethod::TeleaKnownOnly => GradientTerm::KnownOnly,
@@ -515,13 +553,17 @@ pub fn inpaint_holes(
         }
     };
     let options = TeleaOptions { radius, gradient };
+    let telea = |img: &mut [u8], cw: usize, ch: usize, sub: &[u8], labels: Option<Vec<bool>>| match labels {
+        Some(excluded) => inpaint_telea_u8_excluding(img, cw, ch, 3, sub, &excluded, &options),
+        None => inpaint_telea_u8_with(img, cw, ch, 3, sub, &options),
+    };
+    let excluded = |labels: &[u8]| labels.iter().map(|&l| l != 0).collect::<Vec<bool>>();
     if !windowed {
-        inpaint_telea_u8_with(image, w, h, 3, hole, &options);
+        telea(image, w, h, hole, objects.map(excluded));
         return;
     }
     let r = if radius >= 1.0 { radius.min(super::inpaint::MAX_RADIUS) } else { 1.0 };
     let margin = (1.5 * r.ceil() + 2.0).ceil() as usize + 2;
-    let g = Grid::new(w, h);
     let groups = hole_groups(hole, g, margin);
     let results: Vec<(Rect, Vec<u8>)> = groups
         .par_iter()
@@ -529,11 +571,15 @@ pub fn inpaint_holes(
             let (cw, ch) = (win.width(), win.height());
             let mut img = Vec::with_capacity(cw * ch * 3);
             let mut sub = Vec::with_capacity(cw * ch);
+            let mut labels = Vec::with_capacity(if objects.is_some() { cw * ch } else { 0 });
             for y in win.y0..win.y1 {
                 img.extend_from_slice(&image[interleaved(g.span(y, win.x0..win.x1), 3)]);
                 sub.extend_from_slice(&hole[g.span(y, win.x0..win.x1)]);
+                if let Some(o) = objects {
+                    labels.extend_from_slice(&o[g.span(y, win.x0..win.x1)]);
+                }
             }
-            inpaint_telea_u8_with(&mut img, cw, ch, 3, &sub, &options);
+            telea(&mut img, cw, ch, &sub, objects.map(|_| excluded(&labels)));
             (*win, img)
         })
         .collect();

@@ -7,8 +7,10 @@
 //! - The scene render of the whole frame: image (premultiplied by coverage), depth `D_t`,
 //!   coverage, flow, `valid` and expected target depth of every source pixel, and the **scene
 //!   mask** `s` = the reference's scene mask channel `1 - U` rendered under the camera motion
-//!   (`U` = union of the moved objects' source masks), i.e. how much of each target pixel shows
-//!   background rather than a moved object's original place or a hole. `M_t = 1 - s` in the
+//!   (`U` = union of the moved objects' source masks; with the depth-aware merge their footprint,
+//!   the masks grown past soft edges and fringes, [`super::object::object_footprint`]), i.e. how
+//!   much of each target pixel shows background rather than a moved object's original place or
+//!   a hole. `M_t = 1 - s` in the
 //!   paper's notation. Without objects `s` is the coverage.
 //! - Per object `j` (label `j + 1`): its source mask `M_j` and its render under its own motion,
 //!   over a window of the frame ([`WindowRender`]): image, depth `D_t^obj`, the rendered mask

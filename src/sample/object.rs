@@ -101,6 +101,29 @@ pub fn choose_objects(
     picked.into_iter().map(|p| ranked[p]).collect()
 }
 
+/// How far past a moved object's mask its footprint in the scene reaches (pixels, chessboard):
+/// the soft edge and the fringe the mask misses (mixed pixels, hair) go with the object.
+pub const OBJECT_MARGIN: usize = 3;
+/// A mask value above this is part of the object's footprint (however uncertain).
+pub const FOOTPRINT_EPSILON: f32 = 0.01;
+
+/// The moved objects' footprint in the scene (H x W, 1 or 0): every pixel within
+/// [`OBJECT_MARGIN`] of a pixel where some mask exceeds [`FOOTPRINT_EPSILON`]. The scene's
+/// render carries it as its mask channel (with the depth-aware merge), so the object's colour and
+/// density leave every plane there, its soft edge and fringe included; what the footprint
+/// uncovers is a hole (or the planes behind, `background = "planes"`), filled from the
+/// background around it.
+pub fn object_footprint<'a>(masks: impl IntoIterator<Item = &'a [f32]>, width: usize, height: usize) -> Vec<f32> {
+    let mut set = vec![false; width * height];
+    for m in masks {
+        for (s, &v) in set.iter_mut().zip(m) {
+            *s |= v > FOOTPRINT_EPSILON;
+        }
+    }
+    let grown = crate::raster::morph::dilate(width, height, &set, OBJECT_MARGIN);
+    grown.into_iter().map(|g| if g { 1.0 } else { 0.0 }).collect()
+}
+
 /// The bounding rectangle of the pixels where `mask > 0`, grown by one pixel (the bilinear
 /// support of the samples that can read them); `None` when the mask is 0 everywhere.
 pub fn support_rect(mask: &[f32], width: usize, height: usize) -> Option<Rect> {
@@ -225,4 +248,27 @@ pub fn render_mask_window(
     let fields = Fields { target: true, flow: source, occlusion: false };
     let p = RenderParams { mode: Mode::Exact, fields, ..*params };
     render_window::<f32>(mpi, &p, occupancy, win, Channels::Broadcast(mask), source.then_some(mask))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_footprint_grows_every_uncertain_mask_pixel_by_the_margin() {
+        let (w, h) = (16, 12);
+        let mut a = vec![0.0f32; w * h];
+        let mut b = vec![0.0f32; w * h];
+        a[5 * w + 4] = 1.0;
+        b[2 * w + 12] = 2.0 * FOOTPRINT_EPSILON; // a faint, uncertain edge
+        b[9 * w + 12] = FOOTPRINT_EPSILON; // at the threshold: not the object
+        let f = object_footprint([a.as_slice(), b.as_slice()], w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let near_a = x.abs_diff(4) <= OBJECT_MARGIN && y.abs_diff(5) <= OBJECT_MARGIN;
+                let near_b = x.abs_diff(12) <= OBJECT_MARGIN && y.abs_diff(2) <= OBJECT_MARGIN;
+                assert_eq!(f[y * w + x], if near_a || near_b { 1.0 } else { 0.0 }, "({x}, {y})");
+            }
+        }
+    }
 }

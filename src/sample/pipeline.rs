@@ -40,21 +40,24 @@ use crate::source::{FailureKind, Fnv64, Source, SourceError};
 /// The fingerprint of a dataset under a sample configuration: FNV-1a of the loader's fingerprint
 /// (sources + scene stage) and the configuration's JSON. Never change the formula without a
 /// reason: it is the dataset word of every address, so changing it changes every sample.
-/// The version word (`v6`) names the sample bytes' rules: v2 marks the depth-aware merge that
+/// The version word (`v7`) names the sample bytes' rules: v2 marks the depth-aware merge that
 /// fills one-pixel dips of the scene mask and depth before its occlusion test (`sample::merge`),
 /// v3 the higher-order colour kernels that sum each column of taps first, then the columns
 /// (`render::resample`, four values per vector operation), v4 the merge's seams (a pixel the
 /// scene and an object cover together shows the larger share instead of a hole), v5 the presets'
 /// object motion as drawn (no reveal budget unless a law asks for one), v6 a request's crop made
 /// over its window (its holes filled from the window alone; the occlusion cleared, like `valid`,
-/// where the flow leaves the crop). An opt-in rule
+/// where the flow leaves the crop), v7 a moved object taken out of the scene over its footprint
+/// (its masks grown past their soft edges and fringes, `sample::object::object_footprint`, with
+/// the depth-aware merge) and the holes' Telea fill reading the frame's background only (never
+/// an object's pixels, `sample::holes::inpaint_background`). An opt-in rule
 /// whose bytes changed after it shipped adds its own revision word (`rule_revisions`), so only
 /// the configurations that use it get new fingerprints. CHANGELOG.md lists the changes.
 pub fn dataset_fingerprint(loader_fingerprint: u64, config: &SampleConfig) -> u64 {
     // serialising a plain struct of numbers and strings cannot fail
     let json = serde_json::to_string(config).unwrap_or_default();
     let mut f = Fnv64::new();
-    f.str("mpiflow dataset v6");
+    f.str("mpiflow dataset v7");
     for word in rule_revisions(config) {
         f.str(word);
     }
@@ -496,7 +499,7 @@ mod tests {
     /// The fingerprint without any revision word.
     fn unrevised(loader: u64, config: &SampleConfig) -> u64 {
         let json = serde_json::to_string(config).unwrap();
-        Fnv64::new().str("mpiflow dataset v6").u64(loader).str(&json).finish()
+        Fnv64::new().str("mpiflow dataset v7").u64(loader).str(&json).finish()
     }
 
     #[test]

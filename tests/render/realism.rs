@@ -96,6 +96,21 @@ fn samples_with_the_completed_background_are_a_pure_function_of_their_address() 
 /// less than the default law (no budget), so image2 reveals less and leaves fewer holes to
 /// inpainting; the labels stay honest either way.
 #[test]
+fn what_a_moved_object_uncovers_carries_no_more_of_its_colour_than_the_background_around_it() {
+    // the cat of the example photo (its hand-drawn mask, whiskers and fur outside it), the
+    // default configuration: the scene loses the cat over its footprint and Telea fills what it
+    // uncovers from the background only
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/rgbd/chelsea");
+    let r = quality(pipeline_of(dir, false).generator(), &plain_config(), 0, 6).unwrap();
+    assert_eq!(r.with_objects, 6, "every sample moves the cat");
+    assert_eq!(r.laws.holes + r.laws.label + r.laws.depth, 0, "{:?}", r.laws);
+    let c = r.realism.object_colour.expect("revealed and ring pixels");
+    let excess = c.excess().unwrap();
+    println!("object colour: revealed {:?}, ring {:?}", c.revealed_share(), c.ring_share());
+    assert!(excess <= 0.05, "{excess}: the revealed background carries the cat's colours");
+}
+
+#[test]
 fn the_reveal_budget_moves_a_large_mask_by_less() {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/rgbd/chelsea");
     let p = pipeline_of(dir, false);

@@ -12,7 +12,7 @@ use mpiflow::mpi::layering::{build_mpi_for_camera, Layering, LayeringOptions};
 use mpiflow::raster::InstanceMasks;
 use mpiflow::sample::config::{InpaintMethod, MotionSpec, SampleConfig};
 use mpiflow::sample::error::SampleError;
-use mpiflow::sample::holes::inpaint_holes;
+use mpiflow::sample::holes::inpaint_background;
 use mpiflow::sample::merge::MergeRule;
 use mpiflow::sample::motion::{Component, Motion, MotionPreset, RigidLaw, RotationKind};
 use mpiflow::sample::object::ObjectChoice;
@@ -386,9 +386,10 @@ fn every_inpainting_method_fills_the_holes_as_the_whole_frame_call_does() {
         // ... where it changed the merge's pixels ...
         let changed = holes.iter().filter(|&&i| px(&s.image2, i) != px(&merged.image2, i)).count();
         assert!(changed * 2 > holes.len(), "{method:?}: only {changed} of {} hole pixels changed", holes.len());
-        // ... to what the inpainting function gives on the merged image over the whole frame
+        // ... to what the inpainting function gives on the merged image over the whole frame,
+        // from its background only (the moved object's pixels are no context)
         let mut direct = merged.image2.clone();
-        inpaint_holes(&mut direct, w, h, &hole, method, config.inpaint_radius, false);
+        inpaint_background(&mut direct, w, h, &hole, &merged.mask2, method, config.inpaint_radius, false);
         assert!(direct == s.image2, "{method:?}: the sample's holes differ from the whole-frame inpainting");
     }
     // the same address under objects_follow_camera (the option is part of the fingerprint, so

@@ -91,7 +91,7 @@ mod types;
 
 use front::{check_args, f32_hole, opencv_range, paper_radius, u8_hole};
 use opencv::opencv;
-use paper::paper;
+use paper::{paper, Pixels};
 pub use types::{GradientTerm, InpaintStats, TeleaOptions, DIR_FLOOR, MAX_RADIUS};
 
 /// Fills the pixels where `hole` is non-zero in `image` (H x W x `channels`, row-major, f32) with
@@ -133,7 +133,8 @@ pub fn inpaint_telea_with(
         return stats;
     }
     let radius = paper_radius(options.radius);
-    stats.max_distance = paper(image, width, height, channels, &is_hole, radius, options.gradient);
+    stats.max_distance =
+        paper(image, width, height, channels, Pixels { is_hole: &is_hole, excluded: None }, radius, options.gradient);
     stats
 }
 
@@ -165,6 +166,39 @@ pub fn inpaint_telea_u8_with(
     hole: &[u8],
     options: &TeleaOptions,
 ) -> InpaintStats {
+    telea_u8(image, width, height, channels, hole, None, options)
+}
+
+/// [`inpaint_telea_u8_with`] from context outside `excluded` only (H x W, true = not context):
+/// the excluded pixels are never read, the front does not start from them, and `grad T` leaves
+/// them out; hole pixels the front reaches only through excluded pixels (enclosed by them and the
+/// image border) are filled afterwards from everything around them. Excluded pixels are not
+/// changed.
+///
+/// # Panics
+/// As [`inpaint_telea`], and if `excluded.len() != width * height`.
+pub fn inpaint_telea_u8_excluding(
+    image: &mut [u8],
+    width: usize,
+    height: usize,
+    channels: usize,
+    hole: &[u8],
+    excluded: &[bool],
+    options: &TeleaOptions,
+) -> InpaintStats {
+    assert_eq!(excluded.len(), hole.len(), "inpaint: the excluded mask and the hole mask differ in size");
+    telea_u8(image, width, height, channels, hole, Some(excluded), options)
+}
+
+fn telea_u8(
+    image: &mut [u8],
+    width: usize,
+    height: usize,
+    channels: usize,
+    hole: &[u8],
+    excluded: Option<&[bool]>,
+    options: &TeleaOptions,
+) -> InpaintStats {
     let n = check_args(image.len(), width, height, channels, hole.len());
     let Some((is_hole, stats)) = u8_hole(n, hole) else {
         return InpaintStats::default();
@@ -175,7 +209,8 @@ pub fn inpaint_telea_u8_with(
     }
     let mut work: Vec<f32> = image.iter().map(|&v| f32::from(v)).collect();
     let radius = paper_radius(options.radius);
-    let max_distance = paper(&mut work, width, height, channels, &is_hole, radius, options.gradient);
+    let max_distance =
+        paper(&mut work, width, height, channels, Pixels { is_hole: &is_hole, excluded }, radius, options.gradient);
     for (i, _) in is_hole.iter().enumerate().filter(|(_, &h)| h) {
         for ch in 0..channels {
             let k = i * channels + ch;

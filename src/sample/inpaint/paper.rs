@@ -26,25 +26,39 @@ pub(super) fn disc(radius: f32) -> Vec<Offset> {
     out
 }
 
+/// The pixels to fill and those that are no context.
+#[derive(Clone, Copy)]
+pub(super) struct Pixels<'a> {
+    pub(super) is_hole: &'a [bool],
+    pub(super) excluded: Option<&'a [bool]>,
+}
+
 /// The paper's method on an image with at least one known and one hole pixel; returns the
-/// largest arrival time.
+/// largest arrival time. Pixels where `excluded` holds (outside the hole) are not context: never
+/// read, never a seed of the front, left out of `grad T`; hole pixels the front cannot reach
+/// without crossing them are filled afterwards by a second pass that reads them.
 pub(super) fn paper(
     img: &mut [f32],
     w: usize,
     h: usize,
     c: usize,
-    is_hole: &[bool],
+    pixels: Pixels<'_>,
     radius: f32,
     mode: GradientTerm,
 ) -> f32 {
+    let Pixels { is_hole, excluded } = pixels;
     let n = w * h;
-    let (t, order, max_distance) = arrival_times(w, h, is_hole, radius);
+    let known: Vec<bool> = match excluded {
+        None => is_hole.iter().map(|&hole| !hole).collect(),
+        Some(e) => is_hole.iter().zip(e).map(|(&hole, &x)| !hole && !x).collect(),
+    };
+    let (t, order, max_distance) = arrival_times(w, h, is_hole, &known, radius);
     let offsets = disc(radius);
-    let known: Vec<bool> = is_hole.iter().map(|&hole| !hole).collect();
     let mut avail = known.clone();
     let use_known_grad = mode != GradientTerm::Off;
     let propagate = mode == GradientTerm::Propagated;
-    let front = Front { grid: Grid::new(w, h), c, t: &t, known: &known, offsets: &offsets, use_known_grad, propagate };
+    let grid = Grid::new(w, h);
+    let front = Front { grid, c, t: &t, known: &known, excluded, offsets: &offsets, use_known_grad, propagate };
     // the gradient of a filled pixel (Propagated): the weighted mean of the gradients its value
     // was extrapolated with, per channel (x, y); indexed by fill rank
     let mut slot = vec![u32::MAX; if propagate { n } else { 0 }];
@@ -70,14 +84,20 @@ pub(super) fn paper(
         }
         avail[p] = true;
     }
+    if excluded.is_some() && order.len() < is_hole.iter().filter(|&&v| v).count() {
+        // hole pixels enclosed by excluded ones: filled from everything around them
+        let rest: Vec<bool> = is_hole.iter().zip(&avail).map(|(&hole, &a)| hole && !a).collect();
+        return max_distance.max(paper(img, w, h, c, Pixels { is_hole: &rest, excluded: None }, radius, mode));
+    }
     max_distance
 }
 
 /// The arrival times: inside the hole (and the fill order, with the largest time), then outside
 /// for the known pixels near the hole, negated.
-fn arrival_times(w: usize, h: usize, is_hole: &[bool], radius: f32) -> (Vec<f32>, Vec<u32>, f32) {
+fn arrival_times(w: usize, h: usize, is_hole: &[bool], known: &[bool], radius: f32) -> (Vec<f32>, Vec<u32>, f32) {
     let n = w * h;
-    let seeds = band(w, h, is_hole);
+    let mut seeds = band(w, h, is_hole);
+    seeds.retain(|&i| known[i as usize]);
     let mut t = vec![f32::INFINITY; n];
     // inside: the fill order
     let mut order = Vec::with_capacity(is_hole.iter().filter(|&&v| v).count());
@@ -85,7 +105,7 @@ fn arrival_times(w: usize, h: usize, is_hole: &[bool], radius: f32) -> (Vec<f32>
     let max_distance = order.last().map_or(0.0, |&i| t[i as usize]);
     // outside: distances of the known pixels near the hole, negated
     let limit = radius.ceil() * 1.5 + 2.0;
-    march(w, h, &mut t, |i| !is_hole[i], &seeds, limit, None);
+    march(w, h, &mut t, |i| known[i], &seeds, limit, None);
     for (ti, _) in t.iter_mut().zip(is_hole).filter(|(_, &hole)| !hole) {
         *ti = if ti.is_finite() { -*ti } else { -1.0e6 };
     }
@@ -99,6 +119,8 @@ struct Front<'a> {
     c: usize,
     t: &'a [f32],
     known: &'a [bool],
+    /// Pixels that are no context (see [`paper`]).
+    excluded: Option<&'a [bool]>,
     offsets: &'a [Offset],
     use_known_grad: bool,
     propagate: bool,
@@ -108,13 +130,15 @@ impl Front<'_> {
     /// The weighted sums over the available neighbours of the hole pixel `p`, per channel in
     /// `acc` (the extrapolated value, the gradient's x and y); returns the sum of the weights.
     fn accumulate(&self, img: &[f32], avail: &[bool], grads: &[f32], slot: &[u32], p: usize, acc: &mut [f64]) -> f64 {
-        let Front { grid, c, t, known, offsets, use_known_grad, propagate } = *self;
+        let Front { grid, c, t, known, excluded, offsets, use_known_grad, propagate } = *self;
         let Grid { w, h } = grid;
         let (px, py) = grid.xy(p);
         let tp = t[p];
-        // grad T at p: every in-image 4-neighbour of a hole pixel has a finite T
-        let gx = central(px > 0, px + 1 < w, || t[p - 1], || t[p + 1], tp);
-        let gy = central(py > 0, py + 1 < h, || t[p - w], || t[p + w], tp);
+        // grad T at p: every in-image 4-neighbour of a hole pixel that is not excluded has a
+        // finite T
+        let ok = |q: usize| excluded.is_none_or(|e| !e[q]);
+        let gx = central(px > 0 && ok(p - 1), px + 1 < w && ok(p + 1), || t[p - 1], || t[p + 1], tp);
+        let gy = central(py > 0 && ok(p - w), py + 1 < h && ok(p + w), || t[p - w], || t[p + w], tp);
         let norm = (gx * gx + gy * gy).sqrt();
         let isotropic = norm <= 1.0e-6;
         let (nx, ny) = if isotropic { (0.0, 0.0) } else { (gx / norm, gy / norm) };

@@ -101,3 +101,48 @@ fn single_pixel_hole_in_constant_image() {
     assert_eq!(st.filled, 1);
     assert!(img.iter().all(|&v| (v - 0.25).abs() < 1e-6), "{img:?}");
 }
+
+#[test]
+fn excluded_pixels_are_never_context_and_enclosed_holes_are_still_filled() {
+    // columns 0-5 known grey 100, 6-9 a hole, 10-13 excluded white, 14-19 known grey 100
+    let (w, h) = (20, 8);
+    let g = Grid::new(w, h);
+    let mut img = vec![100u8; 3 * w * h];
+    let mut hole = vec![0u8; w * h];
+    let mut excluded = vec![false; w * h];
+    for (x, y) in g.pixels() {
+        let i = g.index(x, y);
+        if (6..10).contains(&x) {
+            hole[i] = 1;
+            img[3 * i..3 * i + 3].fill(0);
+        } else if (10..14).contains(&x) {
+            excluded[i] = true;
+            img[3 * i..3 * i + 3].fill(255);
+        }
+    }
+    let options = TeleaOptions { radius: 5.0, gradient: GradientTerm::KnownOnly };
+    let (mut apart, mut plain) = (img.clone(), img.clone());
+    inpaint_telea_u8_excluding(&mut apart, w, h, 3, &hole, &excluded, &options);
+    inpaint_telea_u8_with(&mut plain, w, h, 3, &hole, &options);
+    for i in (0..w * h).filter(|&i| hole[i] != 0) {
+        assert_eq!(&apart[3 * i..3 * i + 3], &[100, 100, 100], "pixel {i}: read an excluded pixel");
+    }
+    assert!((0..w * h).any(|i| hole[i] != 0 && plain[3 * i] > 100), "without exclusion the white is read");
+    for i in (0..w * h).filter(|&i| excluded[i]) {
+        assert_eq!(&apart[3 * i..3 * i + 3], &[255, 255, 255], "excluded pixels are not changed");
+    }
+    // without any excluded pixel, the same bits as the plain fill
+    let mut none = img.clone();
+    inpaint_telea_u8_excluding(&mut none, w, h, 3, &hole, &vec![false; w * h], &options);
+    let mut again = img.clone();
+    inpaint_telea_u8_with(&mut again, w, h, 3, &hole, &options);
+    assert_eq!(none, again);
+    // a hole enclosed by excluded pixels (and the border) is filled from them
+    let mut enclosed = vec![255u8; 3 * w * h];
+    let mut small = vec![0u8; w * h];
+    small[g.index(0, 0)] = 1;
+    enclosed[..3].fill(0);
+    let ring: Vec<bool> = (0..w * h).map(|i| i != 0).collect();
+    inpaint_telea_u8_excluding(&mut enclosed, w, h, 3, &small, &ring, &options);
+    assert_eq!(&enclosed[..3], &[255, 255, 255]);
+}

@@ -15,7 +15,7 @@ use crate::sample::config::SampleConfig;
 use crate::sample::error::SampleError;
 use crate::sample::merge::ObjectView;
 use crate::sample::object::{
-    object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect,
+    object_footprint, object_window, render_full_with_mask, render_mask_window, scene_mask_window, support_rect,
 };
 use crate::scene::Scene;
 
@@ -25,10 +25,16 @@ pub(crate) fn ms(t: Instant) -> f64 {
 }
 
 /// The union mask of the moved objects (the scene mask channel is 1 - U); none without objects.
-pub(super) fn union_mask<'a>(scene: &'a Scene, chosen: &[usize]) -> Option<Cow<'a, [f32]>> {
+/// With `footprint` (the depth-aware merge) the moved objects' footprint instead
+/// ([`object_footprint`]: the masks grown past their soft edges and fringes).
+pub(super) fn union_mask<'a>(scene: &'a Scene, chosen: &[usize], footprint: bool) -> Option<Cow<'a, [f32]>> {
     let (w, h) = (scene.mpi.width, scene.mpi.height);
     match chosen {
         [] => None,
+        _ if footprint => {
+            let masks = chosen.iter().map(|&idx| scene.masks.masks[idx].mask.as_slice());
+            Some(Cow::Owned(object_footprint(masks, w, h)))
+        }
         [one] => Some(Cow::Borrowed(&scene.masks.masks[*one].mask)),
         many => {
             let mut u = crate::buf::zeros::<f32>(w * h);

@@ -99,6 +99,7 @@ use super::config::{InpaintMethod, SampleConfig};
 use super::crop::{clear_outside, crop_plane, crop_sample, crop_window, window_intrinsics, CropSpec};
 use super::error::SampleError;
 use super::holes::{fill_holes, label_continued, TextureSource};
+use super::merge::MergeRule;
 use super::preblend::preblend;
 use super::types::{Sample, SampleAddress, StageTimings};
 use crate::render::{Mode, Occupancy, Rect};
@@ -330,7 +331,7 @@ fn assemble_merged_sample(
     };
     let occupancy_ms = ms(t);
 
-    let union = union_mask(scene, &draws.chosen);
+    let union = union_mask(scene, &draws.chosen, config.merge == MergeRule::DepthAware);
     let chosen = draws.chosen.as_slice();
 
     let cam_traj = trajectory(&draws.cam_pose, config.frames);
