@@ -140,22 +140,23 @@ async fn a_batch_larger_than_the_share_of_the_budget_is_sent_in_parts() {
     assert!(seen <= 2_500, "{seen} bytes held against a budget of 2500");
 }
 
-/// Turns go to clients by the bytes of their samples, not one per call: with the worker the
-/// bottleneck (each sample takes 2 ms of its time) and two clients always ready, one asking for
-/// samples eight times the other's bytes gets about one sample for the other's eight
-/// (round-robin by turns would give one each).
+/// Turns go to clients by the worker time of their samples, not one per call and not by their
+/// bytes: with the worker the bottleneck and two clients always ready, one whose samples take
+/// eight times the other's work (and are an eighth of its bytes: cheap to send, dear to make)
+/// gets about one sample for the other's eight (round-robin by turns would give one each, turns
+/// by bytes sixty-four).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn turns_go_to_clients_by_the_bytes_of_their_samples() {
+async fn turns_go_to_clients_by_the_worker_time_of_their_samples() {
     use mpiflow::service::metrics::Metrics;
     use mpiflow::service::peer::PeerKey;
     use mpiflow::service::pool::{Client, Make, Produce, Scheduler, StreamSpec};
     use tokio_stream::StreamExt;
     let sched = Scheduler::new(1, 1, 1 << 30, Arc::new(Metrics::new())).unwrap();
-    let make = |n: usize| -> Make {
+    let make = |n: usize, rounds: u64| -> Make {
         Arc::new(move |i| {
             // the work of making a sample
-            std::thread::sleep(std::time::Duration::from_millis(2));
-            Ok(pb::Sample { index: i, source_id: "x".repeat(n), ..Default::default() })
+            let w = (0..rounds).fold(i, |a, r| work(a ^ r));
+            Ok(pb::Sample { index: i, seed: w, source_id: "x".repeat(n), ..Default::default() })
         })
     };
     let spec = StreamSpec {
@@ -168,22 +169,26 @@ async fn turns_go_to_clients_by_the_bytes_of_their_samples() {
         max_message_bytes: 1 << 20,
     };
     let client = |k: u32| Client { peer: PeerKey::V4(k), conn: None };
-    let mut big = sched.open_for(client(1), spec, Produce::new(make(8_000))).unwrap();
-    let mut small = sched.open_for(client(2), spec, Produce::new(make(1_000))).unwrap();
-    let big_got = Arc::new(AtomicU64::new(0));
-    let counter = big_got.clone();
+    let mut dear = sched.open_for(client(1), spec, Produce::new(make(1_000, 8))).unwrap();
+    let mut cheap = sched.open_for(client(2), spec, Produce::new(make(8_000, 1))).unwrap();
+    let dear_got = Arc::new(AtomicU64::new(0));
+    let counter = dear_got.clone();
     let reader = tokio::spawn(async move {
-        while let Some(b) = big.next().await {
+        while let Some(b) = dear.next().await {
             b.unwrap();
             counter.fetch_add(1, Ordering::SeqCst);
         }
     });
-    for _ in 0..400 {
-        small.next().await.unwrap().unwrap();
+    for _ in 0..200 {
+        cheap.next().await.unwrap().unwrap();
     }
-    let big_got = big_got.load(Ordering::SeqCst);
+    let dear_got = dear_got.load(Ordering::SeqCst);
+    let used = sched.stats().per_peer;
     reader.abort();
-    assert!((400 / 16..=400 / 4).contains(&big_got), "the large client got {big_got} samples for the small one's 400");
+    assert!((200 / 16..=200 / 4).contains(&dear_got), "the dear client got {dear_got} samples for the cheap one's 200");
+    // the scheduler's own accounting: the two took about the same worker time
+    let (d, c) = (used[0].work_ns as f64, used[1].work_ns as f64);
+    assert!(d < 2.0 * c && c < 2.0 * d, "worker time: dear {d} ns, cheap {c} ns");
 }
 
 /// Work of a few milliseconds that the compiler cannot skip.
