@@ -188,19 +188,12 @@ async fn requests_whose_largest_sample_does_not_fit_are_refused_before_any_work(
     check(c.get_sample(r).await.map(|_| ()).unwrap_err());
     let r = pb::SampleSpec { fields, frames: 8, ..Default::default() }.samples(vec![0]);
     check(c.get_samples(r).await.map(|_| ()).unwrap_err());
-    // a clip asking only `valid` is small to send, but its eight frames are rendered: 160 MB of
-    // workspace while it is made, over the budget
-    let valid = vec![pb::Field::Valid as i32];
-    let r = pb::SampleSpec { fields: valid.clone(), frames: 8, ..Default::default() }.stream();
-    let e = c.stream_samples(r).await.map(|_| ()).unwrap_err();
-    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
-    assert!(e.message().contains("while it is made") && e.message().contains("max_buffered_mb"), "{e:?}");
     // and with lanczos3 its work is over max_sample_work (88 million units; a pair of bspline3 is
     // 9.8 million)
+    let valid = vec![pb::Field::Valid as i32];
     let lanczos = pb::SampleSpec { fields: valid, frames: 8, resample: "lanczos3".into(), ..Default::default() };
     let e = c.get_sample(lanczos.sample(0)).await.map(|_| ()).unwrap_err();
-    assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
-    assert!(e.message().contains("max_sample_work = 64") && e.message().contains("lanczos3"), "{e:?}");
+    assert!(e.code() == Code::ResourceExhausted && e.message().contains("max_sample_work = 64;"), "{e:?}");
     // nothing was started for them (the warm-up sample's stream aside, gone once it is made)
     until("the warm-up sample is made", || s.state.is_serving()).await;
     assert_eq!(s.state.scheduler.stats().streams, 0);
@@ -961,121 +954,5 @@ async fn unfinished_calls_of_one_client_are_bounded() {
     let answered = raw_request(&mut other, "/grpc.health.v1.Health/Check", &[], &[]).await;
     assert_eq!(header_status(&answered), None, "another client's call is answered");
     drop(held);
-    s.shutdown(Duration::from_millis(500)).await;
-}
-
-/// A prompt reader of cheap-to-send expensive samples gets no more than its share of the workers'
-/// time: one address keeps 16 streams of 8-frame clips asking only `valid` with LZ4 (a few hundred
-/// bytes each, several pairs' worker time) and takes every message at once; an honest trainer
-/// beside it takes 48 pairs of the default fields (a hundred times the clips' bytes). By the
-/// server's own accounting, while the trainer's stream runs the attacker's samples take about the
-/// worker time the trainer's take, not more (turns by bytes would give the clips nearly every
-/// turn), and the trainer gets every sample in order.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_prompt_reader_of_cheap_to_send_expensive_samples_gets_no_more_than_its_share() {
-    use mpiflow::service::peer::PeerKey;
-    let s = server(config()).await;
-    until("the warm-up sample is made", || s.state.is_serving()).await;
-    let (send, _conn) = h2_connection_from([127, 0, 5, 2], s.addr, 1 << 20).await;
-    let clip = pb::SampleSpec {
-        seed: 9,
-        frames: 8,
-        fields: vec![pb::Field::Valid as i32],
-        compression: pb::Compression::Lz4 as i32,
-        ..Default::default()
-    };
-    let mut readers = Vec::new();
-    for k in 0..16u64 {
-        let req = pb::StreamRequest { start_index: k << 32, ..clip.clone().stream() }.encode_to_vec();
-        let mut send = send.clone();
-        readers.push(tokio::spawn(async move {
-            let mut body = raw_call(&mut send, "StreamSamples", &req).await.into_body();
-            while let Some(Ok(chunk)) = body.data().await {
-                let _ = body.flow_control().release_capacity(chunk.len());
-            }
-        }));
-    }
-    let key = |ip: [u8; 4]| PeerKey::of(std::net::Ipv4Addr::from(ip).into());
-    let (attacker, trainer) = (key([127, 0, 5, 2]), key([127, 0, 0, 1]));
-    let use_of = |peer| {
-        let stats = s.state.scheduler.stats().per_peer;
-        stats.iter().find(|u| u.peer == peer).copied().unwrap_or(mpiflow::service::pool::PeerUse {
-            peer,
-            work_ns: 0,
-            samples: 0,
-        })
-    };
-    until("the attack's clips are made and read", || use_of(attacker).samples >= 32).await;
-    let clips_before = use_of(attacker);
-
-    // the trainer's stream is endless: its use is read while it is open, after 48 samples
-    let mut honest = client(s.addr).await;
-    let req = pb::SampleSpec { seed: 5, ..Default::default() }.stream();
-    let mut stream = honest.stream_samples(req).await.unwrap().into_inner();
-    let mut got = Vec::new();
-    while got.len() < 48 {
-        let b = tokio::time::timeout(Duration::from_secs(60), stream.message()).await.expect("served").unwrap();
-        got.extend(b.expect("an endless stream").samples.iter().map(|x| x.index));
-    }
-    let (clips, pairs) = (use_of(attacker), use_of(trainer));
-    drop(stream);
-    assert!(pairs.samples >= 40, "{pairs:?}");
-    assert_eq!(got[..48], (0..48).collect::<Vec<_>>());
-    let clip_ns = clips_before.work_ns / clips_before.samples.max(1);
-    let pair_ns = pairs.work_ns / pairs.samples.max(1);
-    let (attack_ns, honest_ns) = (clips.work_ns - clips_before.work_ns, pairs.work_ns);
-    assert!(clip_ns > 2 * pair_ns, "a clip takes {clip_ns} ns of a worker, a pair {pair_ns} ns");
-    // fair queueing by worker time: the two share the workers; the slack is the clips already
-    // running when the trainer came and those running when it left (at most max_in_flight each)
-    let slack = 2 * s.state.scheduler.capacity() as u64 * clip_ns;
-    assert!(
-        attack_ns <= 2 * honest_ns + slack,
-        "while the trainer's 48 pairs took {honest_ns} ns of the workers, the attacker's {} clips took {attack_ns} ns",
-        clips.samples - clips_before.samples
-    );
-    for r in readers {
-        r.abort();
-    }
-    s.shutdown(Duration::from_millis(500)).await;
-}
-
-/// Samples being made count in the byte budget: each running job reserves its sample's workspace
-/// (its frames' render buffers and raw tensors) from dispatch until it is done. With a budget
-/// that holds one 8-frame clip of every field in making and not two, a reader's stream of such
-/// clips on two workers never has two made at once, and what the server holds (`buffered`, the
-/// workspace included) never goes over the budget; pairs, whose workspace is small, are made
-/// two or more at a time under the same budget.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn samples_being_made_count_in_the_byte_budget() {
-    const MIB: u64 = 1 << 20;
-    let s = server(ServiceConfig { max_buffered_mb: 4, ..config() }).await;
-    until("the warm-up sample is made", || s.state.is_serving()).await;
-    let mut c = client(s.addr).await;
-    let every: Vec<i32> = (1..=13).collect();
-    let clips = pb::StreamRequest {
-        count: 12,
-        prefetch: 4,
-        ..pb::SampleSpec { seed: 3, frames: 8, fields: every, ..Default::default() }.stream()
-    };
-    let mut stream = c.stream_samples(clips).await.unwrap().into_inner();
-    let mut n = 0;
-    let mut making = 0;
-    while let Some(b) = stream.message().await.unwrap() {
-        n += b.samples.len();
-        making = making.max(s.state.scheduler.stats().making);
-    }
-    assert_eq!(n, 12);
-    let st = s.state.scheduler.stats();
-    assert_eq!(st.max_in_flight_seen, 1, "two clips of 2.2 MB workspace each were never made at once: {st:?}");
-    assert!(st.max_buffered_seen <= 4 * MIB, "{st:?}");
-    assert!(making <= 4 * MIB, "{making}");
-    assert_eq!((st.buffered, st.making), (0, 0), "{st:?}");
-    let pairs =
-        pb::StreamRequest { count: 24, prefetch: 8, ..pb::SampleSpec { seed: 3, ..Default::default() }.stream() };
-    let mut stream = c.stream_samples(pairs).await.unwrap().into_inner();
-    while stream.message().await.unwrap().is_some() {}
-    let st = s.state.scheduler.stats();
-    assert!(st.max_in_flight_seen >= 2, "{st:?}");
-    assert!(st.max_buffered_seen <= 4 * MIB, "{st:?}");
     s.shutdown(Duration::from_millis(500)).await;
 }

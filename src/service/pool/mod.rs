@@ -51,7 +51,7 @@
 //! has room for it), and, for each running job, a reservation ([`StreamShared::reserve`]): the
 //! job's bound from its request (`validate::admit_size`) until the stream's first sample is
 //! made, then that sample's size plus an eighth. A running job also reserves its sample's
-//! workspace (`service::work::workspace`: the renderer's buffers of each frame and the raw
+//! workspace, [`Produce::workspace`] (`service::work::workspace`; the service sets 0 for now: the renderer's buffers of each frame and the raw
 //! tensors, estimated from the request's size, frames and fields), from dispatch until it is
 //! done; the workspace counts in the budget's total (`mpiflow_buffered_bytes`), not in the
 //! stream's share, so the samples being made are within the budget too and the shares still

@@ -459,7 +459,7 @@ impl Scheduler {
     }
 
     /// Makes room for a stream that may not start for want of it while its peer holds less than
-    /// its share or its client is first in line: the streams of peers over their share drop their finished samples down to
+    /// its share: the streams of peers over their share drop their finished samples down to
     /// their share (made again when read), and a connection whose message has waited in the
     /// transport for [`UNREAD_GRACE`], its client taking none of its bytes as long, is closed
     /// (its calls end, their bytes are freed) and its client put in time out ([`Penalty`]).
@@ -469,11 +469,9 @@ impl Scheduler {
         }
         let room = self.room();
         let first = self.first_in_line(s, Instant::now());
-        // a stream waits for room while its peer holds less than its share, or its client is
-        // first in line (a sample's workspace may need more room than a share)
         let starving = s.streams.iter().any(|st| {
             let g = lock(&st.state);
-            (st.group.held.load(Ordering::Acquire) < st.group.share.load(Ordering::Acquire) || Some(st.peer) == first)
+            st.group.held.load(Ordering::Acquire) < st.group.share.load(Ordering::Acquire)
                 && !st.eligible(&g, room, self.spare(room, Some(st.peer) == first))
                 && st.eligible(&g, u64::MAX, u64::MAX)
         });
