@@ -211,6 +211,10 @@ pub struct ServiceConfig {
     /// Concurrent GetSample and GetSamples calls from one client address (unsent replies
     /// included); more are refused with RESOURCE_EXHAUSTED.
     pub max_random_access_calls: usize,
+    /// The most work one sample of a request may take, in millions of work units (its pixels x
+    /// frames x the taps of its resampling kernel: `service::work`); a request whose largest
+    /// sample would take more is refused with RESOURCE_EXHAUSTED before any work, naming it.
+    pub max_sample_work: u64,
     /// Most uploads in progress at once; more are RESOURCE_EXHAUSTED with nothing kept.
     pub max_concurrent_uploads: usize,
     /// Most MiB held by all uploads in progress together (received, not yet committed); over it
@@ -285,6 +289,7 @@ impl Default for ServiceConfig {
             idle_connection_timeout_s: 20.0,
             stall_timeout_s: 120.0,
             max_random_access_calls: 32,
+            max_sample_work: 1024,
             max_concurrent_uploads: 4,
             max_upload_buffer_mb: 512,
             size: None,
@@ -337,6 +342,9 @@ impl ServiceConfig {
         }
         if self.max_random_access_calls == 0 {
             return bad("max_random_access_calls = 0 (expected at least 1)".into());
+        }
+        if self.max_sample_work == 0 {
+            return bad("max_sample_work = 0 (expected at least 1)".into());
         }
         if self.max_concurrent_uploads == 0 || self.max_upload_buffer_mb == 0 {
             return bad("max_concurrent_uploads and max_upload_buffer_mb must be at least 1".into());
@@ -473,6 +481,7 @@ impl ServiceConfig {
             ("max_connections_per_peer", self.max_connections_per_peer as u64, MAX_COUNT),
             ("max_calls_per_connection", u64::from(self.max_calls_per_connection), MAX_COUNT),
             ("max_random_access_calls", self.max_random_access_calls as u64, MAX_COUNT),
+            ("max_sample_work", self.max_sample_work, MAX_COUNT),
             ("max_concurrent_uploads", self.max_concurrent_uploads as u64, MAX_COUNT),
             ("default_prefetch", u64::from(self.default_prefetch), u64::from(MAX_PREFETCH)),
             ("max_prefetch", u64::from(self.max_prefetch), u64::from(MAX_PREFETCH)),

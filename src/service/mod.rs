@@ -44,6 +44,7 @@ pub mod spec;
 pub mod stall;
 pub mod tensor;
 pub mod validate;
+pub mod work;
 
 pub use config::ServiceConfig;
 pub use error::ServiceError;

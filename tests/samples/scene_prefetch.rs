@@ -58,10 +58,14 @@ async fn a_ready_scene_never_waits_for_one_being_built() {
         w.lock().unwrap().push(done);
         false
     });
-    let mut slow = sched.open(spec(6), Produce { make: slow_make, prepare: Some(slow_prepare), bound: 0 }).unwrap();
+    let mut slow = sched
+        .open(spec(6), Produce { make: slow_make, prepare: Some(slow_prepare), bound: 0, work: 0, workspace: 0 })
+        .unwrap();
     let ready_prepare: Prepare = Arc::new(|_, _| true);
     let ready_make: Make = Arc::new(|i| Ok(sample(i)));
-    let mut fast = sched.open(spec(20), Produce { make: ready_make, prepare: Some(ready_prepare), bound: 0 }).unwrap();
+    let mut fast = sched
+        .open(spec(20), Produce { make: ready_make, prepare: Some(ready_prepare), bound: 0, work: 0, workspace: 0 })
+        .unwrap();
 
     let deadline = Duration::from_secs(60);
     let mut got = Vec::new();

@@ -1,7 +1,8 @@
 //! No stream waits behind another: while one client reads a stream as fast as it comes (every
 //! worker busy), clients that open streams and GetSamples calls and drop them after 0 to 3
 //! messages each get every message they wait for within a bounded number of the busy stream's
-//! samples. Real server on loopback, real clients; counted in samples, not seconds.
+//! samples; and turns go by the worker time samples take, not by their bytes. Real server on
+//! loopback, real clients; counted in samples and in the server's own accounting, not seconds.
 //!
 //! The case, from the soak: on one shared rayon pool a worker whose `join` waits (the renderer's
 //! parallel loops) runs newer jobs nested on its stack, and the older job cannot finish before
@@ -10,6 +11,7 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use mpiflow::service::client::client_for;
 use mpiflow::service::pb;
@@ -92,7 +94,7 @@ async fn clients_that_open_and_drop_streams_are_not_starved_by_a_busy_stream() {
     let (wa, wb) = (a.await.unwrap(), bb.await.unwrap());
     let total = busy.load(Ordering::SeqCst);
     reader.abort();
-    s.shutdown(std::time::Duration::from_secs(5)).await;
+    s.shutdown(Duration::from_secs(5)).await;
     assert!(total > 100 && total < FEED, "the busy stream kept the workers busy ({total} samples)");
     for (seed, (waited, round)) in [(7, wa), (11, wb)] {
         assert!(
@@ -125,9 +127,7 @@ async fn a_batch_larger_than_the_share_of_the_budget_is_sent_in_parts() {
     let mut st = sched.open(spec, Produce::new(make)).unwrap();
     let mut got = Vec::new();
     let mut batches = 0;
-    while let Some(b) =
-        tokio::time::timeout(std::time::Duration::from_secs(60), st.next()).await.expect("the stream stalled")
-    {
+    while let Some(b) = tokio::time::timeout(Duration::from_secs(60), st.next()).await.expect("the stream stalled") {
         let b = b.unwrap();
         // ~1 kB each: the 2.5 kB share holds two (a stream holding nothing starts one more)
         assert!((1..=2).contains(&b.samples.len()), "a batch of {} samples", b.samples.len());
@@ -140,22 +140,23 @@ async fn a_batch_larger_than_the_share_of_the_budget_is_sent_in_parts() {
     assert!(seen <= 2_500, "{seen} bytes held against a budget of 2500");
 }
 
-/// Turns go to clients by the bytes of their samples, not one per call: with the worker the
-/// bottleneck (each sample takes 2 ms of its time) and two clients always ready, one asking for
-/// samples eight times the other's bytes gets about one sample for the other's eight
-/// (round-robin by turns would give one each).
+/// Turns go to clients by the worker time of their samples, not one per call and not by their
+/// bytes: with the worker the bottleneck and two clients always ready, one whose samples take
+/// eight times the other's work (and are an eighth of its bytes: cheap to send, dear to make)
+/// gets about one sample for the other's eight (round-robin by turns would give one each, turns
+/// by bytes sixty-four).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn turns_go_to_clients_by_the_bytes_of_their_samples() {
+async fn turns_go_to_clients_by_the_worker_time_of_their_samples() {
     use mpiflow::service::metrics::Metrics;
     use mpiflow::service::peer::PeerKey;
     use mpiflow::service::pool::{Client, Make, Produce, Scheduler, StreamSpec};
     use tokio_stream::StreamExt;
     let sched = Scheduler::new(1, 1, 1 << 30, Arc::new(Metrics::new())).unwrap();
-    let make = |n: usize| -> Make {
+    let make = |n: usize, rounds: u64| -> Make {
         Arc::new(move |i| {
             // the work of making a sample
-            std::thread::sleep(std::time::Duration::from_millis(2));
-            Ok(pb::Sample { index: i, source_id: "x".repeat(n), ..Default::default() })
+            let w = (0..rounds).fold(i, |a, r| work(a ^ r));
+            Ok(pb::Sample { index: i, seed: w, source_id: "x".repeat(n), ..Default::default() })
         })
     };
     let spec = StreamSpec {
@@ -168,22 +169,26 @@ async fn turns_go_to_clients_by_the_bytes_of_their_samples() {
         max_message_bytes: 1 << 20,
     };
     let client = |k: u32| Client { peer: PeerKey::V4(k), conn: None };
-    let mut big = sched.open_for(client(1), spec, Produce::new(make(8_000))).unwrap();
-    let mut small = sched.open_for(client(2), spec, Produce::new(make(1_000))).unwrap();
-    let big_got = Arc::new(AtomicU64::new(0));
-    let counter = big_got.clone();
+    let mut dear = sched.open_for(client(1), spec, Produce::new(make(1_000, 8))).unwrap();
+    let mut cheap = sched.open_for(client(2), spec, Produce::new(make(8_000, 1))).unwrap();
+    let dear_got = Arc::new(AtomicU64::new(0));
+    let counter = dear_got.clone();
     let reader = tokio::spawn(async move {
-        while let Some(b) = big.next().await {
+        while let Some(b) = dear.next().await {
             b.unwrap();
             counter.fetch_add(1, Ordering::SeqCst);
         }
     });
-    for _ in 0..400 {
-        small.next().await.unwrap().unwrap();
+    for _ in 0..200 {
+        cheap.next().await.unwrap().unwrap();
     }
-    let big_got = big_got.load(Ordering::SeqCst);
+    let dear_got = dear_got.load(Ordering::SeqCst);
+    let used = sched.stats().per_peer;
     reader.abort();
-    assert!((400 / 16..=400 / 4).contains(&big_got), "the large client got {big_got} samples for the small one's 400");
+    assert!((200 / 16..=200 / 4).contains(&dear_got), "the dear client got {dear_got} samples for the cheap one's 200");
+    // the scheduler's own accounting: the two took about the same worker time
+    let (d, c) = (used[0].work_ns as f64, used[1].work_ns as f64);
+    assert!(d < 2.0 * c && c < 2.0 * d, "worker time: dear {d} ns, cheap {c} ns");
 }
 
 /// Work of a few milliseconds that the compiler cannot skip.
@@ -264,4 +269,119 @@ async fn clients_that_do_not_read_take_one_worker_at_most_while_a_client_reads()
     );
     assert!(made.load(Ordering::SeqCst) > made_before_20, "the clients that do not read are not shut out");
     drop(others);
+}
+
+/// Waits until `done()` holds (an observable state), checking it every few milliseconds; the
+/// deadline only turns a hang into a failure.
+async fn until(what: &str, mut done: impl FnMut() -> bool) {
+    let wait = async {
+        while !done() {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    };
+    tokio::time::timeout(Duration::from_secs(120), wait).await.unwrap_or_else(|_| panic!("never: {what}"));
+}
+
+/// A StreamSamples call of `req` (one gRPC message) on a raw HTTP/2 connection; its reply.
+async fn stream_call(send: &mut h2::client::SendRequest<bytes::Bytes>, req: Vec<u8>) -> http::Response<h2::RecvStream> {
+    let head = http::Request::post("http://localhost/mpiflow.v1.MpiFlow/StreamSamples")
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .body(())
+        .unwrap();
+    let mut ready = send.clone().ready().await.unwrap();
+    let (response, mut body) = ready.send_request(head, false).unwrap();
+    let mut frame = vec![0u8];
+    frame.extend_from_slice(&(req.len() as u32).to_be_bytes());
+    frame.extend_from_slice(&req);
+    body.send_data(bytes::Bytes::from(frame), true).unwrap();
+    *send = ready;
+    response.await.expect("reply headers")
+}
+
+/// A prompt reader of cheap-to-send expensive samples gets no more than its share of the workers'
+/// time: one address keeps 16 streams of 8-frame clips asking only `valid` with LZ4 (a few hundred
+/// bytes each, several pairs' worker time) and takes every message at once; an honest trainer
+/// beside it takes 48 pairs of the default fields (a hundred times the clips' bytes). By the
+/// server's own accounting, while the trainer's stream runs the attacker's samples take about the
+/// worker time the trainer's take, not more (turns by bytes would give the clips nearly every
+/// turn), and the trainer gets every sample in order.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_prompt_reader_of_cheap_to_send_expensive_samples_gets_no_more_than_its_share() {
+    use mpiflow::service::peer::PeerKey;
+    let s = start(ServiceConfig {
+        addr: "127.0.0.1:0".into(),
+        size: Some("64x48".into()),
+        workers: 2,
+        log_level: "warn".into(),
+        ..ServiceConfig::default()
+    })
+    .await
+    .expect("server starts");
+    until("the warm-up sample is made", || s.state.is_serving()).await;
+    let socket = tokio::net::TcpSocket::new_v4().unwrap();
+    socket.bind((std::net::Ipv4Addr::new(127, 0, 5, 2), 0).into()).expect("binds a loopback address");
+    let tcp = socket.connect(s.addr).await.unwrap();
+    let (send, conn) = h2::client::Builder::new().initial_window_size(1 << 20).handshake(tcp).await.expect("HTTP/2");
+    let _conn = tokio::spawn(conn);
+    let clip = pb::SampleSpec {
+        seed: 9,
+        frames: 8,
+        fields: vec![pb::Field::Valid as i32],
+        compression: pb::Compression::Lz4 as i32,
+        ..Default::default()
+    };
+    let mut readers = Vec::new();
+    for k in 0..16u64 {
+        let req = prost::Message::encode_to_vec(&pb::StreamRequest { start_index: k << 32, ..clip.clone().stream() });
+        let mut send = send.clone();
+        readers.push(tokio::spawn(async move {
+            let mut body = stream_call(&mut send, req).await.into_body();
+            while let Some(Ok(chunk)) = body.data().await {
+                let _ = body.flow_control().release_capacity(chunk.len());
+            }
+        }));
+    }
+    let key = |ip: [u8; 4]| PeerKey::of(std::net::Ipv4Addr::from(ip).into());
+    let (attacker, trainer) = (key([127, 0, 5, 2]), key([127, 0, 0, 1]));
+    let use_of = |peer| {
+        let stats = s.state.scheduler.stats().per_peer;
+        stats.iter().find(|u| u.peer == peer).copied().unwrap_or(mpiflow::service::pool::PeerUse {
+            peer,
+            work_ns: 0,
+            samples: 0,
+        })
+    };
+    until("the attack's clips are made and read", || use_of(attacker).samples >= 32).await;
+    let clips_before = use_of(attacker);
+
+    // the trainer's stream is endless: its use is read while it is open, after 48 samples
+    let mut honest = client_for(Endpoint::from_shared(format!("http://{}", s.addr)).unwrap().connect().await.unwrap());
+    let req = pb::SampleSpec { seed: 5, ..Default::default() }.stream();
+    let mut stream = honest.stream_samples(req).await.unwrap().into_inner();
+    let mut got = Vec::new();
+    while got.len() < 48 {
+        let b = tokio::time::timeout(Duration::from_secs(60), stream.message()).await.expect("served").unwrap();
+        got.extend(b.expect("an endless stream").samples.iter().map(|x| x.index));
+    }
+    let (clips, pairs) = (use_of(attacker), use_of(trainer));
+    drop(stream);
+    assert!(pairs.samples >= 40, "{pairs:?}");
+    assert_eq!(got[..48], (0..48).collect::<Vec<_>>());
+    let clip_ns = clips_before.work_ns / clips_before.samples.max(1);
+    let pair_ns = pairs.work_ns / pairs.samples.max(1);
+    let (attack_ns, honest_ns) = (clips.work_ns - clips_before.work_ns, pairs.work_ns);
+    assert!(clip_ns > 2 * pair_ns, "a clip takes {clip_ns} ns of a worker, a pair {pair_ns} ns");
+    // fair queueing by worker time: the two share the workers; the slack is the clips already
+    // running when the trainer came and those running when it left (at most max_in_flight each)
+    let slack = 2 * s.state.scheduler.capacity() as u64 * clip_ns;
+    assert!(
+        attack_ns <= 2 * honest_ns + slack,
+        "while the trainer's 48 pairs took {honest_ns} ns of the workers, the attacker's {} clips took {attack_ns} ns",
+        clips.samples - clips_before.samples
+    );
+    for r in readers {
+        r.abort();
+    }
+    s.shutdown(Duration::from_millis(500)).await;
 }

@@ -170,9 +170,11 @@ async fn requests_whose_largest_sample_does_not_fit_are_refused_before_any_work(
     assert!(e.message().starts_with("augment.crop: 8192x8192") && e.message().contains("max_image_pixels"), "{e:?}");
     s.shutdown(Duration::from_millis(500)).await;
 
-    // 640x480 and 8 MiB of budget: a pair of the default fields (4.6 MB) fits, a clip of eight
-    // frames with every field (54 MB) does not
-    let s = server(ServiceConfig { size: Some("640x480".into()), max_buffered_mb: 8, ..config() }).await;
+    // 640x480 and 48 MiB of budget: a pair of the default fields (4.6 MB sent, 44 MB while it is
+    // made) fits, a clip of eight frames with every field (54 MB) does not
+    let s =
+        server(ServiceConfig { size: Some("640x480".into()), max_buffered_mb: 48, max_sample_work: 64, ..config() })
+            .await;
     let mut c = client(s.addr).await;
     let fields: Vec<i32> = (1..=13).collect();
     let check = |e: tonic::Status| {
@@ -186,6 +188,12 @@ async fn requests_whose_largest_sample_does_not_fit_are_refused_before_any_work(
     check(c.get_sample(r).await.map(|_| ()).unwrap_err());
     let r = pb::SampleSpec { fields, frames: 8, ..Default::default() }.samples(vec![0]);
     check(c.get_samples(r).await.map(|_| ()).unwrap_err());
+    // and with lanczos3 its work is over max_sample_work (88 million units; a pair of bspline3 is
+    // 9.8 million)
+    let valid = vec![pb::Field::Valid as i32];
+    let lanczos = pb::SampleSpec { fields: valid, frames: 8, resample: "lanczos3".into(), ..Default::default() };
+    let e = c.get_sample(lanczos.sample(0)).await.map(|_| ()).unwrap_err();
+    assert!(e.code() == Code::ResourceExhausted && e.message().contains("max_sample_work = 64;"), "{e:?}");
     // nothing was started for them (the warm-up sample's stream aside, gone once it is made)
     until("the warm-up sample is made", || s.state.is_serving()).await;
     assert_eq!(s.state.scheduler.stats().streams, 0);

@@ -1,7 +1,7 @@
 //! The worker pool: samples are made on worker threads (never on tokio threads) that take their
 //! jobs in the order they were started, each stream keeps a bounded queue (its prefetch depth),
 //! the total number of samples being made is bounded, and free slots go first to the client
-//! (peer: [`PeerKey`]) that has used the least, by its samples' bytes, then round-robin to that
+//! (peer: [`PeerKey`]) that has used the least, by its samples' worker time, then round-robin to that
 //! client's streams, so that one client's many calls take one client's turn.
 //!
 //! # How it works
@@ -50,8 +50,14 @@
 //! handed to the transport (until the transport asks for the next one, which it does once it
 //! has room for it), and, for each running job, a reservation ([`StreamShared::reserve`]): the
 //! job's bound from its request (`validate::admit_size`) until the stream's first sample is
-//! made, then that sample's size plus an eighth. No job starts unless its
-//! reservation fits what the budget has left. Within that, a stream may start a job while what it
+//! made, then that sample's size plus an eighth. A running job also reserves its sample's
+//! workspace, [`Produce::workspace`] (`service::work::workspace`; the service sets 0 for now: the renderer's buffers of each frame and the raw
+//! tensors, estimated from the request's size, frames and fields), from dispatch until it is
+//! done; the workspace counts in the budget's total (`mpiflow_buffered_bytes`), not in the
+//! stream's share, so the samples being made are within the budget too and the shares still
+//! divide what clients are sent. No job starts unless its reservation and its workspace fit what
+//! the budget has left; a request whose largest sample's workspace and bound are over the budget is
+//! refused before any work (`service::work::admit_workspace`). Within that, a stream may start a job while what it
 //! holds plus the reservation stays within its fair share, `budget / peers with open streams /
 //! the peer's open streams`; a stream holding nothing may start one while its peer holds less
 //! than the peer's share. Beyond its share a stream may go on while the budget has room, but only
@@ -81,13 +87,21 @@
 //!
 //! # Fairness by cost
 //!
-//! Turns go to peers by the bytes of the samples they were given ([`Scheduler::next_eligible`]),
-//! a proxy of pixels x frames x fields: the job that would finish first on a virtual clock of
-//! bytes goes first (weighted fair queueing), so a peer asking for 8-frame clips with every
-//! field waits its turn as long as the bytes it asked for take, not one turn per call, and many
-//! newcomers asking for clips do not each go ahead of a client of pairs already waiting. A
-//! peer's use is kept for a while after its last call ends (a client of GetSample calls, one
-//! at a time, keeps its place).
+//! Turns go to peers by the worker time of the samples they were given
+//! ([`Scheduler::next_eligible`]): the job that would finish first on a virtual clock of worker
+//! nanoseconds goes first (weighted fair queueing), so a peer asking for 8-frame clips waits its
+//! turn as long as its clips take the workers, not one turn per call, and not by the bytes it is
+//! sent (a clip asking only `valid` with LZ4 is a few hundred bytes and takes a worker longer than
+//! a pair of every field). A job is charged at dispatch what the stream's latest sample took
+//! (each worker's time on the CPU while it made it: `meter`), or, before the stream's first
+//! sample, its request's work units (`service::work`: pixels x frames x kernel taps) at the rate
+//! the samples made so far have set; once done, the peer's use is set right by what it took. Use
+//! is compared only between the peers with jobs to start, on one clock: a peer new to the
+//! dispatch starts at the clock, and one idle for a while keeps at most [`CREDIT`] of credit
+//! below it, so what a client used long ago fades instead of counting for ever. A peer's use is
+//! kept for a while after its last call ends (a client of GetSample calls, one at a time, keeps
+//! its place). A request whose largest sample is over `max_sample_work` is refused before any
+//! work (`service::work::admit`).
 //!
 //! # Clients that read go first
 //!
@@ -101,6 +115,7 @@
 //! Fifty addresses that ask for clips and never read them cost the workers at most one clip at a
 //! time and an eighth of their time, instead of every worker for as long as the clips take.
 
+mod meter;
 mod sched;
 mod scheduler;
 mod stream;
@@ -113,8 +128,10 @@ use super::error::ServiceError;
 use super::pb;
 use super::peer::PeerKey;
 
+pub use meter::FIRST_NS_PER_UNIT;
+pub use sched::CREDIT;
 pub use sched::{HEADROOM_DIVISOR, OTHERS_SHARE, PENALTY_FIRST, PENALTY_MAX};
-pub use scheduler::{SampleStream, Scheduler, SchedulerStats};
+pub use scheduler::{PeerUse, SampleStream, Scheduler, SchedulerStats};
 pub use stream::StreamShared;
 
 pub(super) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -139,13 +156,20 @@ pub struct Produce {
     /// The encoded size no sample of the job exceeds (`validate::admit_size`); 0 = not known.
     /// A job is reserved this much in the budget until the stream's first sample says its size.
     pub bound: u64,
+    /// The work units of one sample (`service::work`): what a job is charged in worker time,
+    /// at the rate the samples made have set, until the stream's first sample says what it
+    /// takes; 0 = not known (charged next to nothing until then).
+    pub work: u64,
+    /// The bytes a sample takes on its worker while it is made, besides its encoded bytes
+    /// (`service::work::workspace`): reserved in the budget from dispatch until it is done.
+    pub workspace: u64,
 }
 
 impl Produce {
     /// A job with nothing to prepare (every sample is made straight away on a worker) and no
     /// known bound.
     pub fn new(make: Make) -> Self {
-        Produce { make, prepare: None, bound: 0 }
+        Produce { make, prepare: None, bound: 0, work: 0, workspace: 0 }
     }
 }
 

@@ -5,6 +5,7 @@ use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Instant;
 
+use super::meter::Rate;
 use super::stream::{PeerGroup, StreamShared};
 use crate::service::peer::PeerKey;
 
@@ -35,7 +36,15 @@ pub(super) struct Sched {
     pub(super) others_in_flight: usize,
     /// The workers' recent time on the jobs of clients that are not reading, against all.
     pub(super) busy: Busy,
+    /// Worker nanoseconds per work unit, learnt from the samples made.
+    pub(super) rate: Rate,
 }
+
+/// A peer that has used less worker time than the dispatch's clock, idle for a while, counts
+/// from this much below it: its credit is at most this much of the workers' time, so a client
+/// that waited long does not take every worker for as long when it comes back. (Use older than
+/// that is forgotten: only the clients with jobs to start now are compared, on one clock.)
+pub const CREDIT: std::time::Duration = std::time::Duration::from_secs(2);
 
 /// The workers' recent time on the jobs of clients that are not reading
 /// (`Scheduler::reading`), each second of it decayed by `exp(-age / BUSY_DECAY_S)`.
@@ -127,7 +136,7 @@ impl Sched {
 /// A peer's next job as the dispatch sees it (`Scheduler::tags`).
 #[derive(Clone)]
 pub(super) struct Tag {
-    /// Where the job starts on the virtual clock (the peer's use, at least a budget below the
+    /// Where the job starts on the virtual clock (the peer's use, at most [`CREDIT`] below the
     /// clock) and where it finishes (plus its cost).
     pub(super) start: u64,
     pub(super) finish: u64,
@@ -141,8 +150,21 @@ pub(super) struct Tag {
 pub(super) struct Pick {
     pub(super) stream: Arc<StreamShared>,
     pub(super) finish: u64,
+    pub(super) cost: u64,
     pub(super) others: bool,
 }
 
-/// A job handed to the workers: (stream, k, reserved bytes, finish tag, for a client not reading).
-pub(super) type Ready = (Arc<StreamShared>, u64, u64, u64, bool);
+/// A job handed to the workers.
+pub(super) struct Ready {
+    pub(super) stream: Arc<StreamShared>,
+    /// The position it makes.
+    pub(super) k: u64,
+    /// The bytes it holds in the budget while it runs.
+    pub(super) reserved: u64,
+    /// Its finish tag (the workers' queue goes by it).
+    pub(super) tag: u64,
+    /// The worker time it was charged at dispatch, nanoseconds (set right when it is done).
+    pub(super) charged: u64,
+    /// Its client is among those that do not read.
+    pub(super) others: bool,
+}

@@ -18,7 +18,8 @@ use crate::service::metrics::Metrics;
 use crate::service::pb;
 use crate::service::peer::PeerKey;
 
-use super::sched::{Busy, Pick, Ready, Sched, Tag, HEADROOM_DIVISOR, MAX_PENALTIES, OTHERS_SHARE};
+use super::meter::{Meter, Rate};
+use super::sched::{Busy, Pick, Ready, Sched, Tag, CREDIT, HEADROOM_DIVISOR, MAX_PENALTIES, OTHERS_SHARE};
 use super::stream::{PeerGroup, StreamShared, StreamState};
 use super::workers::Workers;
 use super::{lock, Client, Item, Produce, StreamSpec, TICK, UNREAD_GRACE};
@@ -33,6 +34,8 @@ pub struct Scheduler {
     buffered: AtomicU64,
     /// The most bytes held at once so far.
     max_buffered_seen: AtomicU64,
+    /// Bytes of that reserved for the workspace of samples being made.
+    making: AtomicU64,
     /// Finished samples dropped to bring a stream back to its share (made again later).
     dropped: AtomicU64,
     inner: Mutex<Sched>,
@@ -56,6 +59,8 @@ pub struct SchedulerStats {
     pub budget: u64,
     pub buffered: u64,
     pub max_buffered_seen: u64,
+    /// Bytes of `buffered` reserved now for the workspace of samples being made.
+    pub making: u64,
     /// Finished samples dropped to bring streams back to their share (made again when read).
     pub dropped: u64,
     /// Per stream: (id, dispatched, delivered, produced, queued).
@@ -68,6 +73,19 @@ pub struct SchedulerStats {
     /// Jobs dispatched whose scene is being built off the workers, or built and not yet handed to
     /// a worker (they hold their reserved bytes like running jobs).
     pub waiting_scene: usize,
+    /// Per client with a call open: the worker time its samples took and how many were made
+    /// (what the fair queueing charges it), by key.
+    pub per_peer: Vec<PeerUse>,
+}
+
+/// A client's use of the workers (`SchedulerStats::per_peer`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PeerUse {
+    pub peer: PeerKey,
+    /// Worker time its samples took, nanoseconds (each worker's time on the CPU while it made them).
+    pub work_ns: u64,
+    /// Samples made for it.
+    pub samples: u64,
 }
 
 impl Scheduler {
@@ -86,6 +104,7 @@ impl Scheduler {
             budget: budget.max(1),
             buffered: AtomicU64::new(0),
             max_buffered_seen: AtomicU64::new(0),
+            making: AtomicU64::new(0),
             dropped: AtomicU64::new(0),
             inner: Mutex::new(Sched {
                 streams: Vec::new(),
@@ -102,6 +121,7 @@ impl Scheduler {
                 past_used: std::collections::HashMap::new(),
                 others_in_flight: 0,
                 busy: Busy { at: Instant::now(), others: 0.0 },
+                rate: Rate::default(),
             }),
             metrics,
         });
@@ -140,6 +160,22 @@ impl Scheduler {
         } else {
             st.group.held.fetch_sub(sub - add, Ordering::AcqRel);
         }
+        self.total(add, sub);
+    }
+
+    /// Adds `add` and takes `sub` bytes of the workspace of samples being made: in the total
+    /// held and in `making`, never in a stream's or a peer's share.
+    fn account_making(&self, add: u64, sub: u64) {
+        if add >= sub {
+            self.making.fetch_add(add - sub, Ordering::AcqRel);
+        } else {
+            self.making.fetch_sub(sub - add, Ordering::AcqRel);
+        }
+        self.total(add, sub);
+    }
+
+    /// Adds `add` and takes `sub` bytes from the total held.
+    fn total(&self, add: u64, sub: u64) {
         let now = if add >= sub {
             self.buffered.fetch_add(add - sub, Ordering::AcqRel) + (add - sub)
         } else {
@@ -235,6 +271,7 @@ impl Scheduler {
                     dispatched: 0,
                     held: 0,
                     estimate: 0,
+                    work: 0,
                     in_transport: 0,
                     in_transport_since: Instant::now(),
                     trimmed: false,
@@ -263,15 +300,13 @@ impl Scheduler {
         let mut s = lock(&self.inner);
         // jobs whose scene is ready go first (they were dispatched before any drain began)
         while s.in_flight < self.capacity {
-            let Some((st, k, reserved, tag, others)) = s.ready_jobs.pop_front() else { break };
-            s.in_flight += 1;
-            s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
-            self.metrics.set_in_flight(s.in_flight, self.capacity);
-            let me = self.clone();
-            self.pool.spawn(tag, move || me.run_job(st, k, reserved, others));
+            let Some(job) = s.ready_jobs.pop_front() else { break };
+            self.start_job(&mut s, job);
         }
         while s.in_flight < self.capacity && !s.draining {
-            let Some(Pick { stream: st, finish: tag, others }) = self.next_eligible(&mut s) else { break };
+            let Some(Pick { stream: st, finish: tag, cost: charged, others }) = self.next_eligible(&mut s) else {
+                break;
+            };
             if others {
                 s.others_in_flight += 1;
             }
@@ -283,25 +318,31 @@ impl Scheduler {
                 g.running += 1;
                 g.held += reserved;
                 self.account(&st, reserved, 0);
+                self.account_making(st.produce.workspace, 0);
                 (k, reserved)
             };
             if let Some(prepare) = &st.produce.prepare {
-                let (me, st2) = (self.clone(), st.clone());
-                let done: Box<dyn FnOnce() + Send> = Box::new(move || me.scene_ready((st2, k, reserved, tag, others)));
+                let (me, later) = (self.clone(), Ready { stream: st.clone(), k, reserved, tag, charged, others });
+                let done: Box<dyn FnOnce() + Send> = Box::new(move || me.scene_ready(later));
                 if !prepare(st.index(k), done) {
                     s.waiting_scene += 1;
                     continue;
                 }
             }
-            s.in_flight += 1;
-            s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
-            self.metrics.set_in_flight(s.in_flight, self.capacity);
-            let me = self.clone();
-            self.pool.spawn(tag, move || me.run_job(st, k, reserved, others));
+            self.start_job(&mut s, Ready { stream: st, k, reserved, tag, charged, others });
         }
         if s.in_flight < self.capacity {
             self.reclaim(&mut s);
         }
+    }
+
+    /// Hands a job to the workers (its scene is ready).
+    fn start_job(self: &Arc<Self>, s: &mut Sched, job: Ready) {
+        s.in_flight += 1;
+        s.max_in_flight_seen = s.max_in_flight_seen.max(s.in_flight);
+        self.metrics.set_in_flight(s.in_flight, self.capacity);
+        let me = self.clone();
+        self.pool.spawn(job.tag, move || me.run_job(job));
     }
 
     /// Whether `peer` reads what it is sent: it has taken a message, was not closed for not
@@ -327,8 +368,8 @@ impl Scheduler {
     /// within a peer, from the one after the stream served last; peers in time out are left out.
     fn tags(&self, s: &Sched, now: Instant, pick: impl Fn(&StreamShared, &StreamState) -> bool) -> Vec<Tag> {
         // a peer that has used less than this, idle for a while, counts from here: its credit
-        // is at most one budget's bytes
-        let floor = s.vclock.saturating_sub(self.budget);
+        // is at most CREDIT of worker time
+        let floor = s.vclock.saturating_sub(u64::try_from(CREDIT.as_nanos()).unwrap_or(u64::MAX));
         let mut out = Vec::new();
         for (peer, group) in &s.groups {
             if s.in_time_out(*peer, now) {
@@ -342,7 +383,7 @@ impl Scheduler {
                 let st = of_peer[(first + j) % of_peer.len()];
                 let g = lock(&st.state);
                 if pick(st, &g) {
-                    let finish = used.saturating_add(st.cost(&g));
+                    let finish = used.saturating_add(st.cost(&g, s.rate));
                     drop(g);
                     let reading = Self::reading(group, &of_peer, s.struck(*peer, now));
                     out.push(Tag { start: used, finish, peer: *peer, reading, stream: (*st).clone() });
@@ -414,7 +455,7 @@ impl Scheduler {
         s.vclock = tag.start;
         tag.stream.group.used.store(tag.finish, Ordering::Release);
         s.rr_in_peer.insert(tag.peer, tag.stream.id);
-        Some(Pick { stream: tag.stream, finish: tag.finish, others: !tag.reading })
+        Some(Pick { stream: tag.stream, finish: tag.finish, cost: tag.finish - tag.start, others: !tag.reading })
     }
 
     /// Makes room for a stream that may not start for want of it while its peer holds less than
@@ -546,8 +587,9 @@ impl Scheduler {
         }
     }
 
-    fn run_job(self: Arc<Self>, st: Arc<StreamShared>, k: u64, reserved: u64, others: bool) {
-        let t = Instant::now();
+    fn run_job(self: Arc<Self>, job: Ready) {
+        let Ready { stream: st, k, reserved, charged, others, .. } = job;
+        let (t, meter) = (Instant::now(), Meter::start());
         let skip = lock(&st.state).closed;
         let item: Option<Item> = if skip {
             None
@@ -568,6 +610,7 @@ impl Scheduler {
             }))
         };
         self.metrics.busy_seconds.inc_by(t.elapsed().as_secs_f64());
+        let took = meter.ns();
         let waker = {
             let mut g = lock(&st.state);
             g.running -= 1;
@@ -580,6 +623,7 @@ impl Scheduler {
                 g.held = g.held - reserved + size;
                 if size > 0 {
                     g.estimate = size;
+                    g.work = took;
                 }
                 self.account(&st, size, reserved);
             }
@@ -599,6 +643,7 @@ impl Scheduler {
         if let Some(w) = waker {
             w.wake();
         }
+        self.account_making(0, st.produce.workspace);
         {
             let mut s = lock(&self.inner);
             s.in_flight -= 1;
@@ -609,8 +654,27 @@ impl Scheduler {
                 s.busy.add(Instant::now(), t.elapsed().as_secs_f64());
             }
             self.metrics.set_in_flight(s.in_flight, self.capacity);
+            if !skip {
+                Self::charge(&mut s, &st, charged, took);
+            }
         }
         self.pump();
+    }
+
+    /// A job of `st` charged `charged` at dispatch took `took` worker nanoseconds: its peer's use
+    /// on the virtual clock is set right by the difference, its work counted, and the rate of
+    /// work units learns from it.
+    fn charge(s: &mut Sched, st: &StreamShared, charged: u64, took: u64) {
+        let group = &st.group;
+        if took >= charged {
+            group.used.fetch_add(took - charged, Ordering::AcqRel);
+        } else {
+            let refund = charged - took;
+            let _ = group.used.fetch_update(Ordering::AcqRel, Ordering::Acquire, |u| Some(u.saturating_sub(refund)));
+        }
+        group.work_ns.fetch_add(took, Ordering::AcqRel);
+        group.made.fetch_add(1, Ordering::AcqRel);
+        s.rate.learn(st.produce.work, took);
     }
 
     fn close(self: &Arc<Self>, st: &Arc<StreamShared>) {
@@ -682,9 +746,23 @@ impl Scheduler {
             budget: self.budget,
             buffered: self.buffered.load(Ordering::Acquire),
             max_buffered_seen: self.max_buffered_seen.load(Ordering::Acquire),
+            making: self.making.load(Ordering::Acquire),
             dropped: self.dropped.load(Ordering::Acquire),
             held: s.streams.iter().map(|st| lock(&st.state).held).collect(),
             waiting_scene: s.waiting_scene + s.ready_jobs.len(),
+            per_peer: {
+                let mut v: Vec<PeerUse> = s
+                    .groups
+                    .iter()
+                    .map(|(peer, g)| PeerUse {
+                        peer: *peer,
+                        work_ns: g.work_ns.load(Ordering::Acquire),
+                        samples: g.made.load(Ordering::Acquire),
+                    })
+                    .collect();
+                v.sort_by_key(|u| u.peer);
+                v
+            },
             eligible: {
                 let (room, first) = (self.room(), self.first_in_line(&s, Instant::now()));
                 let spare = |st: &StreamShared| self.spare(room, Some(st.peer) == first);

@@ -7,6 +7,7 @@ use std::sync::{Arc, Mutex};
 use std::task::Waker;
 use std::time::Instant;
 
+use super::meter::Rate;
 use super::{lock, Item, Produce, StreamSpec};
 use crate::service::conn::Activity;
 use crate::service::peer::PeerKey;
@@ -19,6 +20,9 @@ pub(super) struct StreamState {
     pub(super) held: u64,
     /// The encoded size of the stream's latest sample (the estimate of the next); 0 = not known.
     pub(super) estimate: u64,
+    /// The worker time of the stream's latest sample, nanoseconds (the cost of the next on the
+    /// dispatch's virtual clock); 0 = not known.
+    pub(super) work: u64,
     /// Bytes of the last message handed to the transport, held until the next poll.
     pub(super) in_transport: u64,
     /// When that message was handed over.
@@ -46,9 +50,14 @@ pub(super) struct PeerGroup {
     pub(super) held: AtomicU64,
     /// The peer's share of the budget (budget / peers with open streams).
     pub(super) share: AtomicU64,
-    /// The cost of the jobs started for the peer, on the dispatch's virtual clock
-    /// (`Scheduler::next_eligible`).
+    /// The cost of the jobs started for the peer, on the dispatch's virtual clock of worker
+    /// nanoseconds (`Scheduler::next_eligible`): charged at dispatch by the estimate
+    /// ([`StreamShared::cost`]), set right by what the job took once it is done.
     pub(super) used: AtomicU64,
+    /// The worker time the peer's samples took, nanoseconds, and how many were made (for the
+    /// stats: `SchedulerStats::per_peer`).
+    pub(super) work_ns: AtomicU64,
+    pub(super) made: AtomicU64,
     /// The peer has taken a message it was sent (see `Scheduler::reading`).
     pub(super) took: std::sync::atomic::AtomicBool,
 }
@@ -102,13 +111,14 @@ impl StreamShared {
         }
     }
 
-    /// What a job of the stream costs the peer on the dispatch's virtual clock: its sample's
-    /// bytes (pixels x frames x fields), known or bounded.
-    pub(super) fn cost(&self, s: &StreamState) -> u64 {
-        if s.estimate > 0 {
-            s.estimate
+    /// What a job of the stream costs the peer on the dispatch's virtual clock: the worker time
+    /// of its sample, nanoseconds: what the stream's latest sample took, else the request's work
+    /// units at the rate the samples made so far have set (`meter::Rate`).
+    pub(super) fn cost(&self, s: &StreamState, rate: Rate) -> u64 {
+        if s.work > 0 {
+            s.work
         } else {
-            self.produce.bound.max(1)
+            rate.ns(self.produce.work)
         }
     }
 
@@ -124,6 +134,9 @@ impl StreamShared {
             return false;
         }
         let reserve = self.reserve(s);
+        // what the job takes of the budget's room: its reservation and its sample's workspace
+        // (the shares count only the reservation: they divide what clients are sent)
+        let need = reserve.saturating_add(self.produce.workspace);
         let (share, peer_share) = (self.share.load(Ordering::Acquire), self.group.share.load(Ordering::Acquire));
         let peer_held = self.group.held.load(Ordering::Acquire);
         let holds_nothing = s.held == 0 && s.running == 0;
@@ -136,14 +149,14 @@ impl StreamShared {
             !s.trimmed && s.estimate > 0 && s.held.saturating_add(reserve) <= share
         };
         if fits_share {
-            return reserve <= room;
+            return need <= room;
         }
         // beyond its share a stream may go on while the budget has spare room: the shares decide
         // who gets the room back when a client waits for it (`Scheduler::reclaim`), not who
         // idles; a stream holding nothing may start one job while its peer holds less than its
         // share (so a new client gets going even when its share is smaller than one sample)
         let may_exceed = if holds_nothing { peer_held < peer_share } else { !s.trimmed && s.estimate > 0 };
-        may_exceed && reserve <= spare
+        may_exceed && need <= spare
     }
 
     /// (dispatched, delivered, produced, queued) for tests and diagnostics.

@@ -12,7 +12,7 @@ use crate::service::error::{panic_message, ServiceError};
 use crate::service::pb;
 use crate::service::pool::{Make, Prepare, Produce};
 use crate::service::spec::{self, Spec};
-use crate::service::validate;
+use crate::service::{validate, work};
 
 /// A request's spec made ready: the job that makes its samples, and what the log says of it.
 pub(super) struct Prepared {
@@ -86,7 +86,7 @@ impl State {
             metrics.observe_sample(&timings, p.timings.as_ref().map_or(0.0, |t| t.encode_ms));
             Ok(p)
         });
-        Produce { make, prepare, bound: 0 }
+        Produce { make, prepare, bound: 0, work: 0, workspace: 0 }
     }
 
     /// The one path of a request's spec (all three calls): validated into a [`Spec`], resolved
@@ -105,9 +105,11 @@ impl State {
         }
         validate::outputs_fit_motion(&spec.out, generator.config())?;
         let bound = validate::admit_size(&spec.out, spec.frames(), &self.config, self.scheduler.budget())?;
+        let work = work::admit(&spec.out, spec.frames(), generator.config().resample, &self.config)?;
         let (dataset, fingerprint, seed) = (ds.name.clone(), generator.fingerprint(), spec.seed);
         let mut produce = self.produce(ds, generator, seed, spec.out);
         produce.bound = bound;
+        produce.work = work;
         Ok(Prepared { dataset, fingerprint, seed, produce })
     }
 }
