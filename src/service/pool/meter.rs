@@ -89,6 +89,9 @@ mod tests {
             r.learn(1000, 40_000);
         }
         assert!((r.0 - 40.0).abs() < 1.0, "{r:?}");
-        assert_eq!(r.ns(10), 400);
+        // units x the rate, truncated, and never 0 (a job always costs something)
+        assert_eq!(r.ns(10), (10.0 * r.0) as u64);
+        assert!((390..=410).contains(&r.ns(10)), "{r:?}");
+        assert_eq!(Rate(0.0).ns(10), 1);
     }
 }
