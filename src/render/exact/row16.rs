@@ -21,7 +21,7 @@
 // the lane helpers serve the AVX-512 loop only
 #![cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
 
-use super::plane::{PlaneConst, SurfaceRay, SURFACE_STEPS};
+use super::plane::{cap, slab_offset, texel_depth, PlaneConst, SurfaceRay, SURFACE_STEPS};
 use crate::mpi::bricks::Bricks;
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::render::real::Real;
@@ -685,7 +685,7 @@ pub(super) type Surfaced16<'a, T> = Option<(&'a SurfaceRay<'a, T>, &'a [PlaneCon
 /// The texels of a true-depth MPI's plane `pl` that the lanes of `lanes` meet, from the plane's
 /// points `q`: [`SurfaceRay::search`] in sixteen lanes, the four-lane loop's `surface4` lane for
 /// lane (the clamp, the tap's pixel and fractions, the four surface reads,
-/// [`super::plane::slab_offset`] and the bilinear blend, the ray's point at that disparity, all
+/// [`slab_offset`] and the bilinear blend, the ray's point at that disparity, all
 /// in `f32` in the scalar loop's order): the points (`q` in the other lanes), their depths along
 /// the rays (0 in lanes not taken) and the lanes whose texel is in front of the camera.
 #[inline(always)]
@@ -696,24 +696,13 @@ fn surface16<T: Real>(
     q: [F; 2],
     lanes: Lanes,
 ) -> (F, F, F, Lanes) {
-    let depth_max = DEPTH_MAX as f32;
     let (disp, lo, hi) = (pl.disp.f32(), pl.lo.f32(), pl.hi.f32());
-    let (lo2, hi2) = (pl.lo.f32() + pl.lo.f32(), pl.hi.f32() + pl.hi.f32());
     let (wm, hm, kk) = (sr.wm.f32(), sr.hm.f32(), sr.k.f32());
     let [fx, fy] = sr.fs.map(Real::f32);
     let [cx, cy] = sr.cs.map(Real::f32);
     let [ox, oy] = sr.centre.map(Real::f32);
     let (w, h) = (sr.w as i32, sr.h as i32);
     let surface = sr.surface;
-    // `slab_offset`
-    let offset = |s: f32| {
-        let o = s - disp;
-        if o >= lo2 && o <= hi2 {
-            o.max(lo).min(hi)
-        } else {
-            0.0
-        }
-    };
     let (mut qx, mut qy, mut d) = (q[0], q[1], [disp; L]);
     for _ in 0..SURFACE_STEPS {
         for k in 0..L {
@@ -724,7 +713,7 @@ fn surface16<T: Real>(
             let (wx, wy) = (px - x0 as f32, py - y0 as f32);
             let x1 = (x0 + 1).min(w - 1);
             let (r0, r1) = (y0 * w, (y0 + 1).min(h - 1) * w);
-            let at = |i: i32| offset(surface[i as usize]);
+            let at = |i: i32| slab_offset(surface[i as usize], disp, lo, hi);
             let [a00, a10, a01, a11] = [at(r0 + x0), at(r0 + x1), at(r1 + x0), at(r1 + x1)];
             let top = a00 + wx * (a10 - a00);
             let bot = a01 + wx * (a11 - a01);
@@ -735,28 +724,17 @@ fn surface16<T: Real>(
         qx = f16(|k| fx * (ox * d[k] + r.v0[k] * g[k]) + cx);
         qy = f16(|k| fy * (oy * d[k] + r.v1[k] * g[k]) + cy);
     }
-    // `texel_depth`
-    let depth = f16(|k| if d[k] > 0.0 { cap16(1.0 / d[k], depth_max) } else { depth_max });
+    let depth = f16(|k| texel_depth(d[k]));
     let g = f16(|k| (1.0 + kk * d[k]) * r.inv_s[k]);
     let in_front = (0..L).filter(|&k| g[k] > 0.0).fold(0, |m, k| m | 1 << k) & lanes;
     let on = |m: Lanes, k: usize| m >> k & 1 == 1;
-    let lambda = f16(|k| if on(in_front, k) { cap16(g[k] * depth[k], depth_max) } else { 0.0 });
+    let lambda = f16(|k| if on(in_front, k) { cap(g[k] * depth[k], DEPTH_MAX) } else { 0.0 });
     (
         f16(|k| if on(lanes, k) { qx[k] } else { q[0][k] }),
         f16(|k| if on(lanes, k) { qy[k] } else { q[1][k] }),
         lambda,
         in_front,
     )
-}
-
-/// `v`, at most `max` (the scalar loop's `cap`).
-#[inline(always)]
-fn cap16(v: f32, max: f32) -> f32 {
-    if v > max {
-        max
-    } else {
-        v
-    }
 }
 
 /// The colour of the lanes' samples of plane `i`: the bilinear colour of `texel`, or in the
