@@ -683,8 +683,8 @@ fn step<T: Real>(
 pub(super) type Surfaced16<'a, T> = Option<(&'a SurfaceRay<'a, T>, &'a [PlaneConst<T>])>;
 
 /// The texels of a true-depth MPI's plane `pl` that the lanes of `lanes` meet, from the plane's
-/// points `q`: [`SurfaceRay::search`] in sixteen lanes, the four-lane loop's `surface4` lane for
-/// lane (the clamp, the tap's pixel and fractions, the four surface reads,
+/// points `q`: [`SurfaceRay::search`] in sixteen lanes, each step over all of them as the
+/// four-lane loop's `surface4` takes its four (the clamp, the tap's pixel and fractions, the four surface reads,
 /// [`slab_offset`] and the bilinear blend, the ray's point at that disparity, all
 /// in `f32` in the scalar loop's order): the points (`q` in the other lanes), their depths along
 /// the rays (0 in lanes not taken) and the lanes whose texel is in front of the camera.
@@ -704,21 +704,27 @@ fn surface16<T: Real>(
     let (w, h) = (sr.w as i32, sr.h as i32);
     let surface = sr.surface;
     let (mut qx, mut qy, mut d) = (q[0], q[1], [disp; L]);
+    // the surface's texel offsets at four pixels of each lane
+    let offsets = |i: &I| f16(|k| slab_offset(surface[i[k] as usize], disp, lo, hi));
     for _ in 0..SURFACE_STEPS {
-        for k in 0..L {
-            // `Tap::new` at the clamped point (q >= 0 there, so truncation is floor)
-            let (px, py) = (qx[k].max(0.0).min(wm), qy[k].max(0.0).min(hm));
-            let x0 = (px as i32).max(0).min(w - 1);
-            let y0 = (py as i32).max(0).min(h - 1);
-            let (wx, wy) = (px - x0 as f32, py - y0 as f32);
-            let x1 = (x0 + 1).min(w - 1);
-            let (r0, r1) = (y0 * w, (y0 + 1).min(h - 1) * w);
-            let at = |i: i32| slab_offset(surface[i as usize], disp, lo, hi);
-            let [a00, a10, a01, a11] = [at(r0 + x0), at(r0 + x1), at(r1 + x0), at(r1 + x1)];
-            let top = a00 + wx * (a10 - a00);
-            let bot = a01 + wx * (a11 - a01);
-            d[k] = disp + (top + wy * (bot - top));
-        }
+        // `Tap::new` at the clamped point (q >= 0 there, so truncation is floor), each
+        // operation over the sixteen lanes at once
+        let px = f16(|k| qx[k].max(0.0).min(wm));
+        let py = f16(|k| qy[k].max(0.0).min(hm));
+        let x0 = i16(|k| (px[k] as i32).max(0).min(w - 1));
+        let y0 = i16(|k| (py[k] as i32).max(0).min(h - 1));
+        let wx = f16(|k| px[k] - x0[k] as f32);
+        let wy = f16(|k| py[k] - y0[k] as f32);
+        let x1 = i16(|k| (x0[k] + 1).min(w - 1));
+        let r0 = i16(|k| y0[k] * w);
+        let r1 = i16(|k| (y0[k] + 1).min(h - 1) * w);
+        let a00 = offsets(&i16(|k| r0[k] + x0[k]));
+        let a10 = offsets(&i16(|k| r0[k] + x1[k]));
+        let a01 = offsets(&i16(|k| r1[k] + x0[k]));
+        let a11 = offsets(&i16(|k| r1[k] + x1[k]));
+        let top = f16(|k| a00[k] + wx[k] * (a10[k] - a00[k]));
+        let bot = f16(|k| a01[k] + wx[k] * (a11[k] - a01[k]));
+        d = f16(|k| disp + (top[k] + wy[k] * (bot[k] - top[k])));
         // `SurfaceRay::at`
         let g = f16(|k| (1.0 + kk * d[k]) * r.inv_s[k]);
         qx = f16(|k| fx * (ox * d[k] + r.v0[k] * g[k]) + cx);

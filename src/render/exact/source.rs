@@ -225,7 +225,7 @@ impl<T: Real> SourceBand<'_, T> {
                         // the texel's own disparity and depth (the plane's without a surface)
                         let (di, zi) = match surface {
                             None => (disp[i], depth_t[i]),
-                            Some(srf) => texel_disparity(srf, yy * w + x, disp[i], slab[i]),
+                            Some(srf) => texel_disparity(srf[yy * w + x], disp[i], slab[i]),
                         };
                         if want_sd {
                             sd += wgt * zi;

@@ -34,13 +34,13 @@ pub(super) struct SourceLanes<'a> {
     pub(super) w: usize,
 }
 
-/// The disparity and depth of plane `i`'s texel at pixel `p` of a true-depth MPI (`d`: the
-/// plane's; `slab`: its offsets' bounds): `d` plus the texel's [`slab_offset`], and its depth,
+/// The disparity and depth of plane `i`'s texel at a pixel of a true-depth MPI whose surface
+/// value is `surface` (`d`: the plane's; `slab`: its offsets' bounds): `d` plus the texel's [`slab_offset`], and its depth,
 /// capped at [`DEPTH_MAX`]. The scalar loop and the lanes call this one function, so their bits
 /// agree.
 #[inline(always)]
-pub(super) fn texel_disparity<T: Real>(surface: &[f32], p: usize, d: T, (lo, hi): (T, T)) -> (T, T) {
-    let d = d + slab_offset(T::of32(surface[p]), d, lo, hi);
+pub(super) fn texel_disparity<T: Real>(surface: f32, d: T, (lo, hi): (T, T)) -> (T, T) {
+    let d = d + slab_offset(T::of32(surface), d, lo, hi);
     (d, texel_depth(d))
 }
 
@@ -53,8 +53,10 @@ impl SourceLanes<'_> {
         match self.surface {
             None => ([d; L], [z; L]),
             Some(srf) => {
-                let at: [(f32, f32); L] =
-                    std::array::from_fn(|k| texel_disparity(srf, yy * self.w + x + k, d, self.slab[i]));
+                // the row's L surface values in one load, then lane by lane
+                let p = yy * self.w + x;
+                let row: &[f32; L] = srf[p..p + L].try_into().expect("L columns");
+                let at: [(f32, f32); L] = std::array::from_fn(|k| texel_disparity(row[k], d, self.slab[i]));
                 (at.map(|t| t.0), at.map(|t| t.1))
             }
         }
