@@ -8,7 +8,7 @@ use mpiflow::geometry::Intrinsics;
 use mpiflow::mpi::layering::{build_mpi, Layering, LayeringOptions};
 use mpiflow::mpi::synthetic::bench_mpi;
 use mpiflow::render::{render, Fields, Mode, Occupancy, RenderParams, Skip};
-use mpiflow::sample::inpaint::{inpaint_telea, inpaint_telea_opencv, inpaint_telea_u8};
+use mpiflow::sample::inpaint::{inpaint, TeleaOptions, TeleaVariant};
 
 fn hot_loops(c: &mut Criterion) {
     let (w, h, n) = (320, 240, 32);
@@ -97,9 +97,11 @@ fn inpainting(c: &mut Criterion) {
     }
     let mut g = c.benchmark_group("inpaint 640x480");
     g.sample_size(10);
-    g.bench_function("paper f32", |b| b.iter(|| inpaint_telea(&mut src.clone(), w, h, ch, &hole, 5.0)));
-    g.bench_function("opencv f32", |b| b.iter(|| inpaint_telea_opencv(&mut src.clone(), w, h, ch, &hole, 5.0)));
-    g.bench_function("paper u8", |b| b.iter(|| inpaint_telea_u8(&mut src_u8.clone(), w, h, ch, &hole, 5.0)));
+    let paper = TeleaOptions { radius: 5.0, ..TeleaOptions::default() };
+    let opencv = TeleaOptions { variant: TeleaVariant::OpenCv, ..paper };
+    g.bench_function("paper f32", |b| b.iter(|| inpaint(&mut src.clone(), w, h, ch, &hole, &paper)));
+    g.bench_function("opencv f32", |b| b.iter(|| inpaint(&mut src.clone(), w, h, ch, &hole, &opencv)));
+    g.bench_function("paper u8", |b| b.iter(|| inpaint(&mut src_u8.clone(), w, h, ch, &hole, &paper)));
     g.finish();
 }
 

@@ -35,9 +35,7 @@
 //! the others.
 
 use super::config::InpaintMethod;
-use super::inpaint::{
-    inpaint_telea_opencv_u8, inpaint_telea_u8_excluding, inpaint_telea_u8_with, GradientTerm, TeleaOptions,
-};
+use super::inpaint::{inpaint, GradientTerm, TeleaOptions, TeleaVariant};
 use crate::raster::exemplar::{peel_order, synthesise, Draw, Layout, Sources};
 use crate::raster::grid::{interleaved, pixel_values};
 use crate::raster::morph::dilate;
@@ -510,9 +508,9 @@ pub fn inpaint_holes(
 
 /// [`inpaint_holes`] from the frame's background only: the pixels where `labels` (H x W, the
 /// frame's object labels) shows an object are never read by the fill (the Telea variants of the
-/// paper, [`crate::sample::inpaint::inpaint_telea_u8_excluding`]), so a moved object's colours
-/// do not spread into what it uncovers; a hole enclosed by objects and the frame's border is
-/// filled from them. The OpenCV variant reads every known pixel, as `cv2.inpaint` does.
+/// paper, [`TeleaOptions::excluded`]), so a moved object's colours do not spread into what it
+/// uncovers; a hole enclosed by objects and the frame's border is filled from them. The OpenCV
+/// variant reads every known pixel, as `cv2.inpaint` does.
 #[allow(clippy::too_many_arguments)]
 pub fn inpaint_background(
     image: &mut [u8],
@@ -548,14 +546,14 @@ fn telea_holes(
         // without a texture source ([`fill_holes`] has one): the Telea variant it falls back to
         InpaintMethod::Exemplar => GradientTerm::KnownOnly,
         InpaintMethod::TeleaOpencv => {
-            inpaint_telea_opencv_u8(image, w, h, 3, hole, radius);
+            let options = TeleaOptions { radius, variant: TeleaVariant::OpenCv, ..TeleaOptions::default() };
+            inpaint(image, w, h, 3, hole, &options);
             return;
         }
     };
-    let options = TeleaOptions { radius, gradient };
-    let telea = |img: &mut [u8], cw: usize, ch: usize, sub: &[u8], labels: Option<Vec<bool>>| match labels {
-        Some(excluded) => inpaint_telea_u8_excluding(img, cw, ch, 3, sub, &excluded, &options),
-        None => inpaint_telea_u8_with(img, cw, ch, 3, sub, &options),
+    let options = TeleaOptions { radius, gradient, ..TeleaOptions::default() };
+    let telea = |img: &mut [u8], cw: usize, ch: usize, sub: &[u8], labels: Option<Vec<bool>>| {
+        inpaint(img, cw, ch, 3, sub, &TeleaOptions { excluded: labels.as_deref(), ..options })
     };
     let excluded = |labels: &[u8]| labels.iter().map(|&l| l != 0).collect::<Vec<bool>>();
     if !windowed {

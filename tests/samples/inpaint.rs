@@ -2,10 +2,7 @@
 //! determinism, no NaN), edge cases, agreement with `cv2.inpaint` on stored cases, and a large image with many holes.
 
 use mpiflow::io::npy::read_npy_file;
-use mpiflow::sample::inpaint::{
-    inpaint_telea, inpaint_telea_opencv, inpaint_telea_opencv_u8, inpaint_telea_u8, inpaint_telea_with, GradientTerm,
-    InpaintStats, TeleaOptions,
-};
+use mpiflow::sample::inpaint::{inpaint, GradientTerm, InpaintStats, TeleaOptions, TeleaVariant};
 use std::path::Path;
 
 /// A small deterministic generator (64-bit LCG, high bits).
@@ -19,6 +16,16 @@ impl Lcg {
     fn unit(&mut self) -> f32 {
         self.next_u32() as f32 / (1u64 << 31) as f32
     }
+}
+
+/// The paper's method with `radius`, the default gradient term.
+fn paper_with(radius: f32) -> TeleaOptions<'static> {
+    TeleaOptions { radius, ..TeleaOptions::default() }
+}
+
+/// The OpenCV variant with `radius`.
+fn opencv_with(radius: f32) -> TeleaOptions<'static> {
+    TeleaOptions { radius, variant: TeleaVariant::OpenCv, ..TeleaOptions::default() }
 }
 
 fn image(w: usize, h: usize, c: usize, f: impl Fn(f32, f32, usize) -> f32) -> Vec<f32> {
@@ -77,7 +84,7 @@ fn linear_gradient_is_reconstructed() {
         for (i, _) in hole.iter().enumerate().filter(|(_, &v)| v != 0) {
             img[i * c..(i + 1) * c].fill(7.0); // garbage under the hole
         }
-        let st = inpaint_telea(&mut img, w, h, c, &hole, radius);
+        let st = inpaint(&mut img, w, h, c, &hole, &paper_with(radius));
         assert_eq!(st.filled, hole.iter().filter(|&&v| v != 0).count());
         let err = max_hole_error(&img, &truth, &hole, c);
         println!("linear, radius {radius}: max error {err:.2e} (values in [0, 1.5]), max T {}", st.max_distance);
@@ -93,17 +100,17 @@ fn constant_image_stays_constant() {
     for c in [1, 3, 4] {
         let truth = image(w, h, c, |_, _, ch| 0.35 + 0.1 * ch as f32);
         let mut a = truth.clone();
-        inpaint_telea(&mut a, w, h, c, &hole, 5.0);
+        inpaint(&mut a, w, h, c, &hole, &paper_with(5.0));
         for gradient in [GradientTerm::KnownOnly, GradientTerm::Off] {
             let mut k = truth.clone();
-            inpaint_telea_with(&mut k, w, h, c, &hole, &TeleaOptions { radius: 3.0, gradient });
+            inpaint(&mut k, w, h, c, &hole, &TeleaOptions { radius: 3.0, gradient, ..TeleaOptions::default() });
             assert!(k.iter().zip(&truth).all(|(x, t)| (x - t).abs() < 1e-6), "{gradient:?}");
         }
         // OpenCV's correction term (Jx + Jy) / |J| is scale-free: rounding noise of 1e-8 in a
         // filled value turns into a step of up to sqrt(2), which later pixels average in, as in
         // cv2 (a constant f32 0.35 comes back with values in [-1.2, 1.8]); only finiteness holds
         let mut b = truth.clone();
-        inpaint_telea_opencv(&mut b, w, h, c, &hole, 5.0);
+        inpaint(&mut b, w, h, c, &hole, &opencv_with(5.0));
         for (i, (&x, &t)) in a.iter().zip(&truth).enumerate() {
             assert!((x - t).abs() < 1e-6, "paper, {c} channels, value {i}: {x} vs {t}");
         }
@@ -111,10 +118,10 @@ fn constant_image_stays_constant() {
     }
     // u8: a few levels off (the correction plus OpenCV's rounding of v + 0.5)
     let mut u = vec![100u8; w * h * 3];
-    inpaint_telea_opencv_u8(&mut u, w, h, 3, &hole, 5.0);
+    inpaint(&mut u, w, h, 3, &hole, &opencv_with(5.0));
     assert!(u.iter().all(|&v| (97..=103).contains(&v)), "{u:?}");
     let mut u = vec![101u8; w * h * 3];
-    inpaint_telea_u8(&mut u, w, h, 3, &hole, 3.0);
+    inpaint(&mut u, w, h, 3, &hole, &paper_with(3.0));
     assert!(u.iter().all(|&v| v == 101));
 }
 
@@ -142,7 +149,7 @@ fn filling_a_smooth_image_is_smooth() {
     let image_jump = jumps(&truth, false); // about 0.04
     for gradient in [GradientTerm::Propagated, GradientTerm::KnownOnly, GradientTerm::Off] {
         let mut img = truth.clone();
-        let st = inpaint_telea_with(&mut img, w, h, 1, &hole, &TeleaOptions { radius: 5.0, gradient });
+        let st = inpaint(&mut img, w, h, 1, &hole, &TeleaOptions { radius: 5.0, gradient, ..TeleaOptions::default() });
         assert!(st.max_distance > 10.0);
         let jump = jumps(&img, true);
         let err = max_hole_error(&img, &truth, &hole, 1);
@@ -164,10 +171,10 @@ fn known_pixels_are_never_changed() {
     for variant in 0..4 {
         let (mut f, mut u) = (src.clone(), src_u8.clone());
         match variant {
-            0 => drop(inpaint_telea(&mut f, w, h, c, &hole, 4.0)),
-            1 => drop(inpaint_telea_opencv(&mut f, w, h, c, &hole, 4.0)),
-            2 => drop(inpaint_telea_u8(&mut u, w, h, c, &hole, 4.0)),
-            _ => drop(inpaint_telea_opencv_u8(&mut u, w, h, c, &hole, 4.0)),
+            0 => drop(inpaint(&mut f, w, h, c, &hole, &paper_with(4.0))),
+            1 => drop(inpaint(&mut f, w, h, c, &hole, &opencv_with(4.0))),
+            2 => drop(inpaint(&mut u, w, h, c, &hole, &paper_with(4.0))),
+            _ => drop(inpaint(&mut u, w, h, c, &hole, &opencv_with(4.0))),
         }
         for i in (0..w * h).filter(|&i| hole[i] == 0) {
             for ch in 0..c {
@@ -192,13 +199,13 @@ fn holes_at_the_border() {
     for (i, _) in hole.iter().enumerate().filter(|(_, &v)| v != 0) {
         img[i * c..(i + 1) * c].fill(f32::NAN);
     }
-    let st = inpaint_telea(&mut img, w, h, c, &hole, 3.0);
+    let st = inpaint(&mut img, w, h, c, &hole, &paper_with(3.0));
     assert_eq!(st.nonfinite, 0);
     let err = max_hole_error(&img, &truth, &hole, c);
     assert!(err < 1.0e-4, "max error {err}");
     // the OpenCV variant fills them too, with finite values in range
     let mut img = truth.clone();
-    inpaint_telea_opencv(&mut img, w, h, c, &hole, 3.0);
+    inpaint(&mut img, w, h, c, &hole, &opencv_with(3.0));
     // (bounded by the value range plus OpenCV's correction of at most sqrt(2))
     assert!(img.iter().all(|v| v.is_finite() && (-1.5..3.0).contains(v)));
 }
@@ -212,9 +219,9 @@ fn deterministic() {
     let run = |opencv: bool| {
         let mut img = src.clone();
         let st = if opencv {
-            inpaint_telea_opencv(&mut img, w, h, c, &hole, 5.0)
+            inpaint(&mut img, w, h, c, &hole, &opencv_with(5.0))
         } else {
-            inpaint_telea(&mut img, w, h, c, &hole, 5.0)
+            inpaint(&mut img, w, h, c, &hole, &paper_with(5.0))
         };
         (img.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), st)
     };
@@ -231,28 +238,28 @@ fn no_hole_is_a_no_op() {
     let (w, h) = (9, 7);
     let src: Vec<f32> = (0..w * h * 2).map(|i| i as f32 * 0.1).collect();
     let mut img = src.clone();
-    assert_eq!(inpaint_telea(&mut img, w, h, 2, &vec![0; w * h], 3.0), InpaintStats::default());
+    assert_eq!(inpaint(&mut img, w, h, 2, &vec![0; w * h], &paper_with(3.0)), InpaintStats::default());
     assert_eq!(img, src);
     let mut u = vec![3u8; w * h];
-    assert_eq!(inpaint_telea_opencv_u8(&mut u, w, h, 1, &vec![0; w * h], 3.0), InpaintStats::default());
+    assert_eq!(inpaint(&mut u, w, h, 1, &vec![0; w * h], &opencv_with(3.0)), InpaintStats::default());
     assert!(u.iter().all(|&v| v == 3));
     // empty images
-    assert_eq!(inpaint_telea(&mut [], 0, 5, 3, &[], 3.0), InpaintStats::default());
-    assert_eq!(inpaint_telea_u8(&mut [], 4, 0, 1, &[], 3.0), InpaintStats::default());
+    assert_eq!(inpaint::<f32>(&mut [], 0, 5, 3, &[], &paper_with(3.0)), InpaintStats::default());
+    assert_eq!(inpaint::<u8>(&mut [], 4, 0, 1, &[], &paper_with(3.0)), InpaintStats::default());
 }
 
 #[test]
 fn all_hole_becomes_zero() {
     let (w, h) = (6, 4);
     let mut img = vec![0.7f32; w * h * 3];
-    let st = inpaint_telea(&mut img, w, h, 3, &vec![1; w * h], 3.0);
+    let st = inpaint(&mut img, w, h, 3, &vec![1; w * h], &paper_with(3.0));
     assert!(st.all_hole && st.filled == w * h);
     assert!(img.iter().all(|&v| v == 0.0));
     let mut img = vec![0.7f32; w * h];
-    assert!(inpaint_telea_opencv(&mut img, w, h, 1, &vec![255; w * h], 3.0).all_hole);
+    assert!(inpaint(&mut img, w, h, 1, &vec![255; w * h], &opencv_with(3.0)).all_hole);
     assert!(img.iter().all(|&v| v == 0.0));
     let mut u = vec![9u8; w * h];
-    assert!(inpaint_telea_u8(&mut u, w, h, 1, &vec![1; w * h], 3.0).all_hole);
+    assert!(inpaint(&mut u, w, h, 1, &vec![1; w * h], &paper_with(3.0)).all_hole);
     assert!(u.iter().all(|&v| v == 0));
 }
 
@@ -267,21 +274,21 @@ fn thin_images() {
     }
     for (w, h) in [(n, 1), (1, n)] {
         let mut img = truth.clone();
-        let st = inpaint_telea(&mut img, w, h, 1, &hole, 3.0);
+        let st = inpaint(&mut img, w, h, 1, &hole, &paper_with(3.0));
         assert_eq!(st.filled, 6);
         let err = max_hole_error(&img, &truth, &hole, 1);
         assert!(err < 1e-4, "{w} x {h}: {img:?}");
         let mut img = truth.clone();
-        inpaint_telea_opencv(&mut img, w, h, 1, &hole, 3.0);
+        inpaint(&mut img, w, h, 1, &hole, &opencv_with(3.0));
         assert!(img.iter().all(|v| v.is_finite()), "{img:?}");
         let mut u: Vec<u8> = truth.iter().map(|&v| v as u8).collect();
-        inpaint_telea_opencv_u8(&mut u, w, h, 1, &hole, 3.0);
+        inpaint(&mut u, w, h, 1, &hole, &opencv_with(3.0));
     }
     // 1 x 1 and 1 x 2
     let mut one = [0.5f32];
-    assert!(inpaint_telea(&mut one, 1, 1, 1, &[1], 3.0).all_hole);
+    assert!(inpaint(&mut one, 1, 1, 1, &[1], &paper_with(3.0)).all_hole);
     let mut two = [0.5f32, 0.0];
-    inpaint_telea(&mut two, 2, 1, 1, &[0, 1], 3.0);
+    inpaint(&mut two, 2, 1, 1, &[0, 1], &paper_with(3.0));
     assert_eq!(two, [0.5, 0.5]);
 }
 
@@ -292,18 +299,18 @@ fn odd_radii_and_non_finite_pixels() {
     let hole = disc_hole(w, h, &[(15.0, 10.0, 5.0)]);
     for radius in [0.0, -3.0, 0.5, f32::NAN, f32::INFINITY, 1.0e9, 2.5] {
         let mut img = truth.clone();
-        inpaint_telea(&mut img, w, h, c, &hole, radius);
+        inpaint(&mut img, w, h, c, &hole, &paper_with(radius));
         let err = max_hole_error(&img, &truth, &hole, c);
         assert!(err < 1e-3, "radius {radius}: {err}");
         let mut img = truth.clone();
-        inpaint_telea_opencv(&mut img, w, h, c, &hole, radius);
+        inpaint(&mut img, w, h, c, &hole, &opencv_with(radius));
         assert!(img.iter().all(|v| v.is_finite()), "radius {radius}");
     }
     // NaN and infinite values outside the mask are filled too, and counted
     let mut img = truth.clone();
     img[3 * c] = f32::NAN;
     img[(5 * w + 28) * c + 1] = f32::INFINITY;
-    let st = inpaint_telea(&mut img, w, h, c, &vec![0; w * h], 3.0);
+    let st = inpaint(&mut img, w, h, c, &vec![0; w * h], &paper_with(3.0));
     assert_eq!((st.filled, st.nonfinite), (2, 2));
     assert!(img.iter().all(|v| v.is_finite()));
     assert!((img[3 * c] - truth[3 * c]).abs() < 1e-4);
@@ -316,7 +323,14 @@ fn zero_order_stays_within_the_known_range() {
     let src: Vec<f32> = (0..w * h * c).map(|_| rng.unit() * 2.0 - 0.5).collect();
     let hole = disc_hole(w, h, &[(20.0, 20.0, 12.0), (63.0, 39.0, 9.0)]);
     let mut img = src.clone();
-    inpaint_telea_with(&mut img, w, h, c, &hole, &TeleaOptions { radius: 4.0, gradient: GradientTerm::Off });
+    inpaint(
+        &mut img,
+        w,
+        h,
+        c,
+        &hole,
+        &TeleaOptions { radius: 4.0, gradient: GradientTerm::Off, ..TeleaOptions::default() },
+    );
     for ch in 0..c {
         let known = (0..w * h).filter(|&i| hole[i] == 0).map(|i| src[i * c + ch]);
         let (lo, hi) = known.fold((f32::MAX, f32::MIN), |(a, b), v| (a.min(v), b.max(v)));
@@ -343,17 +357,17 @@ fn opencv_variant_matches_cv2() {
         let (max_diff, paper_diff) = if name.contains("u8") {
             let src: Vec<u8> = input.iter().map(|&v| v as u8).collect();
             let mut img = src.clone();
-            inpaint_telea_opencv_u8(&mut img, w, h, c, &hole, radius);
+            inpaint(&mut img, w, h, c, &hole, &opencv_with(radius));
             let mut paper = src.clone();
-            inpaint_telea_u8(&mut paper, w, h, c, &hole, radius);
+            inpaint(&mut paper, w, h, c, &hole, &paper_with(radius));
             let d = |x: &[u8]| x.iter().zip(&expected).map(|(&a, &b)| (f64::from(a) - b).abs()).fold(0.0, f64::max);
             (d(&img), d(&paper))
         } else {
             let src: Vec<f32> = input.iter().map(|&v| v as f32).collect();
             let mut img = src.clone();
-            inpaint_telea_opencv(&mut img, w, h, c, &hole, radius);
+            inpaint(&mut img, w, h, c, &hole, &opencv_with(radius));
             let mut paper = src.clone();
-            inpaint_telea(&mut paper, w, h, c, &hole, radius);
+            inpaint(&mut paper, w, h, c, &hole, &paper_with(radius));
             let d = |x: &[f32]| x.iter().zip(&expected).map(|(&a, &b)| (f64::from(a) - b).abs()).fold(0.0, f64::max);
             (d(&img), d(&paper))
         };
@@ -415,17 +429,17 @@ fn large_image_with_many_holes() {
     };
     for radius in [3.0, 5.0] {
         let mut img = truth.clone();
-        let stats = inpaint_telea(&mut img, w, h, c, &hole, radius);
+        let stats = inpaint(&mut img, w, h, c, &hole, &paper_with(radius));
         let paper = check("paper f32", &img, &stats);
         assert!(stats.max_distance > 3.0 && stats.max_distance <= 29.0, "{}", stats.max_distance);
         let mut img = truth.clone();
-        let stats = inpaint_telea_opencv(&mut img, w, h, c, &hole, radius);
+        let stats = inpaint(&mut img, w, h, c, &hole, &opencv_with(radius));
         check("opencv f32", &img, &stats);
         let mut img = truth_u8.clone();
-        let stats = inpaint_telea_u8(&mut img, w, h, c, &hole, radius);
+        let stats = inpaint(&mut img, w, h, c, &hole, &paper_with(radius));
         let paper_u8 = check_u8("paper u8", &img, &stats);
         let mut img = truth_u8.clone();
-        let stats = inpaint_telea_opencv_u8(&mut img, w, h, c, &hole, radius);
+        let stats = inpaint(&mut img, w, h, c, &hole, &opencv_with(radius));
         let opencv_u8 = check_u8("opencv u8", &img, &stats);
         // a flat fill at the mean would err by ~0.15 (the texture's RMS); measured 0.029 (paper,
         // f32 and u8) and 0.063 (OpenCV's u8, whose gradient term is a fixed-size correction)

@@ -1,12 +1,14 @@
 //! Telea's fast-marching inpainting (A. Telea, "An Image Inpainting Technique Based on the Fast
 //! Marching Method", 2004) of holes in channel-interleaved f32 and u8 images: the paper's
-//! first-order method ([`inpaint_telea`], [`inpaint_telea_with`]) and an OpenCV-compatible variant
-//! ([`inpaint_telea_opencv`], what `cv2.inpaint(..., cv2.INPAINT_TELEA)` computes).
-//! The two variants share the front's machinery (the band, the arrival times, the heap keys).
+//! first-order method ([`TeleaVariant::Paper`]) and an OpenCV-compatible variant
+//! ([`TeleaVariant::OpenCv`], what `cv2.inpaint(..., cv2.INPAINT_TELEA)` computes), both through
+//! one entry point, [`inpaint`], with [`TeleaOptions`]; `f32` and `u8` images alike
+//! ([`InpaintPixel`]). The two variants share the front's machinery (the band, the arrival
+//! times, the heap keys).
 //!
 //! Rooms: `types` (the options and the report), `front` (the shared set-up and the fast
 //! marching), `paper` (the paper's method), `opencv` (the OpenCV variant); this front door holds
-//! the entry points.
+//! the entry point and the pixel types.
 //!
 //! # The method
 //!
@@ -54,7 +56,7 @@
 //!
 //! # The OpenCV variant
 //!
-//! [`inpaint_telea_opencv`] / [`inpaint_telea_opencv_u8`] re-implement OpenCV's
+//! [`TeleaVariant::OpenCv`] re-implements OpenCV's
 //! `modules/photo/src/inpaint.cpp` (4.x/5.x, with the insertion-ordered priority queue) with its
 //! quirks, for compatibility with pipelines built on `cv2.inpaint`: the distance weight is
 //! `1/|p-q|^3`; the central image gradient is multiplied by 2 instead of 0.5 (and taken on a
@@ -92,182 +94,128 @@ mod types;
 use front::{check_args, f32_hole, opencv_range, paper_radius, u8_hole};
 use opencv::opencv;
 use paper::{paper, Pixels};
-pub use types::{GradientTerm, InpaintStats, TeleaOptions, DIR_FLOOR, MAX_RADIUS};
+pub use types::{GradientTerm, InpaintStats, TeleaOptions, TeleaVariant, DIR_FLOOR, MAX_RADIUS};
 
-/// Fills the pixels where `hole` is non-zero in `image` (H x W x `channels`, row-major, f32) with
-/// Telea's first-order fast-marching method ([`GradientTerm::Propagated`], see the module
-/// documentation); known pixels are never changed (except non-finite ones, which are filled).
+/// Fills the pixels where `hole` (H x W) is non-zero in `image` (H x W x `channels`, row-major,
+/// `f32` or `u8`) with Telea's fast-marching method, the variant and its parameters as `options`
+/// say (see the module documentation); known pixels are never changed (except non-finite `f32`
+/// ones, which are filled), nor are the pixels of [`TeleaOptions::excluded`] outside the hole.
 ///
 /// # Panics
 /// If `channels` is 0 while the image is not empty, if `image.len() != width * height *
-/// channels`, if `hole.len() != width * height`, or if the image has `u32::MAX` pixels or more.
-pub fn inpaint_telea(
-    image: &mut [f32],
+/// channels`, if `hole.len() != width * height`, if the image has `u32::MAX` pixels or more, or
+/// if [`TeleaOptions::excluded`] is set with [`TeleaVariant::OpenCv`] or differs from `hole` in
+/// length.
+pub fn inpaint<P: InpaintPixel>(
+    image: &mut [P],
     width: usize,
     height: usize,
     channels: usize,
     hole: &[u8],
-    radius: f32,
+    options: &TeleaOptions<'_>,
 ) -> InpaintStats {
-    inpaint_telea_with(image, width, height, channels, hole, &TeleaOptions { radius, ..TeleaOptions::default() })
-}
-
-/// [`inpaint_telea`] with explicit options.
-///
-/// # Panics
-/// As [`inpaint_telea`].
-pub fn inpaint_telea_with(
-    image: &mut [f32],
-    width: usize,
-    height: usize,
-    channels: usize,
-    hole: &[u8],
-    options: &TeleaOptions,
-) -> InpaintStats {
+    if let Some(excluded) = options.excluded {
+        assert!(options.variant == TeleaVariant::Paper, "inpaint: the OpenCV variant reads every known pixel");
+        assert_eq!(excluded.len(), hole.len(), "inpaint: the excluded mask and the hole mask differ in size");
+    }
     let n = check_args(image.len(), width, height, channels, hole.len());
-    let Some((is_hole, mut stats)) = f32_hole(image, n, channels, hole) else {
+    let Some((is_hole, mut stats)) = P::holes(image, n, channels, hole) else {
         return InpaintStats::default();
     };
     if stats.all_hole {
-        image.fill(0.0);
+        image.fill(P::ZERO);
         return stats;
     }
-    let radius = paper_radius(options.radius);
-    stats.max_distance =
-        paper(image, width, height, channels, Pixels { is_hole: &is_hole, excluded: None }, radius, options.gradient);
+    stats.max_distance = P::fill(image, width, height, channels, &is_hole, options);
     stats
 }
 
-/// [`inpaint_telea`] for u8 images: computed in f32, filled pixels rounded to the nearest
-/// integer and clamped to `[0, 255]`; known pixels are left bit-identical.
-///
-/// # Panics
-/// As [`inpaint_telea`].
-pub fn inpaint_telea_u8(
-    image: &mut [u8],
-    width: usize,
-    height: usize,
-    channels: usize,
-    hole: &[u8],
-    radius: f32,
-) -> InpaintStats {
-    inpaint_telea_u8_with(image, width, height, channels, hole, &TeleaOptions { radius, ..TeleaOptions::default() })
-}
+/// A pixel value type [`inpaint`] fills: `f32` (NaN and infinite values are filled too, and
+/// counted in [`InpaintStats::nonfinite`]) or `u8` (computed in f32; the paper's method rounds a
+/// filled value to the nearest integer and clamps it to `[0, 255]`, the OpenCV variant rounds as
+/// OpenCV does). Sealed: these two only.
+pub trait InpaintPixel: sealed::Pixel {}
 
-/// [`inpaint_telea_u8`] with explicit options.
-///
-/// # Panics
-/// As [`inpaint_telea`].
-pub fn inpaint_telea_u8_with(
-    image: &mut [u8],
-    width: usize,
-    height: usize,
-    channels: usize,
-    hole: &[u8],
-    options: &TeleaOptions,
-) -> InpaintStats {
-    telea_u8(image, width, height, channels, hole, None, options)
-}
+impl InpaintPixel for f32 {}
+impl InpaintPixel for u8 {}
 
-/// [`inpaint_telea_u8_with`] from context outside `excluded` only (H x W, true = not context):
-/// the excluded pixels are never read, the front does not start from them, and `grad T` leaves
-/// them out; hole pixels the front reaches only through excluded pixels (enclosed by them and the
-/// image border) are filled afterwards from everything around them. Excluded pixels are not
-/// changed.
-///
-/// # Panics
-/// As [`inpaint_telea`], and if `excluded.len() != width * height`.
-pub fn inpaint_telea_u8_excluding(
-    image: &mut [u8],
-    width: usize,
-    height: usize,
-    channels: usize,
-    hole: &[u8],
-    excluded: &[bool],
-    options: &TeleaOptions,
-) -> InpaintStats {
-    assert_eq!(excluded.len(), hole.len(), "inpaint: the excluded mask and the hole mask differ in size");
-    telea_u8(image, width, height, channels, hole, Some(excluded), options)
-}
+mod sealed {
+    use super::{InpaintStats, TeleaOptions};
 
-fn telea_u8(
-    image: &mut [u8],
-    width: usize,
-    height: usize,
-    channels: usize,
-    hole: &[u8],
-    excluded: Option<&[bool]>,
-    options: &TeleaOptions,
-) -> InpaintStats {
-    let n = check_args(image.len(), width, height, channels, hole.len());
-    let Some((is_hole, stats)) = u8_hole(n, hole) else {
-        return InpaintStats::default();
-    };
-    if stats.all_hole {
-        image.fill(0);
-        return stats;
+    /// How a pixel type finds its hole pixels and is filled.
+    pub trait Pixel: Copy {
+        /// The value of every pixel of an image that is all hole.
+        const ZERO: Self;
+        /// The pixels to fill and the report so far; `None` when there is none.
+        fn holes(image: &[Self], n: usize, channels: usize, hole: &[u8]) -> Option<(Vec<bool>, InpaintStats)>;
+        /// Fills the pixels of `is_hole` (at least one pixel is known); the largest arrival time.
+        fn fill(
+            image: &mut [Self],
+            width: usize,
+            height: usize,
+            channels: usize,
+            is_hole: &[bool],
+            options: &TeleaOptions<'_>,
+        ) -> f32;
     }
-    let mut work: Vec<f32> = image.iter().map(|&v| f32::from(v)).collect();
-    let radius = paper_radius(options.radius);
-    let max_distance =
-        paper(&mut work, width, height, channels, Pixels { is_hole: &is_hole, excluded }, radius, options.gradient);
-    for (i, _) in is_hole.iter().enumerate().filter(|(_, &h)| h) {
-        for ch in 0..channels {
-            let k = i * channels + ch;
-            // `as` saturates; the value is finite here
-            image[k] = work[k].round().clamp(0.0, 255.0) as u8;
+}
+
+impl sealed::Pixel for f32 {
+    const ZERO: f32 = 0.0;
+
+    fn holes(image: &[f32], n: usize, channels: usize, hole: &[u8]) -> Option<(Vec<bool>, InpaintStats)> {
+        f32_hole(image, n, channels, hole)
+    }
+
+    fn fill(
+        image: &mut [f32],
+        width: usize,
+        height: usize,
+        channels: usize,
+        is_hole: &[bool],
+        options: &TeleaOptions<'_>,
+    ) -> f32 {
+        match options.variant {
+            TeleaVariant::Paper => {
+                let pixels = Pixels { is_hole, excluded: options.excluded };
+                paper(image, width, height, channels, pixels, paper_radius(options.radius), options.gradient)
+            }
+            TeleaVariant::OpenCv => opencv(image, width, height, channels, is_hole, opencv_range(options.radius)),
         }
     }
-    InpaintStats { max_distance, ..stats }
 }
 
-/// OpenCV-compatible Telea inpainting of an f32 image (what `cv2.inpaint` computes for a
-/// `CV_32F` image; OpenCV itself accepts only one f32 channel, this takes any number). See the
-/// module documentation for how it differs from [`inpaint_telea`].
-///
-/// # Panics
-/// As [`inpaint_telea`].
-pub fn inpaint_telea_opencv(
-    image: &mut [f32],
-    width: usize,
-    height: usize,
-    channels: usize,
-    hole: &[u8],
-    radius: f32,
-) -> InpaintStats {
-    let n = check_args(image.len(), width, height, channels, hole.len());
-    let Some((is_hole, mut stats)) = f32_hole(image, n, channels, hole) else {
-        return InpaintStats::default();
-    };
-    if stats.all_hole {
-        image.fill(0.0);
-        return stats;
-    }
-    stats.max_distance = opencv(image, width, height, channels, &is_hole, opencv_range(radius));
-    stats
-}
+impl sealed::Pixel for u8 {
+    const ZERO: u8 = 0;
 
-/// OpenCV-compatible Telea inpainting of a u8 image (what `cv2.inpaint(img, mask, radius,
-/// cv2.INPAINT_TELEA)` computes for 8-bit 1- and 3-channel images, including its rounding).
-///
-/// # Panics
-/// As [`inpaint_telea`].
-pub fn inpaint_telea_opencv_u8(
-    image: &mut [u8],
-    width: usize,
-    height: usize,
-    channels: usize,
-    hole: &[u8],
-    radius: f32,
-) -> InpaintStats {
-    let n = check_args(image.len(), width, height, channels, hole.len());
-    let Some((is_hole, mut stats)) = u8_hole(n, hole) else {
-        return InpaintStats::default();
-    };
-    if stats.all_hole {
-        image.fill(0);
-        return stats;
+    fn holes(_image: &[u8], n: usize, _channels: usize, hole: &[u8]) -> Option<(Vec<bool>, InpaintStats)> {
+        u8_hole(n, hole)
     }
-    stats.max_distance = opencv(image, width, height, channels, &is_hole, opencv_range(radius));
-    stats
+
+    /// The paper's method computed in f32, filled values rounded to the nearest integer and
+    /// clamped (known pixels are left bit-identical); the OpenCV variant with OpenCV's rounding.
+    fn fill(
+        image: &mut [u8],
+        width: usize,
+        height: usize,
+        channels: usize,
+        is_hole: &[bool],
+        options: &TeleaOptions<'_>,
+    ) -> f32 {
+        if options.variant == TeleaVariant::OpenCv {
+            return opencv(image, width, height, channels, is_hole, opencv_range(options.radius));
+        }
+        let mut work: Vec<f32> = image.iter().map(|&v| f32::from(v)).collect();
+        let pixels = Pixels { is_hole, excluded: options.excluded };
+        let max_distance =
+            paper(&mut work, width, height, channels, pixels, paper_radius(options.radius), options.gradient);
+        for (i, _) in is_hole.iter().enumerate().filter(|(_, &h)| h) {
+            for ch in 0..channels {
+                let k = i * channels + ch;
+                // `as` saturates; the value is finite here
+                image[k] = work[k].round().clamp(0.0, 255.0) as u8;
+            }
+        }
+        max_distance
+    }
 }

@@ -97,7 +97,7 @@ fn single_pixel_hole_in_constant_image() {
     let mut hole = vec![0u8; w * h];
     hole[w + 2] = 1;
     img[(w + 2) * 2] = 9.0;
-    let st = inpaint_telea(&mut img, w, h, 2, &hole, 3.0);
+    let st = inpaint(&mut img, w, h, 2, &hole, &TeleaOptions { radius: 3.0, ..TeleaOptions::default() });
     assert_eq!(st.filled, 1);
     assert!(img.iter().all(|&v| (v - 0.25).abs() < 1e-6), "{img:?}");
 }
@@ -120,10 +120,11 @@ fn excluded_pixels_are_never_context_and_enclosed_holes_are_still_filled() {
             img[3 * i..3 * i + 3].fill(255);
         }
     }
-    let options = TeleaOptions { radius: 5.0, gradient: GradientTerm::KnownOnly };
+    let options = TeleaOptions { radius: 5.0, gradient: GradientTerm::KnownOnly, ..TeleaOptions::default() };
+    let apart_options = TeleaOptions { excluded: Some(&excluded), ..options };
     let (mut apart, mut plain) = (img.clone(), img.clone());
-    inpaint_telea_u8_excluding(&mut apart, w, h, 3, &hole, &excluded, &options);
-    inpaint_telea_u8_with(&mut plain, w, h, 3, &hole, &options);
+    inpaint(&mut apart, w, h, 3, &hole, &apart_options);
+    inpaint(&mut plain, w, h, 3, &hole, &options);
     for i in (0..w * h).filter(|&i| hole[i] != 0) {
         assert_eq!(&apart[3 * i..3 * i + 3], &[100, 100, 100], "pixel {i}: read an excluded pixel");
     }
@@ -133,9 +134,10 @@ fn excluded_pixels_are_never_context_and_enclosed_holes_are_still_filled() {
     }
     // without any excluded pixel, the same bits as the plain fill
     let mut none = img.clone();
-    inpaint_telea_u8_excluding(&mut none, w, h, 3, &hole, &vec![false; w * h], &options);
+    let nothing = vec![false; w * h];
+    inpaint(&mut none, w, h, 3, &hole, &TeleaOptions { excluded: Some(&nothing), ..options });
     let mut again = img.clone();
-    inpaint_telea_u8_with(&mut again, w, h, 3, &hole, &options);
+    inpaint(&mut again, w, h, 3, &hole, &options);
     assert_eq!(none, again);
     // a hole enclosed by excluded pixels (and the border) is filled from them
     let mut enclosed = vec![255u8; 3 * w * h];
@@ -143,6 +145,24 @@ fn excluded_pixels_are_never_context_and_enclosed_holes_are_still_filled() {
     small[g.index(0, 0)] = 1;
     enclosed[..3].fill(0);
     let ring: Vec<bool> = (0..w * h).map(|i| i != 0).collect();
-    inpaint_telea_u8_excluding(&mut enclosed, w, h, 3, &small, &ring, &options);
+    inpaint(&mut enclosed, w, h, 3, &small, &TeleaOptions { excluded: Some(&ring), ..options });
     assert_eq!(&enclosed[..3], &[255, 255, 255]);
+    // f32 images: the same rule
+    let mut apart_f32: Vec<f32> = img.iter().map(|&v| f32::from(v)).collect();
+    inpaint(&mut apart_f32, w, h, 3, &hole, &apart_options);
+    for i in (0..w * h).filter(|&i| hole[i] != 0) {
+        let got = &apart_f32[3 * i..3 * i + 3];
+        assert!(got.iter().all(|&v| (v - 100.0).abs() < 1e-3), "pixel {i}: {got:?}");
+    }
+}
+
+#[test]
+#[should_panic(expected = "the OpenCV variant reads every known pixel")]
+fn the_opencv_variant_refuses_excluded_pixels() {
+    let (w, h) = (4, 3);
+    let mut hole = vec![0u8; w * h];
+    hole[5] = 1;
+    let excluded = vec![false; w * h];
+    let options = TeleaOptions { variant: TeleaVariant::OpenCv, excluded: Some(&excluded), ..TeleaOptions::default() };
+    inpaint(&mut vec![0u8; w * h], w, h, 1, &hole, &options);
 }

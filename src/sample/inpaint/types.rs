@@ -39,18 +39,39 @@ pub enum GradientTerm {
     Off,
 }
 
-/// Options of `inpaint_telea_with`.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct TeleaOptions {
-    /// Neighbourhood radius in pixels (below 1 or NaN means 1; at most [`MAX_RADIUS`]).
-    pub radius: f32,
-    /// The first-order term.
-    pub gradient: GradientTerm,
+/// Which of Telea's methods a call runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum TeleaVariant {
+    /// The paper's first-order method, with [`TeleaOptions::gradient`] and
+    /// [`TeleaOptions::excluded`].
+    #[default]
+    Paper,
+    /// What `cv2.inpaint(..., cv2.INPAINT_TELEA)` computes, its quirks and rounding included (see
+    /// the documentation of `sample::inpaint`); its gradient correction is its own
+    /// ([`TeleaOptions::gradient`] is not used) and it reads every known pixel.
+    OpenCv,
 }
 
-impl Default for TeleaOptions {
-    /// Radius 5, [`GradientTerm::Propagated`].
+/// Options of an inpainting call (`sample::inpaint::inpaint`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TeleaOptions<'a> {
+    /// Neighbourhood radius in pixels (below 1 or NaN means 1; at most [`MAX_RADIUS`]; the OpenCV
+    /// variant rounds it to an integer, as OpenCV does).
+    pub radius: f32,
+    /// The first-order term of the paper's method.
+    pub gradient: GradientTerm,
+    /// The paper's method or OpenCV's.
+    pub variant: TeleaVariant,
+    /// Pixels that are no context (H x W, true = not context; paper's method only): they are never
+    /// read, the front does not start from them, and `grad T` leaves them out; hole pixels the
+    /// front reaches only through them (enclosed by them and the image border) are filled
+    /// afterwards from everything around them. Those outside the hole are not changed.
+    pub excluded: Option<&'a [bool]>,
+}
+
+impl Default for TeleaOptions<'_> {
+    /// Radius 5, [`GradientTerm::Propagated`], [`TeleaVariant::Paper`], no excluded pixel.
     fn default() -> Self {
-        TeleaOptions { radius: 5.0, gradient: GradientTerm::Propagated }
+        TeleaOptions { radius: 5.0, gradient: GradientTerm::Propagated, variant: TeleaVariant::Paper, excluded: None }
     }
 }
