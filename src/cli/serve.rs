@@ -138,8 +138,8 @@ struct SampleFlags {
     /// different photos (default 11; 1 = each photo's motions in a row).
     #[arg(long, value_name = "K")]
     scene_window: Option<u64>,
-    /// Default colour kernel of the target render: bilinear, bicubic, bspline3, bspline5 or
-    /// lanczos3.
+    /// Default colour kernel of the target render: bilinear, bicubic, bspline3, bspline5,
+    /// lanczos3 or omoms3.
     #[arg(long, value_name = "KERNEL")]
     resample: Option<mpiflow::render::Resample>,
 }

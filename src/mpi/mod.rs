@@ -132,11 +132,43 @@ impl MipLevels {
     }
 }
 
+/// The prefilter whose coefficients a kernel samples instead of the colours
+/// (`render::Resample::prefilter`; `render::resample::prefilter`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Prefilter {
+    /// Cubic B-spline interpolation.
+    Bspline3,
+    /// Quintic B-spline interpolation.
+    Bspline5,
+    /// OMOMS-3 interpolation.
+    Omoms3,
+}
+
+impl Prefilter {
+    /// The number that names it in the scene cache's key (`SampleConfig::scene_variant`): the
+    /// B-spline's degree, 7 for OMOMS-3.
+    pub fn id(self) -> u32 {
+        match self {
+            Prefilter::Bspline3 => 3,
+            Prefilter::Bspline5 => 5,
+            Prefilter::Omoms3 => 7,
+        }
+    }
+
+    /// The kernel's taps per axis.
+    pub fn taps(self) -> usize {
+        match self {
+            Prefilter::Bspline5 => 6,
+            Prefilter::Bspline3 | Prefilter::Omoms3 => 4,
+        }
+    }
+}
+
 /// Prefiltered colour of an MPI ([`Mpi::bspline_rgb`]).
 #[derive(Clone, Debug)]
 pub struct BsplineRgb {
-    /// The B-spline degree (3 or 5).
-    pub degree: u32,
+    /// The kernel's prefilter.
+    pub prefilter: Prefilter,
     /// The rgb coefficients (3 values per pixel) of the blocks the colour kernel can reach:
     /// those with density on the plane (`render::resample::prefilter`), or all of them.
     pub coefficients: std::sync::Arc<bricks::Bricks>,

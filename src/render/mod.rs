@@ -73,8 +73,8 @@ use crate::mpi::Mpi;
 pub use occupancy::Occupancy;
 pub use real::Real;
 pub use types::{
-    Channels, DensityCut, Fields, Link, Mode, RenderError, RenderOutput, RenderParams, RenderStats, Resample, Skip,
-    View,
+    Channels, DensityCut, Fields, Link, Mode, Prefilter, RenderError, RenderOutput, RenderParams, RenderStats,
+    Resample, Skip, View,
 };
 pub use window::{Rect, WindowRender};
 

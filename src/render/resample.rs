@@ -22,6 +22,10 @@
 //! - [`Resample::Bspline5`]: quintic B-spline interpolation over 6 x 6 taps (prefilter poles
 //!   -0.4306 and -0.0431), sharper still.
 //! - [`Resample::Lanczos3`]: windowed sinc over 6 x 6 taps, weights normalised to sum 1.
+//! - [`Resample::Omoms3`]: OMOMS-3 interpolation (Blu, Thevenaz and Unser, "MOMS: maximal-order
+//!   interpolation of minimal support", 2001): the cubic B-spline plus 1/42 of its second
+//!   derivative, prefiltered like the B-spline (pole (sqrt(105) - 13) / 8), over the same 4 x 4
+//!   taps; of the cubics of that support the one closest to ideal reconstruction.
 //!
 //! Only colour uses the kernel. Density (and so alpha, coverage and depth) and the extra
 //! (mask) channels stay bilinear, a kernel that cannot ring: they stay within their bounds, and
@@ -35,16 +39,16 @@ use rayon::prelude::*;
 
 use super::real::Real;
 use super::tap::floor_index;
-use super::types::Resample;
+use super::types::{Prefilter, Resample};
 use crate::mpi::bricks::{BlockGrid, Bricks};
 use crate::mpi::Mpi;
 
 /// The weights of a separable kernel at fractional offset `t` in [0, 1) from the tap
 /// `floor(q)`; tap `k` sits at `floor(q) + k - (N / 2 - 1)`.
 pub(crate) trait Kernel<const N: usize>: Sync {
-    /// Whether this is the cubic B-spline ([`Bspline3`]), which the sixteen-lane target loop
-    /// evaluates itself (`render::exact::row16`).
-    const BSPLINE3: bool = false;
+    /// The prefiltered cubic whose weights the sixteen-lane target loop evaluates itself
+    /// (`render::exact::row16`: [`Bspline3`] and [`Omoms3`]); `None` for the others.
+    const ROW16: Option<Prefilter> = None;
 
     fn weights<T: Real>(t: T) -> [T; N];
 
@@ -58,6 +62,7 @@ pub(crate) trait Kernel<const N: usize>: Sync {
 
 pub(crate) struct Keys;
 pub(crate) struct Bspline3;
+pub(crate) struct Omoms3;
 pub(crate) struct Lanczos3;
 pub(crate) struct Bspline5;
 
@@ -100,7 +105,7 @@ impl Kernel<4> for Keys {
 }
 
 impl Kernel<4> for Bspline3 {
-    const BSPLINE3: bool = true;
+    const ROW16: Option<Prefilter> = Some(Prefilter::Bspline3);
 
     #[inline(always)]
     fn weights<T: Real>(t: T) -> [T; 4] {
@@ -130,6 +135,31 @@ impl Kernel<4> for Bspline3 {
             t3 * s,
         ]
         .map(f32x4::to_array)
+    }
+}
+
+impl Kernel<4> for Omoms3 {
+    const ROW16: Option<Prefilter> = Some(Prefilter::Omoms3);
+
+    #[inline(always)]
+    fn weights<T: Real>(t: T) -> [T; 4] {
+        // omega(x) = beta3(x) + beta3''(x) / 42 at the distances 1 + t, t, 1 - t and 2 - t
+        let [b0, b1, b2, b3] = Bspline3::weights(t);
+        let (s, u) = (T::one() / T::of(42.0), T::one() - t);
+        let two = T::of(2.0);
+        let three = T::of(3.0);
+        [b0 + u * s, b1 + (three * t - two) * s, b2 + (three * u - two) * s, b3 + t * s]
+    }
+
+    /// [`Self::weights`]' operations in lanes.
+    #[inline(always)]
+    fn weights4(t: wide::f32x4) -> [[f32; 4]; 4] {
+        use wide::f32x4;
+        let c = f32x4::splat;
+        let b = Bspline3::weights4(t).map(f32x4::from);
+        let (s, u) = (c(1.0f32 / 42.0), c(1.0) - t);
+        [b[0] + u * s, b[1] + (c(3.0) * t - c(2.0)) * s, b[2] + (c(3.0) * u - c(2.0)) * s, b[3] + t * s]
+            .map(f32x4::to_array)
     }
 }
 
@@ -299,7 +329,7 @@ impl SplineImage {
         for (d, s) in mpi.plane_rgba_mut(0).chunks_exact_mut(4).zip(rgb.chunks_exact(3)) {
             d[..3].copy_from_slice(s);
         }
-        Self { coefficients: bspline_coefficients(&mpi, 5), width, height }
+        Self { coefficients: bspline_coefficients(&mpi, Prefilter::Bspline5), width, height }
     }
 
     /// The colour at `(x, y)` (clamped to the frame), each channel clamped to [0, 1].
@@ -314,10 +344,10 @@ impl SplineImage {
 /// already) and keeps them in [`Mpi::bspline_rgb`]: the blocks the colour kernel can reach
 /// ([`bspline_bricks`] with `sparse`), the same colours as all of them.
 pub fn prefilter(mpi: &mut Mpi, resample: Resample) {
-    if let Some(degree) = resample.bspline_degree() {
-        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
-            let coefficients = std::sync::Arc::new(bspline_bricks(mpi, degree, true));
-            mpi.bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
+    if let Some(prefilter) = resample.prefilter() {
+        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.prefilter != prefilter) {
+            let coefficients = std::sync::Arc::new(bspline_bricks(mpi, prefilter, true));
+            mpi.bspline_rgb = Some(crate::mpi::BsplineRgb { prefilter, coefficients });
         }
     }
 }
@@ -325,20 +355,22 @@ pub fn prefilter(mpi: &mut Mpi, resample: Resample) {
 /// [`prefilter`] of a shared MPI (copied first only when it needs the coefficients and others
 /// hold it).
 pub fn prefilter_arc(mpi: &mut std::sync::Arc<Mpi>, resample: Resample) {
-    if let Some(degree) = resample.bspline_degree() {
-        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.degree != degree) {
-            let coefficients = std::sync::Arc::new(bspline_bricks(mpi, degree, true));
-            std::sync::Arc::make_mut(mpi).bspline_rgb = Some(crate::mpi::BsplineRgb { degree, coefficients });
+    if let Some(prefilter) = resample.prefilter() {
+        if mpi.bspline_rgb.as_ref().is_none_or(|c| c.prefilter != prefilter) {
+            let coefficients = std::sync::Arc::new(bspline_bricks(mpi, prefilter, true));
+            std::sync::Arc::make_mut(mpi).bspline_rgb = Some(crate::mpi::BsplineRgb { prefilter, coefficients });
         }
     }
 }
 
-/// The poles of the B-spline interpolation prefilter of `degree` (3 or 5).
-fn poles(degree: u32) -> &'static [f64] {
-    if degree == 3 {
-        &[-0.267_949_192_431_122_7]
-    } else {
-        &[-0.430_575_347_099_973_8, -0.043_096_288_203_264_65]
+/// The poles of an interpolation prefilter.
+fn poles(prefilter: Prefilter) -> &'static [f64] {
+    match prefilter {
+        Prefilter::Bspline3 => &[-0.267_949_192_431_122_7],
+        Prefilter::Bspline5 => &[-0.430_575_347_099_973_8, -0.043_096_288_203_264_65],
+        // (sqrt(105) - 13) / 8: the root inside the unit circle of 4 z^2 + 13 z + 4, the
+        // sampled kernel (4 z + 13 + 4 / z) / 21
+        Prefilter::Omoms3 => &[-0.344_131_154_255_050_3],
     }
 }
 
@@ -346,10 +378,10 @@ fn poles(degree: u32) -> &'static [f64] {
 /// `mpi` (N x H x W x 3, plane-major, row-major, interleaved): the exact inverse of sampling the
 /// B-spline at the pixel centres, with mirror boundaries (Unser, "Fast B-spline transforms for
 /// continuous image representation and interpolation", 1991). Computed in f64 per line.
-pub fn bspline_coefficients(mpi: &Mpi, degree: u32) -> Vec<f32> {
+pub fn bspline_coefficients(mpi: &Mpi, prefilter: Prefilter) -> Vec<f32> {
     let mpi = &*mpi.unpacked();
     let (w, h) = (mpi.width, mpi.height);
-    let z = poles(degree);
+    let z = poles(prefilter);
     let every = vec![true; w];
     let planes: Vec<Vec<f32>> = (0..mpi.planes())
         .into_par_iter()
@@ -449,15 +481,6 @@ fn plane_coefficients(rgba: &[f32], w: usize, h: usize, z: &[f64], columns: &[bo
     strips
 }
 
-/// The kernel's taps per axis for a B-spline of `degree` (3 or 5).
-fn bspline_taps(degree: u32) -> usize {
-    if degree == 3 {
-        4
-    } else {
-        6
-    }
-}
-
 /// [`bspline_coefficients`] in block-sparse form ([`Bricks`]) with the mirror boundary in each
 /// block's apron, so that the kernel's N x N neighbourhood of any anchor pixel in a block is in
 /// that block. `sparse`: only the blocks the colour kernel can reach, those of anchor pixels
@@ -465,11 +488,11 @@ fn bspline_taps(degree: u32) -> usize {
 /// any density > 0: the target render asks for a plane's colour only where its bilinear density
 /// is > 0 ([`prefilter`]'s blocks); otherwise every block. A plane's column pass runs only over
 /// the columns its stored blocks hold.
-pub fn bspline_bricks(mpi: &Mpi, degree: u32, sparse: bool) -> Bricks {
+pub fn bspline_bricks(mpi: &Mpi, prefilter: Prefilter, sparse: bool) -> Bricks {
     let mpi = &*mpi.unpacked();
     let (w, h) = (mpi.width, mpi.height);
-    let z = poles(degree);
-    let n = bspline_taps(degree);
+    let z = poles(prefilter);
+    let n = prefilter.taps();
     let lo = n / 2 - 1;
     let grid = BlockGrid { width: w, height: h, stride: 3, lo, hi: n - 1 - lo };
     let keep = |i: usize| sparse.then(|| super::store::reachable_blocks(mpi, i));
@@ -604,14 +627,17 @@ mod tests {
             w in 1usize..70,
             h in 1usize..50,
             dense in proptest::collection::vec(0usize..70 * 50, 0..12),
-            degree in proptest::prop_oneof![proptest::strategy::Just(3u32), proptest::strategy::Just(5)],
+            resample in proptest::prop_oneof![
+                proptest::strategy::Just(Resample::Bspline3),
+                proptest::strategy::Just(Resample::Bspline5),
+                proptest::strategy::Just(Resample::Omoms3),
+            ],
         ) {
             let mut mpi = Mpi::new(w, h, vec![0.5, 0.25], 0);
             for (k, p) in dense.into_iter().enumerate() {
                 mpi.plane_rgba_mut(k % 2)[4 * (p % (w * h)) + 3] = 1.0;
             }
             let reach: Vec<Vec<bool>> = (0..2).map(|i| crate::render::store::reachable_blocks(&mpi, i)).collect();
-            let resample = if degree == 3 { Resample::Bspline3 } else { Resample::Bspline5 };
             prefilter(&mut mpi, resample);
             crate::render::store::pack(&mut mpi);
             for (i, r) in reach.iter().enumerate() {
@@ -622,17 +648,18 @@ mod tests {
         }
     }
 
-    fn eval_line(c: &[f64], x: f64, degree: u32) -> f64 {
+    fn eval_line(c: &[f64], x: f64, prefilter: Prefilter) -> f64 {
         let x0 = x.floor();
         let at = |k: isize| c[mirror(x0 as isize + k, c.len())];
-        if degree == 3 {
-            let wts = Bspline3::weights(x - x0);
-            (0..4).map(|k| wts[k] * at(k as isize - 1)).sum()
-        } else {
-            let wts = Bspline5::weights(x - x0);
-            (0..6).map(|k| wts[k] * at(k as isize - 2)).sum()
+        let sum = |w: &[f64], lo: isize| -> f64 { w.iter().enumerate().map(|(k, v)| v * at(k as isize - lo)).sum() };
+        match prefilter {
+            Prefilter::Bspline3 => sum(&Bspline3::weights(x - x0), 1),
+            Prefilter::Omoms3 => sum(&Omoms3::weights(x - x0), 1),
+            Prefilter::Bspline5 => sum(&Bspline5::weights(x - x0), 2),
         }
     }
+
+    const PREFILTERS: [Prefilter; 3] = [Prefilter::Bspline3, Prefilter::Bspline5, Prefilter::Omoms3];
 
     /// The prefilter of one line alone.
     fn prefilter_line(c: &mut [f64], poles: &[f64]) {
@@ -644,7 +671,7 @@ mod tests {
     /// short lines (the exact mirrored start) and long ones (the truncated start).
     #[test]
     fn lines_at_once_are_each_line_alone() {
-        for degree in [3, 5] {
+        for degree in PREFILTERS {
             for n in [2usize, 3, 7, 30, 64, 200] {
                 for m in [1usize, 2, 3, 7] {
                     let all: Vec<f64> = (0..n * m).map(|i| ((i * 7919 + 17) % 101) as f64 / 101.0 - 0.3).collect();
@@ -657,7 +684,7 @@ mod tests {
                             assert_eq!(
                                 together[k * m + j].to_bits(),
                                 alone[k].to_bits(),
-                                "degree {degree} n {n} m {m} line {j}"
+                                "{degree:?} n {n} m {m} line {j}"
                             );
                         }
                     }
@@ -672,7 +699,7 @@ mod tests {
     /// some columns flagged, the strips that hold them.
     #[test]
     fn plane_coefficients_are_each_line_alone() {
-        for degree in [3, 5] {
+        for degree in PREFILTERS {
             let z = poles(degree);
             for (w, h) in [(1usize, 1usize), (1, 6), (7, 1), (2, 2), (17, 9), (37, 23), (40, 33)] {
                 let rgba: Vec<f32> = (0..4 * w * h).map(|i| ((i * 7919 + 13) % 97) as f32 / 97.0 - 0.2).collect();
@@ -705,7 +732,7 @@ mod tests {
                             let at = strips.at(x, y);
                             for k in 0..3 {
                                 let (got, want) = (buf[at + k], want[3 * (y * w + x) + k]);
-                                assert_eq!(got.to_bits(), want.to_bits(), "degree {degree}, {w} x {h}, ({x}, {y}) {k}");
+                                assert_eq!(got.to_bits(), want.to_bits(), "{degree:?}, {w} x {h}, ({x}, {y}) {k}");
                             }
                         }
                     }
@@ -716,14 +743,14 @@ mod tests {
 
     #[test]
     fn prefilter_interpolates_at_the_samples() {
-        for degree in [3, 5] {
+        for degree in PREFILTERS {
             for n in [2usize, 3, 4, 5, 17, 40, 100] {
                 let s: Vec<f64> = (0..n).map(|i| ((i * 7919) % 13) as f64 / 13.0).collect();
                 let mut c = s.clone();
                 prefilter_line(&mut c, poles(degree));
                 for (i, &v) in s.iter().enumerate() {
                     let got = eval_line(&c, i as f64, degree);
-                    assert!((got - v).abs() < 1e-9, "degree {degree} n {n} i {i}: {got} vs {v}");
+                    assert!((got - v).abs() < 1e-9, "{degree:?} n {n} i {i}: {got} vs {v}");
                 }
             }
         }
@@ -746,7 +773,7 @@ mod tests {
             }
         }
         qs.retain(|&(x, y)| x <= (w - 1) as f64 && y <= (h - 1) as f64);
-        fn check<K: Kernel<N>, const N: usize>(m: &Mpi, degree: u32, qs: &[(f64, f64)]) {
+        fn check<K: Kernel<N>, const N: usize>(m: &Mpi, degree: Prefilter, qs: &[(f64, f64)]) {
             let (w, h) = (m.width, m.height);
             let dense = bspline_coefficients(m, degree);
             let blocks = bspline_bricks(m, degree, false);
@@ -759,17 +786,18 @@ mod tests {
                     let (fx, fy) = (x as f32 - x0 as f32, y as f32 - y0 as f32);
                     let b = sample_rgb_bricks_weighted::<f32, N>(&blocks, i, x0, y0, &K::weights(fx), &K::weights(fy))
                         .expect("every block");
-                    assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "degree {degree}, plane {i}, ({x}, {y})");
+                    assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits), "{degree:?}, plane {i}, ({x}, {y})");
                     let a = sample_rgb::<f64, K, N, 3>(plane, x, y, w, h);
                     let (x0, y0) = (at(x, w), at(y, h));
                     let (wx, wy) = (K::weights(x - x0 as f64), K::weights(y - y0 as f64));
                     let b = sample_rgb_bricks_weighted::<f64, N>(&blocks, i, x0, y0, &wx, &wy).expect("every block");
-                    assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "f64, degree {degree}, ({x}, {y})");
+                    assert_eq!(a.map(f64::to_bits), b.map(f64::to_bits), "f64, {degree:?}, ({x}, {y})");
                 }
             }
         }
-        check::<Bspline3, 4>(&m, 3, &qs);
-        check::<Bspline5, 6>(&m, 5, &qs);
+        check::<Bspline3, 4>(&m, Prefilter::Bspline3, &qs);
+        check::<Bspline5, 6>(&m, Prefilter::Bspline5, &qs);
+        check::<Omoms3, 4>(&m, Prefilter::Omoms3, &qs);
     }
 
     #[test]
@@ -780,6 +808,7 @@ mod tests {
             assert!((Bspline3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
             assert!((Lanczos3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
             assert!((Bspline5::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
+            assert!((Omoms3::weights(t).iter().sum::<f64>() - 1.0).abs() < 1e-12);
         }
     }
 
@@ -809,6 +838,7 @@ mod tests {
             check::<Bspline3, 4>(t);
             check::<Bspline5, 6>(t);
             check::<Keys, 4>(t);
+            check::<Omoms3, 4>(t);
         }
     }
 

@@ -116,11 +116,11 @@ pub fn reachable_blocks(mpi: &Mpi, i: usize) -> Vec<bool> {
 
 /// Whether a prepared scene's MPI is packed ([`pack`]) for renders with these settings: in the
 /// exact mode, with a kernel that reads colour only where there is density (bilinear and the
-/// B-splines, whose coefficients are computed before), and without minification (its levels
+/// prefiltered kernels, whose coefficients are computed before), and without minification (its levels
 /// read colour around the density).
 pub fn packs(mode: Mode, resample: Resample, minify: bool) -> bool {
     use Resample as R;
-    mode == Mode::Exact && !minify && matches!(resample, R::Bilinear | R::Bspline3 | R::Bspline5)
+    mode == Mode::Exact && !minify && (resample == R::Bilinear || resample.prefilter().is_some())
 }
 
 /// Packs the planes into blocks ([`crate::mpi::Mpi::rgba_blocks`]): the blocks of

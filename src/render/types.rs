@@ -225,11 +225,22 @@ pub enum Resample {
     Bspline5,
     /// 6 x 6 Lanczos-3 (normalised windowed sinc).
     Lanczos3,
+    /// 4 x 4 OMOMS-3 interpolation (prefiltered coefficients): the cubic of Blu, Thevenaz and
+    /// Unser of maximal order and minimal support, the cubic B-spline's cost and taps.
+    Omoms3,
 }
 
+pub use crate::mpi::Prefilter;
+
 impl Resample {
-    pub const ALL: [Resample; 5] =
-        [Resample::Bilinear, Resample::Bicubic, Resample::Bspline3, Resample::Bspline5, Resample::Lanczos3];
+    pub const ALL: [Resample; 6] = [
+        Resample::Bilinear,
+        Resample::Bicubic,
+        Resample::Bspline3,
+        Resample::Bspline5,
+        Resample::Lanczos3,
+        Resample::Omoms3,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -238,15 +249,17 @@ impl Resample {
             Resample::Bspline3 => "bspline3",
             Resample::Bspline5 => "bspline5",
             Resample::Lanczos3 => "lanczos3",
+            Resample::Omoms3 => "omoms3",
         }
     }
 
-    /// The B-spline degree of a kernel that samples prefiltered coefficients instead of the
-    /// colours themselves.
-    pub fn bspline_degree(self) -> Option<u32> {
+    /// The prefilter of a kernel that samples prefiltered coefficients instead of the colours
+    /// themselves.
+    pub fn prefilter(self) -> Option<Prefilter> {
         match self {
-            Resample::Bspline3 => Some(3),
-            Resample::Bspline5 => Some(5),
+            Resample::Bspline3 => Some(Prefilter::Bspline3),
+            Resample::Bspline5 => Some(Prefilter::Bspline5),
+            Resample::Omoms3 => Some(Prefilter::Omoms3),
             _ => None,
         }
     }

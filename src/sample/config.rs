@@ -308,10 +308,10 @@ impl SampleConfig {
     }
 
     /// The word of the cache key for what [`prepare_scene`] changes (the pre-blend, the
-    /// B-spline coefficients a `bspline3` render needs, the minification levels).
+    /// prefiltered coefficients a `bspline3` render needs, the minification levels).
     pub fn scene_variant(&self) -> u64 {
         let degree = match self.mode {
-            Mode::Exact => self.resample.bspline_degree().unwrap_or(0),
+            Mode::Exact => self.resample.prefilter().map_or(0, crate::mpi::Prefilter::id),
             Mode::Reference => 0,
         };
         u64::from(self.preblend) | u64::from(degree) << 1 | u64::from(self.minify && self.mode == Mode::Exact) << 8

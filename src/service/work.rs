@@ -43,7 +43,7 @@ pub const UNITS_PER_MWORK: u64 = 1_000_000;
 pub fn taps(r: Resample) -> u64 {
     match r {
         Resample::Bilinear => 4,
-        Resample::Bicubic | Resample::Bspline3 => 16,
+        Resample::Bicubic | Resample::Bspline3 | Resample::Omoms3 => 16,
         Resample::Bspline5 | Resample::Lanczos3 => 36,
     }
 }

@@ -232,6 +232,8 @@ fn higher_order_kernels_keep_a_photos_detail_under_lateral_translation() {
     assert!(mean["bspline3"] > 0.62, "{mean:?}");
     assert!(mean["bspline5"] > mean["bspline3"] && mean["bspline5"] > 0.72, "{mean:?}");
     assert!(mean["lanczos3"] > 0.67, "{mean:?}");
+    // OMOMS-3: the cubic B-spline's taps, about the quintic's detail
+    assert!(mean["omoms3"] > mean["bspline3"] + 0.05 && mean["omoms3"] > 0.72, "{mean:?}");
 }
 
 /// The ideal warp of the quality report (`bench::quality::ideal_warp_sharpness`): image1's
@@ -425,13 +427,17 @@ fn sparse_coefficients_render_the_bits_of_all_of_them() {
         Pose::from_axis_angle([0.0, 0.0, 0.0], [0.0, 0.0, 0.3]),
         Pose::from_axis_angle([0.0, 0.03, 0.0], [-0.02, 0.0, 0.8]),
     ];
-    for (r, degree) in [(Resample::Bspline3, 3), (Resample::Bspline5, 5)] {
+    for r in [Resample::Bspline3, Resample::Bspline5, Resample::Omoms3] {
+        let prefilter_of = r.prefilter().unwrap();
         let mut sparse = m.clone();
         prefilter(&mut sparse, r);
         let kept = sparse.bspline_rgb.as_ref().unwrap().coefficients.stored();
         assert!(kept.0 * 3 < kept.1, "{r}: {} of {} blocks kept", kept.0, kept.1);
         let mut full = m.clone();
-        full.bspline_rgb = Some(BsplineRgb { degree, coefficients: Arc::new(bspline_bricks(&m, degree, false)) });
+        full.bspline_rgb = Some(BsplineRgb {
+            prefilter: prefilter_of,
+            coefficients: Arc::new(bspline_bricks(&m, prefilter_of, false)),
+        });
         assert_eq!(full.bspline_rgb.as_ref().unwrap().coefficients.stored().0, kept.1);
         assert!(sparse.byte_size() < full.byte_size());
         for pose in poses {

@@ -131,7 +131,7 @@ class _MPIFlowDatasetImpl:
     parameters as JSON text or a dict; it is part of the address (same bytes every time), makes
     its own random crop (the preset's size, or `crop` when given) and resizes the frame to fit it.
     `resample` picks the colour kernel of the target render ("bilinear", "bicubic", "bspline3",
-    "lanczos3"; None = the dataset's), part of the fingerprint.
+    "bspline5", "lanczos3", "omoms3"; None = the dataset's), part of the fingerprint.
     `token`, `tls_ca`, `tls_cert`, `tls_key` and `tls_domain` are passed to each worker's Client.
     """
 

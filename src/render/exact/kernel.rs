@@ -80,8 +80,8 @@ pub(super) struct HighOrder<'a, K, const N: usize, C> {
 impl<T: Real, K: Kernel<N>, const N: usize, C: KernelColour> PlaneSampler<T> for HighOrder<'_, K, N, C> {
     fn blocks16(&self) -> Option<Blocks16<'_>> {
         match (&self.rgba, self.src.as_bricks()) {
-            (Rgba::Blocks(b), Some(c)) if K::BSPLINE3 && self.mip.iter().all(Option::is_none) => {
-                Blocks16::new(b, Some(c))
+            (Rgba::Blocks(b), Some(c)) if self.mip.iter().all(Option::is_none) => {
+                K::ROW16.and_then(|cubic| Blocks16::new(b, Some((c, cubic))))
             }
             _ => None,
         }

@@ -25,7 +25,7 @@ use super::plane::{cap, slab_offset, texel_depth, PlaneConst, SurfaceRay, SURFAC
 use crate::mpi::bricks::Bricks;
 use crate::mpi::planes::{DELTA_LAST, DEPTH_MAX};
 use crate::render::real::Real;
-use crate::render::types::RenderStats;
+use crate::render::types::{Prefilter, RenderStats};
 
 /// Composite weights below this take the bilinear colour even with a higher-order kernel: the
 /// difference is at most this fraction of full scale (below half an 8-bit step), and such
@@ -56,23 +56,24 @@ pub(super) struct TargetLanes {
     pub(super) h: usize,
 }
 
-/// Where [`rows16`] reads the planes: the packed (r, g, b, sigma) and, for the cubic B-spline,
-/// its coefficients (`None`: the bilinear colour).
+/// Where [`rows16`] reads the planes: the packed (r, g, b, sigma) and, for a prefiltered cubic
+/// (the cubic B-spline or OMOMS-3), its coefficients and which cubic (`None`: the bilinear
+/// colour).
 #[derive(Clone, Copy)]
 pub(super) struct Blocks16<'a> {
     rgba: &'a Bricks,
-    bspline3: Option<&'a Bricks>,
+    cubic: Option<(&'a Bricks, Prefilter)>,
 }
 
 impl<'a> Blocks16<'a> {
     /// The stores in the shapes the loop reads (the packed planes: 4 values, no apron before
     /// a block, one after; the coefficients: 3 values, one before, two after), else `None`.
-    pub(super) fn new(rgba: &'a Bricks, bspline3: Option<&'a Bricks>) -> Option<Self> {
+    pub(super) fn new(rgba: &'a Bricks, cubic: Option<(&'a Bricks, Prefilter)>) -> Option<Self> {
         let fits = |b: &Bricks, stride: usize, lo: usize, side: usize| {
             b.stride() == stride && b.lo() == lo && b.side() == side
         };
-        (fits(rgba, 4, 0, Bricks::SIZE + 1) && bspline3.is_none_or(|k| fits(k, 3, 1, Bricks::SIZE + 3)))
-            .then_some(Blocks16 { rgba, bspline3 })
+        (fits(rgba, 4, 0, Bricks::SIZE + 1) && cubic.is_none_or(|(k, _)| fits(k, 3, 1, Bricks::SIZE + 3)))
+            .then_some(Blocks16 { rgba, cubic })
     }
 }
 
@@ -357,15 +358,22 @@ fn clamp_to(v4: pulp::x86::V4, q: &F, hi: f32) -> F {
     pick(v4, cmp1::<LT>(v4, &q, 0.0), &[0.0; L], &q)
 }
 
-/// The cubic B-spline colour of plane `i` from its coefficients at the taps of the lanes of
+/// The prefiltered cubic's colour of plane `i` from its coefficients at the taps of the lanes of
 /// `want` (`sample_rgb_bricks_weighted`'s arithmetic per lane: the column sums over the four
 /// rows in order, then the row sum, clamped to [0, 1]) and the lanes whose block is stored
 /// (the others take the bilinear colour).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-fn bspline3(v4: pulp::x86::V4, coef: &Bricks, i: usize, px: &TapPixels, f: [&F; 2], want: Lanes) -> ([F; 3], Lanes) {
-    let wx: [F; 4] = weights(f[0]);
-    let wy: [F; 4] = weights(f[1]);
+fn cubic(
+    v4: pulp::x86::V4,
+    (coef, kind): (&Bricks, Prefilter),
+    i: usize,
+    px: &TapPixels,
+    f: [&F; 2],
+    want: Lanes,
+) -> ([F; 3], Lanes) {
+    let wx: [F; 4] = weights(kind, f[0]);
+    let wy: [F; 4] = weights(kind, f[1]);
     let mut col = [[[0.0f32; L]; 3]; 4];
     let row_len = coef.row_len();
     let data = coef.data();
@@ -439,19 +447,30 @@ fn exp_neg16(v4: pulp::x86::V4, x: &F) -> F {
     f16(|k| p[k] * a[k] * b[k])
 }
 
-/// The cubic B-spline's weights of the lanes' fractions (`Bspline3::weights`' operations in
-/// lanes, the same bits).
+/// The cubic's weights of the lanes' fractions (`Bspline3::weights`' and `Omoms3::weights`'
+/// operations in lanes, the same bits).
 #[inline(always)]
-fn weights(t: &F) -> [F; 4] {
+fn weights(kind: Prefilter, t: &F) -> [F; 4] {
     let s = 1.0f32 / 6.0;
     let u = f16(|k| 1.0 - t[k]);
     let t2 = f16(|k| t[k] * t[k]);
     let t3 = f16(|k| t[k] * t[k] * t[k]);
-    [
+    let b = [
         f16(|k| u[k] * u[k] * u[k] * s),
         f16(|k| (3.0 * t3[k] - 6.0 * t2[k] + 4.0) * s),
         f16(|k| (-3.0 * t3[k] + 3.0 * t2[k] + 3.0 * t[k] + 1.0) * s),
         f16(|k| t3[k] * s),
+    ];
+    if kind != Prefilter::Omoms3 {
+        return b;
+    }
+    // the B-spline plus a 42nd of its second derivative
+    let s = 1.0f32 / 42.0;
+    [
+        f16(|k| b[0][k] + u[k] * s),
+        f16(|k| b[1][k] + (3.0 * t[k] - 2.0) * s),
+        f16(|k| b[2][k] + (3.0 * u[k] - 2.0) * s),
+        f16(|k| b[3][k] + t[k] * s),
     ]
 }
 
@@ -750,8 +769,8 @@ fn surface16<T: Real>(
 #[inline(always)]
 fn colours(v4: V4, src: Blocks16<'_>, i: usize, px: &TapPixels, f: [&F; 2], texel: &[F; 4], want: Lanes) -> [F; 3] {
     let mut colour = [texel[0], texel[1], texel[2]];
-    if let Some(coef) = src.bspline3.filter(|_| want != 0) {
-        let (kc, found) = bspline3(v4, coef, i, px, f, want);
+    if let Some(c) = src.cubic.filter(|_| want != 0) {
+        let (kc, found) = cubic(v4, c, i, px, f, want);
         for (col, kc) in colour.iter_mut().zip(&kc) {
             *col = pick(v4, found, kc, col);
         }

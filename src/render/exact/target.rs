@@ -12,9 +12,9 @@ use crate::render::band::{for_each_band, mark_valid};
 use crate::render::mip::{mip_planes, missing_levels, plane_lods};
 use crate::render::occupancy::Occupancy;
 use crate::render::real::Real;
-use crate::render::resample::{bspline_bricks, Bspline3, Bspline5, Keys, Lanczos3};
+use crate::render::resample::{bspline_bricks, Bspline3, Bspline5, Keys, Lanczos3, Omoms3};
 use crate::render::store::Rgba;
-use crate::render::types::{Channels, DensityCut, RenderOutput, RenderParams, RenderStats, Resample};
+use crate::render::types::{Channels, DensityCut, Prefilter, RenderOutput, RenderParams, RenderStats, Resample};
 use crate::render::window::Rect;
 
 /// What the target view renders: the MPI with the render's parameters, its tile occupancy
@@ -119,22 +119,29 @@ fn target_view_n<T: Real, const NL: usize>(
             };
             target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
         }
-        Resample::Bspline3 | Resample::Bspline5 => {
-            let degree = if p.resample == Resample::Bspline3 { 3 } else { 5 };
+        Resample::Bspline3 | Resample::Bspline5 | Resample::Omoms3 => {
+            let prefilter = p.resample.prefilter().expect("a prefiltered kernel");
             let owned;
             let coef: &Bricks = match &mpi.bspline_rgb {
-                Some(c) if c.degree == degree => &c.coefficients,
+                Some(c) if c.prefilter == prefilter => &c.coefficients,
                 _ => {
-                    owned = bspline_bricks(mpi, degree, true);
+                    owned = bspline_bricks(mpi, prefilter, true);
                     &owned
                 }
             };
-            if degree == 3 {
-                let s = HighOrder::<Bspline3, 4, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
-                target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
-            } else {
-                let s = HighOrder::<Bspline5, 6, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
-                target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
+            match prefilter {
+                Prefilter::Bspline3 => {
+                    let s = HighOrder::<Bspline3, 4, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
+                    target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
+                }
+                Prefilter::Omoms3 => {
+                    let s = HighOrder::<Omoms3, 4, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
+                    target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
+                }
+                Prefilter::Bspline5 => {
+                    let s = HighOrder::<Bspline5, 6, _> { rgba, src: coef, kernel: std::marker::PhantomData, mip };
+                    target_view_with::<T, _, NL>(inp, channels, out, consts, lb, &s)
+                }
             }
         }
     }
