@@ -19,3 +19,4 @@ mod service_data;
 mod shards;
 mod soak;
 mod uploads;
+mod workspace;

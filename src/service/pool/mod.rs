@@ -51,13 +51,18 @@
 //! has room for it), and, for each running job, a reservation ([`StreamShared::reserve`]): the
 //! job's bound from its request (`validate::admit_size`) until the stream's first sample is
 //! made, then that sample's size plus an eighth. A running job also reserves its sample's
-//! workspace, [`Produce::workspace`] (`service::work::workspace`; the service sets 0 for now: the renderer's buffers of each frame and the raw
-//! tensors, estimated from the request's size, frames and fields), from dispatch until it is
-//! done; the workspace counts in the budget's total (`mpiflow_buffered_bytes`), not in the
-//! stream's share, so the samples being made are within the budget too and the shares still
-//! divide what clients are sent. No job starts unless its reservation and its workspace fit what
-//! the budget has left; a request whose largest sample's workspace and bound are over the budget is
-//! refused before any work (`service::work::admit_workspace`). Within that, a stream may start a job while what it
+//! workspace, [`Produce::workspace`] (`service::work::workspace`: the renderer's buffers of each
+//! frame and the raw tensors, estimated from the request's size, frames and fields), from
+//! dispatch until it is done; the workspace counts in the budget's total
+//! (`mpiflow_buffered_bytes`), not in the stream's share, so the samples being made are within
+//! the budget too and the shares still divide what clients are sent. No job starts unless its
+//! reservation and its workspace fit what the budget has left; a request whose largest sample's
+//! workspace and bound are over the budget is refused before any work
+//! (`service::work::admit_workspace`). A job that would start next but waits only for the
+//! workspace of the jobs running now goes first once they are done: no other job starts ahead of
+//! it meanwhile ([`Scheduler::head_waiting_for_workspace`]), so a sample whose workspace takes
+//! most of the budget is not kept waiting for ever by smaller ones that always fit, and a small
+//! budget still makes one sample at a time. Within that, a stream may start a job while what it
 //! holds plus the reservation stays within its fair share, `budget / peers with open streams /
 //! the peer's open streams`; a stream holding nothing may start one while its peer holds less
 //! than the peer's share. Beyond its share a stream may go on while the budget has room, but only

@@ -452,10 +452,41 @@ impl Scheduler {
             candidates.iter().filter(|t| t.reading == reading).min_by_key(|t| (t.finish, t.peer)).cloned()
         };
         let tag = if others_turn { best(false).or_else(|| best(true)) } else { best(true) }?;
+        // the job first in line that waits only for the workspace of the jobs running now goes
+        // before any other once they are done: a sample whose workspace takes much of the
+        // budget is not kept waiting for ever by smaller ones that always fit
+        if let Some(head) = self.head_waiting_for_workspace(s, now, first, others_turn) {
+            if !Arc::ptr_eq(&head, &tag.stream) {
+                return None;
+            }
+        }
         s.vclock = tag.start;
         tag.stream.group.used.store(tag.finish, Ordering::Release);
         s.rr_in_peer.insert(tag.peer, tag.stream.id);
         Some(Pick { stream: tag.stream, finish: tag.finish, cost: tag.finish - tag.start, others: !tag.reading })
+    }
+
+    /// The stream of the job the dispatch would start next if the jobs running now had freed
+    /// their samples' workspace, when that job may not start now: the dispatch starts nothing
+    /// else until it may (a running job always ends, so it waits at most until they have).
+    fn head_waiting_for_workspace(
+        &self,
+        s: &Sched,
+        now: Instant,
+        first: Option<PeerKey>,
+        others_turn: bool,
+    ) -> Option<Arc<StreamShared>> {
+        let making = self.making.load(Ordering::Acquire);
+        if making == 0 {
+            return None;
+        }
+        let (room, freed) = (self.room(), self.room().saturating_add(making));
+        let spare = |st: &StreamShared, r: u64| self.spare(r, Some(st.peer) == first);
+        let wanting = self.tags(s, now, |st, g| st.eligible(g, freed, spare(st, freed)));
+        let best = |reading: bool| wanting.iter().filter(|t| t.reading == reading).min_by_key(|t| (t.finish, t.peer));
+        let head = if others_turn { best(false).or_else(|| best(true)) } else { best(true) }?;
+        let may_now = head.stream.eligible(&lock(&head.stream.state), room, spare(&head.stream, room));
+        (!may_now).then(|| head.stream.clone())
     }
 
     /// Makes room for a stream that may not start for want of it while its peer holds less than
