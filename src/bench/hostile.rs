@@ -215,10 +215,11 @@ pub(super) async fn window_client(
     while tokio::time::Instant::now() < until {
         let Some((send, mut conn)) = raw_h2_until("window", &addr, from, 0, until, &sh).await else { return };
         let mut held = Vec::new();
-        while !conn.is_finished() && tokio::time::Instant::now() < until {
+        let mut closed = false;
+        while !closed && tokio::time::Instant::now() < until {
             if held.len() >= streams {
                 let tick = (tokio::time::Instant::now() + Duration::from_millis(200)).min(until);
-                let _ = timeout_at(tick, &mut conn).await;
+                closed = timeout_at(tick, &mut conn).await.is_ok();
                 continue;
             }
             match timeout_at(until, raw_call(&send, "/mpiflow.v1.MpiFlow/StreamSamples", frame.clone())).await {
@@ -236,7 +237,9 @@ pub(super) async fn window_client(
                 Ok(Err(_)) | Err(_) => break,
             }
         }
-        let _ = timeout_at(until, &mut conn).await;
+        if !closed {
+            let _ = timeout_at(until, &mut conn).await;
+        }
         drop(held);
         tokio::time::sleep_until((tokio::time::Instant::now() + Duration::from_millis(200)).min(until)).await;
     }

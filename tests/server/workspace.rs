@@ -61,6 +61,12 @@ async fn samples_being_made_count_in_the_byte_budget() {
         making = making.max(s.state.scheduler.stats().making);
     }
     assert_eq!(n, 12);
+    // the last job is counted done just after its sample is handed over
+    until("the last job is done and the stream closed", || {
+        let st = s.state.scheduler.stats();
+        st.in_flight == 0 && st.streams == 0
+    })
+    .await;
     let st = s.state.scheduler.stats();
     assert_eq!(st.max_in_flight_seen, 1, "two clips of 2.1 MB workspace each were never made at once: {st:?}");
     assert!(st.max_buffered_seen <= 4 * MIB, "{st:?}");
@@ -115,7 +121,11 @@ async fn a_small_budget_still_makes_progress_with_large_workspaces() {
     assert_eq!(clips, vec![0, 1, 2, 10, 11, 12, 13]);
     let st = s.state.scheduler.stats();
     assert!(st.max_buffered_seen <= 3 * MIB, "{st:?}");
-    until("every stream is closed", || s.state.scheduler.stats().streams == 0).await;
+    until("every stream is closed and every job done", || {
+        let st = s.state.scheduler.stats();
+        st.streams == 0 && st.in_flight == 0
+    })
+    .await;
     assert_eq!(s.state.scheduler.stats().making, 0);
     s.shutdown(Duration::from_millis(500)).await;
 }

@@ -64,8 +64,8 @@
 //! most of the budget is not kept waiting for ever by smaller ones that always fit, and a small
 //! budget still makes one sample at a time. Within that, a stream may start a job while what it
 //! holds plus the reservation stays within its fair share, `budget / peers with open streams /
-//! the peer's open streams`; a stream holding nothing may start one while its peer holds less
-//! than the peer's share. Beyond its share a stream may go on while the budget has room, but only
+//! the peer's open streams`; a stream holding nothing may start one job whatever its peer holds
+//! (a client's second stream is not kept waiting by its first). Beyond its share a stream may go on while the budget has room, but only
 //! the client first in line (the one whose next job would finish first on the virtual clock,
 //! below) may take the budget's last [`HEADROOM_DIVISOR`]th: a client reading small samples
 //! quickly among many that asked for clips and left them unread finds room at once, instead of
@@ -136,7 +136,7 @@ use super::peer::PeerKey;
 pub use meter::FIRST_NS_PER_UNIT;
 pub use sched::CREDIT;
 pub use sched::{HEADROOM_DIVISOR, OTHERS_SHARE, PENALTY_FIRST, PENALTY_MAX};
-pub use scheduler::{PeerUse, SampleStream, Scheduler, SchedulerStats};
+pub use scheduler::{PeerUse, SampleStream, Scheduler, SchedulerStats, SLOT_TAKEN_BACK};
 pub use stream::StreamShared;
 
 pub(super) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {

@@ -13,7 +13,7 @@ use tokio_stream::Stream;
 use tonic::Status;
 
 use crate::service::conn::Activity;
-use crate::service::error::{panic_message, with_cursor, ServiceError};
+use crate::service::error::{panic_message, with_cursor, Reason, ServiceError};
 use crate::service::metrics::Metrics;
 use crate::service::pb;
 use crate::service::peer::PeerKey;
@@ -282,6 +282,7 @@ impl Scheduler {
                     waker: None,
                     closed: false,
                     draining: false,
+                    taken_back: false,
                 }),
             });
             s.streams.push(shared.clone());
@@ -562,6 +563,39 @@ impl Scheduler {
         stalled.iter().max_by_key(|(p, waited, _)| (of_peer(*p), *waited)).map(|(.., c)| c.clone())
     }
 
+    /// Takes a stream slot back from `peer` for a client that needs one: of its streams that
+    /// `holds_slot` names, the one that has sent the least (the newest among equals) starts
+    /// nothing more and ends, once its running job is done and what it has made is sent, with
+    /// RESOURCE_EXHAUSTED and its cursor ([`SLOT_TAKEN_BACK`]). Whether there was one.
+    pub fn take_back_slot(&self, peer: PeerKey, holds_slot: impl Fn(u64) -> bool) -> bool {
+        let pick = {
+            let s = lock(&self.inner);
+            s.streams
+                .iter()
+                .filter(|st| st.peer == peer && holds_slot(st.id))
+                .filter_map(|st| {
+                    // a stream whose message waits in a transport that has taken nothing since
+                    // would not be polled to end: such holders are closed instead (`stalled_holder`)
+                    let g = lock(&st.state);
+                    let since = g.in_transport_since.elapsed();
+                    let ends = g.in_transport == 0 || st.conn.as_ref().is_none_or(|c| c.not_taken_for() < since);
+                    (!g.closed && !g.taken_back && ends).then(|| ((g.delivered, std::cmp::Reverse(st.id)), st.clone()))
+                })
+                .min_by_key(|(key, _)| *key)
+                .map(|(_, st)| st)
+        };
+        let Some(st) = pick else { return false };
+        let waker = {
+            let mut g = lock(&st.state);
+            g.taken_back = true;
+            g.waker.take()
+        };
+        if let Some(w) = waker {
+            w.wake();
+        }
+        true
+    }
+
     /// Sets every peer's and stream's share of the budget: budget / peers with open streams,
     /// then the peer's share / its open streams.
     fn reshare(&self, s: &Sched) {
@@ -671,10 +705,11 @@ impl Scheduler {
             }
             g.waker.take()
         };
+        // the sample's workspace is free once it is made (before its stream can see it)
+        self.account_making(0, st.produce.workspace);
         if let Some(w) = waker {
             w.wake();
         }
-        self.account_making(0, st.produce.workspace);
         {
             let mut s = lock(&self.inner);
             s.in_flight -= 1;
@@ -811,6 +846,11 @@ impl Scheduler {
     }
 }
 
+/// The status of a stream whose slot was taken back for another client
+/// ([`Scheduler::take_back_slot`]).
+pub const SLOT_TAKEN_BACK: &str = "stream slot taken back: this client holds more than its share of max_streams while \
+                                    another client needs one; resume from the cursor when one of its streams has ended";
+
 /// The consumer side of a stream: yields batches in index order as tonic polls it. Dropping it
 /// (the client went away) closes the stream.
 pub struct SampleStream {
@@ -873,7 +913,7 @@ impl Stream for SampleStream {
         while contiguous < want && matches!(g.ready.get(&(g.delivered + contiguous as u64)), Some(Ok(_))) {
             contiguous += 1;
         }
-        let drained = g.draining && g.running == 0;
+        let drained = (g.draining || g.taken_back) && g.running == 0;
         // at its share of the budget, with nothing running, a stream sends the batch it has
         // (the room a client first in line may take beyond its share is not counted here: the
         // dispatch, which knows who is first, does not run under a stream's lock)
@@ -916,9 +956,14 @@ impl Stream for SampleStream {
         }
         if drained {
             let delivered = g.delivered;
+            let e = if g.taken_back {
+                ServiceError::LimitExceeded(Reason::TooManyStreams, SLOT_TAKEN_BACK.into())
+            } else {
+                ServiceError::Draining
+            };
             g.closed = true;
             drop(g);
-            return self.end_with(ServiceError::Draining.into(), delivered);
+            return self.end_with(e.into(), delivered);
         }
         g.waker = Some(cx.waker().clone());
         Poll::Pending
