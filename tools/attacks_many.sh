@@ -10,7 +10,8 @@
 # Each run prints its summary and its criteria line (the honest stream keeps >= 50% of its solo
 # rate with no wait over 2 s, >= 90% of newcomers served, buffered <= the budget, RSS <= idle +
 # budget x 1.25, no index lost or repeated); with RUNS > 1, the medians of the rate and the
-# longest wait per attack close the output (docs/robustness.md, "Many addresses").
+# longest wait per attack close the output (docs/robustness.md, "Many addresses" and "An honest
+# trainer beside each attack").
 #   bash tools/attacks_many.sh [SECONDS] [RUNS] [ATTACK-NUMBERS...]   # default 45 s, 1 run, all
 set -euo pipefail
 cd "$(dirname "$0")/.."

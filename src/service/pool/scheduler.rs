@@ -705,11 +705,10 @@ impl Scheduler {
             }
             g.waker.take()
         };
-        // the sample's workspace is free once it is made (before its stream can see it)
-        self.account_making(0, st.produce.workspace);
         if let Some(w) = waker {
             w.wake();
         }
+        self.account_making(0, st.produce.workspace);
         {
             let mut s = lock(&self.inner);
             s.in_flight -= 1;
