@@ -197,8 +197,11 @@ pub use crate::sample::noise::noise_sigma;
 
 /// The sharpness ratios, over the same pixels, of image1 warped *ideally* by the sample's geometry
 /// and of image2 itself: `(ideal, image2)`, each the [`laplacian_variance`] over the image2 pixels
-/// whose backward flow is valid and that are not holes, divided by image1's over its valid
-/// pixels (as [`sharpness_ratio`]). The ideal warp samples image1's quintic B-spline
+/// whose backward flow is valid, whose point image1 sees (backward occlusion 0) and that are not
+/// holes, divided by image1's over its valid pixels (as [`sharpness_ratio`]). Where image1 does
+/// not see the point (what the motion reveals), image1 warped by the geometry shows the occluder,
+/// not the point, so there is no ideal to compare with: the revealed region's detail is
+/// [`crate::bench::realism::RevealedDetail`]'s. The ideal warp samples image1's quintic B-spline
 /// ([`crate::render::resample::SplineImage`]) at `q + backward_flow(q)`: what a high-order
 /// reconstruction of the photo by the same geometry keeps, so the gap between the two is the
 /// render's own loss (its kernel, the planes' blend) and `1 - ideal` is the geometry's
@@ -208,7 +211,8 @@ pub fn ideal_warp_sharpness(s: &Sample) -> Option<(f64, f64)> {
     let ideal = ideal_warp(s)?;
     let bw = &s.backward;
     let v1 = laplacian_variance(&s.image1, w, h, |i| s.valid[i] != 0)?;
-    let region = |i: usize| bw.valid[i] != 0 && s.holes[i] == 0;
+    let seen = |i: usize| bw.occlusion.get(i).is_none_or(|&o| o == 0);
+    let region = |i: usize| bw.valid[i] != 0 && seen(i) && s.holes[i] == 0;
     let vi = laplacian_variance(&ideal, w, h, region)?;
     let v2 = laplacian_variance(&s.image2, w, h, region)?;
     (v1 > 0.0).then(|| (vi / v1, v2 / v1))

@@ -241,17 +241,44 @@ pub fn revealed_detail(s: &Sample, rev: &[bool]) -> RevealedDetail {
     RevealedDetail { share, detail, noise }
 }
 
-/// The forward-backward residual of a sample with backward fields: the mean over valid,
-/// non-occluded source pixels `p` (whose target `q = p + F(p)` has a valid backward flow at its
-/// bilinear neighbours) of `|F(p) + B(q)|`, `B` sampled bilinearly. `None` without backward
-/// fields or when no pixel qualifies.
-pub fn forward_backward_residual(s: &Sample) -> Option<(f64, u64)> {
+/// Spread (largest difference, either component) of the backward flow over a read's four
+/// neighbours from which the read straddles a motion edge ([`forward_backward_residual`]).
+pub const MOTION_EDGE_SPREAD: f32 = 1.0;
+
+/// Sums of the forward-backward residual ([`forward_backward_residual`]), apart for the reads
+/// that straddle a motion edge.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FbResidual {
+    /// Sum and count over the reads whose four neighbours lie on one motion.
+    pub sum: f64,
+    pub n: u64,
+    /// Sum and count over the reads that straddle a motion edge.
+    pub edge_sum: f64,
+    pub edge_n: u64,
+}
+
+impl FbResidual {
+    fn add(&mut self, o: &FbResidual) {
+        self.sum += o.sum;
+        self.n += o.n;
+        self.edge_sum += o.edge_sum;
+        self.edge_n += o.edge_n;
+    }
+}
+
+/// The forward-backward residual of a sample with backward fields: over valid, non-occluded
+/// source pixels `p` (whose target `q = p + F(p)` has a valid backward flow at its bilinear
+/// neighbours), `|F(p) + B(q)|` with `B` sampled bilinearly. A read whose four neighbours'
+/// backward flows differ by more than [`MOTION_EDGE_SPREAD`] straddles a motion edge: a
+/// neighbour shows another surface than `p`'s (the sampling of an edge, whatever the labels), so
+/// those reads are summed apart. `None` without backward fields or when no pixel qualifies.
+pub fn forward_backward_residual(s: &Sample) -> Option<FbResidual> {
     let (w, h) = (s.width, s.height);
     let b = &s.backward;
     if b.flow.len() != 2 * w * h || b.valid.len() != w * h || w < 2 || h < 2 {
         return None;
     }
-    let (mut sum, mut n) = (0.0f64, 0u64);
+    let mut out = FbResidual::default();
     for i in 0..w * h {
         if s.valid[i] == 0 || s.occlusion[i] != 0 {
             continue;
@@ -269,17 +296,29 @@ pub fn forward_backward_residual(s: &Sample) -> Option<(f64, u64)> {
         }
         let wts = [(1.0 - ax) * (1.0 - ay), ax * (1.0 - ay), (1.0 - ax) * ay, ax * ay];
         let (mut bx, mut by) = (0.0f32, 0.0f32);
+        let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
         for (j, wt) in idx.iter().zip(wts) {
-            bx += wt * b.flow[2 * j];
-            by += wt * b.flow[2 * j + 1];
+            let f = [b.flow[2 * j], b.flow[2 * j + 1]];
+            bx += wt * f[0];
+            by += wt * f[1];
+            for c in 0..2 {
+                lo[c] = lo[c].min(f[c]);
+                hi[c] = hi[c].max(f[c]);
+            }
         }
         let r = f64::from((fx + bx).hypot(fy + by));
-        if r.is_finite() {
-            sum += r;
-            n += 1;
+        if !r.is_finite() {
+            continue;
+        }
+        if hi[0] - lo[0] > MOTION_EDGE_SPREAD || hi[1] - lo[1] > MOTION_EDGE_SPREAD {
+            out.edge_sum += r;
+            out.edge_n += 1;
+        } else {
+            out.sum += r;
+            out.n += 1;
         }
     }
-    (n > 0).then_some((sum, n))
+    (out.n + out.edge_n > 0).then_some(out)
 }
 
 /// Accumulates the realism figures over samples.
@@ -294,7 +333,7 @@ pub struct RealismAccumulator {
     shares: Vec<f64>,
     detail: Vec<f64>,
     noise: Vec<f64>,
-    fb: (f64, u64),
+    fb: FbResidual,
     colour: Option<ObjectColour>,
 }
 
@@ -315,11 +354,23 @@ pub struct RealismReport {
     /// have them.
     pub revealed_detail: Option<f64>,
     pub revealed_noise: Option<f64>,
-    /// Mean forward-backward residual in pixels ([`forward_backward_residual`]).
+    /// Mean forward-backward residual in pixels ([`forward_backward_residual`]) over the reads
+    /// that do not straddle a motion edge.
     pub fb_residual: Option<f64>,
+    /// The reads that straddle a motion edge: their mean residual and their share of all reads.
+    pub fb_edges: Option<FbEdges>,
     /// Object colour in the revealed background against the ring around the object
     /// ([`super::ghost`]), pooled over the samples with a moved object.
     pub object_colour: Option<ObjectColour>,
+}
+
+/// The forward-backward reads that straddle a motion edge ([`forward_backward_residual`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FbEdges {
+    /// Mean residual in pixels.
+    pub residual: f64,
+    /// Share of all reads.
+    pub share: f64,
 }
 
 /// The patches of a region covering at least half of each patch.
@@ -358,9 +409,8 @@ impl RealismAccumulator {
         self.shares.push(d.share);
         self.detail.extend(d.detail);
         self.noise.extend(d.noise);
-        if let Some((sum, n)) = forward_backward_residual(s) {
-            self.fb.0 += sum;
-            self.fb.1 += n;
+        if let Some(fb) = forward_backward_residual(s) {
+            self.fb.add(&fb);
         }
     }
 
@@ -373,7 +423,11 @@ impl RealismAccumulator {
             revealed: mean(&self.shares).unwrap_or(0.0),
             revealed_detail: mean(&self.detail),
             revealed_noise: mean(&self.noise),
-            fb_residual: (self.fb.1 > 0).then(|| self.fb.0 / self.fb.1 as f64),
+            fb_residual: (self.fb.n > 0).then(|| self.fb.sum / self.fb.n as f64),
+            fb_edges: (self.fb.edge_n > 0).then(|| FbEdges {
+                residual: self.fb.edge_sum / self.fb.edge_n as f64,
+                share: self.fb.edge_n as f64 / (self.fb.n + self.fb.edge_n) as f64,
+            }),
             object_colour: self.colour,
         }
     }

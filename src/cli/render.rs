@@ -12,13 +12,6 @@ use mpiflow::mpi::Mpi;
 use mpiflow::render::{render, Fields, Mode, Occupancy, RenderParams, Resample, Skip};
 use std::path::{Path, PathBuf};
 
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum LayeringArg {
-    Hard,
-    Soft,
-    TrueDepth,
-}
-
 #[derive(Args, Debug)]
 pub struct RenderArgs {
     /// An MPI in the reference .npz layout (mpi_rgb, mpi_sigma, disparity, optional K, G, mask_in).
@@ -34,9 +27,10 @@ pub struct RenderArgs {
     /// Number of MPI planes built from RGB-D input (default: the scene models' default).
     #[arg(long, default_value_t = mpiflow::scene::models::ModelConfig::default().planes as u32, value_parser = clap::value_parser!(u32).range(1..=256))]
     planes: u32,
-    /// How RGB-D pixels are assigned to planes.
-    #[arg(long, value_enum, default_value = "soft")]
-    layering: LayeringArg,
+    /// How RGB-D pixels are assigned to planes: true-depth, soft or hard (default: the scene
+    /// models' default, soft).
+    #[arg(long, value_name = "KIND")]
+    layering: Option<Layering>,
     /// Where the planes go in disparity: uniform or content (dense where the photo's depths are;
     /// default: the scene models' default, uniform).
     #[arg(long, value_name = "KIND")]
@@ -108,15 +102,10 @@ pub fn run(a: RenderArgs) -> Result<(), CliError> {
         (None, Some(img), Some(dep)) => {
             let rgb = load_rgb(img, &ImageLimits::default())?;
             let depth = load_depth(dep, rgb.width, rgb.height)?;
-            let layering = match a.layering {
-                LayeringArg::Hard => Layering::Hard,
-                LayeringArg::Soft => Layering::Soft,
-                LayeringArg::TrueDepth => Layering::TrueDepth,
-            };
             let d = mpiflow::scene::models::ModelConfig::default().layering_options();
             let opts = LayeringOptions {
                 planes: a.planes as usize,
-                layering,
+                layering: a.layering.unwrap_or(d.layering),
                 placement: a.placement.unwrap_or(d.placement),
                 backdrop: a.backdrop.unwrap_or(d.backdrop),
                 ..d

@@ -212,7 +212,7 @@ impl Default for LayeringOptions {
     fn default() -> Self {
         Self {
             planes: 32,
-            layering: Layering::Soft,
+            layering: Layering::default(),
             placement: Placement::Uniform,
             disparity_range: None,
             backdrop: false,

@@ -39,7 +39,7 @@ pub struct BuiltinMpi {
 impl Default for BuiltinMpi {
     /// 32 planes, soft layering uniform over the scene's own range, no completed background.
     fn default() -> Self {
-        BuiltinMpi::new(32, Layering::Soft)
+        BuiltinMpi::new(32, Layering::default())
     }
 }
 

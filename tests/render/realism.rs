@@ -172,3 +172,33 @@ fn objects_move_by_the_laws_draw_unscaled() {
     println!("|t_obj - t_cam| / |t_cam|: median {median:.3} over {} objects", ratios.len());
     assert!(median >= 0.1, "median {median}: object motion scaled down");
 }
+
+/// True-depth layers keep image1's detail where image1 sees what image2 shows (the ideal warp's
+/// region, `bench::quality::ideal_warp_sharpness`) and their flows agree forward and backward
+/// off motion edges (`bench::realism::forward_backward_residual`); soft layering, whose pixels
+/// part by the parallax of the plane spacing, loses both (docs/quality.md, "True-depth layers").
+#[test]
+fn true_depth_layers_keep_the_ideal_warps_detail_and_agree_forward_and_backward() {
+    use mpiflow::mpi::layering::Layering;
+    let run = |layering: Layering| {
+        let models = ModelConfig { layering, ..ModelConfig::default() };
+        let stage = Arc::new(models.build_stage().unwrap());
+        let source = open_source(&SourceSpec::Path(cones()), &OpenOptions::default()).unwrap();
+        let p = Pipeline::new(source, stage, Arc::new(SceneCache::new(1 << 28)), SampleConfig::default()).unwrap();
+        let c = SampleConfig { max_objects: 0, backward: true, ..SampleConfig::default() };
+        let r = quality(p.generator(), &c, 0, 4).unwrap();
+        let detail = r.ideal_image2_sharpness / r.ideal_sharpness;
+        let edges = r.realism.fb_edges.unwrap();
+        println!(
+            "{layering:?}: detail {detail:.3}, fb {:?} (edges {:.3} px, {:.3} of reads)",
+            r.realism.fb_residual, edges.residual, edges.share
+        );
+        (detail, r.realism.fb_residual.unwrap(), edges)
+    };
+    let (soft, soft_fb, _) = run(Layering::Soft);
+    let (true_depth, fb, edges) = run(Layering::TrueDepth);
+    assert!(true_depth > 0.85 && true_depth > soft + 0.15, "detail: true-depth {true_depth}, soft {soft}");
+    assert!(fb < 0.05 && soft_fb > fb, "fb residual: true-depth {fb}, soft {soft_fb}");
+    // the reads across motion edges are few, and their residual is the edge's, not a label error
+    assert!(edges.share < 0.08 && edges.residual > 0.5, "{edges:?}");
+}

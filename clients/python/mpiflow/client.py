@@ -366,45 +366,16 @@ class Client:
         self,
         index: int,
         *,
-        seed: int = 0,
-        dataset: Optional[str] = None,
-        fingerprint: int = 0,
-        fields: Optional[Iterable[Union[int, str]]] = None,
-        lz4: bool = False,
-        flow_dtype: Union[str, int, None] = None,
-        crop: Any = None,
-        crop_mode: Union[str, int, None] = None,
-        motion_preset: Optional[str] = None,
-        motion_ranges_json: Optional[str] = None,
-        max_objects: Optional[int] = None,
-        motions_per_image: Optional[int] = None,
-        augment: Any = None,
-        frames: Optional[int] = None,
-        resample: Optional[str] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
+        **spec: Any,
     ) -> Union[Sample, "pb.Sample"]:
-        """GetSample: one sample by its address, decoded (`raw=True`: the Sample message)."""
+        """GetSample: one sample by its address, decoded (`raw=True`: the Sample message).
+        `spec`: the sample options (seed, dataset, fields, crop, ...: `spec.build_spec`)."""
         req = pb.SampleRequest(
             index=int(index),
-            spec=build_spec(
-                dataset=dataset,
-                fingerprint=fingerprint,
-                seed=seed,
-                fields=fields,
-                lz4=lz4,
-                flow_dtype=flow_dtype,
-                crop=crop,
-                crop_mode=crop_mode,
-                motion_preset=motion_preset,
-                motion_ranges_json=motion_ranges_json,
-                max_objects=max_objects,
-                motions_per_image=motions_per_image,
-                augment=augment,
-                frames=frames,
-                resample=resample,
-            ),
+            spec=build_spec(**spec),
         )
         s = self._unary("GetSample", req, timeout, address)
         return s if raw else decode_sample(s)
@@ -421,25 +392,11 @@ class Client:
         self,
         indices: Iterable[int],
         *,
-        seed: int = 0,
-        dataset: Optional[str] = None,
-        fingerprint: int = 0,
-        fields: Optional[Iterable[Union[int, str]]] = None,
-        lz4: bool = False,
-        flow_dtype: Union[str, int, None] = None,
-        crop: Any = None,
-        crop_mode: Union[str, int, None] = None,
-        motion_preset: Optional[str] = None,
-        motion_ranges_json: Optional[str] = None,
-        max_objects: Optional[int] = None,
-        motions_per_image: Optional[int] = None,
-        augment: Any = None,
-        frames: Optional[int] = None,
-        resample: Optional[str] = None,
         raw: bool = False,
         timeout: Optional[float] = None,
         address: Optional[str] = None,
         prefer: Optional[str] = None,
+        **spec: Any,
     ) -> List[Union[Sample, "pb.Sample"]]:
         """GetSamples: the samples of `indices` (any order, duplicates allowed) in that order,
         each the same bytes as get_sample of its index. A list longer than `max_indices()` is
@@ -447,27 +404,12 @@ class Client:
         draining replica) goes on with the indices not yet received on another SERVING replica
         (`prefer` is tried first, without a health check), within `timeout` seconds per call;
         after the first sample the dataset and fingerprint are pinned, so a replica serving
-        other data is refused rather than mixed in. `address` uses that replica only."""
+        other data is refused rather than mixed in. `address` uses that replica only. `spec`: the
+        sample options (seed, dataset, fields, crop, ...: `spec.build_spec`)."""
         idx = [int(i) for i in indices]
         if any(i < 0 for i in idx):
             raise ValueError("indices must be >= 0")
-        common = build_spec(
-            dataset=dataset,
-            fingerprint=fingerprint,
-            seed=seed,
-            fields=fields,
-            lz4=lz4,
-            flow_dtype=flow_dtype,
-            crop=crop,
-            crop_mode=crop_mode,
-            motion_preset=motion_preset,
-            motion_ranges_json=motion_ranges_json,
-            max_objects=max_objects,
-            motions_per_image=motions_per_image,
-            augment=augment,
-            frames=frames,
-            resample=resample,
-        )
+        common = build_spec(**spec)
         limit = max(1, self.max_indices())
         out: List[Any] = []
         for at in range(0, len(idx), limit):

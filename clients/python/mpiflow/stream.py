@@ -6,7 +6,7 @@ import logging
 import queue
 import threading
 import time
-from typing import Any, Callable, Iterable, Iterator, List, Optional, Protocol, Union
+from typing import Any, Callable, Iterable, Iterator, List, Optional, Protocol
 
 import grpc
 
@@ -70,37 +70,26 @@ class FlowStream:
     progress. The consumer sees every index once, with no gap and no repeat. After the first
     sample the dataset name and fingerprint are pinned, so a replica serving different data is
     refused (FAILED_PRECONDITION) rather than silently mixed in.
+
+    `spec`: the sample options (seed, dataset, fields, crop, ...), the same for every request of
+    the stream (`spec.build_spec`).
     """
 
     def __init__(
         self,
         client: Replicas,
         *,
-        seed: int = 0,
-        dataset: Optional[str] = None,
-        fingerprint: int = 0,
         rank: int = 0,
         world_size: int = 1,
         start_index: int = 0,
         count: Optional[int] = None,
-        fields: Optional[Iterable[Union[int, str]]] = None,
-        lz4: bool = False,
-        flow_dtype: Union[str, int, None] = None,
-        crop: Any = None,
-        crop_mode: Union[str, int, None] = None,
-        motion_preset: Optional[str] = None,
-        motion_ranges_json: Optional[str] = None,
-        max_objects: Optional[int] = None,
-        motions_per_image: Optional[int] = None,
-        augment: Any = None,
-        frames: Optional[int] = None,
-        resample: Optional[str] = None,
         batch_size: int = 1,
         server_prefetch: int = 0,
         retry_timeout: float = 120.0,
         raw: bool = False,
         transform: Optional[Callable[[Any, int], Any]] = None,
         address: Optional[str] = None,
+        **spec: Any,
     ):
         world_size = max(1, int(world_size))
         if not 0 <= int(rank) < world_size:
@@ -120,23 +109,7 @@ class FlowStream:
         self.transform = transform
         self.failovers = 0
         self.address = address or client.addresses[self.rank % len(client.addresses)]
-        self._spec = build_spec(
-            dataset=dataset,
-            fingerprint=fingerprint,
-            seed=seed,
-            fields=fields,
-            lz4=lz4,
-            flow_dtype=flow_dtype,
-            crop=crop,
-            crop_mode=crop_mode,
-            motion_preset=motion_preset,
-            motion_ranges_json=motion_ranges_json,
-            max_objects=max_objects,
-            motions_per_image=motions_per_image,
-            augment=augment,
-            frames=frames,
-            resample=resample,
-        )
+        self._spec = build_spec(**spec)
         self._call = None
         self._lock = threading.Lock()
         self._stop = threading.Event()

@@ -437,3 +437,13 @@ def test_retries_are_decided_by_the_servers_reason_not_the_text():
     assert is_retryable(_Err(code.INTERNAL, "Received RST_STREAM"))
     assert is_retryable(_Err(code.UNAVAILABLE, "failed to connect"))
     assert not is_retryable(_Err(code.RESOURCE_EXHAUSTED, "Received message larger than max"))
+
+
+def test_a_misspelt_sample_option_is_refused_by_name_before_any_call():
+    # the sample options of get_sample, get_samples and stream are build_spec's, checked once
+    c = mpiflow.Client("127.0.0.1:1", wait=False)
+    for call in (lambda: c.get_sample(0, sed=3), lambda: c.get_samples([0, 1], sed=3), lambda: c.stream(sed=3)):
+        with pytest.raises(TypeError, match="sed"):
+            call()
+    s = c.stream(seed=5, fields=["image1"], crop=(64, 48))
+    assert s._spec.seed == 5 and s._spec.crop.width == 64
