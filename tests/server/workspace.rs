@@ -1,7 +1,8 @@
 //! Samples being made count in the byte budget: each running job reserves its sample's
 //! workspace (its frames' render buffers and raw tensors) from dispatch until it is done, and a
 //! budget that holds one such sample in making and not two still makes every sample asked for,
-//! whoever else asks. Real server on loopback, real clients; samples are 64x48.
+//! whoever else asks, and a stream holding nothing may start one job whatever its client holds.
+//! Real server on loopback, real clients, samples of 64x48; and the scheduler alone.
 
 use std::time::Duration;
 
@@ -128,4 +129,58 @@ async fn a_small_budget_still_makes_progress_with_large_workspaces() {
     .await;
     assert_eq!(s.state.scheduler.stats().making, 0);
     s.shutdown(Duration::from_millis(500)).await;
+}
+
+/// The next batch of a stream; a stream that gets nothing within a minute fails the test.
+async fn next_batch(st: &mut mpiflow::service::pool::SampleStream) -> pb::SampleBatch {
+    use tokio_stream::StreamExt;
+    tokio::time::timeout(Duration::from_secs(60), st.next())
+        .await
+        .expect("the stream gets its sample")
+        .expect("the stream goes on")
+        .expect("a batch")
+}
+
+/// A stream holding nothing may start one job whatever its client holds: streams of one client
+/// that took one message each and then stopped reading hold samples made ahead, and the room they
+/// leave is less than a sample's bound and workspace (~10 kB samples that take 40 kB while they
+/// are made, a budget of 100 kB); each new stream of the same client still gets its samples (the
+/// stalled streams drop what they have not sent once their message has waited `UNREAD_GRACE`
+/// untaken), a stream that reads gets every sample in order, and the budget holds.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_holding_nothing_may_start_one_job_whatever_its_client_holds() {
+    use mpiflow::service::metrics::Metrics;
+    use mpiflow::service::peer::PeerKey;
+    use mpiflow::service::pool::{Client, Make, Produce, Scheduler, StreamSpec};
+    use std::sync::Arc;
+    const BUDGET: u64 = 100_000;
+    let sched = Scheduler::new(2, 4, BUDGET, Arc::new(Metrics::new())).unwrap();
+    let make: Make = Arc::new(|i| Ok(pb::Sample { index: i, source_id: "x".repeat(10_000), ..Default::default() }));
+    let produce = Produce { bound: 12_000, workspace: 40_000, ..Produce::new(make) };
+    let spec = |count| StreamSpec {
+        start_index: 0,
+        rank: 0,
+        world_size: 1,
+        count,
+        batch_size: 1,
+        prefetch: 64,
+        max_message_bytes: 1 << 20,
+    };
+    let client = Client { peer: PeerKey::V4(0x7f00_0001), conn: None };
+    let mut stalled = Vec::new();
+    for _ in 0..4 {
+        let mut st = sched.open_for(client.clone(), spec(0), produce.clone()).unwrap();
+        assert_eq!(next_batch(&mut st).await.samples[0].index, 0);
+        stalled.push(st);
+    }
+    let mut reader = sched.open_for(client.clone(), spec(12), produce.clone()).unwrap();
+    let mut got = Vec::new();
+    while got.len() < 12 {
+        got.extend(next_batch(&mut reader).await.samples.into_iter().map(|x| x.index));
+    }
+    assert_eq!(got, (0..12).collect::<Vec<_>>());
+    let st = sched.stats();
+    assert!(st.max_buffered_seen <= BUDGET, "{st:?}");
+    assert!(st.dropped > 0, "the stalled streams dropped what they had not sent: {st:?}");
+    drop((stalled, reader));
 }

@@ -78,17 +78,26 @@
 //! the next sample to send), so a batch larger than the share is sent in parts.
 //!
 //! A message in the transport cannot be dropped. When a stream may not start for want of room
-//! while its peer holds less than its share, the dispatch reclaims it ([`Scheduler::reclaim`]):
-//! peers over their share drop finished samples, and a connection whose message has waited in
-//! the transport for [`UNREAD_GRACE`] while its client took none of its bytes is closed (the
-//! client that stopped reading, the unary replies never read, the window never granted; only
-//! DATA taken counts, never a PING ACK: `service::progress`), and no
-//! sample starts for that client for [`PENALTY_FIRST`] (doubled at each repeat, up to
-//! [`PENALTY_MAX`]): a client that never reads cannot keep the workers making samples for it by
-//! reconnecting. A client that reads, however slowly, is never closed for room. Stream slots
-//! come back the same way: a newcomer refused because every slot of `max_streams` is taken
-//! closes the connection of a stream whose message has so waited ([`Scheduler::stalled_holder`]). A unary reply (GetSample) keeps
-//! its stream, and so its bytes, until the reply has left (`service::reply`).
+//! while it holds less than its share, or nothing, or its peer less than the peer's share, the
+//! dispatch reclaims it ([`Scheduler::reclaim`]): the other streams over their share drop finished
+//! samples down to it, and for a stream whose own message is taken, the streams whose message has
+//! waited in the transport for [`UNREAD_GRACE`] while their connection took none of its bytes
+//! drop every finished sample (of any peer, its own included: a client's stalled streams do not
+//! keep its stream that reads waiting). For a peer under its share, a connection of another peer
+//! over its share whose message has so waited is closed (the client that stopped reading, the
+//! unary replies never read, the window never granted; only DATA taken counts, never a PING ACK:
+//! `service::progress`), and no sample starts for that client for [`PENALTY_FIRST`] (doubled at
+//! each repeat, up to [`PENALTY_MAX`]): a client that never reads cannot keep the workers making
+//! samples for it by reconnecting. A stream holding nothing that may not start even once the
+//! running jobs are done and that has been done has its own client's connections whose message
+//! has so waited closed, as many as its job needs, with no time out (its client reads): a stream
+//! that reads makes progress whatever its client's stalled streams hold in the transport, and the
+//! workspace of samples being made never leaves a small budget waiting for room no one gives
+//! back. A client that reads, however slowly, is never closed for room. Stream slots come back
+//! the same way: a newcomer refused because every slot of `max_streams` is taken closes the
+//! connection of a stream whose message has so waited ([`Scheduler::stalled_holder`]). A unary
+//! reply (GetSample) keeps its stream, and so its bytes, until the reply has left
+//! (`service::reply`).
 //!
 //! # Fairness by cost
 //!

@@ -23,6 +23,9 @@ use super::sched::{Busy, Pick, Ready, Sched, Tag, CREDIT, HEADROOM_DIVISOR, MAX_
 use super::stream::{PeerGroup, StreamShared, StreamState};
 use super::workers::Workers;
 use super::{lock, Client, Item, Produce, StreamSpec, TICK, UNREAD_GRACE};
+
+mod reclaim;
+
 /// The workers and the dispatch state shared by all streams.
 pub struct Scheduler {
     pool: Workers,
@@ -353,14 +356,7 @@ impl Scheduler {
     /// others (new clients, and those that stopped reading) share [`OTHERS_SHARE`] of them while
     /// a client that reads waits ([`Scheduler::next_eligible`]).
     fn reading(group: &PeerGroup, of_peer: &[&Arc<StreamShared>], struck: bool) -> bool {
-        !struck
-            && group.took.load(Ordering::Acquire)
-            && !of_peer.iter().any(|st| {
-                let g = lock(&st.state);
-                g.in_transport > 0
-                    && g.in_transport_since.elapsed() >= UNREAD_GRACE
-                    && st.conn.as_ref().is_none_or(|c| c.not_taken_for() >= UNREAD_GRACE)
-            })
+        !struck && group.took.load(Ordering::Acquire) && !of_peer.iter().any(|st| st.unread(&lock(&st.state)))
     }
 
     /// Each peer's first stream that `pick` takes, with its next job's finish tag on the virtual
@@ -490,56 +486,6 @@ impl Scheduler {
         (!may_now).then(|| head.stream.clone())
     }
 
-    /// Makes room for a stream that may not start for want of it while its peer holds less than
-    /// its share: the streams of peers over their share drop their finished samples down to
-    /// their share (made again when read), and a connection whose message has waited in the
-    /// transport for [`UNREAD_GRACE`], its client taking none of its bytes as long, is closed
-    /// (its calls end, their bytes are freed) and its client put in time out ([`Penalty`]).
-    fn reclaim(&self, s: &mut Sched) {
-        if s.draining {
-            return;
-        }
-        let room = self.room();
-        let first = self.first_in_line(s, Instant::now());
-        let starving = s.streams.iter().any(|st| {
-            let g = lock(&st.state);
-            st.group.held.load(Ordering::Acquire) < st.group.share.load(Ordering::Acquire)
-                && !st.eligible(&g, room, self.spare(room, Some(st.peer) == first))
-                && st.eligible(&g, u64::MAX, u64::MAX)
-        });
-        if !starving {
-            return;
-        }
-        let mut cut = Vec::new();
-        for st in &s.streams {
-            if st.group.held.load(Ordering::Acquire) <= st.group.share.load(Ordering::Acquire) {
-                continue;
-            }
-            let mut g = lock(&st.state);
-            if g.held > st.share.load(Ordering::Acquire) {
-                self.trim(st, &mut g);
-            }
-            let unread = g.in_transport > 0 && g.in_transport_since.elapsed() >= UNREAD_GRACE;
-            drop(g);
-            if let Some(conn) = st.conn.as_ref().filter(|c| unread && !c.is_cut()) {
-                if conn.not_taken_for() >= UNREAD_GRACE {
-                    tracing::info!(
-                        peer = %st.peer,
-                        stream = st.id,
-                        grace_ms = UNREAD_GRACE.as_millis() as u64,
-                        "connection closed: it holds made samples it does not take, and another client needs the room"
-                    );
-                    self.metrics.holders_cut.inc();
-                    conn.cut();
-                    cut.push(st.peer);
-                }
-            }
-        }
-        for peer in cut {
-            s.penalise(peer);
-        }
-    }
-
     /// The connection to close so that a client (`newcomer`) refused a stream slot gets one: of
     /// the streams `holds_slot` names, of other clients, one whose message has waited in the
     /// transport for [`UNREAD_GRACE`] while its connection took no DATA as long (a window never
@@ -627,12 +573,18 @@ impl Scheduler {
 
     /// Brings a stream back within its share (its state locked by the caller): while it holds
     /// more, it drops its newest finished sample from the end of what it has dispatched (a
-    /// running job there stops it) and will make it again, byte for byte, when it reads on.
+    /// running job there stops it) and will make it again, byte for byte, when it reads on; never
+    /// the next sample to send (a stream always gets to send one).
     fn trim(&self, st: &StreamShared, g: &mut StreamState) {
-        let share = st.share.load(Ordering::Acquire);
+        self.shed(st, g, st.share.load(Ordering::Acquire), 1);
+    }
+
+    /// Drops the stream's newest finished samples (its state locked by the caller) while it holds
+    /// more than `limit`, keeping the `keep` next to send; they are made again, byte for byte,
+    /// when it reads on, and it makes no more ahead until it sends a message.
+    fn shed(&self, st: &StreamShared, g: &mut StreamState, limit: u64, keep: u64) {
         let mut freed = 0u64;
-        // never the next sample to send (a stream always gets to send one)
-        while g.held > share && g.dispatched > g.delivered + 1 {
+        while g.held > limit && g.dispatched > g.delivered + keep {
             let top = g.dispatched - 1;
             let Some(item) = g.ready.remove(&top) else { break }; // still running
             let size = match &item {

@@ -8,7 +8,7 @@ use std::task::Waker;
 use std::time::Instant;
 
 use super::meter::Rate;
-use super::{lock, Item, Produce, StreamSpec};
+use super::{lock, Item, Produce, StreamSpec, UNREAD_GRACE};
 use crate::service::conn::Activity;
 use crate::service::peer::PeerKey;
 
@@ -162,6 +162,14 @@ impl StreamShared {
         // waiting for ever by its first, which holds the peer's share)
         let may_exceed = holds_nothing || (!s.trimmed && s.estimate > 0);
         may_exceed && need <= spare
+    }
+
+    /// Whether the stream's client does not take what it was sent: its message has waited in the
+    /// transport for [`UNREAD_GRACE`] while its connection took none of its bytes as long.
+    pub(super) fn unread(&self, s: &StreamState) -> bool {
+        s.in_transport > 0
+            && s.in_transport_since.elapsed() >= UNREAD_GRACE
+            && self.conn.as_ref().is_none_or(|c| c.not_taken_for() >= UNREAD_GRACE)
     }
 
     /// (dispatched, delivered, produced, queued) for tests and diagnostics.
