@@ -29,13 +29,6 @@ pub struct Shared {
     pub(super) idle_closed: AtomicU64,
     pub(super) watches: AtomicU64,
     pub(super) window_streams: AtomicU64,
-    /// Samples the hostile readers (prompt or trickling) took.
-    pub(super) reader_samples: AtomicU64,
-    /// Health/Check calls opened whose request never finishes.
-    pub(super) unfinished_calls: AtomicU64,
-    /// Pinging holders opened, and closed by the server.
-    pub(super) ping_holders: AtomicU64,
-    pub(super) ping_holders_cut: AtomicU64,
     /// The fast clients' longest wait for a message, µs.
     pub(super) fast_max_gap_us: AtomicU64,
     pub(super) errors: Mutex<(BTreeMap<String, u64>, u64, Vec<String>)>,

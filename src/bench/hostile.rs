@@ -51,12 +51,11 @@ async fn raw_call(
     response.await
 }
 
-/// GetSample calls of the samples `read` names one after another from `from`, each read whole
-/// (its pause is not used).
+/// GetSample calls of `frames`-frame samples one after another from `from`, each read whole.
 pub(super) async fn unary_client(
     addr: String,
     seed: u64,
-    read: ReadSpec,
+    frames: u32,
     from: Ipv4Addr,
     until: tokio::time::Instant,
     sh: Arc<Shared>,
@@ -65,7 +64,9 @@ pub(super) async fn unary_client(
     let mut index = 0u64;
     while tokio::time::Instant::now() < until {
         index += 1;
-        match timeout_at(until, client.get_sample(read.sample_spec(seed).sample(index))).await {
+        match timeout_at(until, client.get_sample(pb::SampleSpec { seed, frames, ..Default::default() }.sample(index)))
+            .await
+        {
             Ok(Ok(_)) => {
                 sh.unary_samples.fetch_add(1, Ordering::Relaxed);
             }
@@ -196,8 +197,7 @@ pub(super) async fn watch_client(addr: String, from: Ipv4Addr, until: tokio::tim
 
 /// `streams` StreamSamples calls of `frames`-frame samples with every field on one raw
 /// connection from `from` that grants no HTTP/2 window (the server can send it nothing, and its
-/// socket never blocks); a refused call is asked again 200 ms later while the connection lasts;
-/// all are opened again when the server closes the connection.
+/// socket never blocks); reopens them when the server closes the connection.
 pub(super) async fn window_client(
     addr: String,
     streams: usize,
@@ -213,181 +213,24 @@ pub(super) async fn window_client(
     .encode_to_vec();
     let frame = grpc_frame(&body);
     while tokio::time::Instant::now() < until {
-        let Some((send, mut conn)) = raw_h2_until("window", &addr, from, 0, until, &sh).await else { return };
+        let Some((send, conn)) = raw_h2_until("window", &addr, from, 0, until, &sh).await else { return };
         let mut held = Vec::new();
-        let mut closed = false;
-        while !closed && tokio::time::Instant::now() < until {
-            if held.len() >= streams {
-                let tick = (tokio::time::Instant::now() + Duration::from_millis(200)).min(until);
-                closed = timeout_at(tick, &mut conn).await.is_ok();
-                continue;
-            }
+        for _ in 0..streams {
             match timeout_at(until, raw_call(&send, "/mpiflow.v1.MpiFlow/StreamSamples", frame.clone())).await {
-                Ok(Ok(r)) if r.headers().contains_key("grpc-status") => {
-                    // a trailers-only reply is a refusal (the client's share of the stream
-                    // slots): asked again a little later
-                    sh.error("window", "ResourceExhausted", "refused", true);
-                    tokio::time::sleep_until((tokio::time::Instant::now() + Duration::from_millis(200)).min(until))
-                        .await;
-                }
                 Ok(Ok(r)) => {
-                    sh.window_streams.fetch_add(1, Ordering::Relaxed);
+                    // a trailers-only reply is a refusal (the client's share of the stream slots)
+                    if r.headers().contains_key("grpc-status") {
+                        sh.error("window", "ResourceExhausted", "refused", true);
+                    } else {
+                        sh.window_streams.fetch_add(1, Ordering::Relaxed);
+                    }
                     held.push(r);
                 }
                 Ok(Err(_)) | Err(_) => break,
             }
         }
-        if !closed {
-            let _ = timeout_at(until, &mut conn).await;
-        }
-        drop(held);
-        tokio::time::sleep_until((tokio::time::Instant::now() + Duration::from_millis(200)).min(until)).await;
-    }
-}
-
-/// What a hostile reader asks for and how it reads: `frames`-frame samples, only `valid` and
-/// `valid_backward` with LZ4 when `cheap` (a few hundred bytes to send, the whole clip's worker
-/// time), else the default fields; `pause` between messages (None = read at once).
-#[derive(Clone, Copy, Debug)]
-pub(super) struct ReadSpec {
-    pub(super) frames: u32,
-    pub(super) cheap: bool,
-    pub(super) pause: Option<Duration>,
-}
-
-impl ReadSpec {
-    pub(super) fn sample_spec(&self, seed: u64) -> pb::SampleSpec {
-        let mut spec = pb::SampleSpec { seed, frames: self.frames, ..Default::default() };
-        if self.cheap {
-            spec.fields = vec![pb::Field::Valid as i32, pb::Field::ValidBackward as i32];
-            spec.compression = pb::Compression::Lz4 as i32;
-        }
-        spec
-    }
-}
-
-/// One endless stream from `from`, read as `read` says (promptly, or one message per pause);
-/// reopened when it ends or fails (a refusal 200 ms later).
-pub(super) async fn reader_client(
-    addr: String,
-    seed: u64,
-    read: ReadSpec,
-    from: Ipv4Addr,
-    until: tokio::time::Instant,
-    sh: Arc<Shared>,
-) {
-    let Some(mut client) = sh.connect("reader", &addr, Some(from.into()), until).await else { return };
-    let mut start = 0u64;
-    while tokio::time::Instant::now() < until {
-        let req = pb::StreamRequest { start_index: start, ..read.sample_spec(seed).stream() };
-        let mut stream = match timeout_at(until, client.stream_samples(req)).await {
-            Ok(Ok(s)) => s.into_inner(),
-            Ok(Err(status)) => {
-                sh.error("reader", &format!("{:?}", status.code()), status.message(), true);
-                tokio::time::sleep(Duration::from_millis(200)).await;
-                continue;
-            }
-            Err(_) => return,
-        };
-        loop {
-            match timeout_at(until, stream.message()).await {
-                Ok(Ok(Some(b))) => {
-                    sh.reader_samples.fetch_add(b.samples.len() as u64, Ordering::Relaxed);
-                    start = b.resume_start_index;
-                    if let Some(p) = read.pause {
-                        tokio::time::sleep_until((tokio::time::Instant::now() + p).min(until)).await;
-                    }
-                }
-                Ok(Ok(None)) => break,
-                Ok(Err(status)) => {
-                    // a reader too slow for the room others need may be closed: expected
-                    sh.error("reader", &format!("{:?}", status.code()), status.message(), true);
-                    tokio::time::sleep(Duration::from_millis(200)).await;
-                    break;
-                }
-                Err(_) => return,
-            }
-        }
-    }
-}
-
-/// `calls` Health/Check calls on a raw connection from `from` whose request never finishes (the
-/// headers sent, the body withheld; no token needed); held until the server closes the
-/// connection, then opened again.
-pub(super) async fn unfinished_client(
-    addr: String,
-    calls: usize,
-    from: Ipv4Addr,
-    until: tokio::time::Instant,
-    sh: Arc<Shared>,
-) {
-    while tokio::time::Instant::now() < until {
-        let Some((send, conn)) = raw_h2_until("unfinished", &addr, from, 1 << 16, until, &sh).await else { return };
-        let mut held = Vec::new();
-        for _ in 0..calls {
-            let Ok(Ok(mut ready)) = timeout_at(until, send.clone().ready()).await else { break };
-            let req = http::Request::post("http://localhost/grpc.health.v1.Health/Check")
-                .header("content-type", "application/grpc")
-                .header("te", "trailers")
-                .body(())
-                .expect("a valid request");
-            match ready.send_request(req, false) {
-                Ok(call) => {
-                    sh.unfinished_calls.fetch_add(1, Ordering::Relaxed);
-                    held.push(call);
-                }
-                Err(_) => break,
-            }
-        }
         let _ = timeout_at(until, conn).await;
         drop(held);
-        tokio::time::sleep_until((tokio::time::Instant::now() + Duration::from_millis(200)).min(until)).await;
-    }
-}
-
-/// A StreamSamples call of `frames`-frame samples with every field on a raw connection from
-/// `from` with a 16 KiB window, never read, the connection sending a PING every 300 ms (a socket
-/// that answers and acknowledges, but takes no DATA); counts the server's closes and opens
-/// again.
-pub(super) async fn ping_holder(
-    addr: String,
-    frames: u32,
-    from: Ipv4Addr,
-    until: tokio::time::Instant,
-    sh: Arc<Shared>,
-) {
-    let body = pb::StreamRequest {
-        prefetch: 64,
-        ..pb::SampleSpec { fields: all_fields(), frames, ..Default::default() }.stream()
-    }
-    .encode_to_vec();
-    let frame = grpc_frame(&body);
-    while tokio::time::Instant::now() < until {
-        let Ok(to) = addr.parse::<std::net::SocketAddr>() else { return };
-        let connected = async {
-            let sock = tokio::net::TcpSocket::new_v4().ok()?;
-            sock.bind((from, 0).into()).ok()?;
-            let tcp = sock.connect(to).await.ok()?;
-            h2::client::Builder::new().initial_window_size(16 << 10).handshake::<_, bytes::Bytes>(tcp).await.ok()
-        };
-        let Ok(Some((send, mut conn))) = timeout_at(until, connected).await else { return };
-        let Some(mut pings) = conn.ping_pong() else { return };
-        let mut conn = tokio::spawn(conn);
-        let held = timeout_at(until, raw_call(&send, "/mpiflow.v1.MpiFlow/StreamSamples", frame.clone())).await;
-        if let Ok(Ok(_reply)) = held {
-            sh.ping_holders.fetch_add(1, Ordering::Relaxed);
-            loop {
-                let tick = (tokio::time::Instant::now() + Duration::from_millis(300)).min(until);
-                if timeout_at(tick, &mut conn).await.is_ok() {
-                    sh.ping_holders_cut.fetch_add(1, Ordering::Relaxed);
-                    break;
-                }
-                if tokio::time::Instant::now() >= until || pings.ping(h2::Ping::opaque()).await.is_err() {
-                    break;
-                }
-            }
-        }
-        conn.abort();
         tokio::time::sleep_until((tokio::time::Instant::now() + Duration::from_millis(200)).min(until)).await;
     }
 }

@@ -54,32 +54,9 @@ pub struct SoakBench {
     /// Raw HTTP/2 connections each holding a health Watch open.
     #[arg(long, default_value_t = 0)]
     watch: usize,
-    /// StreamSamples calls on raw connections that grant no HTTP/2 window (refusals asked again).
+    /// StreamSamples calls on one raw connection that grants no HTTP/2 window.
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=1000))]
     window_streams: u64,
-    /// Connections the window-withholding streams spread over, each from an attacker address.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=250))]
-    window_connections: u64,
-    /// Hostile endless streams read as fast as they come.
-    #[arg(long, default_value_t = 0)]
-    readers: usize,
-    /// Hostile endless streams taking one message every 300 to 450 ms.
-    #[arg(long, default_value_t = 0)]
-    trickle: usize,
-    /// The readers and unary clients ask only `valid` and `valid_backward` with LZ4 (cheap to
-    /// send, the whole sample's worker time).
-    #[arg(long)]
-    cheap: bool,
-    /// Raw connections each holding `--unfinished-calls` Health/Check calls whose request never
-    /// finishes.
-    #[arg(long, default_value_t = 0)]
-    unfinished: usize,
-    #[arg(long, default_value_t = 128, value_parser = clap::value_parser!(u64).range(1..=1024))]
-    unfinished_calls: u64,
-    /// Raw connections with a 16 KiB window holding one stream unread and sending a PING every
-    /// 300 ms.
-    #[arg(long, default_value_t = 0)]
-    ping_holders: usize,
     /// Frames of the samples the hostile clients (unary, unread, batch-stall, window) ask for.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(2..=8))]
     hostile_frames: u32,
@@ -115,11 +92,7 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         + b.unread
         + b.idle
         + b.batch_stall
-        + b.watch
-        + b.readers
-        + b.trickle
-        + b.unfinished
-        + b.ping_holders;
+        + b.watch;
     if b.fast == 0 || all > 2000 {
         return Err(CliError("bench soak: at least 1 fast client and at most 2000 clients in all".into()));
     }
@@ -141,13 +114,6 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         batch_stall: b.batch_stall,
         watch: b.watch,
         window_streams: b.window_streams as usize,
-        window_connections: b.window_connections as usize,
-        readers: b.readers,
-        trickle: b.trickle,
-        cheap: b.cheap,
-        unfinished: b.unfinished,
-        unfinished_calls: b.unfinished_calls as usize,
-        ping_holders: b.ping_holders,
         unread_calls: b.unread_calls as usize,
         hostile_frames: b.hostile_frames,
         attacker_addresses: b.attacker_addresses as usize,
@@ -156,9 +122,8 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
     };
     println!(
         "soak: {:.0} s of {} fast, {} stalled, {} slow, {} cancelling, {} uploading, {} unary, {} unread, {} idle, {} \
-         batch-stall, {} watch clients, {} window-withholding streams on {} connections, {} readers, {} trickling \
-         readers, {} x {} unfinished health checks, {} pinging holders; hostile clients from {} addresses asking for \
-         {}-frame samples{}; server --size {} --workers {} {}",
+         batch-stall, {} watch clients, {} window-withholding streams; hostile clients from {} addresses asking for \
+         {}-frame samples; server --size {} --workers {} {}",
         duration.as_secs_f64(),
         cfg.fast,
         cfg.stalled,
@@ -171,15 +136,8 @@ pub fn run(b: SoakBench) -> Result<(), CliError> {
         cfg.batch_stall,
         cfg.watch,
         cfg.window_streams,
-        cfg.window_connections,
-        cfg.readers,
-        cfg.trickle,
-        cfg.unfinished,
-        cfg.unfinished_calls,
-        cfg.ping_holders,
         cfg.attacker_addresses,
         cfg.hostile_frames,
-        if cfg.cheap { " (valid and valid_backward, LZ4)" } else { "" },
         cfg.size,
         cfg.workers,
         cfg.server_args.join(" ")

@@ -1,6 +1,6 @@
 //! The gRPC server and the command line, driven by real clients on loopback (service, auth,
-//! configuration, overload and fairness, the workspace in the byte budget, stream slots, shards,
-//! uploads, model downloads), and the house's own rules (the documented commands, the layering).
+//! configuration, overload and fairness, shards, uploads, model downloads), and the house's own
+//! rules (the documented commands, the layering).
 //! One test binary per group (each file beside this one is a module), so that the suite links a
 //! handful of binaries.
 
@@ -17,7 +17,5 @@ mod service_auth;
 mod service_config;
 mod service_data;
 mod shards;
-mod slots;
 mod soak;
 mod uploads;
-mod workspace;

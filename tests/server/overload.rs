@@ -378,11 +378,7 @@ async fn stalled_batched_streams_stay_within_their_share() {
         conn.abort();
     }
     drop(stalled);
-    until("every stream is closed and every job done", || {
-        let st = s.state.scheduler.stats();
-        st.streams == 0 && st.in_flight == 0
-    })
-    .await;
+    until("every stream is closed", || s.state.scheduler.stats().streams == 0).await;
     assert_eq!(s.state.scheduler.stats().buffered, 0);
     s.shutdown(Duration::from_millis(500)).await;
 }

@@ -1,6 +1,5 @@
 //! The soak test, short: a real `mpiflow serve` (child process, free loopback port) under fast,
-//! stalled, slow, cancelling, uploading, unary, unread, idle, batch-stalled, reading, trickling,
-//! unfinished-health-check and pinging clients for 20 s
+//! stalled, slow, cancelling, uploading, unary, unread, idle and batch-stalled clients for 20 s
 //! at 160x120; what the soak reports
 //! must show no lost or repeated index for the fast clients, no unexpected error code, every
 //! kind of client at work, and the server's memory read from its /proc status.
@@ -33,13 +32,6 @@ fn a_short_soak_loses_and_repeats_no_index_and_sees_no_unexpected_error() {
         batch_stall: 1,
         watch: 2,
         window_streams: 3,
-        window_connections: 1,
-        readers: 2,
-        trickle: 1,
-        cheap: true,
-        unfinished: 1,
-        unfinished_calls: 4,
-        ping_holders: 1,
         unread_calls: 8,
         hostile_frames: 2,
         attacker_addresses: 4,
@@ -59,7 +51,6 @@ fn a_short_soak_loses_and_repeats_no_index_and_sees_no_unexpected_error() {
     assert!(report.cancelled_streams > 0 && report.uploads > 0, "{text}");
     assert!(report.unary_samples > 0 && report.unread_calls > 0 && report.idle_closed > 0, "{text}");
     assert!(report.watches > 0 && report.window_streams > 0, "{text}");
-    assert!(report.reader_samples > 0 && report.unfinished_calls > 0 && report.ping_holders > 0, "{text}");
     // the byte budget held, whatever the hostile clients' addresses
     assert!(report.budget_bytes > 0.0 && report.max_buffered_bytes <= report.budget_bytes, "{text}");
     // a newcomer was never turned away

@@ -33,22 +33,8 @@ pub struct SoakConfig {
     pub batch_stall: usize,
     /// Raw connections each holding a health Watch open.
     pub watch: usize,
-    /// StreamSamples calls on connections that grant no HTTP/2 window, spread over
-    /// `window_connections` connections (each from an attacker address).
+    /// StreamSamples calls on one connection that grants no HTTP/2 window.
     pub window_streams: usize,
-    pub window_connections: usize,
-    /// Endless streams read promptly, and streams taking one message every 300-450 ms.
-    pub readers: usize,
-    pub trickle: usize,
-    /// The readers' and the unary clients' samples ask only `valid` and `valid_backward` with LZ4
-    /// (cheap to send, the whole sample's worker time).
-    pub cheap: bool,
-    /// Raw connections each holding `unfinished_calls` Health/Check calls whose request never
-    /// finishes.
-    pub unfinished: usize,
-    pub unfinished_calls: usize,
-    /// Raw connections with a 16 KiB window, one unread stream each, sending a PING every 300 ms.
-    pub ping_holders: usize,
     /// GetSample calls each unread client keeps open.
     pub unread_calls: usize,
     /// Frames of the samples the unary, unread, batch-stall and window clients ask for (2 = pairs).
@@ -108,12 +94,6 @@ pub struct SoakReport {
     /// Health watches opened; window-withholding streams opened.
     pub watches: u64,
     pub window_streams: u64,
-    /// Samples the hostile readers took; unfinished Health/Check calls opened; pinging holders
-    /// opened and closed by the server.
-    pub reader_samples: u64,
-    pub unfinished_calls: u64,
-    pub ping_holders: u64,
-    pub ping_holders_cut: u64,
     /// The most `mpiflow_buffered_bytes` read during the mix, and the budget.
     pub max_buffered_bytes: f64,
     pub budget_bytes: f64,
@@ -123,8 +103,6 @@ pub struct SoakReport {
     /// newcomers were turned away.
     pub newcomer_max_ms: f64,
     pub newcomers_refused: u64,
-    /// Newcomers tried (one at every reading).
-    pub newcomers: u64,
     /// The mix's length as it ran, seconds.
     pub mix_s: f64,
     /// Kinds of client that were in the mix and got nothing done (a starved client).
@@ -140,41 +118,6 @@ impl SoakReport {
             && self.unexpected == 0
             && self.fast_samples > 0
             && self.idle_kinds.is_empty()
-    }
-
-    /// The criteria of a client that cannot take the server, one line: the fast clients keep at
-    /// least half of one client's rate alone with no wait over 2 s, at least 90% of newcomers are
-    /// served, the buffered bytes stay within the budget, the RSS within idle + budget x 1.25,
-    /// and no index is lost or repeated; each with its figure and `ok` or `FAIL`.
-    pub fn criteria(&self) -> String {
-        let verdict = |ok: bool| if ok { "ok" } else { "FAIL" };
-        let ratio = if self.solo_per_s > 0.0 { self.fast_per_s / self.solo_per_s } else { 0.0 };
-        let served = self.newcomers.saturating_sub(self.newcomers_refused);
-        let newcomers_ok = served as f64 >= 0.9 * self.newcomers as f64;
-        let budget_mib = self.budget_bytes / f64::from(1u32 << 20);
-        let rss_limit = self.idle_rss_mib + 1.25 * budget_mib;
-        format!(
-            "criteria: rate {:.0}% of solo (>= 50%) {}; longest wait {:.0} ms (<= 2000) {}; newcomers {served}/{} \
-             (>= 90%) {}; buffered {:.1}/{:.1} MB {}; RSS peak {:.0} MiB (<= {:.0} + 1.25 x {:.0} = {:.0}) {}; lost {} \
-             repeated {} {}",
-            100.0 * ratio,
-            verdict(ratio >= 0.5),
-            self.fast_max_gap_ms,
-            verdict(self.fast_max_gap_ms <= 2000.0),
-            self.newcomers,
-            verdict(newcomers_ok),
-            self.max_buffered_bytes / 1e6,
-            self.budget_bytes / 1e6,
-            verdict(self.max_buffered_bytes <= self.budget_bytes),
-            self.peak_rss_mib,
-            self.idle_rss_mib,
-            budget_mib,
-            rss_limit,
-            verdict(self.peak_rss_mib <= rss_limit),
-            self.lost,
-            self.repeated,
-            verdict(self.lost == 0 && self.repeated == 0)
-        )
     }
 
     /// The closing summary, one fact a line.
@@ -198,8 +141,7 @@ impl SoakReport {
             format!(
                 "other clients: {} stalled streams, {} slow samples, {} cancelled streams, {} uploads, {} unary samples, \
                  {} unread calls, {} health watches, {} window-withholding streams, {} idle or watching connections \
-                 closed by the server, {} reader samples, {} unfinished health checks, {} pinging holders ({} closed by \
-                 the server)",
+                 closed by the server",
                 self.stalled_streams,
                 self.slow_samples,
                 self.cancelled_streams,
@@ -208,11 +150,7 @@ impl SoakReport {
                 self.unread_calls,
                 self.watches,
                 self.window_streams,
-                self.idle_closed,
-                self.reader_samples,
-                self.unfinished_calls,
-                self.ping_holders,
-                self.ping_holders_cut
+                self.idle_closed
             ),
             format!(
                 "buffered: at most {:.1} MB of a {:.1} MB budget",
@@ -220,10 +158,9 @@ impl SoakReport {
                 self.budget_bytes / 1e6
             ),
             format!(
-                "fast clients' longest wait for a message: {:.0} ms; newcomers: longest wait {:.0} ms, {} of {} turned away",
-                self.fast_max_gap_ms, self.newcomer_max_ms, self.newcomers_refused, self.newcomers
+                "fast clients' longest wait for a message: {:.0} ms; newcomers: longest wait {:.0} ms, {} turned away",
+                self.fast_max_gap_ms, self.newcomer_max_ms, self.newcomers_refused
             ),
-            self.criteria(),
             format!("errors by code: {errors}; unexpected: {}", self.unexpected),
         ];
         if !self.idle_kinds.is_empty() {

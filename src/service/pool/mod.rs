@@ -51,21 +51,16 @@
 //! has room for it), and, for each running job, a reservation ([`StreamShared::reserve`]): the
 //! job's bound from its request (`validate::admit_size`) until the stream's first sample is
 //! made, then that sample's size plus an eighth. A running job also reserves its sample's
-//! workspace, [`Produce::workspace`] (`service::work::workspace`: the renderer's buffers of each
-//! frame and the raw tensors, estimated from the request's size, frames and fields), from
-//! dispatch until it is done; the workspace counts in the budget's total
-//! (`mpiflow_buffered_bytes`), not in the stream's share, so the samples being made are within
-//! the budget too and the shares still divide what clients are sent. No job starts unless its
-//! reservation and its workspace fit what the budget has left; a request whose largest sample's
-//! workspace and bound are over the budget is refused before any work
-//! (`service::work::admit_workspace`). A job that would start next but waits only for the
-//! workspace of the jobs running now goes first once they are done: no other job starts ahead of
-//! it meanwhile ([`Scheduler::head_waiting_for_workspace`]), so a sample whose workspace takes
-//! most of the budget is not kept waiting for ever by smaller ones that always fit, and a small
-//! budget still makes one sample at a time. Within that, a stream may start a job while what it
+//! workspace, [`Produce::workspace`] (`service::work::workspace`; the service sets 0 for now: the renderer's buffers of each frame and the raw
+//! tensors, estimated from the request's size, frames and fields), from dispatch until it is
+//! done; the workspace counts in the budget's total (`mpiflow_buffered_bytes`), not in the
+//! stream's share, so the samples being made are within the budget too and the shares still
+//! divide what clients are sent. No job starts unless its reservation and its workspace fit what
+//! the budget has left; a request whose largest sample's workspace and bound are over the budget is
+//! refused before any work (`service::work::admit_workspace`). Within that, a stream may start a job while what it
 //! holds plus the reservation stays within its fair share, `budget / peers with open streams /
-//! the peer's open streams`; a stream holding nothing may start one job whatever its peer holds
-//! (a client's second stream is not kept waiting by its first). Beyond its share a stream may go on while the budget has room, but only
+//! the peer's open streams`; a stream holding nothing may start one while its peer holds less
+//! than the peer's share. Beyond its share a stream may go on while the budget has room, but only
 //! the client first in line (the one whose next job would finish first on the virtual clock,
 //! below) may take the budget's last [`HEADROOM_DIVISOR`]th: a client reading small samples
 //! quickly among many that asked for clips and left them unread finds room at once, instead of
@@ -78,26 +73,17 @@
 //! the next sample to send), so a batch larger than the share is sent in parts.
 //!
 //! A message in the transport cannot be dropped. When a stream may not start for want of room
-//! while it holds less than its share, or nothing, or its peer less than the peer's share, the
-//! dispatch reclaims it ([`Scheduler::reclaim`]): the other streams over their share drop finished
-//! samples down to it, and for a stream whose own message is taken, the streams whose message has
-//! waited in the transport for [`UNREAD_GRACE`] while their connection took none of its bytes
-//! drop every finished sample (of any peer, its own included: a client's stalled streams do not
-//! keep its stream that reads waiting). For a peer under its share, a connection of another peer
-//! over its share whose message has so waited is closed (the client that stopped reading, the
-//! unary replies never read, the window never granted; only DATA taken counts, never a PING ACK:
-//! `service::progress`), and no sample starts for that client for [`PENALTY_FIRST`] (doubled at
-//! each repeat, up to [`PENALTY_MAX`]): a client that never reads cannot keep the workers making
-//! samples for it by reconnecting. A stream holding nothing that may not start even once the
-//! running jobs are done and that has been done has its own client's connections whose message
-//! has so waited closed, as many as its job needs, with no time out (its client reads): a stream
-//! that reads makes progress whatever its client's stalled streams hold in the transport, and the
-//! workspace of samples being made never leaves a small budget waiting for room no one gives
-//! back. A client that reads, however slowly, is never closed for room. Stream slots come back
-//! the same way: a newcomer refused because every slot of `max_streams` is taken closes the
-//! connection of a stream whose message has so waited ([`Scheduler::stalled_holder`]). A unary
-//! reply (GetSample) keeps its stream, and so its bytes, until the reply has left
-//! (`service::reply`).
+//! while its peer holds less than its share, the dispatch reclaims it ([`Scheduler::reclaim`]):
+//! peers over their share drop finished samples, and a connection whose message has waited in
+//! the transport for [`UNREAD_GRACE`] while its client took none of its bytes is closed (the
+//! client that stopped reading, the unary replies never read, the window never granted; only
+//! DATA taken counts, never a PING ACK: `service::progress`), and no
+//! sample starts for that client for [`PENALTY_FIRST`] (doubled at each repeat, up to
+//! [`PENALTY_MAX`]): a client that never reads cannot keep the workers making samples for it by
+//! reconnecting. A client that reads, however slowly, is never closed for room. Stream slots
+//! come back the same way: a newcomer refused because every slot of `max_streams` is taken
+//! closes the connection of a stream whose message has so waited ([`Scheduler::stalled_holder`]). A unary reply (GetSample) keeps
+//! its stream, and so its bytes, until the reply has left (`service::reply`).
 //!
 //! # Fairness by cost
 //!
@@ -145,7 +131,7 @@ use super::peer::PeerKey;
 pub use meter::FIRST_NS_PER_UNIT;
 pub use sched::CREDIT;
 pub use sched::{HEADROOM_DIVISOR, OTHERS_SHARE, PENALTY_FIRST, PENALTY_MAX};
-pub use scheduler::{PeerUse, SampleStream, Scheduler, SchedulerStats, SLOT_TAKEN_BACK};
+pub use scheduler::{PeerUse, SampleStream, Scheduler, SchedulerStats};
 pub use stream::StreamShared;
 
 pub(super) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {

@@ -13,7 +13,7 @@ use tokio_stream::Stream;
 use tonic::Status;
 
 use crate::service::conn::Activity;
-use crate::service::error::{panic_message, with_cursor, Reason, ServiceError};
+use crate::service::error::{panic_message, with_cursor, ServiceError};
 use crate::service::metrics::Metrics;
 use crate::service::pb;
 use crate::service::peer::PeerKey;
@@ -23,9 +23,6 @@ use super::sched::{Busy, Pick, Ready, Sched, Tag, CREDIT, HEADROOM_DIVISOR, MAX_
 use super::stream::{PeerGroup, StreamShared, StreamState};
 use super::workers::Workers;
 use super::{lock, Client, Item, Produce, StreamSpec, TICK, UNREAD_GRACE};
-
-mod reclaim;
-
 /// The workers and the dispatch state shared by all streams.
 pub struct Scheduler {
     pool: Workers,
@@ -285,7 +282,6 @@ impl Scheduler {
                     waker: None,
                     closed: false,
                     draining: false,
-                    taken_back: false,
                 }),
             });
             s.streams.push(shared.clone());
@@ -356,7 +352,14 @@ impl Scheduler {
     /// others (new clients, and those that stopped reading) share [`OTHERS_SHARE`] of them while
     /// a client that reads waits ([`Scheduler::next_eligible`]).
     fn reading(group: &PeerGroup, of_peer: &[&Arc<StreamShared>], struck: bool) -> bool {
-        !struck && group.took.load(Ordering::Acquire) && !of_peer.iter().any(|st| st.unread(&lock(&st.state)))
+        !struck
+            && group.took.load(Ordering::Acquire)
+            && !of_peer.iter().any(|st| {
+                let g = lock(&st.state);
+                g.in_transport > 0
+                    && g.in_transport_since.elapsed() >= UNREAD_GRACE
+                    && st.conn.as_ref().is_none_or(|c| c.not_taken_for() >= UNREAD_GRACE)
+            })
     }
 
     /// Each peer's first stream that `pick` takes, with its next job's finish tag on the virtual
@@ -449,41 +452,60 @@ impl Scheduler {
             candidates.iter().filter(|t| t.reading == reading).min_by_key(|t| (t.finish, t.peer)).cloned()
         };
         let tag = if others_turn { best(false).or_else(|| best(true)) } else { best(true) }?;
-        // the job first in line that waits only for the workspace of the jobs running now goes
-        // before any other once they are done: a sample whose workspace takes much of the
-        // budget is not kept waiting for ever by smaller ones that always fit
-        if let Some(head) = self.head_waiting_for_workspace(s, now, first, others_turn) {
-            if !Arc::ptr_eq(&head, &tag.stream) {
-                return None;
-            }
-        }
         s.vclock = tag.start;
         tag.stream.group.used.store(tag.finish, Ordering::Release);
         s.rr_in_peer.insert(tag.peer, tag.stream.id);
         Some(Pick { stream: tag.stream, finish: tag.finish, cost: tag.finish - tag.start, others: !tag.reading })
     }
 
-    /// The stream of the job the dispatch would start next if the jobs running now had freed
-    /// their samples' workspace, when that job may not start now: the dispatch starts nothing
-    /// else until it may (a running job always ends, so it waits at most until they have).
-    fn head_waiting_for_workspace(
-        &self,
-        s: &Sched,
-        now: Instant,
-        first: Option<PeerKey>,
-        others_turn: bool,
-    ) -> Option<Arc<StreamShared>> {
-        let making = self.making.load(Ordering::Acquire);
-        if making == 0 {
-            return None;
+    /// Makes room for a stream that may not start for want of it while its peer holds less than
+    /// its share: the streams of peers over their share drop their finished samples down to
+    /// their share (made again when read), and a connection whose message has waited in the
+    /// transport for [`UNREAD_GRACE`], its client taking none of its bytes as long, is closed
+    /// (its calls end, their bytes are freed) and its client put in time out ([`Penalty`]).
+    fn reclaim(&self, s: &mut Sched) {
+        if s.draining {
+            return;
         }
-        let (room, freed) = (self.room(), self.room().saturating_add(making));
-        let spare = |st: &StreamShared, r: u64| self.spare(r, Some(st.peer) == first);
-        let wanting = self.tags(s, now, |st, g| st.eligible(g, freed, spare(st, freed)));
-        let best = |reading: bool| wanting.iter().filter(|t| t.reading == reading).min_by_key(|t| (t.finish, t.peer));
-        let head = if others_turn { best(false).or_else(|| best(true)) } else { best(true) }?;
-        let may_now = head.stream.eligible(&lock(&head.stream.state), room, spare(&head.stream, room));
-        (!may_now).then(|| head.stream.clone())
+        let room = self.room();
+        let first = self.first_in_line(s, Instant::now());
+        let starving = s.streams.iter().any(|st| {
+            let g = lock(&st.state);
+            st.group.held.load(Ordering::Acquire) < st.group.share.load(Ordering::Acquire)
+                && !st.eligible(&g, room, self.spare(room, Some(st.peer) == first))
+                && st.eligible(&g, u64::MAX, u64::MAX)
+        });
+        if !starving {
+            return;
+        }
+        let mut cut = Vec::new();
+        for st in &s.streams {
+            if st.group.held.load(Ordering::Acquire) <= st.group.share.load(Ordering::Acquire) {
+                continue;
+            }
+            let mut g = lock(&st.state);
+            if g.held > st.share.load(Ordering::Acquire) {
+                self.trim(st, &mut g);
+            }
+            let unread = g.in_transport > 0 && g.in_transport_since.elapsed() >= UNREAD_GRACE;
+            drop(g);
+            if let Some(conn) = st.conn.as_ref().filter(|c| unread && !c.is_cut()) {
+                if conn.not_taken_for() >= UNREAD_GRACE {
+                    tracing::info!(
+                        peer = %st.peer,
+                        stream = st.id,
+                        grace_ms = UNREAD_GRACE.as_millis() as u64,
+                        "connection closed: it holds made samples it does not take, and another client needs the room"
+                    );
+                    self.metrics.holders_cut.inc();
+                    conn.cut();
+                    cut.push(st.peer);
+                }
+            }
+        }
+        for peer in cut {
+            s.penalise(peer);
+        }
     }
 
     /// The connection to close so that a client (`newcomer`) refused a stream slot gets one: of
@@ -507,39 +529,6 @@ impl Scheduler {
             .collect();
         let of_peer = |p: PeerKey| stalled.iter().filter(|(q, ..)| *q == p).count();
         stalled.iter().max_by_key(|(p, waited, _)| (of_peer(*p), *waited)).map(|(.., c)| c.clone())
-    }
-
-    /// Takes a stream slot back from `peer` for a client that needs one: of its streams that
-    /// `holds_slot` names, the one that has sent the least (the newest among equals) starts
-    /// nothing more and ends, once its running job is done and what it has made is sent, with
-    /// RESOURCE_EXHAUSTED and its cursor ([`SLOT_TAKEN_BACK`]). Whether there was one.
-    pub fn take_back_slot(&self, peer: PeerKey, holds_slot: impl Fn(u64) -> bool) -> bool {
-        let pick = {
-            let s = lock(&self.inner);
-            s.streams
-                .iter()
-                .filter(|st| st.peer == peer && holds_slot(st.id))
-                .filter_map(|st| {
-                    // a stream whose message waits in a transport that has taken nothing since
-                    // would not be polled to end: such holders are closed instead (`stalled_holder`)
-                    let g = lock(&st.state);
-                    let since = g.in_transport_since.elapsed();
-                    let ends = g.in_transport == 0 || st.conn.as_ref().is_none_or(|c| c.not_taken_for() < since);
-                    (!g.closed && !g.taken_back && ends).then(|| ((g.delivered, std::cmp::Reverse(st.id)), st.clone()))
-                })
-                .min_by_key(|(key, _)| *key)
-                .map(|(_, st)| st)
-        };
-        let Some(st) = pick else { return false };
-        let waker = {
-            let mut g = lock(&st.state);
-            g.taken_back = true;
-            g.waker.take()
-        };
-        if let Some(w) = waker {
-            w.wake();
-        }
-        true
     }
 
     /// Sets every peer's and stream's share of the budget: budget / peers with open streams,
@@ -573,18 +562,12 @@ impl Scheduler {
 
     /// Brings a stream back within its share (its state locked by the caller): while it holds
     /// more, it drops its newest finished sample from the end of what it has dispatched (a
-    /// running job there stops it) and will make it again, byte for byte, when it reads on; never
-    /// the next sample to send (a stream always gets to send one).
+    /// running job there stops it) and will make it again, byte for byte, when it reads on.
     fn trim(&self, st: &StreamShared, g: &mut StreamState) {
-        self.shed(st, g, st.share.load(Ordering::Acquire), 1);
-    }
-
-    /// Drops the stream's newest finished samples (its state locked by the caller) while it holds
-    /// more than `limit`, keeping the `keep` next to send; they are made again, byte for byte,
-    /// when it reads on, and it makes no more ahead until it sends a message.
-    fn shed(&self, st: &StreamShared, g: &mut StreamState, limit: u64, keep: u64) {
+        let share = st.share.load(Ordering::Acquire);
         let mut freed = 0u64;
-        while g.held > limit && g.dispatched > g.delivered + keep {
+        // never the next sample to send (a stream always gets to send one)
+        while g.held > share && g.dispatched > g.delivered + 1 {
             let top = g.dispatched - 1;
             let Some(item) = g.ready.remove(&top) else { break }; // still running
             let size = match &item {
@@ -797,11 +780,6 @@ impl Scheduler {
     }
 }
 
-/// The status of a stream whose slot was taken back for another client
-/// ([`Scheduler::take_back_slot`]).
-pub const SLOT_TAKEN_BACK: &str = "stream slot taken back: this client holds more than its share of max_streams while \
-                                    another client needs one; resume from the cursor when one of its streams has ended";
-
 /// The consumer side of a stream: yields batches in index order as tonic polls it. Dropping it
 /// (the client went away) closes the stream.
 pub struct SampleStream {
@@ -864,7 +842,7 @@ impl Stream for SampleStream {
         while contiguous < want && matches!(g.ready.get(&(g.delivered + contiguous as u64)), Some(Ok(_))) {
             contiguous += 1;
         }
-        let drained = (g.draining || g.taken_back) && g.running == 0;
+        let drained = g.draining && g.running == 0;
         // at its share of the budget, with nothing running, a stream sends the batch it has
         // (the room a client first in line may take beyond its share is not counted here: the
         // dispatch, which knows who is first, does not run under a stream's lock)
@@ -907,14 +885,9 @@ impl Stream for SampleStream {
         }
         if drained {
             let delivered = g.delivered;
-            let e = if g.taken_back {
-                ServiceError::LimitExceeded(Reason::TooManyStreams, SLOT_TAKEN_BACK.into())
-            } else {
-                ServiceError::Draining
-            };
             g.closed = true;
             drop(g);
-            return self.end_with(e.into(), delivered);
+            return self.end_with(ServiceError::Draining.into(), delivered);
         }
         g.waker = Some(cx.waker().clone());
         Poll::Pending

@@ -8,7 +8,7 @@ use std::task::Waker;
 use std::time::Instant;
 
 use super::meter::Rate;
-use super::{lock, Item, Produce, StreamSpec, UNREAD_GRACE};
+use super::{lock, Item, Produce, StreamSpec};
 use crate::service::conn::Activity;
 use crate::service::peer::PeerKey;
 
@@ -42,9 +42,6 @@ pub(super) struct StreamState {
     /// The consumer is gone or the stream ended.
     pub(super) closed: bool,
     pub(super) draining: bool,
-    /// Its stream slot was taken back for another client (`Scheduler::take_back_slot`): it
-    /// starts nothing more, sends what is made and ends with RESOURCE_EXHAUSTED and its cursor.
-    pub(super) taken_back: bool,
 }
 
 /// The bytes held by all streams of one peer (client address), shared by them.
@@ -131,7 +128,6 @@ impl StreamShared {
     pub(super) fn eligible(&self, s: &StreamState, room: u64, spare: u64) -> bool {
         if s.closed
             || s.draining
-            || s.taken_back
             || s.dispatched >= self.len
             || (s.dispatched - s.delivered) >= self.spec.prefetch as u64
         {
@@ -157,19 +153,10 @@ impl StreamShared {
         }
         // beyond its share a stream may go on while the budget has spare room: the shares decide
         // who gets the room back when a client waits for it (`Scheduler::reclaim`), not who
-        // idles; a stream holding nothing may start one job (so a new client gets going even
-        // when its share is smaller than one sample, and a client's second stream is not kept
-        // waiting for ever by its first, which holds the peer's share)
-        let may_exceed = holds_nothing || (!s.trimmed && s.estimate > 0);
+        // idles; a stream holding nothing may start one job while its peer holds less than its
+        // share (so a new client gets going even when its share is smaller than one sample)
+        let may_exceed = if holds_nothing { peer_held < peer_share } else { !s.trimmed && s.estimate > 0 };
         may_exceed && need <= spare
-    }
-
-    /// Whether the stream's client does not take what it was sent: its message has waited in the
-    /// transport for [`UNREAD_GRACE`] while its connection took none of its bytes as long.
-    pub(super) fn unread(&self, s: &StreamState) -> bool {
-        s.in_transport > 0
-            && s.in_transport_since.elapsed() >= UNREAD_GRACE
-            && self.conn.as_ref().is_none_or(|c| c.not_taken_for() >= UNREAD_GRACE)
     }
 
     /// (dispatched, delivered, produced, queued) for tests and diagnostics.

@@ -1,7 +1,6 @@
 //! A call's place under its limits: `max_streams` (over all clients and half of it per client)
 //! and `max_random_access_calls`, the slot given back with the call's stream or reply; a slot of
-//! `max_streams` taken back from a stream that makes no progress when another client needs one,
-//! else from the client holding more than an even share of them;
+//! `max_streams` taken back from a stream that makes no progress when another client needs one;
 //! a call's client, and the refusal of a call (counted and logged).
 
 use std::pin::Pin;
@@ -72,11 +71,7 @@ impl State {
     /// connection took no DATA as long (`Scheduler::stalled_holder`: a zero window, a socket
     /// never read), checking again whenever a slot comes back and every [`CHECK_EVERY`]; that
     /// stream's connection is closed (its streams end with their slots) and the newcomer waits
-    /// up to [`SLOT_WAIT`] more for a slot. Failing that, the client holding more than an even
-    /// share of the slots ([`State::slot_hog`]) gives one back (`Scheduler::take_back_slot`:
-    /// its stream that has sent the least ends with RESOURCE_EXHAUSTED and its cursor), so that
-    /// streams whose first sample is never made or never sent cannot keep every newcomer out.
-    /// Whether a slot came back.
+    /// up to [`SLOT_WAIT`] more for a slot. Whether a slot came back.
     pub(super) async fn reclaim_stream_slot(&self, newcomer: PeerKey) -> bool {
         let limit = self.config.max_streams;
         let until = tokio::time::Instant::now() + SLOT_WAIT;
@@ -101,16 +96,6 @@ impl State {
                 holder.cut();
                 return self.slot_back(limit).await;
             }
-            if let Some(hog) = self.slot_hog(newcomer) {
-                let taken = {
-                    let slots = self.slot_streams.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-                    self.scheduler.take_back_slot(hog, |id| slots.contains(&id))
-                };
-                if taken {
-                    tracing::info!(peer = %hog, for_peer = %newcomer, "stream slot taken back: the client holds more than its share");
-                    return self.slot_back(limit).await;
-                }
-            }
             if tokio::time::Instant::now() >= until {
                 return false;
             }
@@ -120,21 +105,6 @@ impl State {
                 () = tokio::time::sleep_until(tick) => {}
             }
         }
-    }
-
-    /// The client to take a stream slot back from for `newcomer`: the one holding the most, when
-    /// that is more than an even share of `max_streams` over the clients holding slots and the
-    /// newcomer, and the newcomer holds less than that share.
-    fn slot_hog(&self, newcomer: PeerKey) -> Option<PeerKey> {
-        let of_peer = self.streams_per_peer.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        let mine = of_peer.get(&newcomer).copied().unwrap_or(0);
-        let clients = of_peer.len() + usize::from(mine == 0);
-        let share = (self.config.max_streams / clients.max(1)).max(1);
-        if mine >= share {
-            return None;
-        }
-        let (hog, n) = of_peer.iter().filter(|(p, _)| **p != newcomer).max_by_key(|(p, n)| (**n, **p))?;
-        (*n > share).then_some(*hog)
     }
 
     /// Waits up to [`SLOT_WAIT`] for fewer than `limit` streams to be open; whether they are.

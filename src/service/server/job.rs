@@ -106,13 +106,10 @@ impl State {
         validate::outputs_fit_motion(&spec.out, generator.config())?;
         let bound = validate::admit_size(&spec.out, spec.frames(), &self.config, self.scheduler.budget())?;
         let work = work::admit(&spec.out, spec.frames(), generator.config().resample, &self.config)?;
-        let budget = self.scheduler.budget();
-        let workspace = work::admit_workspace(&spec.out, spec.frames(), bound, &self.config, budget)?;
         let (dataset, fingerprint, seed) = (ds.name.clone(), generator.fingerprint(), spec.seed);
         let mut produce = self.produce(ds, generator, seed, spec.out);
         produce.bound = bound;
         produce.work = work;
-        produce.workspace = workspace;
         Ok(Prepared { dataset, fingerprint, seed, produce })
     }
 }
