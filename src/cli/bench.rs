@@ -319,6 +319,7 @@ fn real_view_table(
     base: &mpiflow::sample::config::SampleConfig,
     q: &QualityBench,
     right: &std::path::Path,
+    kernels: &[mpiflow::render::Resample],
 ) -> Result<(), CliError> {
     use mpiflow::bench::realview::RealView;
     use mpiflow::io::image::{load_rgb, rgb_to_u8, ImageLimits};
@@ -345,20 +346,29 @@ fn real_view_table(
             ))
         })?;
     let law = view.law(view.default_fx(), q.focal_baseline);
-    let c = SampleConfig { motion: MotionSpec::Ranges(Box::new(law)), max_objects: 0, ..base.clone() };
-    let g = p.generator().with_config(c).map_err(|e| CliError(e.to_string()))?;
     let src = p.source();
     let item = (0..src.len()).find(|&i| std::path::Path::new(&src.id(i)).file_stem().is_some_and(|n| n == stem));
     let item = item.ok_or_else(|| CliError(format!("--right-view: the source has no photo named {stem}")))?;
-    let s = g.sample(q.seed, item as u64).map_err(|e| CliError(e.to_string()))?;
-    let r = view
-        .compare(&s)
-        .ok_or_else(|| CliError("--right-view: the sample's size differs from the right view".into()))?;
     println!(
-        "| real view | MAE /255 (pair floor) | sharpness vs the right photo | flow EPE px vs measured disparity |"
+        "| real view | kernel | MAE /255 (pair floor) | sharpness vs the right photo | flow EPE px vs measured disparity |"
     );
-    println!("|---|---|---|---|");
-    println!("| {} | {:.2} ({:.2}) | {:.3} | {:.4} |", right.display(), r.mae, r.floor, r.sharpness, r.epe);
+    println!("|---|---|---|---|---|");
+    // one row per colour kernel (the motion is the right camera's, the same for each)
+    for &resample in kernels {
+        let c = SampleConfig {
+            motion: MotionSpec::Ranges(Box::new(law.clone())),
+            max_objects: 0,
+            resample,
+            ..base.clone()
+        };
+        let g = p.generator().with_config(c).map_err(|e| CliError(e.to_string()))?;
+        let s = g.sample(q.seed, item as u64).map_err(|e| CliError(e.to_string()))?;
+        let r = view
+            .compare(&s)
+            .ok_or_else(|| CliError("--right-view: the sample's size differs from the right view".into()))?;
+        let (mae, floor, sharp, epe) = (r.mae, r.floor, r.sharpness, r.epe);
+        println!("| {} | {resample} | {mae:.2} ({floor:.2}) | {sharp:.3} | {epe:.4} |", right.display());
+    }
     Ok(())
 }
 
@@ -425,7 +435,7 @@ fn quality(q: QualityBench) -> Result<(), CliError> {
     };
     scene_line(p.generator(), p.source().len())?;
     if let Some(right) = &q.right_view {
-        real_view_table(&p, &base, &q, right)?;
+        real_view_table(&p, &base, &q, right, &kernels)?;
     }
     if q.sharpness {
         // every kernel on the same motions (the addresses of the base configuration)

@@ -68,7 +68,7 @@ fn every_vector_path_makes_the_baselines_bytes() {
     let true_depth =
         Pipeline::new(source, Arc::new(models.build_stage().unwrap()), Arc::new(SceneCache::new(1 << 30)), config)
             .unwrap();
-    let kernels = [Resample::Bilinear, Resample::Bspline3, Resample::Bicubic];
+    let kernels = [Resample::Bilinear, Resample::Bspline3, Resample::Bicubic, Resample::Omoms3];
     let mut baseline: Option<(Vec<Vec<u8>>, Vec<u8>)> = None;
     for &isa in &paths {
         isa::force(isa).unwrap();
